@@ -1,0 +1,72 @@
+# isochron: the two commands of the README are `make run` and `make test`.
+# Everything they need is installed here (`make deps`), never by hand.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := help
+
+CARGO ?= cargo
+BIND ?= 127.0.0.1:8080
+
+# System packages the build and the tests need (Debian names).
+APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
+            gcc-avr avr-libc binutils-avr libsimavr-dev \
+            chromium
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: help deps apt-deps web-deps web run test test-rust test-web lint bench build release
+
+help:
+	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
+	@echo "make test   install what is missing, then formatting, lints and every test"
+	@echo "make bench  criterion benches and 'isochron bench'"
+	@echo "make deps   install missing system and npm packages (idempotent)"
+
+## deps: install only what is missing.
+deps: apt-deps web-deps
+
+apt-deps:
+	@missing=""; \
+	for p in $(APT_PKGS); do \
+	  dpkg-query -W -f='$${Status}' "$$p" 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "make deps: installing$$missing"; \
+	  $(SUDO) apt-get update -qq; \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+web-deps: web/node_modules/.package-lock.json
+
+web/node_modules/.package-lock.json: web/package.json web/package-lock.json
+	cd web && npm ci --no-audit --no-fund
+	@touch $@
+
+## web: the dashboard, built into web/dist (served by `isochron serve`).
+web: web-deps
+	cd web && npm run build
+
+build: deps
+	$(CARGO) build --workspace
+
+release: deps
+	$(CARGO) build --release --bin isochron
+
+run: deps web release
+	@echo "isochron: the simulated lab and dashboard at http://$(BIND)/ (Ctrl-C stops)"
+	./target/release/isochron serve --bind $(BIND)
+
+lint: deps
+	$(CARGO) fmt --all -- --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+
+test-web: web
+	cd web && npm run typecheck && npm test
+
+test-rust: deps
+	$(CARGO) test --workspace
+
+test: lint test-web test-rust
+
+bench: deps
+	$(CARGO) bench --workspace

@@ -1,0 +1,12 @@
+//! isochron's real-time core: one module per part of the paper.
+//!
+//! Every algorithm here is a step function that takes explicit timestamps and owns
+//! no thread, socket or clock (DESIGN.md, principle 1). Nothing here depends on an
+//! async runtime or a web framework; the `server` crate depends on this one, never
+//! the reverse.
+//!
+//! | Module | Part of the paper |
+//! |---|---|
+//! | [`params`] | typed, validated parameters and scenario files |
+
+pub mod params;

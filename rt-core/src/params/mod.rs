@@ -1,0 +1,454 @@
+#![doc = include_str!("README.md")]
+
+pub mod check;
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// A parameter that was refused, naming the field, the value and the bound.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ParamError {
+    /// A value outside its allowed range.
+    #[error("{field} = {value} is out of range: {bound}")]
+    OutOfRange {
+        /// Dotted path of the field, e.g. `pendulum.length_m`.
+        field: String,
+        /// The refused value, as written.
+        value: String,
+        /// The bound it broke, e.g. `must be > 0`.
+        bound: String,
+    },
+    /// NaN or an infinity.
+    #[error("{field} = {value} is not a finite number")]
+    NotFinite {
+        /// Dotted path of the field.
+        field: String,
+        /// The refused value.
+        value: String,
+    },
+    /// A `[lo, hi]` range with `lo > hi`.
+    #[error("{field} = [{lo}, {hi}] is reversed: the first value must not exceed the second")]
+    Reversed {
+        /// Dotted path of the field.
+        field: String,
+        /// First value.
+        lo: f64,
+        /// Second value.
+        hi: f64,
+    },
+    /// The file could not be parsed (syntax, wrong type, unknown key).
+    #[error("{0}")]
+    Parse(String),
+    /// The file could not be read.
+    #[error("cannot read {path}: {reason}")]
+    Io {
+        /// The path that was asked for.
+        path: String,
+        /// The operating system's reason.
+        reason: String,
+    },
+}
+
+impl ParamError {
+    /// The dotted field path this error is about, when it is about one field.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            Self::OutOfRange { field, .. }
+            | Self::NotFinite { field, .. }
+            | Self::Reversed { field, .. } => Some(field),
+            Self::Parse(_) | Self::Io { .. } => None,
+        }
+    }
+}
+
+/// A closed interval `[lo, hi]` from which a value is drawn per trial.
+///
+/// In TOML it is written `[lo, hi]` or as a single number (then `lo == hi`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(into = "[f64; 2]")]
+pub struct RangeParam {
+    /// Lower end (inclusive).
+    pub lo: f64,
+    /// Upper end (inclusive).
+    pub hi: f64,
+}
+
+impl RangeParam {
+    /// A range from `lo` to `hi`.
+    pub const fn new(lo: f64, hi: f64) -> Self {
+        Self { lo, hi }
+    }
+
+    /// A range holding one value.
+    pub const fn fixed(v: f64) -> Self {
+        Self { lo: v, hi: v }
+    }
+
+    /// Checks both ends with `each` and that the range is not reversed.
+    pub fn validate_with(
+        &self,
+        field: &str,
+        each: impl Fn(&str, f64) -> Result<(), ParamError>,
+    ) -> Result<(), ParamError> {
+        each(field, self.lo)?;
+        each(field, self.hi)?;
+        if self.lo > self.hi {
+            return Err(ParamError::Reversed {
+                field: field.to_owned(),
+                lo: self.lo,
+                hi: self.hi,
+            });
+        }
+        Ok(())
+    }
+
+    /// The point at fraction `u` in `[0, 1]` of the range.
+    pub fn lerp(&self, u: f64) -> f64 {
+        self.lo + (self.hi - self.lo) * u
+    }
+}
+
+impl From<RangeParam> for [f64; 2] {
+    fn from(r: RangeParam) -> Self {
+        [r.lo, r.hi]
+    }
+}
+
+impl<'de> Deserialize<'de> for RangeParam {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Repr {
+            One(f64),
+            Two([f64; 2]),
+        }
+        match Repr::deserialize(d) {
+            Ok(Repr::One(v)) => Ok(Self::fixed(v)),
+            Ok(Repr::Two([lo, hi])) => Ok(Self::new(lo, hi)),
+            Err(_) => Err(serde::de::Error::custom(
+                "expected a number or a two-element array [lo, hi]",
+            )),
+        }
+    }
+}
+
+/// The pendulum: `[pendulum]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PendulumParams {
+    /// Pivot to ball centre, metres (paper: 1.93 m).
+    pub length_m: f64,
+    /// Viscous damping alpha in phi'' = -(g/l) sin(phi) - alpha phi', 1/s.
+    pub damping_per_s: f64,
+    /// Gravity, m/s^2.
+    pub gravity_mps2: f64,
+    /// Ball radius, metres (tennis ball: 0.0335 m).
+    pub ball_radius_m: f64,
+    /// Release angle drawn uniformly per trial, degrees from the vertical.
+    pub release_angle_deg: RangeParam,
+}
+
+impl Default for PendulumParams {
+    fn default() -> Self {
+        Self {
+            length_m: 1.93,
+            damping_per_s: 0.03,
+            gravity_mps2: 9.81,
+            ball_radius_m: 0.0335,
+            release_angle_deg: RangeParam::new(15.0, 35.0),
+        }
+    }
+}
+
+impl PendulumParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within("pendulum.length_m", self.length_m, 0.1, 10.0)?;
+        check::within("pendulum.damping_per_s", self.damping_per_s, 0.0, 5.0)?;
+        check::within("pendulum.gravity_mps2", self.gravity_mps2, 0.1, 100.0)?;
+        check::within("pendulum.ball_radius_m", self.ball_radius_m, 0.005, 0.2)?;
+        self.release_angle_deg
+            .validate_with("pendulum.release_angle_deg", |f, v| {
+                check::within(f, v, 1.0, 60.0)
+            })
+    }
+}
+
+/// The interception task: `[task]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TaskParams {
+    /// Horizontal distance robot base axis -> intercept point, drawn per trial, metres.
+    pub distance_m: RangeParam,
+    /// Height of the intercept point (the ball at rest) above the robot base, metres.
+    pub intercept_height_m: f64,
+    /// Tool point at the start of every motion, robot base frame, metres.
+    pub home_m: [f64; 3],
+    /// Tool point along the flange's z axis, metres.
+    pub tool_length_m: f64,
+    /// Duration of the interception motion, seconds.
+    pub movement_time_s: f64,
+}
+
+impl Default for TaskParams {
+    fn default() -> Self {
+        Self {
+            distance_m: RangeParam::new(0.35, 0.80),
+            intercept_height_m: 0.30,
+            home_m: [0.30, 0.0, 0.50],
+            tool_length_m: 0.10,
+            movement_time_s: 1.5,
+        }
+    }
+}
+
+impl TaskParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        self.distance_m
+            .validate_with("task.distance_m", |f, v| check::within(f, v, 0.1, 1.2))?;
+        check::within(
+            "task.intercept_height_m",
+            self.intercept_height_m,
+            -0.5,
+            1.5,
+        )?;
+        for (i, v) in self.home_m.iter().enumerate() {
+            check::within(&format!("task.home_m[{i}]"), *v, -1.2, 1.5)?;
+        }
+        check::within("task.tool_length_m", self.tool_length_m, 0.0, 0.5)?;
+        check::within("task.movement_time_s", self.movement_time_s, 0.3, 10.0)
+    }
+}
+
+/// How the simulated camera produces measurements.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VisionMode {
+    /// Render frames and run the OpenCV detector on them.
+    Full,
+    /// A noisy projection of the true ball: no images (fast).
+    Model,
+}
+
+/// The camera: `[camera]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CameraParams {
+    /// Frames per second.
+    pub fps: f64,
+    /// Image width, pixels.
+    pub width_px: u32,
+    /// Image height, pixels.
+    pub height_px: u32,
+    /// Capture -> measurement available, milliseconds.
+    pub latency_ms: f64,
+    /// Standard deviation of pixel intensity noise, 0..255.
+    pub image_noise: f64,
+    /// Fraction of frames lost, 0..1.
+    pub drop_rate: f64,
+    /// `full` (render + OpenCV) or `model` (noisy projection).
+    pub vision: VisionMode,
+}
+
+impl Default for CameraParams {
+    fn default() -> Self {
+        Self {
+            fps: 30.0,
+            width_px: 1280,
+            height_px: 720,
+            latency_ms: 35.0,
+            image_noise: 6.0,
+            drop_rate: 0.02,
+            vision: VisionMode::Full,
+        }
+    }
+}
+
+impl CameraParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within("camera.fps", self.fps, 1.0, 500.0)?;
+        check::within_u32("camera.width_px", self.width_px, 64, 7680)?;
+        check::within_u32("camera.height_px", self.height_px, 48, 4320)?;
+        check::within("camera.latency_ms", self.latency_ms, 0.0, 1000.0)?;
+        check::within("camera.image_noise", self.image_noise, 0.0, 255.0)?;
+        check::probability("camera.drop_rate", self.drop_rate)?;
+        if self.drop_rate > 0.9 {
+            return Err(check::out_of_range(
+                "camera.drop_rate",
+                self.drop_rate,
+                "must be <= 0.9 (the ball must be seen)",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The robot and its FRI link: `[robot]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RobotParams {
+    /// FRI send period of the controller, whole milliseconds (1..100).
+    pub fri_period_ms: u32,
+    /// True command-to-motion delay of the simulated robot, ms (unknown to the controller).
+    pub latency_ms: f64,
+    /// Jitter of that delay, ms (unknown to the controller).
+    pub latency_jitter_ms: f64,
+}
+
+impl Default for RobotParams {
+    fn default() -> Self {
+        Self {
+            fri_period_ms: 5,
+            latency_ms: 8.0,
+            latency_jitter_ms: 2.0,
+        }
+    }
+}
+
+impl RobotParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within_u32("robot.fri_period_ms", self.fri_period_ms, 1, 100)?;
+        check::within("robot.latency_ms", self.latency_ms, 0.0, 200.0)?;
+        check::within("robot.latency_jitter_ms", self.latency_jitter_ms, 0.0, 50.0)
+    }
+}
+
+/// How a trial is judged: `[success]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SuccessParams {
+    /// Largest tool-to-ball distance at t* that counts as a hit, metres.
+    pub position_tolerance_m: f64,
+    /// Largest |arrival - t*| that counts as timed precisely, milliseconds.
+    pub timing_tolerance_ms: f64,
+}
+
+impl Default for SuccessParams {
+    fn default() -> Self {
+        Self {
+            position_tolerance_m: 0.02,
+            timing_tolerance_ms: 20.0,
+        }
+    }
+}
+
+impl SuccessParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within(
+            "success.position_tolerance_m",
+            self.position_tolerance_m,
+            1e-4,
+            0.5,
+        )?;
+        check::within(
+            "success.timing_tolerance_ms",
+            self.timing_tolerance_ms,
+            0.1,
+            1000.0,
+        )
+    }
+}
+
+/// A whole scenario: the lab the system runs in (CONTRACT.md, "Scenario file").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Scenario {
+    /// Short name, shown in summaries.
+    pub name: String,
+    /// The pendulum.
+    pub pendulum: PendulumParams,
+    /// The interception task.
+    pub task: TaskParams,
+    /// The camera.
+    pub camera: CameraParams,
+    /// The robot and its FRI link.
+    pub robot: RobotParams,
+    /// How trials are judged.
+    pub success: SuccessParams,
+}
+
+impl Default for Scenario {
+    fn default() -> Self {
+        Self {
+            name: "paper".to_owned(),
+            pendulum: PendulumParams::default(),
+            task: TaskParams::default(),
+            camera: CameraParams::default(),
+            robot: RobotParams::default(),
+            success: SuccessParams::default(),
+        }
+    }
+}
+
+impl Scenario {
+    /// Checks every section; the error names the first bad field.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        if self.name.is_empty() || self.name.len() > 64 {
+            return Err(ParamError::OutOfRange {
+                field: "name".to_owned(),
+                value: format!("{:?}", self.name),
+                bound: "must be 1..=64 characters".to_owned(),
+            });
+        }
+        self.pendulum.validate()?;
+        self.task.validate()?;
+        self.camera.validate()?;
+        self.robot.validate()?;
+        self.success.validate()
+    }
+
+    /// Parses and validates a scenario from TOML text. Unknown keys are refused.
+    pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
+        let scenario: Self = toml::from_str(text).map_err(|e| toml_error(text, &e))?;
+        scenario.validate()?;
+        Ok(scenario)
+    }
+
+    /// Reads, parses and validates a scenario file.
+    pub fn from_file(path: &Path) -> Result<Self, ParamError> {
+        let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
+            path: path.display().to_string(),
+            reason: e.to_string(),
+        })?;
+        Self::from_toml_str(&text).map_err(|e| match e {
+            ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
+            other => other,
+        })
+    }
+
+    /// The scenario as TOML text (every key written out).
+    pub fn to_toml_string(&self) -> String {
+        // Serialising plain structs of numbers and strings cannot fail.
+        toml::to_string_pretty(self).unwrap_or_default()
+    }
+}
+
+/// Turns a TOML error into one line: `line N: <message> (in [section])`.
+fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
+    let msg = e.message().replace('\n', " ");
+    match e.span() {
+        Some(span) => {
+            let before = &text[..span.start.min(text.len())];
+            let line = before.matches('\n').count() + 1;
+            let section = before
+                .lines()
+                .rev()
+                .map(str::trim)
+                .find(|l| l.starts_with('[') && l.ends_with(']'));
+            match section {
+                Some(s) => ParamError::Parse(format!("line {line} in {s}: {msg}")),
+                None => ParamError::Parse(format!("line {line}: {msg}")),
+            }
+        }
+        None => ParamError::Parse(msg),
+    }
+}
+
+#[cfg(test)]
+mod tests;

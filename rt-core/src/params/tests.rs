@@ -1,0 +1,142 @@
+use super::*;
+
+/// Parses `text`, expecting a refusal that names `field`.
+fn refused(text: &str, field: &str) {
+    match Scenario::from_toml_str(text) {
+        Ok(s) => panic!("accepted {text:?} as {s:?}"),
+        Err(e) => {
+            let shown = e.to_string();
+            assert!(
+                shown.contains(field),
+                "error for {text:?} should name {field:?}, got {shown:?}"
+            );
+            assert!(!shown.contains('\n'), "one-line error expected: {shown:?}");
+        }
+    }
+}
+
+#[test]
+fn defaults_are_the_papers_lab_and_valid() {
+    let s = Scenario::default();
+    s.validate().unwrap();
+    assert_eq!(s.pendulum.length_m, 1.93);
+    assert_eq!(s.task.movement_time_s, 1.5);
+    assert_eq!(s.task.home_m, [0.30, 0.0, 0.50]);
+    assert_eq!(s.camera.vision, VisionMode::Full);
+    assert_eq!(s.robot.fri_period_ms, 5);
+    assert_eq!(s.success.timing_tolerance_ms, 20.0);
+}
+
+#[test]
+fn empty_file_gives_defaults() {
+    assert_eq!(Scenario::from_toml_str("").unwrap(), Scenario::default());
+}
+
+#[test]
+fn every_rule_names_its_field() {
+    let cases: &[(&str, &str)] = &[
+        ("name = \"\"", "name"),
+        ("[pendulum]\nlength_m = -1.0", "pendulum.length_m"),
+        ("[pendulum]\nlength_m = 0.0", "pendulum.length_m"),
+        ("[pendulum]\nlength_m = nan", "pendulum.length_m"),
+        ("[pendulum]\nlength_m = inf", "pendulum.length_m"),
+        ("[pendulum]\ndamping_per_s = -0.1", "pendulum.damping_per_s"),
+        ("[pendulum]\ngravity_mps2 = 0.0", "pendulum.gravity_mps2"),
+        (
+            "[pendulum]\nball_radius_m = -0.03",
+            "pendulum.ball_radius_m",
+        ),
+        (
+            "[pendulum]\nrelease_angle_deg = [35.0, 15.0]",
+            "pendulum.release_angle_deg",
+        ),
+        (
+            "[pendulum]\nrelease_angle_deg = [15.0, 95.0]",
+            "pendulum.release_angle_deg",
+        ),
+        (
+            "[pendulum]\nrelease_angle_deg = [15.0, nan]",
+            "pendulum.release_angle_deg",
+        ),
+        ("[task]\ndistance_m = [0.8, 0.35]", "task.distance_m"),
+        ("[task]\ndistance_m = -0.5", "task.distance_m"),
+        (
+            "[task]\nintercept_height_m = inf",
+            "task.intercept_height_m",
+        ),
+        ("[task]\nhome_m = [0.3, nan, 0.5]", "task.home_m[1]"),
+        ("[task]\ntool_length_m = -0.1", "task.tool_length_m"),
+        ("[task]\nmovement_time_s = 0.0", "task.movement_time_s"),
+        ("[task]\nmovement_time_s = -1.5", "task.movement_time_s"),
+        ("[camera]\nfps = 0.0", "camera.fps"),
+        ("[camera]\nwidth_px = 0", "camera.width_px"),
+        ("[camera]\nheight_px = 1", "camera.height_px"),
+        ("[camera]\nlatency_ms = -5.0", "camera.latency_ms"),
+        ("[camera]\nimage_noise = 300.0", "camera.image_noise"),
+        ("[camera]\ndrop_rate = 1.5", "camera.drop_rate"),
+        ("[camera]\ndrop_rate = -0.1", "camera.drop_rate"),
+        ("[camera]\ndrop_rate = 0.95", "camera.drop_rate"),
+        ("[robot]\nfri_period_ms = 0", "robot.fri_period_ms"),
+        ("[robot]\nfri_period_ms = 101", "robot.fri_period_ms"),
+        ("[robot]\nlatency_ms = -1.0", "robot.latency_ms"),
+        (
+            "[robot]\nlatency_jitter_ms = nan",
+            "robot.latency_jitter_ms",
+        ),
+        (
+            "[success]\nposition_tolerance_m = 0.0",
+            "success.position_tolerance_m",
+        ),
+        (
+            "[success]\ntiming_tolerance_ms = -20.0",
+            "success.timing_tolerance_ms",
+        ),
+    ];
+    for (text, field) in cases {
+        refused(text, field);
+    }
+}
+
+#[test]
+fn unknown_key_is_refused_with_its_name_and_line() {
+    let text = "name = \"x\"\n[pendulum]\nlenght_m = 1.5\n";
+    let e = Scenario::from_toml_str(text).unwrap_err().to_string();
+    assert!(e.contains("lenght_m"), "{e}");
+    assert!(e.contains("line 3"), "{e}");
+    assert!(e.contains("[pendulum]"), "{e}");
+    refused("[pendulum]\nlenght_m = 1.5", "lenght_m");
+    refused("[cammera]\nfps = 30.0", "cammera");
+}
+
+#[test]
+fn wrong_types_are_refused() {
+    refused("[pendulum]\nlength_m = \"long\"", "length_m");
+    refused("[camera]\nvision = \"magic\"", "vision");
+    refused("[task]\nhome_m = [0.3, 0.0]", "home_m");
+    refused("[camera]\nwidth_px = -1280", "width_px");
+}
+
+#[test]
+fn a_single_number_is_a_fixed_range() {
+    let s = Scenario::from_toml_str("[task]\ndistance_m = 0.7").unwrap();
+    assert_eq!(s.task.distance_m, RangeParam::fixed(0.7));
+}
+
+#[test]
+fn the_papers_scenario_file_round_trips() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+    let s = Scenario::from_file(&path).unwrap();
+    assert_eq!(
+        s,
+        Scenario::default(),
+        "paper.toml must state the paper's lab"
+    );
+    let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
+    assert_eq!(again, s);
+}
+
+#[test]
+fn missing_file_is_a_clear_error() {
+    let e = Scenario::from_file(Path::new("/nonexistent/x.toml")).unwrap_err();
+    assert!(e.to_string().contains("/nonexistent/x.toml"));
+}
