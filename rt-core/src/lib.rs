@@ -8,5 +8,9 @@
 //! | Module | Part of the paper |
 //! |---|---|
 //! | [`params`] | typed, validated parameters and scenario files |
+//! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
+//! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 
+pub mod kinematics;
 pub mod params;
+pub mod trajectory;

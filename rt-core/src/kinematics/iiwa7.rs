@@ -1,0 +1,65 @@
+//! The KUKA LBR iiwa 7 R800: standard DH parameters and joint limits (IIWA7.md).
+//!
+//! `T_i = Rz(q_i) * Tz(d_i) * Tx(a_i) * Rx(alpha_i)`, all `a_i = 0`, no offsets.
+//! Angles in radians, lengths in metres, speeds in rad/s.
+
+use std::f64::consts::FRAC_PI_2;
+
+/// Number of joints.
+pub const JOINTS: usize = 7;
+
+/// Joint names as KUKA writes them.
+pub const JOINT_NAMES: [&str; JOINTS] = ["A1", "A2", "A3", "A4", "A5", "A6", "A7"];
+
+/// DH offsets `d_i` along the previous z axis, metres.
+pub const DH_D_M: [f64; JOINTS] = [0.340, 0.0, 0.400, 0.0, 0.400, 0.0, 0.126];
+
+/// DH twists `alpha_i` about the new x axis, radians.
+pub const DH_ALPHA_RAD: [f64; JOINTS] = [
+    -FRAC_PI_2, FRAC_PI_2, FRAC_PI_2, -FRAC_PI_2, -FRAC_PI_2, FRAC_PI_2, 0.0,
+];
+
+const fn deg(d: f64) -> f64 {
+    d * std::f64::consts::PI / 180.0
+}
+
+/// Symmetric position limits `|q_i| <= POSITION_LIMIT_RAD[i]`.
+pub const POSITION_LIMIT_RAD: [f64; JOINTS] = [
+    deg(170.0),
+    deg(120.0),
+    deg(170.0),
+    deg(120.0),
+    deg(170.0),
+    deg(120.0),
+    deg(175.0),
+];
+
+/// Maximum joint speeds, rad/s.
+pub const VELOCITY_LIMIT_RADPS: [f64; JOINTS] = [
+    deg(98.0),
+    deg(98.0),
+    deg(100.0),
+    deg(130.0),
+    deg(140.0),
+    deg(180.0),
+    deg(180.0),
+];
+
+/// Maximum joint torques, N m.
+pub const TORQUE_LIMIT_NM: [f64; JOINTS] = [176.0, 176.0, 110.0, 110.0, 110.0, 40.0, 40.0];
+
+/// Conservative default joint acceleration limits, rad/s^2.
+///
+/// KUKA does not publish acceleration limits for the iiwa 7. These defaults are
+/// deliberately modest (about 2.5x the velocity limit per second, so a joint reaches
+/// full speed in no less than 0.4 s); a motion of the paper's lab (0.35..0.80 m in
+/// 1.5 s, sinusoidal profile) needs well under half of them.
+pub const ACCELERATION_LIMIT_RADPS2: [f64; JOINTS] = [
+    deg(245.0),
+    deg(245.0),
+    deg(250.0),
+    deg(325.0),
+    deg(350.0),
+    deg(450.0),
+    deg(450.0),
+];
