@@ -429,24 +429,38 @@ impl Scenario {
     }
 }
 
-/// Turns a TOML error into one line: `line N: <message> (in [section])`.
+/// Turns a TOML error into one line: `line N: section.key: <message>`.
 fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
     let msg = e.message().replace('\n', " ");
-    match e.span() {
-        Some(span) => {
-            let before = &text[..span.start.min(text.len())];
-            let line = before.matches('\n').count() + 1;
-            let section = before
-                .lines()
-                .rev()
-                .map(str::trim)
-                .find(|l| l.starts_with('[') && l.ends_with(']'));
-            match section {
-                Some(s) => ParamError::Parse(format!("line {line} in {s}: {msg}")),
-                None => ParamError::Parse(format!("line {line}: {msg}")),
-            }
-        }
-        None => ParamError::Parse(msg),
+    let Some(span) = e.span() else {
+        return ParamError::Parse(msg);
+    };
+    let start = span.start.min(text.len());
+    let before = &text[..start];
+    let line_no = before.matches('\n').count() + 1;
+    let section = before
+        .lines()
+        .rev()
+        .map(str::trim)
+        .find(|l| l.starts_with('[') && l.ends_with(']'))
+        .map(|l| l.trim_matches(|c| c == '[' || c == ']').trim());
+    let line = text[before.rfind('\n').map_or(0, |i| i + 1)..]
+        .lines()
+        .next()
+        .unwrap_or("");
+    let key = line
+        .split_once('=')
+        .map(|(k, _)| k.trim())
+        .filter(|k| !k.is_empty() && !k.starts_with('['));
+    let field = match (section, key) {
+        (Some(s), Some(k)) => Some(format!("{s}.{k}")),
+        (None, Some(k)) => Some(k.to_owned()),
+        (Some(s), None) => Some(s.to_owned()),
+        (None, None) => None,
+    };
+    match field {
+        Some(f) => ParamError::Parse(format!("line {line_no}: {f}: {msg}")),
+        None => ParamError::Parse(format!("line {line_no}: {msg}")),
     }
 }
 

@@ -103,15 +103,15 @@ fn unknown_key_is_refused_with_its_name_and_line() {
     let e = Scenario::from_toml_str(text).unwrap_err().to_string();
     assert!(e.contains("lenght_m"), "{e}");
     assert!(e.contains("line 3"), "{e}");
-    assert!(e.contains("[pendulum]"), "{e}");
+    assert!(e.contains("pendulum.lenght_m"), "{e}");
     refused("[pendulum]\nlenght_m = 1.5", "lenght_m");
     refused("[cammera]\nfps = 30.0", "cammera");
 }
 
 #[test]
 fn wrong_types_are_refused() {
-    refused("[pendulum]\nlength_m = \"long\"", "length_m");
-    refused("[camera]\nvision = \"magic\"", "vision");
+    refused("[pendulum]\nlength_m = \"long\"", "pendulum.length_m");
+    refused("[camera]\nvision = \"magic\"", "camera.vision");
     refused("[task]\nhome_m = [0.3, 0.0]", "home_m");
     refused("[camera]\nwidth_px = -1280", "width_px");
 }
