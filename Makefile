@@ -64,7 +64,9 @@ test-web: web
 	cd web && npm run typecheck && npm test
 
 test-rust: deps
-	$(CARGO) test --workspace
+	@mkdir -p target
+	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
+	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
 
 test: lint test-web test-rust
 
