@@ -7,10 +7,12 @@
 //!
 //! | Module | Part of the paper |
 //! |---|---|
+//! | [`bridge`] | hand-offs between the control thread and the server; the shared data model |
 //! | [`params`] | typed, validated parameters and scenario files |
 //! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 
+pub mod bridge;
 pub mod kinematics;
 pub mod params;
 pub mod trajectory;

@@ -1,0 +1,622 @@
+//! The shared data model: what the control thread tells the server
+//! ([`Snapshot`], [`EventRecord`]) and what the server asks of it ([`Command`],
+//! answered by an [`Ack`]).
+//!
+//! Everything the control thread writes is `Copy` and fixed-size (no heap), so
+//! publishing it never allocates.
+
+use serde::{Serialize, Serializer, ser::SerializeSeq};
+
+use crate::kinematics::iiwa7::JOINTS;
+use crate::params::Scenario;
+
+/// Points in the predicted horizon of the pendulum ([`PendulumView::horizon`]).
+pub const HORIZON_POINTS: usize = 25;
+
+/// Where a trial is (DESIGN.md, "The trial").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrialState {
+    /// Nothing running; the arm may be anywhere safe.
+    #[default]
+    Idle,
+    /// Moving home and checking before holding the ball.
+    Arming,
+    /// Robot at home, magnet holding, checks passed.
+    Armed,
+    /// Magnet off, the ball swings; waiting for the first measurements.
+    Released,
+    /// The filter converges; predictions are shown.
+    Tracking,
+    /// The interception condition was met: the Hopf system runs, the arm moves.
+    Intercepting,
+    /// At the intercept point.
+    Holding,
+    /// Moving back home after a trial.
+    Returning,
+    /// The trial ended with a result.
+    Done,
+    /// The trial was aborted; the arm stopped safely.
+    Aborted,
+}
+
+impl TrialState {
+    /// Every state, in trial order.
+    pub const ALL: [Self; 10] = [
+        Self::Idle,
+        Self::Arming,
+        Self::Armed,
+        Self::Released,
+        Self::Tracking,
+        Self::Intercepting,
+        Self::Holding,
+        Self::Returning,
+        Self::Done,
+        Self::Aborted,
+    ];
+
+    /// The snake_case name, as in JSON.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Idle => "idle",
+            Self::Arming => "arming",
+            Self::Armed => "armed",
+            Self::Released => "released",
+            Self::Tracking => "tracking",
+            Self::Intercepting => "intercepting",
+            Self::Holding => "holding",
+            Self::Returning => "returning",
+            Self::Done => "done",
+            Self::Aborted => "aborted",
+        }
+    }
+
+    /// True while the arm moves on its own (arming, intercepting, returning):
+    /// risky parameter changes are refused then.
+    pub const fn arm_in_motion(self) -> bool {
+        matches!(self, Self::Arming | Self::Intercepting | Self::Returning)
+    }
+
+    /// True from arming until the trial ends (a trial or its preparation runs).
+    pub const fn busy(self) -> bool {
+        !matches!(self, Self::Idle | Self::Done | Self::Aborted)
+    }
+}
+
+/// The last camera measurement the filter used.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct Measurement {
+    /// False until a measurement arrived (then the other fields are meaningless).
+    pub valid: bool,
+    /// Capture time, control clock, seconds.
+    pub t_s: f64,
+    /// Lateral ball position x = l sin(phi), metres (+y of the robot base).
+    pub x_m: f64,
+}
+
+/// One point of the predicted ball trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct HorizonPoint {
+    /// Time, control clock, seconds.
+    pub t_s: f64,
+    /// Predicted lateral position, metres.
+    pub x_m: f64,
+    /// One standard deviation of `x_m`, metres.
+    pub sigma_m: f64,
+}
+
+/// The pendulum as measured, estimated and predicted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PendulumView {
+    /// Last measurement.
+    pub measured: Measurement,
+    /// Estimated angle from the vertical, radians (positive towards +y).
+    pub phi_rad: f64,
+    /// Estimated angular velocity, rad/s.
+    pub dphi_radps: f64,
+    /// One standard deviation of `phi_rad`.
+    pub sigma_phi_rad: f64,
+    /// One standard deviation of `dphi_radps`.
+    pub sigma_dphi_radps: f64,
+    /// Estimated lateral position l sin(phi), metres.
+    pub x_m: f64,
+    /// One standard deviation of `x_m`, metres.
+    pub sigma_x_m: f64,
+    /// Estimated ball centre in the robot base frame, metres.
+    pub ball_m: [f64; 3],
+    /// True ball centre (simulated lab only; NaN, shown as null, otherwise).
+    pub truth_ball_m: [f64; 3],
+    /// Predicted time the ball next crosses the intercept point, seconds (NaN if none).
+    pub crossing_t_s: f64,
+    /// One standard deviation of `crossing_t_s`, seconds.
+    pub crossing_sigma_s: f64,
+    /// The predicted horizon; only the first `horizon_len` points are meaningful.
+    #[serde(serialize_with = "serialize_horizon", rename = "horizon")]
+    pub horizon: Horizon,
+}
+
+/// A fixed-capacity predicted horizon.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Horizon {
+    /// Storage; points past `len` are ignored.
+    pub points: [HorizonPoint; HORIZON_POINTS],
+    /// Number of meaningful points (at most [`HORIZON_POINTS`]).
+    pub len: usize,
+}
+
+impl Default for Horizon {
+    fn default() -> Self {
+        Self {
+            points: [HorizonPoint::default(); HORIZON_POINTS],
+            len: 0,
+        }
+    }
+}
+
+impl Horizon {
+    /// The meaningful points.
+    pub fn as_slice(&self) -> &[HorizonPoint] {
+        &self.points[..self.len.min(HORIZON_POINTS)]
+    }
+
+    /// Appends a point; returns false (and changes nothing) when full.
+    pub fn push(&mut self, p: HorizonPoint) -> bool {
+        match self.points.get_mut(self.len) {
+            Some(slot) => {
+                *slot = p;
+                self.len += 1;
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+fn serialize_horizon<S: Serializer>(h: &Horizon, s: S) -> Result<S::Ok, S::Error> {
+    let pts = h.as_slice();
+    let mut seq = s.serialize_seq(Some(pts.len()))?;
+    for p in pts {
+        seq.serialize_element(p)?;
+    }
+    seq.end()
+}
+
+impl Default for PendulumView {
+    fn default() -> Self {
+        Self {
+            measured: Measurement::default(),
+            phi_rad: 0.0,
+            dphi_radps: 0.0,
+            sigma_phi_rad: f64::NAN,
+            sigma_dphi_radps: f64::NAN,
+            x_m: 0.0,
+            sigma_x_m: f64::NAN,
+            ball_m: [f64::NAN; 3],
+            truth_ball_m: [f64::NAN; 3],
+            crossing_t_s: f64::NAN,
+            crossing_sigma_s: f64::NAN,
+            horizon: Horizon::default(),
+        }
+    }
+}
+
+/// The Hopf oscillator and the three competing neurons (paper eqs. 20-21).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct HopfView {
+    /// True while the timing system drives a motion.
+    pub active: bool,
+    /// Oscillator state a.
+    pub a: f64,
+    /// Oscillator state b.
+    pub b: f64,
+    /// Activation of the initial-posture neuron.
+    pub u_init: f64,
+    /// Activation of the Hopf (moving) neuron.
+    pub u_hopf: f64,
+    /// Activation of the final-posture neuron.
+    pub u_final: f64,
+}
+
+/// The straight-line interception path and its speed profile.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PathView {
+    /// Planned tool speed along the path now, m/s.
+    pub speed_planned_mps: f64,
+    /// Executed (measured) tool speed along the path now, m/s.
+    pub speed_executed_mps: f64,
+    /// Planned progress along the path, 0..1.
+    pub progress_planned: f64,
+    /// Executed progress along the path, 0..1.
+    pub progress_executed: f64,
+    /// Path length, metres.
+    pub length_m: f64,
+    /// Motion start, control clock, seconds (NaN before a motion).
+    pub start_t_s: f64,
+    /// Planned arrival at the intercept point, control clock, seconds (NaN before a motion).
+    pub arrival_t_s: f64,
+    /// Planned movement time, seconds.
+    pub movement_time_s: f64,
+    /// Intercept point, robot base frame, metres.
+    pub intercept_m: [f64; 3],
+}
+
+impl Default for PathView {
+    fn default() -> Self {
+        Self {
+            speed_planned_mps: 0.0,
+            speed_executed_mps: 0.0,
+            progress_planned: 0.0,
+            progress_executed: 0.0,
+            length_m: 0.0,
+            start_t_s: f64::NAN,
+            arrival_t_s: f64::NAN,
+            movement_time_s: f64::NAN,
+            intercept_m: [f64::NAN; 3],
+        }
+    }
+}
+
+/// The arm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct RobotView {
+    /// Measured joint angles, radians.
+    pub q_rad: [f64; JOINTS],
+    /// Commanded joint angles, radians.
+    pub q_cmd_rad: [f64; JOINTS],
+    /// Symmetric position limits |q| <= limit, radians.
+    pub q_limit_rad: [f64; JOINTS],
+    /// Tool point, robot base frame, metres.
+    pub tool_m: [f64; 3],
+    /// Estimated command-to-motion latency of the robot, milliseconds.
+    pub actuation_latency_ms: f64,
+}
+
+impl Default for RobotView {
+    fn default() -> Self {
+        Self {
+            q_rad: [0.0; JOINTS],
+            q_cmd_rad: [0.0; JOINTS],
+            q_limit_rad: crate::kinematics::iiwa7::POSITION_LIMIT_RAD,
+            tool_m: [f64::NAN; 3],
+            actuation_latency_ms: f64::NAN,
+        }
+    }
+}
+
+/// The FRI session state (KUKA FRI 1.15 `ESessionState`, plus "no link").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FriSessionState {
+    /// No controller messages (yet, or any more).
+    #[default]
+    Disconnected,
+    /// Monitoring, the controller is not ready.
+    MonitoringWait,
+    /// Monitoring, ready to command.
+    MonitoringReady,
+    /// Commanding requested, waiting.
+    CommandingWait,
+    /// Commands are executed.
+    CommandingActive,
+    /// The session ended.
+    Idle,
+}
+
+/// The FRI connection quality (KUKA FRI `EConnectionQuality`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FriQuality {
+    /// Not known (no link).
+    #[default]
+    Unknown,
+    /// Poor.
+    Poor,
+    /// Fair.
+    Fair,
+    /// Good.
+    Good,
+    /// Excellent.
+    Excellent,
+}
+
+/// The FRI link.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct FriView {
+    /// Session state.
+    pub session: FriSessionState,
+    /// Connection quality.
+    pub quality: FriQuality,
+    /// Controller send period, milliseconds.
+    pub period_ms: f64,
+    /// Message receive -> reply sent of the last cycle, microseconds.
+    pub reply_latency_us: f64,
+    /// Replies sent after their deadline, since start.
+    pub late_replies: u64,
+    /// Controller messages not answered, since start.
+    pub missed_cycles: u64,
+}
+
+impl Default for FriView {
+    fn default() -> Self {
+        Self {
+            session: FriSessionState::Disconnected,
+            quality: FriQuality::Unknown,
+            period_ms: f64::NAN,
+            reply_latency_us: f64::NAN,
+            late_replies: 0,
+            missed_cycles: 0,
+        }
+    }
+}
+
+/// The electromagnet holding the ball.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MagnetState {
+    /// Not known (device silent or not connected).
+    #[default]
+    Unknown,
+    /// Holding.
+    On,
+    /// Released.
+    Off,
+    /// The device reported a fault.
+    Fault,
+}
+
+/// Timing of the control loop.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct LoopTiming {
+    /// Duration of the last control step, microseconds.
+    pub step_us: f64,
+    /// Longest control step since start, microseconds.
+    pub step_max_us: f64,
+    /// Mean period between steps over the last window, microseconds.
+    pub period_mean_us: f64,
+    /// Longest period between steps over the last window, microseconds.
+    pub period_max_us: f64,
+    /// Steps that missed their deadline, since start.
+    pub deadline_misses: u64,
+}
+
+/// Counters of the control side, since start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct Counters {
+    /// Control steps run.
+    pub steps: u64,
+    /// Camera measurements folded into the filter.
+    pub measurements: u64,
+    /// Camera measurements lost because their ring was full.
+    pub measurement_overflows: u64,
+    /// Commands the guard limited or refused.
+    pub guard_interventions: u64,
+    /// Joint limit violations detected.
+    pub limit_violations: u64,
+    /// Trials finished (with a result or aborted).
+    pub trials: u64,
+}
+
+/// Everything the dashboard shows, as of one control step. `Copy`, no heap.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct Snapshot {
+    /// Control clock, seconds since the lab started.
+    pub t_s: f64,
+    /// Control step number (increases by one per step).
+    pub seq: u64,
+    /// The trial this step belongs to (0: none).
+    pub trial_id: u64,
+    /// Trial state.
+    pub trial_state: TrialState,
+    /// Pendulum: measured, estimated, predicted.
+    pub pendulum: PendulumView,
+    /// Hopf oscillator and neurons.
+    pub hopf: HopfView,
+    /// Path and speed profile.
+    pub path: PathView,
+    /// Joints and tool.
+    pub robot: RobotView,
+    /// FRI link.
+    pub fri: FriView,
+    /// Electromagnet.
+    pub magnet: MagnetState,
+    /// Loop timing.
+    pub timing: LoopTiming,
+    /// Counters.
+    pub counters: Counters,
+}
+
+/// Why a trial was aborted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AbortReason {
+    /// The operator pressed stop.
+    Stop,
+    /// The operator disarmed.
+    Disarmed,
+    /// The camera stopped delivering measurements.
+    CameraLost,
+    /// The FRI link was lost or degraded.
+    FriLost,
+    /// The magnet device is silent or faulty.
+    MagnetFault,
+    /// The operator's connection was lost.
+    OperatorLost,
+    /// The motion is not feasible within the limits.
+    Infeasible,
+    /// A joint limit would have been violated.
+    LimitViolation,
+    /// The interception condition was not met in time.
+    Timeout,
+    /// Anything else the control side detected.
+    Internal,
+}
+
+impl AbortReason {
+    /// A sentence for people.
+    pub const fn message(self) -> &'static str {
+        match self {
+            Self::Stop => "emergency stop",
+            Self::Disarmed => "disarmed by the operator",
+            Self::CameraLost => "the camera stopped delivering measurements",
+            Self::FriLost => "the FRI link to the robot was lost",
+            Self::MagnetFault => "the magnet device is silent or faulty",
+            Self::OperatorLost => "the operator's connection was lost",
+            Self::Infeasible => "the motion is not feasible within the joint limits",
+            Self::LimitViolation => "a joint limit would have been violated",
+            Self::Timeout => "the interception condition was not met in time",
+            Self::Internal => "internal error in the control loop",
+        }
+    }
+}
+
+/// The result of a finished trial (CONTRACT.md definitions, judged on ground truth
+/// in the simulated lab).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TrialResult {
+    /// Position and timing within tolerance, no limit violation or abort.
+    pub success: bool,
+    /// |arrival - t*|, milliseconds.
+    pub timing_error_ms: f64,
+    /// Tool point to ball centre at t*, metres.
+    pub position_error_m: f64,
+    /// Arrival - start of the fitted profile, seconds.
+    pub movement_time_s: f64,
+    /// Robot base axis -> intercept point, horizontal, metres.
+    pub distance_m: f64,
+    /// When the ball centre passed the intercept point, control clock, seconds.
+    pub t_star_s: f64,
+    /// Fitted arrival time of the tool, control clock, seconds.
+    pub arrival_t_s: f64,
+    /// Filter's predicted crossing time minus the truth, at motion start, milliseconds.
+    pub prediction_time_error_ms: f64,
+    /// Joint limit violations during the trial.
+    pub limit_violations: u64,
+}
+
+/// Something that happened, as the control thread reports it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Event {
+    /// The trial state changed.
+    StateChanged {
+        /// Before.
+        from: TrialState,
+        /// After.
+        to: TrialState,
+    },
+    /// The trial (or the arming) was aborted and the arm stopped safely.
+    Aborted {
+        /// Why.
+        reason: AbortReason,
+    },
+    /// A trial finished with a result.
+    TrialFinished {
+        /// The result.
+        result: TrialResult,
+    },
+}
+
+/// An [`Event`] with its time and trial.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct EventRecord {
+    /// Control clock, seconds.
+    pub t_s: f64,
+    /// The trial concerned (0: none).
+    pub trial_id: u64,
+    /// What happened.
+    pub event: Event,
+}
+
+/// What the server asks the control thread to do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Command {
+    /// Move home, switch the magnet on, run the checks.
+    Arm,
+    /// Leave the armed state (the arm stays where it is; the magnet keeps holding).
+    Disarm,
+    /// Switch the magnet (`on: false` drops the ball).
+    Magnet {
+        /// On (hold) or off (release).
+        on: bool,
+    },
+    /// Emergency stop: always accepted, from any state.
+    Stop,
+    /// Run one whole trial (arm, release, intercept) under this id.
+    RunTrial {
+        /// The id the server gave the trial (> 0).
+        trial_id: u64,
+    },
+    /// Replace the parameters (already validated by the sender). The control
+    /// thread hands the old ones back in the [`Ack`] so that it never frees memory.
+    SetParams(Box<Scenario>),
+}
+
+impl Command {
+    /// A short snake_case name, for logs and errors.
+    pub const fn name(&self) -> &'static str {
+        match self {
+            Self::Arm => "arm",
+            Self::Disarm => "disarm",
+            Self::Magnet { .. } => "magnet",
+            Self::Stop => "stop",
+            Self::RunTrial { .. } => "run_trial",
+            Self::SetParams(_) => "set_params",
+        }
+    }
+}
+
+/// Why the control thread refused a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Refusal {
+    /// A trial or its preparation runs.
+    Busy,
+    /// The command needs the armed state.
+    NotArmed,
+    /// The arm moves; the change is not safe now.
+    MotionRunning,
+    /// A pre-motion check failed (limits, workspace, devices).
+    ChecksFailed,
+    /// The motion is not feasible within the limits.
+    Infeasible,
+    /// The device needed is not connected or silent.
+    DeviceUnavailable,
+    /// The command makes no sense here (e.g. trial id 0).
+    Invalid,
+}
+
+impl Refusal {
+    /// A sentence for people.
+    pub const fn message(self) -> &'static str {
+        match self {
+            Self::Busy => "a trial is running",
+            Self::NotArmed => "the lab is not armed",
+            Self::MotionRunning => "the arm is moving; this change is not safe now",
+            Self::ChecksFailed => "a pre-motion check failed",
+            Self::Infeasible => "the motion is not feasible within the joint limits",
+            Self::DeviceUnavailable => "a device needed for this is not available",
+            Self::Invalid => "the command is not valid here",
+        }
+    }
+}
+
+/// A command with the id its answer will carry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CommandEnvelope {
+    /// Chosen by the sender, unique per bridge.
+    pub id: u64,
+    /// What to do.
+    pub command: Command,
+}
+
+/// The control thread's answer to a command.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ack {
+    /// The command's id.
+    pub id: u64,
+    /// Accepted, or refused with a reason.
+    pub outcome: Result<(), Refusal>,
+    /// Memory handed back to be freed off the control thread (old parameters,
+    /// or refused new ones).
+    pub returned: Option<Box<Scenario>>,
+}
