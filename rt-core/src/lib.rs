@@ -11,8 +11,10 @@
 //! | [`params`] | typed, validated parameters and scenario files |
 //! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
+//! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
 
 pub mod bridge;
+pub mod fri;
 pub mod kinematics;
 pub mod params;
 pub mod trajectory;
