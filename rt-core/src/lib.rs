@@ -12,8 +12,10 @@
 //! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 //! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
+//! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
 
 pub mod bridge;
+pub mod control;
 pub mod fri;
 pub mod kinematics;
 pub mod params;

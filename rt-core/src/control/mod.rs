@@ -1,0 +1,12 @@
+#![doc = include_str!("README.md")]
+
+pub mod judge;
+pub mod latency;
+pub mod report;
+pub mod state;
+pub mod stats;
+
+pub use judge::{Judgement, PlannedMotion, TrialTrace, judge};
+pub use latency::{LatencyEstimator, LatencyReport};
+pub use report::{Summary, TrialRecord};
+pub use state::{AbortReason, TrialMachine, TrialState};

@@ -1,0 +1,298 @@
+//! Per-trial records and the `isochron trials --json` summary (CONTRACT.md).
+
+use serde::Serialize;
+
+use super::judge::Judgement;
+use super::stats::{Moments, Percentiles, wilson_ci95};
+use crate::params::SuccessParams;
+
+/// One trial's numbers (a line of `--per-trial`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TrialRecord {
+    /// Index of the trial in the run, from 0.
+    pub trial: usize,
+    /// The seed this trial was drawn from.
+    pub seed: u64,
+    /// Drawn distance robot base axis -> intercept point, metres.
+    pub distance_m: f64,
+    /// Drawn release angle, degrees.
+    pub release_angle_deg: f64,
+    /// Whether the trial counts as a success.
+    pub success: bool,
+    /// Why not, when not (`"timing_error 23.4 ms > 20 ms"`, `"abort: missed_window"`, ...).
+    pub failure: Option<String>,
+    /// The state the trial ended in (`done` or `abort`).
+    pub final_state: String,
+    /// The abort reason, when aborted.
+    pub abort_reason: Option<String>,
+    /// The motion's planned duration (the asked one, or the shortest feasible), seconds.
+    pub planned_movement_time_s: f64,
+    /// The ground-truth verdict, when there was a motion to judge.
+    #[serde(flatten)]
+    pub judgement: Option<Judgement>,
+    /// At the motion's start: predicted pass time minus the true one, milliseconds.
+    pub prediction_crossing_time_error_ms: Option<f64>,
+    /// At the motion's start: predicted ball position at the pass to the true one, metres.
+    pub prediction_position_error_m: Option<f64>,
+    /// The latency the interception compensated, milliseconds.
+    pub latency_estimate_ms: f64,
+    /// Commands the guard had to refuse or clamp, plus measured joints beyond a limit.
+    pub limit_violations: u64,
+    /// FRI cycles the controller answered late (or not at all).
+    pub deadline_misses: u64,
+}
+
+impl TrialRecord {
+    /// Applies the success rule: no abort, no limit violation, and both errors
+    /// within tolerance; fills `success` and `failure`.
+    pub fn decide(&mut self, tol: &SuccessParams) {
+        self.failure = if let Some(r) = &self.abort_reason {
+            Some(format!("abort: {r}"))
+        } else if self.limit_violations > 0 {
+            Some(format!("{} limit violations", self.limit_violations))
+        } else if let Some(j) = &self.judgement {
+            if j.timing_error_ms > tol.timing_tolerance_ms {
+                Some(format!(
+                    "timing_error {:.1} ms > {} ms",
+                    j.timing_error_ms, tol.timing_tolerance_ms
+                ))
+            } else if j.position_error_m > tol.position_tolerance_m {
+                Some(format!(
+                    "position_error {:.4} m > {} m",
+                    j.position_error_m, tol.position_tolerance_m
+                ))
+            } else {
+                None
+            }
+        } else if self.failure.is_none() {
+            Some("no motion to judge".to_owned())
+        } else {
+            self.failure.take()
+        };
+        self.success = self.failure.is_none();
+    }
+}
+
+/// `p50`/`p95` of the prediction errors.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct P50P95 {
+    /// Median.
+    pub p50: f64,
+    /// 95th percentile.
+    pub p95: f64,
+}
+
+/// The prediction quality at motion start.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct PredictionSummary {
+    /// |predicted - true| pass time, milliseconds.
+    pub crossing_time_error_ms: P50P95,
+    /// |predicted - true| ball position at the pass, metres.
+    pub position_error_m: P50P95,
+}
+
+/// `min`/`max` of the drawn distances.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct MinMax {
+    /// Smallest.
+    pub min: f64,
+    /// Largest.
+    pub max: f64,
+}
+
+/// The `isochron trials --json` summary object.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// Scenario name.
+    pub scenario: String,
+    /// Trials run.
+    pub trials: usize,
+    /// Trials that succeeded.
+    pub successes: usize,
+    /// `successes / trials`.
+    pub success_rate: f64,
+    /// Wilson score 95% interval of the success rate.
+    pub success_ci95: [f64; 2],
+    /// Over judged trials, milliseconds.
+    pub timing_error_ms: Percentiles,
+    /// Over judged trials, metres.
+    pub position_error_m: Percentiles,
+    /// Over judged trials, seconds.
+    pub movement_time_s: Moments,
+    /// The drawn distances, metres.
+    pub distance_m: MinMax,
+    /// Prediction quality at motion start.
+    pub prediction: PredictionSummary,
+    /// Trials that ended in an abort.
+    pub aborted: usize,
+    /// Limit violations over all trials.
+    pub limit_violations: u64,
+    /// Deadline misses over all trials.
+    pub deadline_misses: u64,
+    /// Wall-clock time of the whole run, seconds.
+    pub wall_s: f64,
+}
+
+impl Summary {
+    /// Summarises `records` of scenario `name` that took `wall_s` seconds.
+    pub fn of(name: &str, records: &[TrialRecord], wall_s: f64) -> Self {
+        let judged: Vec<&Judgement> = records
+            .iter()
+            .filter_map(|r| r.judgement.as_ref())
+            .collect();
+        let pick = |f: fn(&Judgement) -> f64| judged.iter().map(|j| f(j)).collect::<Vec<f64>>();
+        let successes = records.iter().filter(|r| r.success).count();
+        let n = records.len();
+        let ct: Vec<f64> = records
+            .iter()
+            .filter_map(|r| r.prediction_crossing_time_error_ms.map(f64::abs))
+            .collect();
+        let cp: Vec<f64> = records
+            .iter()
+            .filter_map(|r| r.prediction_position_error_m)
+            .collect();
+        let ctp = Percentiles::of(&ct);
+        let cpp = Percentiles::of(&cp);
+        let dist = Moments::of(&records.iter().map(|r| r.distance_m).collect::<Vec<_>>());
+        Self {
+            scenario: name.to_owned(),
+            trials: n,
+            successes,
+            success_rate: if n == 0 {
+                0.0
+            } else {
+                successes as f64 / n as f64
+            },
+            success_ci95: wilson_ci95(successes, n),
+            timing_error_ms: Percentiles::of(&pick(|j| j.timing_error_ms)),
+            position_error_m: Percentiles::of(&pick(|j| j.position_error_m)),
+            movement_time_s: Moments::of(&pick(|j| j.movement_time_s)),
+            distance_m: MinMax {
+                min: dist.min,
+                max: dist.max,
+            },
+            prediction: PredictionSummary {
+                crossing_time_error_ms: P50P95 {
+                    p50: ctp.p50,
+                    p95: ctp.p95,
+                },
+                position_error_m: P50P95 {
+                    p50: cpp.p50,
+                    p95: cpp.p95,
+                },
+            },
+            aborted: records.iter().filter(|r| r.abort_reason.is_some()).count(),
+            limit_violations: records.iter().map(|r| r.limit_violations).sum(),
+            deadline_misses: records.iter().map(|r| r.deadline_misses).sum(),
+            wall_s,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(timing_ms: f64, pos_m: f64) -> TrialRecord {
+        TrialRecord {
+            trial: 0,
+            seed: 1,
+            distance_m: 0.5,
+            release_angle_deg: 20.0,
+            success: false,
+            failure: None,
+            final_state: "done".to_owned(),
+            abort_reason: None,
+            planned_movement_time_s: 1.5,
+            judgement: Some(Judgement {
+                t_star_s: 3.0,
+                start_s: 1.5,
+                arrival_s: 3.0 + timing_ms / 1e3,
+                timing_error_ms: timing_ms,
+                position_error_m: pos_m,
+                movement_time_s: 1.5,
+                fit_rms_m: 0.0,
+            }),
+            prediction_crossing_time_error_ms: Some(-2.0),
+            prediction_position_error_m: Some(0.001),
+            latency_estimate_ms: 8.0,
+            limit_violations: 0,
+            deadline_misses: 0,
+        }
+    }
+
+    #[test]
+    fn the_success_rule_needs_both_tolerances_and_no_abort() {
+        let tol = SuccessParams::default();
+        let mut ok = record(5.0, 0.005);
+        ok.decide(&tol);
+        assert!(ok.success && ok.failure.is_none());
+        let mut late = record(25.0, 0.005);
+        late.decide(&tol);
+        assert!(!late.success);
+        assert!(
+            late.failure
+                .as_deref()
+                .unwrap()
+                .starts_with("timing_error 25.0 ms")
+        );
+        let mut off = record(5.0, 0.03);
+        off.decide(&tol);
+        assert!(
+            off.failure
+                .as_deref()
+                .unwrap()
+                .starts_with("position_error")
+        );
+        let mut viol = record(5.0, 0.005);
+        viol.limit_violations = 1;
+        viol.decide(&tol);
+        assert!(!viol.success);
+        let mut ab = record(5.0, 0.005);
+        ab.abort_reason = Some("missed_window".to_owned());
+        ab.decide(&tol);
+        assert_eq!(ab.failure.as_deref(), Some("abort: missed_window"));
+        let mut refused = record(5.0, 0.005);
+        refused.judgement = None;
+        refused.failure = Some("infeasible: A4 speed".to_owned());
+        refused.decide(&tol);
+        assert_eq!(refused.failure.as_deref(), Some("infeasible: A4 speed"));
+    }
+
+    #[test]
+    fn the_summary_has_the_contract_keys() {
+        let tol = SuccessParams::default();
+        let mut rs: Vec<TrialRecord> = (0..10).map(|i| record(f64::from(i), 0.004)).collect();
+        rs[9] = record(30.0, 0.004);
+        for r in &mut rs {
+            r.decide(&tol);
+        }
+        let s = Summary::of("paper", &rs, 1.25);
+        assert_eq!((s.trials, s.successes), (10, 9));
+        assert!((s.success_rate - 0.9).abs() < 1e-12);
+        assert_eq!(s.timing_error_ms.max, 30.0);
+        let v = serde_json::to_value(&s).unwrap();
+        for key in [
+            "scenario",
+            "trials",
+            "successes",
+            "success_rate",
+            "success_ci95",
+            "timing_error_ms",
+            "position_error_m",
+            "movement_time_s",
+            "distance_m",
+            "prediction",
+            "aborted",
+            "limit_violations",
+            "deadline_misses",
+            "wall_s",
+        ] {
+            assert!(v.get(key).is_some(), "missing {key}");
+        }
+        assert!(v["prediction"]["crossing_time_error_ms"]["p95"].is_number());
+        assert!(v["movement_time_s"]["std"].is_number());
+        let line = serde_json::to_value(&rs[0]).unwrap();
+        assert!(line["timing_error_ms"].is_number() && line["failure"].is_null());
+    }
+}

@@ -1,0 +1,241 @@
+//! The trial state machine of DESIGN.md ("The trial").
+//!
+//! `Idle -> Armed -> Released -> Tracking -> Intercepting -> Holding -> Done`,
+//! then back to `Idle` (home). `Abort(reason)` is reachable from every state and
+//! ends in a safe stop; from `Abort` and `Done` only `Idle` (reset) follows.
+
+use serde::Serialize;
+
+/// Where a trial is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case", tag = "state", content = "reason")]
+pub enum TrialState {
+    /// No trial; the robot may be anywhere safe.
+    Idle,
+    /// Robot at home in the coming motion's posture, magnet holding, checks passed.
+    Armed,
+    /// Magnet off: the ball swings, the filter has not initialised yet.
+    Released,
+    /// The filter tracks the ball; predictions are shown; waiting for the
+    /// interception condition.
+    Tracking,
+    /// The interception condition was met: the Hopf system runs, the arm moves.
+    Intercepting,
+    /// At the intercept point after the motion.
+    Holding,
+    /// The trial is over (judged by whoever owns the truth).
+    Done,
+    /// Stopped safely, with the reason.
+    Abort(AbortReason),
+}
+
+impl TrialState {
+    /// Short snake_case name (`"tracking"`, `"abort"`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Idle => "idle",
+            Self::Armed => "armed",
+            Self::Released => "released",
+            Self::Tracking => "tracking",
+            Self::Intercepting => "intercepting",
+            Self::Holding => "holding",
+            Self::Done => "done",
+            Self::Abort(_) => "abort",
+        }
+    }
+
+    /// Whether the arm may be moving under the interception motion.
+    pub const fn is_moving(self) -> bool {
+        matches!(self, Self::Intercepting)
+    }
+}
+
+/// Why a trial was aborted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AbortReason {
+    /// The operator asked for a stop.
+    StopRequested,
+    /// The planned motion violates a limit (joint position, speed, acceleration,
+    /// workspace) even at its shortest feasible duration.
+    Infeasible,
+    /// Inverse kinematics found no solution for a commanded point.
+    IkFailed,
+    /// The command guard refused a command (limit or step size).
+    GuardTripped,
+    /// No camera measurement for too long.
+    CameraLost,
+    /// The FRI link was lost or left commanding.
+    FriLost,
+    /// The filter never became confident enough to commit to a pass.
+    PredictionTimeout,
+    /// The committed pass cannot be met any more (too late to start).
+    MissedWindow,
+    /// The ball did not drop (the magnet did not release).
+    MagnetFault,
+    /// The filter refused its input (non-finite numbers).
+    FilterFault,
+}
+
+impl AbortReason {
+    /// Short snake_case name.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::StopRequested => "stop_requested",
+            Self::Infeasible => "infeasible",
+            Self::IkFailed => "ik_failed",
+            Self::GuardTripped => "guard_tripped",
+            Self::CameraLost => "camera_lost",
+            Self::FriLost => "fri_lost",
+            Self::PredictionTimeout => "prediction_timeout",
+            Self::MissedWindow => "missed_window",
+            Self::MagnetFault => "magnet_fault",
+            Self::FilterFault => "filter_fault",
+        }
+    }
+}
+
+/// A transition that is not allowed from the current state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("cannot go from {from} to {to}")]
+pub struct BadTransition {
+    /// The current state's name.
+    pub from: &'static str,
+    /// The asked state's name.
+    pub to: &'static str,
+}
+
+/// The state machine: holds the state and refuses transitions DESIGN.md does not allow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TrialMachine {
+    state: TrialState,
+    transitions: u64,
+}
+
+impl Default for TrialMachine {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl TrialMachine {
+    /// Starts in `Idle`.
+    pub const fn new() -> Self {
+        Self {
+            state: TrialState::Idle,
+            transitions: 0,
+        }
+    }
+
+    /// The current state.
+    pub const fn state(&self) -> TrialState {
+        self.state
+    }
+
+    /// Transitions taken so far.
+    pub const fn transitions(&self) -> u64 {
+        self.transitions
+    }
+
+    /// Whether `from -> to` is allowed.
+    pub const fn allowed(from: TrialState, to: TrialState) -> bool {
+        use TrialState as S;
+        match (from, to) {
+            // A stop is accepted from everywhere (even a second abort keeps the first reason out).
+            (S::Abort(_), S::Abort(_)) => false,
+            (_, S::Abort(_)) => true,
+            (S::Idle, S::Armed)
+            | (S::Armed, S::Released)
+            | (S::Armed, S::Idle)
+            | (S::Released, S::Tracking)
+            | (S::Tracking, S::Intercepting)
+            | (S::Intercepting, S::Holding)
+            | (S::Holding, S::Done)
+            | (S::Done, S::Idle)
+            | (S::Abort(_), S::Idle) => true,
+            _ => false,
+        }
+    }
+
+    /// Goes to `to` if allowed; otherwise changes nothing.
+    pub fn go(&mut self, to: TrialState) -> Result<(), BadTransition> {
+        if Self::allowed(self.state, to) {
+            self.state = to;
+            self.transitions += 1;
+            Ok(())
+        } else {
+            Err(BadTransition {
+                from: self.state.name(),
+                to: to.name(),
+            })
+        }
+    }
+
+    /// Aborts with `reason` (a no-op when already aborted: the first reason stays).
+    pub fn abort(&mut self, reason: AbortReason) {
+        let _ = self.go(TrialState::Abort(reason));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use TrialState as S;
+
+    #[test]
+    fn the_happy_path_is_allowed_in_order_only() {
+        let mut m = TrialMachine::new();
+        for s in [
+            S::Armed,
+            S::Released,
+            S::Tracking,
+            S::Intercepting,
+            S::Holding,
+            S::Done,
+            S::Idle,
+        ] {
+            m.go(s).unwrap();
+        }
+        assert_eq!(m.transitions(), 7);
+        // Skipping a state is refused and changes nothing.
+        let err = m.go(S::Tracking).unwrap_err();
+        assert_eq!((err.from, err.to), ("idle", "tracking"));
+        assert_eq!(m.state(), S::Idle);
+    }
+
+    #[test]
+    fn abort_is_reachable_from_everywhere_and_keeps_its_first_reason() {
+        let all = [
+            S::Idle,
+            S::Armed,
+            S::Released,
+            S::Tracking,
+            S::Intercepting,
+            S::Holding,
+            S::Done,
+        ];
+        for s in all {
+            assert!(TrialMachine::allowed(
+                s,
+                S::Abort(AbortReason::StopRequested)
+            ));
+        }
+        let mut m = TrialMachine::new();
+        m.abort(AbortReason::CameraLost);
+        m.abort(AbortReason::StopRequested);
+        assert_eq!(m.state(), S::Abort(AbortReason::CameraLost));
+        // Only a reset leaves an abort.
+        assert!(m.go(S::Armed).is_err());
+        m.go(S::Idle).unwrap();
+    }
+
+    #[test]
+    fn states_serialise_with_their_reason() {
+        let j = serde_json::to_string(&S::Abort(AbortReason::MissedWindow)).unwrap();
+        assert_eq!(j, r#"{"state":"abort","reason":"missed_window"}"#);
+        assert_eq!(
+            serde_json::to_string(&S::Tracking).unwrap(),
+            r#"{"state":"tracking"}"#
+        );
+    }
+}
