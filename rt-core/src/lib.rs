@@ -9,6 +9,8 @@
 //! |---|---|
 //! | [`bridge`] | hand-offs between the control thread and the server; the shared data model |
 //! | [`params`] | typed, validated parameters and scenario files |
+//! | [`pendulum`] | the damped pendulum (eq. 8), its geometry, the ground-truth simulator |
+//! | [`ekf`] | the extended Kalman filter (eqs. 1-16) and the predictor (pass times, motion start) |
 //! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 //! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
@@ -16,7 +18,9 @@
 
 pub mod bridge;
 pub mod control;
+pub mod ekf;
 pub mod fri;
 pub mod kinematics;
 pub mod params;
+pub mod pendulum;
 pub mod trajectory;

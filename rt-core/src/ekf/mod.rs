@@ -1,0 +1,724 @@
+#![doc = include_str!("README.md")]
+
+pub mod model;
+mod predict;
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+pub use model::{ProcessModel, ProcessNoiseModel, StateCov, StateVec};
+pub use predict::{Crossing, Doubt, MotionPlan, MotionRequest, PassDirection, Prediction};
+
+use crate::params::{ParamError, check};
+use crate::pendulum::{PendulumGeometry, PendulumModel};
+
+/// How many past measurements (with the posterior after each) the filter keeps, so
+/// that a measurement arriving out of order is fused at its capture time.
+pub const HISTORY_LEN: usize = 32;
+
+/// Most relinearisations of one measurement update (iterated EKF).
+const MAX_IEKF_ITERATIONS: usize = 4;
+
+/// The iterated update stops when the angle moves less than this, radians.
+const IEKF_TOLERANCE_RAD: f64 = 1e-7;
+
+/// Shortest spacing of the two measurements the filter initialises from, seconds.
+const MIN_INIT_GAP_S: f64 = 1e-3;
+
+/// The EKF and predictor: `[ekf]` (wired into scenarios by the closed-loop work).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EkfParams {
+    /// Standard deviation of the lateral measurement noise `v` of eq. 10, metres
+    /// (`R = measurement_noise_m^2`).
+    pub measurement_noise_m: f64,
+    /// How the state is carried over a step: `rk4` or the paper's `paper_taylor2` (eq. 9).
+    pub process_model: ProcessModel,
+    /// How process noise enters: `continuous` or the paper's `paper` (eqs. 16-19).
+    pub process_noise_model: ProcessNoiseModel,
+    /// Spectral density of the white angular-acceleration disturbance (`continuous`), rad^2/s^3.
+    pub accel_psd_rad2ps3: f64,
+    /// Variance `sigma` of the piecewise-constant angular acceleration (`paper`), rad^2/s^4.
+    pub accel_var_rad2ps4: f64,
+    /// Estimate the damping `alpha` online (state augmented to `[phi, phi', alpha]`).
+    pub estimate_damping: bool,
+    /// Prior standard deviation of `alpha` around the model's value, 1/s.
+    pub damping_std_per_s: f64,
+    /// Spectral density of the random walk of `alpha`, 1/s^3.
+    pub damping_psd_per_s3: f64,
+    /// Prior standard deviation of `phi` when the state is set by hand, degrees.
+    pub initial_angle_std_deg: f64,
+    /// Prior standard deviation of `phi'` when the state is set by hand, degrees/s.
+    pub initial_rate_std_degps: f64,
+    /// Longest gap between the two measurements the filter initialises from, seconds.
+    pub max_init_gap_s: f64,
+    /// A measurement whose normalised innovation squared exceeds this is rejected.
+    pub gate_nis: f64,
+    /// After this many rejections in a row the filter re-initialises itself.
+    pub max_consecutive_rejections: u32,
+    /// Longest model sub-step (filter and predictor), seconds.
+    pub max_step_s: f64,
+    /// How far ahead the crossing search looks, seconds (the paper: 300 steps).
+    pub horizon_s: f64,
+    /// A motion plan is confident only after the filter has run this long, seconds.
+    pub min_observation_s: f64,
+    /// A motion plan is confident only if the last fused measurement is this recent, seconds.
+    pub max_measurement_age_s: f64,
+    /// A motion plan is confident only if its pass time's standard deviation is below this, ms.
+    pub commit_max_time_std_ms: f64,
+}
+
+impl Default for EkfParams {
+    fn default() -> Self {
+        Self {
+            measurement_noise_m: 0.002,
+            process_model: ProcessModel::Rk4,
+            process_noise_model: ProcessNoiseModel::Continuous,
+            accel_psd_rad2ps3: 1e-6,
+            accel_var_rad2ps4: 3e-5,
+            estimate_damping: true,
+            damping_std_per_s: 0.03,
+            damping_psd_per_s3: 1e-7,
+            initial_angle_std_deg: 10.0,
+            initial_rate_std_degps: 30.0,
+            max_init_gap_s: 0.2,
+            gate_nis: 25.0,
+            max_consecutive_rejections: 8,
+            max_step_s: 0.05,
+            horizon_s: 6.0,
+            min_observation_s: 1.0,
+            max_measurement_age_s: 0.25,
+            commit_max_time_std_ms: 5.0,
+        }
+    }
+}
+
+impl EkfParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within(
+            "ekf.measurement_noise_m",
+            self.measurement_noise_m,
+            1e-6,
+            1.0,
+        )?;
+        check::within("ekf.accel_psd_rad2ps3", self.accel_psd_rad2ps3, 0.0, 100.0)?;
+        check::within("ekf.accel_var_rad2ps4", self.accel_var_rad2ps4, 0.0, 1e4)?;
+        check::within("ekf.damping_std_per_s", self.damping_std_per_s, 0.0, 5.0)?;
+        check::within("ekf.damping_psd_per_s3", self.damping_psd_per_s3, 0.0, 1.0)?;
+        check::within(
+            "ekf.initial_angle_std_deg",
+            self.initial_angle_std_deg,
+            1e-3,
+            90.0,
+        )?;
+        check::within(
+            "ekf.initial_rate_std_degps",
+            self.initial_rate_std_degps,
+            1e-3,
+            1000.0,
+        )?;
+        check::within("ekf.max_init_gap_s", self.max_init_gap_s, 0.002, 5.0)?;
+        check::within("ekf.gate_nis", self.gate_nis, 1.0, 1e6)?;
+        check::within_u32(
+            "ekf.max_consecutive_rejections",
+            self.max_consecutive_rejections,
+            1,
+            1000,
+        )?;
+        check::within("ekf.max_step_s", self.max_step_s, 1e-4, 0.1)?;
+        check::within("ekf.horizon_s", self.horizon_s, 0.1, 60.0)?;
+        check::within("ekf.min_observation_s", self.min_observation_s, 0.0, 60.0)?;
+        check::within(
+            "ekf.max_measurement_age_s",
+            self.max_measurement_age_s,
+            1e-3,
+            10.0,
+        )?;
+        check::within(
+            "ekf.commit_max_time_std_ms",
+            self.commit_max_time_std_ms,
+            1e-3,
+            1000.0,
+        )
+    }
+}
+
+/// Errors of the filter's API: bad input, refused with nothing changed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum EkfError {
+    /// A time, measurement or request value that is NaN or infinite.
+    #[error("{what} is not a finite number")]
+    NotFinite {
+        /// Which input.
+        what: &'static str,
+    },
+    /// A request value out of its range.
+    #[error("{what} = {value} is out of range: {bound}")]
+    OutOfRange {
+        /// Which input.
+        what: &'static str,
+        /// The refused value.
+        value: f64,
+        /// The bound it broke.
+        bound: &'static str,
+    },
+    /// The filter has no estimate yet (fewer than two measurements).
+    #[error("the filter is not initialised yet")]
+    NotInitialised,
+    /// Invalid parameters.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+}
+
+/// What happened to one measurement.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MeasureOutcome {
+    /// Kept; the filter needs one more measurement to initialise.
+    Initialising,
+    /// The filter initialised itself from this and the previous measurement.
+    Initialised,
+    /// Fused at its capture time; `nis` is its normalised innovation squared.
+    Fused {
+        /// Normalised innovation squared.
+        nis: f64,
+    },
+    /// Gated out as an outlier (counted); the estimate did not move.
+    Rejected {
+        /// Normalised innovation squared (infinite when `|z| >= l`).
+        nis: f64,
+    },
+    /// Too many rejections in a row: the filter restarted from this measurement.
+    Reinitialising,
+    /// Captured before everything the history still holds: dropped (counted).
+    TooOld,
+}
+
+/// Counters the filter keeps instead of logging.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct EkfCounters {
+    /// Measurements fused.
+    pub fused: u64,
+    /// Measurements gated out as outliers.
+    pub rejected: u64,
+    /// Measurements that arrived out of order and were fused at their capture time.
+    pub out_of_order: u64,
+    /// Measurements older than the history: dropped.
+    pub too_old: u64,
+    /// Automatic re-initialisations (rejections in a row, or a covariance that lost
+    /// positive definiteness).
+    pub reinitialisations: u64,
+    /// Initialisations from measurements.
+    pub initialisations: u64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum EntryKind {
+    Init,
+    Fused,
+    Rejected,
+}
+
+/// One processed measurement and the posterior after it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Entry {
+    t: f64,
+    z: f64,
+    kind: EntryKind,
+    x: StateVec,
+    p: StateCov,
+}
+
+const EMPTY_ENTRY: Entry = Entry {
+    t: 0.0,
+    z: 0.0,
+    kind: EntryKind::Init,
+    x: Vector3::new(0.0, 0.0, 0.0),
+    p: Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+};
+
+/// Fixed-capacity ring of entries in capture-time order (oldest first).
+#[derive(Debug, Clone, PartialEq)]
+struct History {
+    buf: [Entry; HISTORY_LEN],
+    start: usize,
+    len: usize,
+}
+
+impl History {
+    fn new() -> Self {
+        Self {
+            buf: [EMPTY_ENTRY; HISTORY_LEN],
+            start: 0,
+            len: 0,
+        }
+    }
+    fn idx(&self, i: usize) -> usize {
+        (self.start + i) % HISTORY_LEN
+    }
+    fn get(&self, i: usize) -> &Entry {
+        &self.buf[self.idx(i)]
+    }
+    fn set(&mut self, i: usize, e: Entry) {
+        let k = self.idx(i);
+        self.buf[k] = e;
+    }
+    fn clear(&mut self) {
+        self.start = 0;
+        self.len = 0;
+    }
+    fn last(&self) -> Option<&Entry> {
+        self.len.checked_sub(1).map(|i| self.get(i))
+    }
+    fn drop_oldest(&mut self) {
+        if self.len > 0 {
+            self.start = (self.start + 1) % HISTORY_LEN;
+            self.len -= 1;
+        }
+    }
+    fn push(&mut self, e: Entry) {
+        if self.len == HISTORY_LEN {
+            self.drop_oldest();
+        }
+        self.len += 1;
+        self.set(self.len - 1, e);
+    }
+    /// Inserts at logical position `pos` (1..=len), dropping the oldest entry when
+    /// full; returns the position the entry ended up at.
+    fn insert(&mut self, mut pos: usize, e: Entry) -> usize {
+        if self.len == HISTORY_LEN {
+            self.drop_oldest();
+            pos = pos.saturating_sub(1);
+        }
+        self.len += 1;
+        let mut i = self.len - 1;
+        while i > pos {
+            let prev = *self.get(i - 1);
+            self.set(i, prev);
+            i -= 1;
+        }
+        self.set(pos, e);
+        pos
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Phase {
+    Empty,
+    Pending { t: f64, z: f64 },
+    Running,
+}
+
+/// The extended Kalman filter over the damped pendulum (eqs. 1-16) with a predictor.
+///
+/// Step API with explicit timestamps; no allocation after construction. Feed each
+/// camera measurement with [`Ekf::measure`] (capture time, lateral position); ask
+/// [`Ekf::predict_at`], [`Ekf::crossings`] and [`Ekf::plan_motion`] at any time
+/// without disturbing the filter.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ekf {
+    params: EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+    r: f64,
+    phase: Phase,
+    history: History,
+    t_init: f64,
+    t_last_fused: f64,
+    consecutive_rejections: u32,
+    counters: EkfCounters,
+}
+
+impl Ekf {
+    /// A filter for a pendulum of `model` (its damping is the prior for `alpha`) hanging
+    /// as `geometry` describes. The lengths of both must agree.
+    pub fn new(
+        params: EkfParams,
+        model: PendulumModel,
+        geometry: PendulumGeometry,
+    ) -> Result<Self, EkfError> {
+        params.validate()?;
+        check::within("pendulum.length_m", model.length_m, 0.1, 10.0)?;
+        check::within("pendulum.gravity_mps2", model.gravity_mps2, 0.1, 100.0)?;
+        check::within("pendulum.damping_per_s", model.damping_per_s, -5.0, 5.0)?;
+        if (model.length_m - geometry.length_m).abs() > 1e-9 {
+            return Err(ParamError::OutOfRange {
+                field: "pendulum.length_m".to_owned(),
+                value: geometry.length_m.to_string(),
+                bound: format!(
+                    "the geometry's length must equal the model's {}",
+                    model.length_m
+                ),
+            }
+            .into());
+        }
+        let r = params.measurement_noise_m * params.measurement_noise_m;
+        Ok(Self {
+            params,
+            model,
+            geometry,
+            r,
+            phase: Phase::Empty,
+            history: History::new(),
+            t_init: 0.0,
+            t_last_fused: 0.0,
+            consecutive_rejections: 0,
+            counters: EkfCounters::default(),
+        })
+    }
+
+    /// The parameters in use.
+    pub fn params(&self) -> &EkfParams {
+        &self.params
+    }
+
+    /// The pendulum model (its damping is the prior for `alpha`).
+    pub fn model(&self) -> &PendulumModel {
+        &self.model
+    }
+
+    /// The pendulum's geometry in the robot base frame.
+    pub fn geometry(&self) -> &PendulumGeometry {
+        &self.geometry
+    }
+
+    /// Counters since construction.
+    pub fn counters(&self) -> EkfCounters {
+        self.counters
+    }
+
+    /// Whether the filter has an estimate.
+    pub fn is_initialised(&self) -> bool {
+        self.phase == Phase::Running
+    }
+
+    /// Forgets the estimate (e.g. when the ball is released); counters are kept.
+    pub fn reset(&mut self) {
+        self.phase = Phase::Empty;
+        self.history.clear();
+        self.consecutive_rejections = 0;
+    }
+
+    /// The current posterior: capture time of the last processed measurement, state
+    /// and covariance; `None` before initialisation.
+    pub fn posterior(&self) -> Option<(f64, StateVec, StateCov)> {
+        match self.phase {
+            Phase::Running => self.history.last().map(|e| (e.t, e.x, e.p)),
+            _ => None,
+        }
+    }
+
+    /// Capture time of the last fused measurement (or of initialisation).
+    pub fn last_fused_s(&self) -> Option<f64> {
+        self.is_initialised().then_some(self.t_last_fused)
+    }
+
+    /// When the filter (last) initialised, seconds.
+    pub fn initialised_at_s(&self) -> Option<f64> {
+        self.is_initialised().then_some(self.t_init)
+    }
+
+    /// Sets the state by hand at time `t_s` with angle and rate; the covariance comes
+    /// from `initial_angle_std_deg`, `initial_rate_std_degps` and `damping_std_per_s`,
+    /// and `alpha` starts at the model's damping.
+    pub fn initialise(&mut self, t_s: f64, phi_rad: f64, rate_radps: f64) -> Result<(), EkfError> {
+        finite("t_s", t_s)?;
+        finite("phi_rad", phi_rad)?;
+        finite("rate_radps", rate_radps)?;
+        let sa = self.params.initial_angle_std_deg.to_radians();
+        let sr = self.params.initial_rate_std_degps.to_radians();
+        let x = Vector3::new(phi_rad, rate_radps, self.model.damping_per_s);
+        let p = Matrix3::from_diagonal(&Vector3::new(sa * sa, sr * sr, self.alpha_var()));
+        self.start_running(t_s, x, p);
+        Ok(())
+    }
+
+    fn alpha_var(&self) -> f64 {
+        if self.params.estimate_damping {
+            self.params.damping_std_per_s * self.params.damping_std_per_s
+        } else {
+            0.0
+        }
+    }
+
+    fn start_running(&mut self, t: f64, x: StateVec, p: StateCov) {
+        self.history.clear();
+        self.history.push(Entry {
+            t,
+            z: 0.0,
+            kind: EntryKind::Init,
+            x,
+            p,
+        });
+        self.phase = Phase::Running;
+        self.t_init = t;
+        self.t_last_fused = t;
+        self.consecutive_rejections = 0;
+    }
+
+    /// Fuses one lateral measurement `z_m` (base-frame y of the ball centre, metres)
+    /// captured at `t_capture_s`. Measurements may arrive late and out of order: one
+    /// captured before the newest fused one is fused at its capture time and the
+    /// later ones are re-fused after it (within [`HISTORY_LEN`]). Non-finite input is
+    /// refused and changes nothing.
+    pub fn measure(&mut self, t_capture_s: f64, z_m: f64) -> Result<MeasureOutcome, EkfError> {
+        finite("t_capture_s", t_capture_s)?;
+        finite("z_m", z_m)?;
+        let l = self.model.length_m;
+        match self.phase {
+            Phase::Empty => {
+                if z_m.abs() >= l {
+                    self.counters.rejected += 1;
+                    return Ok(MeasureOutcome::Rejected { nis: f64::INFINITY });
+                }
+                self.phase = Phase::Pending {
+                    t: t_capture_s,
+                    z: z_m,
+                };
+                Ok(MeasureOutcome::Initialising)
+            }
+            Phase::Pending { t, z } => {
+                if z_m.abs() >= l {
+                    self.counters.rejected += 1;
+                    return Ok(MeasureOutcome::Rejected { nis: f64::INFINITY });
+                }
+                let gap = (t_capture_s - t).abs();
+                if gap < MIN_INIT_GAP_S || gap > self.params.max_init_gap_s {
+                    // Too close to difference, or too far apart: keep the newer one.
+                    if t_capture_s >= t {
+                        self.phase = Phase::Pending {
+                            t: t_capture_s,
+                            z: z_m,
+                        };
+                    }
+                    return Ok(MeasureOutcome::Initialising);
+                }
+                let ((t1, z1), (t2, z2)) = if t_capture_s > t {
+                    ((t, z), (t_capture_s, z_m))
+                } else {
+                    ((t_capture_s, z_m), (t, z))
+                };
+                self.init_from_pair(t1, z1, t2, z2);
+                Ok(MeasureOutcome::Initialised)
+            }
+            Phase::Running => Ok(self.measure_running(t_capture_s, z_m)),
+        }
+    }
+
+    /// Initialises from two measurements: `phi = asin(z/l)`, `phi'` from their difference
+    /// (taken at the midpoint and carried to `t2` with the model's acceleration).
+    fn init_from_pair(&mut self, t1: f64, z1: f64, t2: f64, z2: f64) {
+        let l = self.model.length_m;
+        let k = self.model.omega0_sq();
+        let alpha = self.model.damping_per_s;
+        let p1 = (z1 / l).asin();
+        let p2 = (z2 / l).asin();
+        let dt = t2 - t1;
+        let w_mid = (p2 - p1) / dt;
+        let w2 = w_mid + 0.5 * dt * (-k * p2.sin() - alpha * w_mid);
+        let c2 = l * p2.cos();
+        let c1 = l * p1.cos();
+        let var2 = self.r / (c2 * c2);
+        let var1 = self.r / (c1 * c1);
+        // Rate variance from the difference, plus a floor for the model's error.
+        let var_w = (var1 + var2) / (dt * dt) + (0.05 * k * dt).powi(2);
+        let cov_pw = var2 / dt;
+        let p = Matrix3::new(
+            var2,
+            cov_pw,
+            0.0,
+            cov_pw,
+            var_w,
+            0.0,
+            0.0,
+            0.0,
+            self.alpha_var(),
+        );
+        self.start_running(t2, Vector3::new(p2, w2, alpha), p);
+        self.counters.initialisations += 1;
+    }
+
+    fn measure_running(&mut self, t: f64, z: f64) -> MeasureOutcome {
+        let Some(last) = self.history.last().copied() else {
+            self.phase = Phase::Empty;
+            return MeasureOutcome::Initialising;
+        };
+        if t - last.t > self.params.horizon_s {
+            // Coasted longer than the horizon: the estimate is stale, start again.
+            self.counters.reinitialisations += 1;
+            self.reset();
+            if z.abs() < self.model.length_m {
+                self.phase = Phase::Pending { t, z };
+            }
+            return MeasureOutcome::Reinitialising;
+        }
+        let (pos, outcome) = if t >= last.t {
+            let (entry, nis) = self.filter_step(&last, t, z);
+            self.history.push(entry);
+            (None, (entry.kind, nis))
+        } else {
+            // Late: find the newest entry captured at or before t.
+            let mut j = None;
+            for i in (0..self.history.len).rev() {
+                if self.history.get(i).t <= t {
+                    j = Some(i);
+                    break;
+                }
+            }
+            let Some(j) = j else {
+                self.counters.too_old += 1;
+                return MeasureOutcome::TooOld;
+            };
+            let prev = *self.history.get(j);
+            let (entry, nis) = self.filter_step(&prev, t, z);
+            let pos = self.history.insert(j + 1, entry);
+            self.counters.out_of_order += 1;
+            (Some(pos), (entry.kind, nis))
+        };
+        if let Some(pos) = pos {
+            self.refilter_after(pos);
+        }
+        let (kind, nis) = outcome;
+        if !self.covariance_ok() {
+            self.counters.reinitialisations += 1;
+            self.reset();
+            self.phase = Phase::Pending { t, z };
+            return MeasureOutcome::Reinitialising;
+        }
+        match kind {
+            EntryKind::Fused => {
+                self.counters.fused += 1;
+                self.consecutive_rejections = 0;
+                self.t_last_fused = self.t_last_fused.max(t);
+                MeasureOutcome::Fused { nis }
+            }
+            _ => {
+                self.counters.rejected += 1;
+                self.consecutive_rejections += 1;
+                if self.consecutive_rejections >= self.params.max_consecutive_rejections {
+                    self.counters.reinitialisations += 1;
+                    self.reset();
+                    if z.abs() < self.model.length_m {
+                        self.phase = Phase::Pending { t, z };
+                    }
+                    return MeasureOutcome::Reinitialising;
+                }
+                MeasureOutcome::Rejected { nis }
+            }
+        }
+    }
+
+    /// Re-runs every entry after `pos` from the posterior at `pos`.
+    fn refilter_after(&mut self, pos: usize) {
+        for i in (pos + 1)..self.history.len {
+            let prev = *self.history.get(i - 1);
+            let cur = *self.history.get(i);
+            let (entry, _) = self.filter_step(&prev, cur.t, cur.z);
+            self.history.set(i, entry);
+        }
+    }
+
+    fn covariance_ok(&self) -> bool {
+        self.history.last().is_some_and(|e| {
+            e.x.iter().all(|v| v.is_finite())
+                && e.p.iter().all(|v| v.is_finite())
+                && e.p[(0, 0)] > 0.0
+                && e.p[(1, 1)] > 0.0
+                && e.p[(2, 2)] >= 0.0
+        })
+    }
+
+    /// Predict from `prev` to `t`, then the gated Joseph-form update with `z`.
+    fn filter_step(&self, prev: &Entry, t: f64, z: f64) -> (Entry, f64) {
+        let (x, p) = self.propagate(&prev.x, &prev.p, t - prev.t);
+        let l = self.model.length_m;
+        let mut entry = Entry {
+            t,
+            z,
+            kind: EntryKind::Rejected,
+            x,
+            p,
+        };
+        if z.abs() >= l {
+            return (entry, f64::INFINITY);
+        }
+        let (zh, c) = model::measure(l, &x);
+        let pct = p * c.transpose();
+        let s = (c * pct)[0] + self.r;
+        let innov = z - zh;
+        let nis = innov * innov / s;
+        if nis.is_nan() || nis > self.params.gate_nis {
+            return (entry, nis);
+        }
+        // Iterated EKF (Gauss-Newton on the measurement): relinearise `h` at the
+        // updated estimate until the angle settles, so a large first correction is not
+        // distorted by `cos` taken at the wrong angle.
+        let mut xi = x + pct * (innov / s);
+        let mut c_i = c;
+        let mut s_i = s;
+        for _ in 0..MAX_IEKF_ITERATIONS {
+            let (zi, ci) = model::measure(l, &xi);
+            let pci = p * ci.transpose();
+            let si = (ci * pci)[0] + self.r;
+            let next = x + pci * ((z - zi - (ci * (x - xi))[0]) / si);
+            let change = (next[0] - xi[0]).abs();
+            xi = next;
+            c_i = ci;
+            s_i = si;
+            if change < IEKF_TOLERANCE_RAD {
+                break;
+            }
+        }
+        let k = p * c_i.transpose() / s_i;
+        let ikc = Matrix3::identity() - k * c_i;
+        let pn = ikc * p * ikc.transpose() + k * k.transpose() * self.r;
+        entry.x = xi;
+        entry.p = (pn + pn.transpose()) * 0.5;
+        entry.kind = EntryKind::Fused;
+        (entry, nis)
+    }
+
+    /// Carries `(x, p)` over `dt` (either sign) in sub-steps of at most `max_step_s`.
+    fn propagate(&self, x: &StateVec, p: &StateCov, dt: f64) -> (StateVec, StateCov) {
+        let n = (dt.abs() / self.params.max_step_s).ceil().max(1.0);
+        let h = dt / n;
+        let mut x = *x;
+        let mut p = *p;
+        if dt == 0.0 {
+            return (x, p);
+        }
+        let q = self.q(h);
+        // `n` is a whole number >= 1 bounded by the finite time span.
+        for _ in 0..(n as u64) {
+            let (xn, f) = model::step(self.params.process_model, self.model.omega0_sq(), &x, h);
+            x = xn;
+            p = f * p * f.transpose() + q;
+        }
+        (x, (p + p.transpose()) * 0.5)
+    }
+
+    fn q(&self, h: f64) -> StateCov {
+        let accel = match self.params.process_noise_model {
+            ProcessNoiseModel::Continuous => self.params.accel_psd_rad2ps3,
+            ProcessNoiseModel::Paper => self.params.accel_var_rad2ps4,
+        };
+        let damping = if self.params.estimate_damping {
+            self.params.damping_psd_per_s3
+        } else {
+            0.0
+        };
+        model::process_noise(self.params.process_noise_model, accel, damping, h)
+    }
+}
+
+fn finite(what: &'static str, v: f64) -> Result<(), EkfError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(EkfError::NotFinite { what })
+    }
+}
+
+#[cfg(test)]
+mod tests;
