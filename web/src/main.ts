@@ -1,16 +1,125 @@
-import { describeHealth, parseHealth } from "./health";
+import "./style.css";
+import { call } from "./api";
+import { CameraView } from "./camera";
+import { Link, wsUrl, type LinkStatus } from "./connection";
+import { Controls, ParamsPanel } from "./controls";
+import { Plots } from "./plots";
+import { fmt } from "./stats";
+import { TrialsView } from "./trials";
+import { DEFAULT_GEOMETRY, Twin } from "./twin";
+import type { ServerMessage, StateMessage } from "./types";
 
-const line = document.getElementById("health");
+const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
-async function refresh(): Promise<void> {
-  try {
-    const r = await fetch("/api/health");
-    const h = r.ok ? parseHealth(await r.json()) : null;
-    if (line) line.textContent = describeHealth(h);
-  } catch {
-    if (line) line.textContent = describeHealth(null);
+const toast = $<HTMLElement>("toast");
+let toastTimer: number | undefined;
+function notify(text: string, kind: "info" | "error" = "info"): void {
+  toast.textContent = text;
+  toast.className = `toast ${kind}`;
+  window.clearTimeout(toastTimer);
+  toastTimer = window.setTimeout(() => (toast.className = "toast hidden"), 6000);
+}
+
+const plots = new Plots($("plots"), $<HTMLCanvasElement>("phase"));
+const twin = new Twin($("twin"));
+const camera = new CameraView($("camera"));
+const trials = new TrialsView($("trials"));
+const params = new ParamsPanel($<HTMLFormElement>("params"), notify);
+const controls = new Controls(notify, () => void trials.refresh());
+
+let latest: StateMessage | null = null;
+let lastTrialState = "";
+
+function onMessage(m: ServerMessage): void {
+  switch (m.type) {
+    case "hello":
+      controls.tokenRequired = m.token_required;
+      controls.refresh();
+      $("version").textContent = `isochron ${m.version}`;
+      break;
+    case "state":
+      latest = m;
+      plots.update(m);
+      twin.update(m);
+      camera.update(m);
+      if (m.trial_state !== lastTrialState) {
+        lastTrialState = m.trial_state;
+        if (m.trial_state === "done" || m.trial_state === "aborted") void trials.refresh();
+      }
+      break;
+    case "event":
+      if (m.event.kind === "aborted") notify(`trial aborted: ${m.message ?? String(m.event.reason)}`, "error");
+      if (m.event.kind === "trial_finished") void trials.refresh();
+      break;
   }
 }
 
-void refresh();
-setInterval(() => void refresh(), 5000);
+function onStatus(s: LinkStatus): void {
+  const banner = $("banner");
+  banner.hidden = s === "open";
+  banner.textContent = s === "lost" ? "Connection to the lab lost: reconnecting…" : "Connecting to the lab…";
+  document.body.classList.toggle("disconnected", s !== "open");
+}
+
+function status(s: StateMessage): void {
+  $("st-trial").textContent = s.trial_state;
+  $("st-trial").dataset.state = s.trial_state;
+  $("st-fri").textContent = `${s.fri.session} · ${s.fri.quality}`;
+  $("st-rtt").textContent = fmt(s.fri.reply_latency_us, 0, "µs");
+  $("st-magnet").textContent = s.magnet;
+  $("st-latency").textContent = fmt(s.robot.actuation_latency_ms, 1, "ms");
+  $("st-step").textContent = `${fmt(s.timing.step_us, 1)} / ${fmt(s.timing.step_max_us, 1)} µs`;
+  $("st-misses").textContent = String(s.timing.deadline_misses + s.fri.missed_cycles);
+  $("st-pass").textContent = s.pendulum.crossing_t_s !== null ? `${fmt(s.pendulum.crossing_t_s - s.t_s, 2, "s")} ± ${fmt((s.pendulum.crossing_sigma_s ?? NaN) * 1000, 1, "ms")}` : "–";
+}
+
+const link = new Link(wsUrl("/ws"), onMessage, onStatus);
+link.start();
+
+// Paint at the display's rate, whatever the stream's rate.
+let frames = 0;
+let fps = 0;
+let fpsT0 = performance.now();
+function frame(now: number): void {
+  plots.draw();
+  twin.draw();
+  camera.draw();
+  if (latest) status(latest);
+  frames += 1;
+  if (now - fpsT0 >= 1000) {
+    fps = (frames * 1000) / (now - fpsT0);
+    frames = 0;
+    fpsT0 = now;
+  }
+  requestAnimationFrame(frame);
+}
+requestAnimationFrame(frame);
+
+async function loadGeometry(): Promise<void> {
+  await params.load();
+  const p = params.params as { pendulum?: Record<string, number>; task?: Record<string, unknown> };
+  twin.geometry = {
+    length_m: p.pendulum?.length_m ?? DEFAULT_GEOMETRY.length_m,
+    ball_radius_m: p.pendulum?.ball_radius_m ?? DEFAULT_GEOMETRY.ball_radius_m,
+    intercept_height_m: (p.task?.intercept_height_m as number) ?? DEFAULT_GEOMETRY.intercept_height_m,
+    home_m: (p.task?.home_m as [number, number, number]) ?? DEFAULT_GEOMETRY.home_m,
+    tool_length_m: (p.task?.tool_length_m as number) ?? DEFAULT_GEOMETRY.tool_length_m,
+  };
+}
+void loadGeometry();
+void trials.refresh();
+void call("GET", "/api/health").catch(() => onStatus("lost"));
+
+/** What the browser tests read. */
+declare global {
+  interface Window {
+    __isochron: { points: () => number[]; twinFrames: () => number; fps: () => number; received: () => number; state: () => string };
+  }
+}
+window.__isochron = {
+  points: () => plots.pointCounts(),
+  twinFrames: () => twin.frames,
+  fps: () => fps,
+  received: () => link.received,
+  state: () => latest?.trial_state ?? "",
+};

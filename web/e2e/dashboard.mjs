@@ -1,0 +1,164 @@
+// The dashboard in a real browser (Debian's Chromium through playwright-core)
+// against a running `isochron serve`. Usage: node e2e/dashboard.mjs URL TOKEN
+// Prints one line per check, a JSON line of measurements, and
+// "browser: N passed, M failed"; exits non-zero on any failure.
+import { chromium } from "playwright-core";
+
+const [base, token] = process.argv.slice(2);
+if (!base || !token) {
+  console.error("usage: node e2e/dashboard.mjs URL TOKEN");
+  process.exit(2);
+}
+const SOAK_S = Number(process.env.ISOCHRON_SOAK_S ?? 60);
+const results = [];
+const measured = {};
+
+async function check(name, fn) {
+  const t0 = Date.now();
+  try {
+    await fn();
+    results.push([name, true]);
+    console.log(`ok   ${name} (${Date.now() - t0} ms)`);
+  } catch (e) {
+    results.push([name, false]);
+    console.log(`FAIL ${name}: ${e && e.message ? e.message : e}`);
+  }
+}
+
+function assert(cond, msg) {
+  if (!cond) throw new Error(msg);
+}
+
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
+  args: [
+    "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+    "--no-first-run", "--disable-sync", "--disable-quic", "--enable-precise-memory-info",
+  ],
+});
+
+async function openPage() {
+  const context = await browser.newContext({ viewport: { width: 1400, height: 1000 } });
+  const page = await context.newPage();
+  const errors = [];
+  page.on("console", (m) => {
+    if (m.type() === "error") errors.push(m.text());
+  });
+  page.on("pageerror", (e) => errors.push(String(e)));
+  await page.goto(base, { waitUntil: "load" });
+  await page.waitForFunction(() => window.__isochron !== undefined, null, { timeout: 10_000 });
+  return { context, page, errors };
+}
+
+const api = async (method, path, body, withToken = true) => {
+  const headers = { "Content-Type": "application/json" };
+  if (withToken) headers.Authorization = `Bearer ${token}`;
+  const r = await fetch(new URL(path, base), { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const text = await r.text();
+  return { status: r.status, json: text ? JSON.parse(text) : null };
+};
+
+try {
+  // Visitor: streams, renders, controls disabled.
+  const visitor = await openPage();
+  await check("visitor: plots receive data within 2 s", async () => {
+    const p0 = await visitor.page.evaluate(() => window.__isochron.points());
+    await visitor.page.waitForFunction(
+      (before) => window.__isochron.points().slice(0, 5).every((n, i) => n > before[i] + 5),
+      p0,
+      { timeout: 2_000 },
+    );
+  });
+  await check("visitor: the 3D view renders", async () => {
+    await visitor.page.waitForFunction(() => window.__isochron.twinFrames() > 2, null, { timeout: 5_000 });
+  });
+  await check("visitor: controls are disabled, the stop button is not", async () => {
+    for (const id of ["btn-arm", "btn-drop", "btn-trial"]) {
+      assert(await visitor.page.isDisabled(`#${id}`), `${id} enabled without a token`);
+    }
+    assert(await visitor.page.isEnabled("#btn-stop"), "stop disabled");
+  });
+  await check("visitor: no console errors", async () => {
+    assert(visitor.errors.length === 0, visitor.errors.join(" | "));
+  });
+  await visitor.context.close();
+
+  // Operator.
+  const op = await openPage();
+  const { page } = op;
+  await page.fill("#token", token);
+  await page.click("#token-form button[type=submit]");
+  await check("operator: the token enables the controls", async () => {
+    await page.waitForFunction(() => !document.querySelector("#btn-trial").disabled, null, { timeout: 3_000 });
+  });
+  await check("operator: an invalid parameter shows the server's message beside the field, nothing changes", async () => {
+    const before = await api("GET", "/api/params");
+    await page.waitForSelector('input[name="pendulum.length_m"]', { timeout: 5_000 });
+    await page.fill('input[name="pendulum.length_m"]', "-1");
+    await page.click("#params button[type=submit]");
+    const slot = '.field-error[data-field="pendulum.length_m"]';
+    await page.waitForFunction((s) => document.querySelector(s)?.textContent?.length > 0, slot, { timeout: 5_000 });
+    const text = await page.textContent(slot);
+    assert(/length_m/.test(text), `message does not name the field: ${text}`);
+    const after = await api("GET", "/api/params");
+    assert(JSON.stringify(before.json) === JSON.stringify(after.json), "parameters changed");
+    await page.fill('input[name="pendulum.length_m"]', String(before.json.pendulum.length_m));
+  });
+  await check("operator: Run trial completes a trial and the history shows it", async () => {
+    const rowsBefore = await page.locator("#trials tbody tr").count();
+    await page.click("#btn-trial");
+    await page.waitForFunction(
+      (n) => document.querySelectorAll("#trials tbody tr.hit, #trials tbody tr.miss").length > n,
+      rowsBefore,
+      { timeout: 90_000 },
+    );
+    measured.history_summary = await page.textContent("#trials .summary");
+  });
+  await check("operator: the emergency stop key stops a running motion", async () => {
+    await page.click("#btn-trial");
+    await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });
+    await page.keyboard.press("Escape");
+    await page.waitForFunction(() => ["aborted", "idle"].includes(window.__isochron.state()), null, { timeout: 2_000 });
+    const st = await api("GET", "/api/state");
+    assert(st.json.trial_state !== "intercepting", `still intercepting: ${st.json.trial_state}`);
+  });
+  await check("operator: no console errors", async () => {
+    assert(op.errors.length === 0, op.errors.join(" | "));
+  });
+
+  // Soak: heap growth and frame rate while streaming.
+  await check(`soak: over ${SOAK_S} s the heap grows < 20% after 10 s and fps > 30`, async () => {
+    const cdp = await page.context().newCDPSession(page);
+    const heap = async () => {
+      await cdp.send("HeapProfiler.collectGarbage");
+      return (await cdp.send("Runtime.getHeapUsage")).usedSize;
+    };
+    await page.waitForTimeout(10_000);
+    const h10 = await heap();
+    const fps = [];
+    const end = Date.now() + (SOAK_S - 10) * 1000;
+    while (Date.now() < end) {
+      await page.waitForTimeout(5_000);
+      fps.push(await page.evaluate(() => window.__isochron.fps()));
+    }
+    const hEnd = await heap();
+    measured.heap_mb_10s = +(h10 / 1e6).toFixed(2);
+    measured.heap_mb_end = +(hEnd / 1e6).toFixed(2);
+    measured.heap_growth = +((hEnd - h10) / h10).toFixed(3);
+    measured.fps_min = +Math.min(...fps).toFixed(1);
+    measured.fps_mean = +(fps.reduce((a, b) => a + b, 0) / fps.length).toFixed(1);
+    assert(measured.heap_growth <= 0.2, `heap grew ${(measured.heap_growth * 100).toFixed(1)}%`);
+    assert(measured.fps_min > 30, `fps fell to ${measured.fps_min}`);
+  });
+  if (process.env.ISOCHRON_SCREENSHOT) {
+    await page.screenshot({ path: process.env.ISOCHRON_SCREENSHOT, fullPage: false });
+  }
+  await op.context.close();
+} finally {
+  await browser.close();
+}
+
+console.log(JSON.stringify({ measured }));
+const passed = results.filter(([, ok]) => ok).length;
+console.log(`browser: ${passed} passed, ${results.length - passed} failed`);
+process.exit(passed === results.length ? 0 : 1);

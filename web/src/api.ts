@@ -1,0 +1,69 @@
+/** The REST API (CONTRACT.md, "HTTP"), with the session's bearer token. */
+
+const TOKEN_KEY = "isochron.token";
+
+export function getToken(): string {
+  return sessionStorage.getItem(TOKEN_KEY) ?? "";
+}
+
+export function setToken(token: string): void {
+  if (token) sessionStorage.setItem(TOKEN_KEY, token);
+  else sessionStorage.removeItem(TOKEN_KEY);
+}
+
+/** An API error: the server's message and, when it names one, the field. */
+export class ApiError extends Error {
+  constructor(
+    message: string,
+    readonly status: number,
+    readonly field?: string,
+  ) {
+    super(message);
+  }
+}
+
+/** Reads `{"error": "...", "field": "..."}` from an error response. */
+export async function errorOf(r: Response): Promise<ApiError> {
+  try {
+    const j = (await r.json()) as { error?: unknown; field?: unknown };
+    const msg = typeof j.error === "string" ? j.error : `HTTP ${r.status}`;
+    return new ApiError(msg, r.status, typeof j.field === "string" ? j.field : undefined);
+  } catch {
+    return new ApiError(`HTTP ${r.status}`, r.status);
+  }
+}
+
+export async function call<T>(method: string, path: string, body?: unknown): Promise<T> {
+  const headers: Record<string, string> = {};
+  const token = getToken();
+  if (token) headers.Authorization = `Bearer ${token}`;
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  const r = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  if (!r.ok) throw await errorOf(r);
+  const text = await r.text();
+  return (text ? JSON.parse(text) : {}) as T;
+}
+
+/** One trial's record, as `GET /api/trials` lists them. */
+export interface TrialRecord {
+  id: number;
+  success?: boolean;
+  timing_error_ms?: number;
+  position_error_m?: number;
+  movement_time_s?: number;
+  distance_m?: number;
+  reason?: string | null;
+  [k: string]: unknown;
+}
+
+/** `GET /api/trials` answers a list, or an object holding one. */
+export function trialList(v: unknown): TrialRecord[] {
+  if (Array.isArray(v)) return v as TrialRecord[];
+  if (v && typeof v === "object") {
+    for (const k of ["trials", "items", "records"]) {
+      const a = (v as Record<string, unknown>)[k];
+      if (Array.isArray(a)) return a as TrialRecord[];
+    }
+  }
+  return [];
+}

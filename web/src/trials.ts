@@ -1,0 +1,110 @@
+import uPlot from "uplot";
+import { call, trialList, type TrialRecord } from "./api";
+import { COLORS } from "./plots";
+import { fmt, pct, wilson } from "./stats";
+
+/** The trial history: success rate with its 95% interval, per-trial numbers, recordings. */
+export class TrialsView {
+  private plot: uPlot | null = null;
+  trials: TrialRecord[] = [];
+
+  constructor(private readonly root: HTMLElement) {}
+
+  async refresh(): Promise<void> {
+    try {
+      this.trials = trialList(await call<unknown>("GET", "/api/trials"));
+    } catch {
+      return;
+    }
+    this.render();
+  }
+
+  private render(): void {
+    const judged = this.trials.filter((t) => typeof t.success === "boolean");
+    const ok = judged.filter((t) => t.success).length;
+    const [lo, hi] = wilson(ok, judged.length);
+    const summary = this.root.querySelector(".summary") as HTMLElement;
+    summary.textContent = judged.length
+      ? `${ok} of ${judged.length} precisely timed: ${pct(ok / judged.length)} (95% CI ${pct(lo)}–${pct(hi)})`
+      : "no trials yet";
+    const body = this.root.querySelector("tbody") as HTMLElement;
+    body.replaceChildren();
+    for (const t of [...this.trials].reverse()) {
+      const tr = document.createElement("tr");
+      const cells = [
+        String(t.id),
+        typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : "…",
+        fmt(t.distance_m, 3),
+        fmt(t.timing_error_ms, 1),
+        fmt(t.position_error_m !== undefined ? t.position_error_m * 1000 : undefined, 1),
+        fmt(t.movement_time_s, 3),
+        typeof t.reason === "string" ? t.reason : "",
+      ];
+      for (const c of cells) {
+        const td = document.createElement("td");
+        td.textContent = c;
+        tr.append(td);
+      }
+      const dl = document.createElement("td");
+      for (const ext of ["csv", "mcap"]) {
+        const a = document.createElement("a");
+        a.href = `/api/trials/${t.id}/recording.${ext}`;
+        a.textContent = ext.toUpperCase();
+        a.download = `trial-${t.id}.${ext}`;
+        dl.append(a, " ");
+      }
+      const show = document.createElement("button");
+      show.textContent = "plot";
+      show.addEventListener("click", () => void this.plotTrial(t.id));
+      dl.append(show);
+      tr.append(dl);
+      tr.classList.add(t.success ? "hit" : "miss");
+      body.append(tr);
+    }
+  }
+
+  /** Plots a trial's recorded path speed (or its first signals) from its CSV. */
+  async plotTrial(id: number): Promise<void> {
+    const r = await fetch(`/api/trials/${id}/recording.csv`);
+    const host = this.root.querySelector(".trial-plot") as HTMLElement;
+    if (!r.ok) {
+      host.textContent = `no recording for trial ${id}`;
+      return;
+    }
+    const { header, cols } = parseCsv(await r.text());
+    const t = header.findIndex((h) => h === "t_s");
+    const wanted = header
+      .map((h, i) => [h, i] as const)
+      .filter(([h, i]) => i !== t && /speed|progress/.test(h))
+      .slice(0, 4);
+    const pick = wanted.length ? wanted : header.map((h, i) => [h, i] as const).filter(([, i]) => i !== t).slice(0, 3);
+    const palette = [COLORS.blue, COLORS.red, COLORS.green, COLORS.orange];
+    this.plot?.destroy();
+    host.replaceChildren();
+    const title = document.createElement("h3");
+    title.textContent = `Trial ${id}`;
+    host.append(title);
+    this.plot = new uPlot(
+      {
+        width: Math.max(300, host.clientWidth - 8),
+        height: 200,
+        scales: { x: { time: false } },
+        series: [{ label: "t (s)" }, ...pick.map(([h], i) => ({ label: h, stroke: palette[i % 4], width: 1.5 }))],
+      },
+      [cols[t >= 0 ? t : 0], ...pick.map(([, i]) => cols[i])] as uPlot.AlignedData,
+      host,
+    );
+  }
+}
+
+/** Numeric CSV with a header row; non-numbers become NaN. */
+export function parseCsv(text: string): { header: string[]; cols: number[][] } {
+  const lines = text.split(/\r?\n/).filter((l) => l.length > 0 && !l.startsWith("#"));
+  const header = (lines.shift() ?? "").split(",").map((h) => h.trim());
+  const cols = header.map(() => [] as number[]);
+  for (const l of lines) {
+    const v = l.split(",");
+    for (let i = 0; i < header.length; i++) cols[i].push(Number(v[i] ?? Number.NaN));
+  }
+  return { header, cols };
+}

@@ -1,0 +1,202 @@
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { frames, origin } from "./iiwa";
+import { num, type StateMessage } from "./types";
+
+/** Lab geometry the twin needs from `GET /api/params`. */
+export interface TwinGeometry {
+  length_m: number;
+  intercept_height_m: number;
+  home_m: [number, number, number];
+  tool_length_m: number;
+  ball_radius_m: number;
+}
+
+export const DEFAULT_GEOMETRY: TwinGeometry = {
+  length_m: 1.93,
+  intercept_height_m: 0.3,
+  home_m: [0.3, 0, 0.5],
+  tool_length_m: 0.1,
+  ball_radius_m: 0.0335,
+};
+
+const up = new THREE.Vector3(0, 1, 0);
+
+/** Places a unit cylinder (height 1 along y) between two points. */
+function stretch(mesh: THREE.Mesh, a: THREE.Vector3, b: THREE.Vector3): void {
+  const d = b.clone().sub(a);
+  const len = d.length();
+  mesh.visible = len > 1e-6;
+  if (!mesh.visible) return;
+  mesh.position.copy(a).addScaledVector(d, 0.5);
+  mesh.scale.set(1, len, 1);
+  mesh.quaternion.setFromUnitVectors(up, d.divideScalar(len));
+}
+
+/** The 3D twin: iiwa 7 from its kinematics, pendulum, ball, prediction, intercept and tool path. */
+export class Twin {
+  readonly renderer: THREE.WebGLRenderer | null;
+  private readonly scene = new THREE.Scene();
+  private readonly camera: THREE.PerspectiveCamera;
+  private readonly controls: OrbitControls | null;
+  private readonly links: THREE.Mesh[] = [];
+  private readonly joints: THREE.Mesh[] = [];
+  private readonly tool: THREE.Mesh;
+  private readonly ball: THREE.Mesh;
+  private readonly truth: THREE.Mesh;
+  private readonly string: THREE.Mesh;
+  private readonly intercept: THREE.Mesh;
+  private readonly predicted: THREE.Line;
+  private readonly toolPath: THREE.Line;
+  private latest: StateMessage | null = null;
+  private dirty = true;
+  geometry: TwinGeometry = DEFAULT_GEOMETRY;
+  /** Frames rendered (the browser test checks the view renders). */
+  frames = 0;
+
+  constructor(private readonly host: HTMLElement) {
+    let renderer: THREE.WebGLRenderer | null = null;
+    try {
+      renderer = new THREE.WebGLRenderer({ antialias: true });
+    } catch {
+      host.textContent = "3D view unavailable (no WebGL in this browser)";
+    }
+    this.renderer = renderer;
+    this.scene.background = new THREE.Color("#f4f6f8");
+    this.camera = new THREE.PerspectiveCamera(45, 1, 0.01, 50);
+    this.camera.up.set(0, 0, 1);
+    this.camera.position.set(-1.4, -2.2, 1.5);
+    this.scene.add(new THREE.HemisphereLight("#ffffff", "#8899aa", 2.2));
+    const sun = new THREE.DirectionalLight("#ffffff", 1.5);
+    sun.position.set(2, -2, 4);
+    this.scene.add(sun);
+    const grid = new THREE.GridHelper(3, 30, "#99a", "#ccd");
+    grid.rotation.x = Math.PI / 2;
+    this.scene.add(grid);
+    this.scene.add(new THREE.AxesHelper(0.25));
+
+    const orange = new THREE.MeshStandardMaterial({ color: "#E69F00", roughness: 0.6 });
+    const grey = new THREE.MeshStandardMaterial({ color: "#d0d4d8", roughness: 0.5 });
+    const cyl = new THREE.CylinderGeometry(0.055, 0.055, 1, 20);
+    for (let i = 0; i < 7; i++) {
+      const m = new THREE.Mesh(cyl, i % 2 === 0 ? grey : orange);
+      this.links.push(m);
+      this.scene.add(m);
+      const j = new THREE.Mesh(new THREE.SphereGeometry(0.07, 16, 12), orange);
+      this.joints.push(j);
+      this.scene.add(j);
+    }
+    this.tool = new THREE.Mesh(new THREE.CylinderGeometry(0.02, 0.02, 1, 12), new THREE.MeshStandardMaterial({ color: "#333" }));
+    this.scene.add(this.tool);
+    const ballMat = new THREE.MeshStandardMaterial({ color: "#c8e03c", roughness: 0.8 });
+    this.ball = new THREE.Mesh(new THREE.SphereGeometry(1, 24, 16), ballMat);
+    this.truth = new THREE.Mesh(
+      new THREE.SphereGeometry(1, 16, 12),
+      new THREE.MeshBasicMaterial({ color: "#0072B2", wireframe: true }),
+    );
+    this.string = new THREE.Mesh(new THREE.CylinderGeometry(0.003, 0.003, 1, 6), new THREE.MeshBasicMaterial({ color: "#444" }));
+    this.intercept = new THREE.Mesh(
+      new THREE.TorusGeometry(0.05, 0.006, 8, 32),
+      new THREE.MeshBasicMaterial({ color: "#009E73" }),
+    );
+    this.intercept.rotation.y = Math.PI / 2;
+    this.predicted = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineDashedMaterial({ color: "#0072B2", dashSize: 0.03, gapSize: 0.02 }));
+    this.predicted.geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(3 * 64), 3));
+    this.toolPath = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: "#D55E00" }));
+    this.toolPath.geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(6), 3));
+    this.scene.add(this.ball, this.truth, this.string, this.intercept, this.predicted, this.toolPath);
+
+    if (renderer) {
+      host.append(renderer.domElement);
+      renderer.domElement.setAttribute("aria-label", "3D view of the arm and the pendulum");
+      renderer.domElement.tabIndex = 0;
+      this.controls = new OrbitControls(this.camera, renderer.domElement);
+      this.controls.target.set(0.45, 0, 0.5);
+      this.controls.addEventListener("change", () => (this.dirty = true));
+      this.controls.update();
+      new ResizeObserver(() => this.resize()).observe(host);
+      this.resize();
+    } else {
+      this.controls = null;
+    }
+    this.pose([0, 0.5, 0, -1.4, 0, 1.2, 0]);
+  }
+
+  private resize(): void {
+    if (!this.renderer) return;
+    const w = Math.max(200, this.host.clientWidth), h = Math.max(200, this.host.clientHeight);
+    this.renderer.setSize(w, h, false);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+    this.dirty = true;
+  }
+
+  private pose(q: readonly number[]): void {
+    const fs = frames(q);
+    const pts = fs.map((f) => new THREE.Vector3(...origin(f)));
+    for (let i = 0; i < 7; i++) {
+      stretch(this.links[i], pts[i], pts[i + 1]);
+      this.joints[i].position.copy(pts[i + 1]);
+    }
+    const flange = fs[7];
+    const z = new THREE.Vector3(flange[2], flange[6], flange[10]);
+    stretch(this.tool, pts[7], pts[7].clone().addScaledVector(z, this.geometry.tool_length_m));
+  }
+
+  update(s: StateMessage): void {
+    this.latest = s;
+    this.dirty = true;
+  }
+
+  /** Renders if anything changed; call once per animation frame. */
+  draw(): void {
+    if (!this.renderer || !this.dirty) return;
+    this.dirty = false;
+    const s = this.latest;
+    const g = this.geometry;
+    if (s) {
+      this.pose(s.robot.q_rad);
+      const r = g.ball_radius_m;
+      const est = s.pendulum.ball_m.map(num);
+      const tru = s.pendulum.truth_ball_m.map(num);
+      const icp = s.path.intercept_m.map(num);
+      const ref = [tru, est, icp].find((v) => v.every(Number.isFinite));
+      const pivot = ref ? new THREE.Vector3(ref[0], 0, g.intercept_height_m + g.length_m) : null;
+      const show = (m: THREE.Mesh, v: number[]) => {
+        m.visible = v.every(Number.isFinite);
+        if (m.visible) {
+          m.position.set(v[0], v[1], v[2]);
+          m.scale.setScalar(r);
+        }
+      };
+      show(this.ball, est.every(Number.isFinite) ? est : tru);
+      show(this.truth, tru);
+      if (pivot && this.ball.visible) stretch(this.string, pivot, this.ball.position);
+      else this.string.visible = false;
+      const target = icp.every(Number.isFinite) ? icp : ref ? [ref[0], 0, g.intercept_height_m] : null;
+      this.intercept.visible = target !== null;
+      if (target) this.intercept.position.set(target[0], target[1], target[2]);
+      // Predicted ball path from the horizon (lateral x on the swing plane).
+      const pos = this.predicted.geometry.getAttribute("position") as THREE.BufferAttribute;
+      const h = s.pendulum.horizon;
+      const n = pivot ? Math.min(h.length, 64) : 0;
+      for (let i = 0; i < n && pivot; i++) {
+        const x = Math.max(-g.length_m, Math.min(g.length_m, h[i].x_m));
+        pos.setXYZ(i, pivot.x, x, pivot.z - Math.sqrt(g.length_m * g.length_m - x * x));
+      }
+      pos.needsUpdate = true;
+      this.predicted.geometry.setDrawRange(0, n);
+      this.predicted.computeLineDistances();
+      // Planned tool path: home -> intercept point.
+      const tp = this.toolPath.geometry.getAttribute("position") as THREE.BufferAttribute;
+      if (target) {
+        tp.setXYZ(0, g.home_m[0], g.home_m[1], g.home_m[2]);
+        tp.setXYZ(1, target[0], target[1], target[2]);
+        tp.needsUpdate = true;
+        this.toolPath.visible = true;
+      } else this.toolPath.visible = false;
+    }
+    this.renderer.render(this.scene, this.camera);
+    this.frames += 1;
+  }
+}

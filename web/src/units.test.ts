@@ -1,0 +1,110 @@
+import { describe, expect, it } from "vitest";
+import { frames, origin } from "./iiwa";
+import { SeriesWindow } from "./series";
+import { fmt, pct, wilson } from "./stats";
+import { parseCsv } from "./trials";
+import { num, parseMessage } from "./types";
+import { trialList } from "./api";
+
+describe("iiwa forward kinematics", () => {
+  it("stands upright at q = 0 with the flange at 1.266 m", () => {
+    const f = frames([0, 0, 0, 0, 0, 0, 0]);
+    const p = origin(f[7]);
+    expect(p[0]).toBeCloseTo(0, 12);
+    expect(p[2]).toBeCloseTo(1.266, 12);
+  });
+  it("reproduces IIWA7.md's check pose", () => {
+    const f = frames([0, Math.PI / 6, 0, -Math.PI / 3, 0, Math.PI / 2, 0]);
+    const [x, y, z] = origin(f[7]);
+    expect(x).toBeCloseTo(0.6, 9);
+    expect(y).toBeCloseTo(0, 9);
+    expect(z).toBeCloseTo(0.560410162, 8);
+    // Rotation rows [-1,0,0; 0,1,0; 0,0,-1].
+    const t = f[7];
+    expect(t[0]).toBeCloseTo(-1, 9);
+    expect(t[5]).toBeCloseTo(1, 9);
+    expect(t[10]).toBeCloseTo(-1, 9);
+  });
+  it("refuses a wrong number of joints", () => {
+    expect(() => frames([0, 0, 0])).toThrow();
+  });
+});
+
+describe("series window", () => {
+  it("keeps the newest rows in order and never grows", () => {
+    const w = new SeriesWindow(2, 3);
+    for (let i = 0; i < 5; i++) w.push([i, 10 * i]);
+    expect(w.length).toBe(3);
+    expect(Array.from(w.data()[0])).toEqual([2, 3, 4]);
+    expect(Array.from(w.data()[1])).toEqual([20, 30, 40]);
+    expect(w.lastX()).toBe(4);
+    w.clear();
+    expect(w.length).toBe(0);
+    expect(Number.isNaN(w.lastX())).toBe(true);
+  });
+  it("refuses rows of the wrong width", () => {
+    const w = new SeriesWindow(2, 3);
+    expect(() => w.push([1])).toThrow();
+    expect(w.length).toBe(0);
+  });
+});
+
+describe("statistics", () => {
+  it("gives the Wilson interval", () => {
+    const [lo, hi] = wilson(298, 300);
+    expect(lo).toBeCloseTo(0.976, 3);
+    expect(hi).toBeCloseTo(0.9982, 3);
+    const [l0, h0] = wilson(0, 10);
+    expect(l0).toBe(0);
+    expect(h0).toBeCloseTo(0.2775, 3);
+    expect(wilson(1, 0).every(Number.isNaN)).toBe(true);
+  });
+  it("formats missing values as a dash", () => {
+    expect(fmt(null, 1)).toBe("–");
+    expect(fmt(Number.NaN, 1)).toBe("–");
+    expect(fmt(1.234, 1, "ms")).toBe("1.2 ms");
+    expect(pct(0.9933)).toBe("99.3%");
+  });
+});
+
+describe("messages", () => {
+  const state = {
+    type: "state",
+    t_s: 1.5,
+    pendulum: { horizon: [] },
+    hopf: {},
+    path: {},
+    robot: { q_rad: [0, 0, 0, 0, 0, 0, 0] },
+    fri: {},
+    timing: {},
+  };
+  it("accepts state, event and hello messages", () => {
+    expect(parseMessage(JSON.stringify(state))?.type).toBe("state");
+    expect(parseMessage('{"type":"event","t_s":1,"trial_id":2,"event":{"kind":"aborted"}}')?.type).toBe("event");
+    expect(parseMessage('{"type":"hello","t_s":0,"version":"x","state_hz":100,"token_required":true}')?.type).toBe("hello");
+  });
+  it("refuses garbage", () => {
+    expect(parseMessage("not json")).toBeNull();
+    expect(parseMessage("[]")).toBeNull();
+    expect(parseMessage('{"type":"state","t_s":1}')).toBeNull();
+    expect(parseMessage(JSON.stringify({ ...state, robot: { q_rad: [1, 2] } }))).toBeNull();
+    expect(parseMessage('{"type":"mystery","t_s":1}')).toBeNull();
+  });
+  it("reads null as NaN", () => {
+    expect(Number.isNaN(num(null))).toBe(true);
+    expect(num(2)).toBe(2);
+  });
+});
+
+describe("trials", () => {
+  it("parses numeric CSV", () => {
+    const { header, cols } = parseCsv("t_s,speed_planned_mps\n0,0\n0.005,0.01\n");
+    expect(header).toEqual(["t_s", "speed_planned_mps"]);
+    expect(cols[1]).toEqual([0, 0.01]);
+  });
+  it("reads the trial list in either shape", () => {
+    expect(trialList([{ id: 1 }]).length).toBe(1);
+    expect(trialList({ trials: [{ id: 1 }, { id: 2 }] }).length).toBe(2);
+    expect(trialList("x")).toEqual([]);
+  });
+});
