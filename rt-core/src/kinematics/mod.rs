@@ -1,3 +1,128 @@
 #![doc = include_str!("README.md")]
 
+pub mod analytic;
+pub mod fk;
 pub mod iiwa7;
+pub mod numeric;
+
+#[cfg(test)]
+mod tests;
+
+use nalgebra::{IsometryMatrix3, SMatrix, SVector, Translation3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::params::{ParamError, check};
+
+pub use analytic::{ArmFlags, ArmGeometry, IkError, arm_angle};
+pub use fk::{flange_pose, frames, jacobian, tool_pose};
+pub use numeric::{NumericIk, NumericReport};
+
+/// A joint vector `[q1 .. q7]`, radians.
+pub type Joints = SVector<f64, { iiwa7::JOINTS }>;
+
+/// The geometric Jacobian: rows 0..3 linear, 3..6 angular velocity, base frame.
+pub type Jacobian = SMatrix<f64, 6, { iiwa7::JOINTS }>;
+
+/// A rigid transform (rotation matrix + translation, metres), e.g. `base_from_flange`.
+pub type Pose = IsometryMatrix3<f64>;
+
+/// The tool mounted on the flange: the tool point's frame in the flange frame.
+///
+/// Default: a short gripper, 0.10 m along the flange's z axis, axes parallel to the
+/// flange's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tool {
+    /// `flange_from_tool`: the tool frame expressed in the flange frame.
+    pub flange_from_tool: Pose,
+}
+
+impl Default for Tool {
+    fn default() -> Self {
+        Self::along_z(0.10)
+    }
+}
+
+impl Tool {
+    /// A tool whose point lies `length_m` along the flange's z axis (no rotation).
+    pub fn along_z(length_m: f64) -> Self {
+        Self {
+            flange_from_tool: Pose::from_parts(
+                Translation3::new(0.0, 0.0, length_m),
+                nalgebra::Rotation3::identity(),
+            ),
+        }
+    }
+
+    /// No tool: the tool point is the flange centre.
+    pub fn none() -> Self {
+        Self::along_z(0.0)
+    }
+
+    /// `base_from_flange` for a wanted `base_from_tool`.
+    pub fn flange_for(&self, base_from_tool: &Pose) -> Pose {
+        base_from_tool * self.flange_from_tool.inverse()
+    }
+}
+
+/// Kinematics parameters: the tool.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct KinematicsParams {
+    /// Tool point offset in the flange frame, metres (default `[0, 0, 0.10]`).
+    pub tool_offset_m: [f64; 3],
+}
+
+impl Default for KinematicsParams {
+    fn default() -> Self {
+        Self {
+            tool_offset_m: [0.0, 0.0, 0.10],
+        }
+    }
+}
+
+impl KinematicsParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        for (i, v) in self.tool_offset_m.iter().enumerate() {
+            check::within(&format!("kinematics.tool_offset_m[{i}]"), *v, -0.5, 0.5)?;
+        }
+        Ok(())
+    }
+
+    /// The tool these parameters describe.
+    pub fn tool(&self) -> Tool {
+        let [x, y, z] = self.tool_offset_m;
+        Tool {
+            flange_from_tool: Pose::from_parts(
+                Translation3::from(Vector3::new(x, y, z)),
+                nalgebra::Rotation3::identity(),
+            ),
+        }
+    }
+}
+
+/// `true` when every joint is within its position limit shrunk by `margin_rad`.
+pub fn within_limits(q: &Joints, margin_rad: f64) -> bool {
+    first_limit_violation(q, margin_rad).is_none()
+}
+
+/// The first joint (index) outside its position limit shrunk by `margin_rad`.
+pub fn first_limit_violation(q: &Joints, margin_rad: f64) -> Option<usize> {
+    match analytic::check_limits(q, margin_rad) {
+        Err(IkError::JointLimit { joint, .. }) => Some(joint),
+        _ => None,
+    }
+}
+
+/// The smallest distance of any joint to its position limit (negative when outside),
+/// radians, and that joint.
+pub fn min_position_margin(q: &Joints) -> (f64, usize) {
+    let mut best = (f64::INFINITY, 0);
+    for i in 0..iiwa7::JOINTS {
+        let m = iiwa7::POSITION_LIMIT_RAD[i] - q[i].abs();
+        if m < best.0 {
+            best = (m, i);
+        }
+    }
+    best
+}
