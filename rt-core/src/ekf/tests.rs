@@ -829,3 +829,124 @@ fn the_paper_configuration_runs_and_tracks() {
     assert!(worst < 0.01);
     let _unused: PendulumState = Vector2::zeros();
 }
+
+#[test]
+fn camera_envelope_15_to_60_fps_20_to_80_ms_latency() {
+    // The slowest, latest camera the lab allows, and the fastest.
+    let period = model(0.03).small_angle_period_s();
+    for (fps, latency_s) in [(15.0, 0.080), (60.0, 0.020)] {
+        let cam = Camera {
+            fps,
+            noise_m: 0.002,
+            drop_rate: 0.1,
+            latency_s,
+        };
+        let mut errs = vec![];
+        let mut pos = vec![];
+        for trial in 0..100 {
+            let mut rng = ChaCha8Rng::seed_from_u64(30_000 + trial);
+            let angle = rng.random_range(15.0..35.0);
+            let now = period + rng.random_range(0.0..0.5);
+            let mut truth = released(0.03, angle);
+            let meas = observe(&mut truth, cam, now, &mut rng);
+            let mut ekf = default_ekf();
+            feed_in_arrival_order(&mut ekf, &meas, now);
+            let mut pass = [Crossing::default(); 1];
+            assert_eq!(
+                ekf.crossings(now + 1.5, 0.0, PassDirection::Any, &mut pass)
+                    .unwrap(),
+                1
+            );
+            let mut sim = truth.clone();
+            sim.advance_to(pass[0].t_s - 0.5).unwrap();
+            let t_true = sim.next_crossing_s(0.0, 1.0).unwrap();
+            sim.advance_to(pass[0].t_s).unwrap();
+            errs.push((pass[0].t_s - t_true).abs());
+            pos.push((pass[0].ball_m - sim.ball_position_m()).norm());
+        }
+        let t95 = percentile(&mut errs, 0.95);
+        let p95 = percentile(&mut pos, 0.95);
+        eprintln!(
+            "{fps} fps, {} ms latency: pass time error p95 {:.3} ms, position p95 {:.2} mm",
+            latency_s * 1e3,
+            t95 * 1e3,
+            p95 * 1e3
+        );
+        assert!(t95 < 0.005 && p95 < 0.005);
+    }
+}
+
+#[test]
+fn pass_time_std_is_calibrated_when_the_truth_carries_the_assumed_noise() {
+    // 100 runs with the process noise the filter assumes (100x the default, so that
+    // it dominates): the normalised pass-time error (error / reported std) must
+    // have a mean square within the 95% chi-square bounds for 1 degree of freedom.
+    let params = EkfParams {
+        accel_psd_rad2ps3: 1e-4,
+        commit_max_time_std_ms: 50.0,
+        ..EkfParams::default()
+    };
+    let q = params.accel_psd_rad2ps3;
+    let sub = 1e-3;
+    let runs = 100;
+    let mut sum_sq = 0.0;
+    let mut sigmas = vec![];
+    for run in 0..runs {
+        let mut rng = ChaCha8Rng::seed_from_u64(40_000 + run);
+        let alpha = 0.03 + params.damping_std_per_s * gauss(&mut rng);
+        let mut truth = released(alpha, rng.random_range(15.0..35.0));
+        let mut ekf = Ekf::new(params.clone(), model(0.03), geom()).unwrap();
+        let mut t = 0.0;
+        let now = 3.0;
+        let mut k = 0u64;
+        // Observe until `now` with measurements every 33 ms.
+        while t < now {
+            t += sub;
+            truth
+                .advance_to_with_accel(t, (q / sub).sqrt() * gauss(&mut rng))
+                .unwrap();
+            k += 1;
+            if k % 33 == 0 {
+                ekf.measure(t, truth.lateral_m() + 0.002 * gauss(&mut rng))
+                    .unwrap();
+            }
+        }
+        let mut pass = [Crossing::default(); 1];
+        assert_eq!(
+            ekf.crossings(now + 1.5, 0.0, PassDirection::Any, &mut pass)
+                .unwrap(),
+            1
+        );
+        // Carry the noisy truth on until it crosses near the predicted pass.
+        let mut prev = truth.lateral_m();
+        let mut t_true = f64::NAN;
+        while t < pass[0].t_s + 0.5 {
+            t += sub;
+            truth
+                .advance_to_with_accel(t, (q / sub).sqrt() * gauss(&mut rng))
+                .unwrap();
+            let y = truth.lateral_m();
+            if t > pass[0].t_s - 0.5 && (prev < 0.0) != (y < 0.0) {
+                t_true = t - sub * y / (y - prev);
+                break;
+            }
+            prev = y;
+        }
+        assert!(
+            t_true.is_finite(),
+            "run {run}: no true pass near the prediction"
+        );
+        let e = (pass[0].t_s - t_true) / pass[0].time_std_s;
+        sum_sq += e * e;
+        sigmas.push(pass[0].time_std_s);
+    }
+    let n = runs as f64;
+    let mean_sq = sum_sq / n;
+    let (lo, hi) = (chi2_quantile(n, -1.96) / n, chi2_quantile(n, 1.96) / n);
+    eprintln!(
+        "pass-time std calibration: mean squared normalised error {mean_sq:.3} \
+         (bounds [{lo:.3}, {hi:.3}]), reported std p50 {:.2} ms",
+        percentile(&mut sigmas, 0.5) * 1e3
+    );
+    assert!((lo..=hi).contains(&mean_sq));
+}
