@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: help deps apt-deps web-deps web run test test-rust test-web lint bench build release
+.PHONY: help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -42,6 +42,26 @@ web/node_modules/.package-lock.json: web/package.json web/package-lock.json
 	cd web && npm ci --no-audit --no-fund
 	@touch $@
 
+## firmware: the magnet firmware (.elf/.hex for the Uno) and its simavr host for the tests.
+FW_DIR := firmware/magnet
+FW_BUILD := $(FW_DIR)/build
+AVR_CFLAGS := -mmcu=atmega328p -DF_CPU=16000000UL -Os -Wall -Wextra -Werror -std=gnu99
+SIM_FLAGS := -I/usr/include/simavr -I/usr/include/simavr/parts -lsimavr -lsimavrparts -lpthread -lutil
+
+firmware: apt-deps $(FW_BUILD)/magnet.hex $(FW_BUILD)/magnet-sim
+
+$(FW_BUILD)/magnet.elf: $(FW_DIR)/magnet.c
+	@mkdir -p $(FW_BUILD)
+	avr-gcc $(AVR_CFLAGS) -o $@ $<
+
+$(FW_BUILD)/magnet.hex: $(FW_BUILD)/magnet.elf
+	avr-objcopy -O ihex -R .eeprom $< $@
+	@avr-size $<
+
+$(FW_BUILD)/magnet-sim: $(FW_DIR)/sim_host.c
+	@mkdir -p $(FW_BUILD)
+	gcc -O2 -Wall -Wextra -Werror -o $@ $< $(SIM_FLAGS)
+
 ## web: the dashboard, built into web/dist (served by `isochron serve`).
 web: web-deps
 	cd web && npm run build
@@ -63,7 +83,7 @@ lint: deps
 test-web: web
 	cd web && npm run typecheck && npm test
 
-test-rust: deps
+test-rust: deps firmware
 	@mkdir -p target
 	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log

@@ -15,12 +15,14 @@
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 //! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
 //! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
+//! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
 
 pub mod bridge;
 pub mod control;
 pub mod ekf;
 pub mod fri;
 pub mod kinematics;
+pub mod magnet;
 pub mod params;
 pub mod pendulum;
 pub mod trajectory;
