@@ -1,5 +1,6 @@
-//! Errors as the HTTP API shows them: `{"error": "...", "field": "..."?}` with a 4xx
-//! status for bad input; internal errors are logged and shown without internals.
+//! Errors as the HTTP API shows them: `{"error": "...", "field": "..."?, "reason": "..."?}`
+//! with a 4xx status for bad input; internal errors are logged and shown without
+//! internals.
 
 use axum::{
     Json,
@@ -19,44 +20,107 @@ pub enum AppError {
         /// The field at fault, as a dotted path.
         field: Option<String>,
     },
+    /// No or a wrong bearer token on a command endpoint (401).
+    #[error("{0}")]
+    Unauthorized(String),
+    /// A browser page from another origin tried to command the lab (403).
+    #[error("{0}")]
+    Forbidden(String),
     /// No such resource (404).
     #[error("{0}")]
     NotFound(String),
+    /// The lab refused the command in its current state (409).
+    #[error("{message}")]
+    Conflict {
+        /// What was refused and why, for a person.
+        message: String,
+        /// The field at fault, if the refusal is about one.
+        field: Option<String>,
+        /// A machine-readable reason (snake_case).
+        reason: Option<&'static str>,
+    },
+    /// The request body is larger than the limit (413).
+    #[error("{0}")]
+    PayloadTooLarge(String),
+    /// The lab is not running or did not answer (503).
+    #[error("{0}")]
+    Unavailable(String),
     /// Something went wrong inside the service (500); the details are logged only.
     #[error("internal error")]
     Internal(#[source] anyhow::Error),
 }
 
-#[derive(Serialize)]
-struct Body<'a> {
-    error: &'a str,
+impl AppError {
+    /// A 400 naming a field.
+    pub fn field(field: impl Into<String>, message: impl Into<String>) -> Self {
+        Self::BadRequest {
+            message: message.into(),
+            field: Some(field.into()),
+        }
+    }
+
+    /// The HTTP status this error answers with.
+    pub fn status(&self) -> StatusCode {
+        match self {
+            Self::BadRequest { .. } => StatusCode::BAD_REQUEST,
+            Self::Unauthorized(_) => StatusCode::UNAUTHORIZED,
+            Self::Forbidden(_) => StatusCode::FORBIDDEN,
+            Self::NotFound(_) => StatusCode::NOT_FOUND,
+            Self::Conflict { .. } => StatusCode::CONFLICT,
+            Self::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            Self::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+}
+
+impl From<anyhow::Error> for AppError {
+    fn from(e: anyhow::Error) -> Self {
+        Self::Internal(e)
+    }
+}
+
+/// The JSON body of every error.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct ErrorBody {
+    /// What was wrong, for a person.
+    pub error: String,
+    /// The field at fault, as a dotted path (`task.movement_time_s`).
     #[serde(skip_serializing_if = "Option::is_none")]
-    field: Option<&'a str>,
+    pub field: Option<String>,
+    /// A machine-readable reason for refusals (`busy`, `motion_running`, ...).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
 }
 
 impl IntoResponse for AppError {
     fn into_response(self) -> Response {
-        let (status, message, field) = match &self {
-            Self::BadRequest { message, field } => {
-                (StatusCode::BAD_REQUEST, message.as_str(), field.as_deref())
+        let status = self.status();
+        let mut body = ErrorBody {
+            error: self.to_string(),
+            field: None,
+            reason: None,
+        };
+        match self {
+            Self::BadRequest { field, .. } => body.field = field,
+            Self::Conflict { field, reason, .. } => {
+                body.field = field;
+                body.reason = reason.map(str::to_owned);
             }
-            Self::NotFound(m) => (StatusCode::NOT_FOUND, m.as_str(), None),
+            Self::Unauthorized(_) => body.field = Some("authorization".into()),
             Self::Internal(e) => {
                 tracing::error!(error = ?e, "internal error");
-                (
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    "internal error (see the service log)",
-                    None,
-                )
+                body.error = "internal error (see the service log)".into();
             }
-        };
-        (
-            status,
-            Json(Body {
-                error: message,
-                field,
-            }),
-        )
-            .into_response()
+            _ => {}
+        }
+        let mut resp = (status, Json(body)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            resp.headers_mut().insert(
+                axum::http::header::WWW_AUTHENTICATE,
+                axum::http::HeaderValue::from_static("Bearer"),
+            );
+        }
+        resp
     }
 }

@@ -1,9 +1,16 @@
 //! isochron's lab service: the HTTP API, the WebSocket stream and the dashboard.
 //!
 //! [`app`] builds the router from an [`AppState`], so tests can serve it on a
-//! real port (or call it directly) exactly as `isochron serve` does.
+//! real port (or call it directly) exactly as `isochron serve` does. The
+//! message schema of the WebSocket stream is in `server/README.md`.
 
+pub mod api;
+pub mod config;
 pub mod error;
+pub mod lab;
+pub mod records;
+pub mod serve;
+pub mod ws;
 
 use std::{
     net::SocketAddr,
@@ -12,11 +19,21 @@ use std::{
     time::{Instant, SystemTime, UNIX_EPOCH},
 };
 
-use axum::{Json, Router, extract::State, routing::get};
+use axum::{
+    Json, Router,
+    extract::{DefaultBodyLimit, State},
+    http::HeaderValue,
+    routing::{get, post},
+};
 use serde::Serialize;
-use tower_http::services::{ServeDir, ServeFile};
+use tower_http::{
+    cors::{AllowOrigin, CorsLayer},
+    services::{ServeDir, ServeFile},
+};
 
 pub use error::AppError;
+pub use lab::{Lab, LabOptions};
+pub use records::Records;
 
 /// The revision this binary was built from (`git rev-parse --short HEAD`).
 pub const GIT_REV: &str = env!("ISOCHRON_GIT_REV");
@@ -34,6 +51,9 @@ pub fn default_web_dir() -> PathBuf {
     PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../web/dist"))
 }
 
+/// Default largest request body, bytes.
+pub const DEFAULT_BODY_LIMIT_BYTES: usize = 64 * 1024;
+
 /// What every handler shares.
 #[derive(Debug)]
 pub struct AppState {
@@ -41,20 +61,65 @@ pub struct AppState {
     pub web_dir: PathBuf,
     /// When the service started.
     pub started: Instant,
+    /// Bearer token every command needs (none: commands are open, loopback only).
+    pub token: Option<String>,
+    /// The running lab (none: state and command endpoints answer 503).
+    pub lab: Option<Arc<Lab>>,
+    /// Trial records (none: trial endpoints answer 503).
+    pub records: Option<Arc<Records>>,
+    /// Largest request body, bytes.
+    pub body_limit_bytes: usize,
+    /// Other web origins allowed to call the API from a browser.
+    pub cors_origins: Vec<String>,
 }
 
 impl AppState {
-    /// A state serving the dashboard from `web_dir`.
+    /// A state serving the dashboard from `web_dir`, with no lab, no records, no token.
     pub fn new(web_dir: PathBuf) -> Self {
         Self {
             web_dir,
             started: Instant::now(),
+            token: None,
+            lab: None,
+            records: None,
+            body_limit_bytes: DEFAULT_BODY_LIMIT_BYTES,
+            cors_origins: Vec::new(),
         }
+    }
+
+    /// Requires this bearer token for commands (an empty token means none).
+    pub fn with_token(mut self, token: Option<String>) -> Self {
+        self.token = token.filter(|t| !t.is_empty());
+        self
+    }
+
+    /// Attaches the lab.
+    pub fn with_lab(mut self, lab: Arc<Lab>) -> Self {
+        self.lab = Some(lab);
+        self
+    }
+
+    /// Attaches the trial records.
+    pub fn with_records(mut self, records: Arc<Records>) -> Self {
+        self.records = Some(records);
+        self
+    }
+
+    /// Sets the body limit.
+    pub fn with_body_limit(mut self, bytes: usize) -> Self {
+        self.body_limit_bytes = bytes;
+        self
+    }
+
+    /// Allows these browser origins (CORS).
+    pub fn with_cors_origins(mut self, origins: Vec<String>) -> Self {
+        self.cors_origins = origins;
+        self
     }
 }
 
 /// `GET /api/health`.
-#[derive(Debug, Serialize)]
+#[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct Health {
     /// Always `"ok"` when the service answers.
     pub status: &'static str,
@@ -64,9 +129,18 @@ pub struct Health {
     pub uptime_s: f64,
     /// Unix time of the answer, seconds.
     pub t_s: f64,
+    /// A lab (control loop) is attached.
+    pub lab: bool,
+    /// Trial records are kept.
+    pub records: bool,
+    /// Commands need a bearer token.
+    pub token_required: bool,
 }
 
-async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
+/// The service is up.
+#[utoipa::path(get, path = "/api/health", tag = "service",
+    responses((status = 200, description = "the service answers", body = Health)))]
+pub async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
     let t_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64());
@@ -75,6 +149,9 @@ async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
         version: VERSION,
         uptime_s: state.started.elapsed().as_secs_f64(),
         t_s,
+        lab: state.lab.is_some(),
+        records: state.records.is_some(),
+        token_required: state.token.is_some(),
     })
 }
 
@@ -82,17 +159,50 @@ async fn api_not_found() -> AppError {
     AppError::NotFound("no such API endpoint".to_owned())
 }
 
-/// The service's router: the API under `/api`, the dashboard everywhere else.
+/// The service's router: the API under `/api`, the streams under `/ws`, the
+/// dashboard everywhere else.
 pub fn app(state: Arc<AppState>) -> Router {
     let index = state.web_dir.join("index.html");
     let web = ServeDir::new(&state.web_dir).fallback(ServeFile::new(index));
     let api = Router::new()
         .route("/health", get(health))
+        .route("/state", get(api::get_state))
+        .route("/params", get(api::get_params).put(api::put_params))
+        .route("/arm", post(api::arm))
+        .route("/disarm", post(api::disarm))
+        .route("/magnet", post(api::magnet))
+        .route("/stop", post(api::stop))
+        .route("/trials", get(api::list_trials).post(api::start_trial))
+        .route("/trials/{id}", get(api::get_trial))
+        .route("/trials/{id}/recording.csv", get(api::recording_csv))
+        .route("/trials/{id}/recording.mcap", get(api::recording_mcap))
+        .route("/openapi.json", get(api::openapi_json))
         .fallback(api_not_found);
-    Router::new()
+    let mut router = Router::new()
         .nest("/api", api)
+        .route("/ws", get(ws::state_stream))
+        .route("/ws/camera", get(ws::camera_stream))
         .fallback_service(web)
-        .with_state(state)
+        .layer(DefaultBodyLimit::max(state.body_limit_bytes));
+    // CORS is closed unless origins are listed: browsers then refuse cross-origin
+    // reads, and `api::Operator` refuses cross-origin commands.
+    let origins: Vec<HeaderValue> = state
+        .cors_origins
+        .iter()
+        .filter_map(|o| HeaderValue::from_str(o).ok())
+        .collect();
+    if !origins.is_empty() {
+        router = router.layer(
+            CorsLayer::new()
+                .allow_origin(AllowOrigin::list(origins))
+                .allow_methods(tower_http::cors::Any)
+                .allow_headers([
+                    axum::http::header::AUTHORIZATION,
+                    axum::http::header::CONTENT_TYPE,
+                ]),
+        );
+    }
+    router.with_state(state)
 }
 
 /// Why `isochron serve` refuses to start.

@@ -96,8 +96,10 @@ fn serve_refuses_an_open_bind_without_a_token() {
 
 #[test]
 fn serve_answers_health_and_stops_on_sigterm() {
+    let data = std::env::temp_dir().join(format!("isochron-cli-data-{}", std::process::id()));
     let mut child = isochron()
-        .args(["serve", "--bind", "127.0.0.1:0"])
+        .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
+        .arg(&data)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()

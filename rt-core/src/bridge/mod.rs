@@ -51,6 +51,8 @@ pub struct BridgeStats {
     pub ack_overflows: AtomicU64,
     /// Camera frames dropped because the frame ring was full.
     pub frame_overflows: AtomicU64,
+    /// Emergency stops requested (see [`StopHandle`]).
+    pub stop_requests: AtomicU64,
 }
 
 impl BridgeStats {
@@ -63,6 +65,7 @@ impl BridgeStats {
             command_overflows: self.command_overflows.load(Ordering::Relaxed),
             ack_overflows: self.ack_overflows.load(Ordering::Relaxed),
             frame_overflows: self.frame_overflows.load(Ordering::Relaxed),
+            stop_requests: self.stop_requests.load(Ordering::Relaxed),
         }
     }
 }
@@ -82,6 +85,8 @@ pub struct BridgeCounters {
     pub ack_overflows: u64,
     /// Camera frames dropped (frame ring full).
     pub frame_overflows: u64,
+    /// Emergency stops requested.
+    pub stop_requests: u64,
 }
 
 fn bump(c: &AtomicU64) {
@@ -104,6 +109,7 @@ pub fn bridge(capacity: BridgeCapacity) -> (ControlEnd, ServerEnd) {
         commands: command_rx,
         acks: ack_tx,
         stats: Arc::clone(&stats),
+        stops_seen: 0,
     };
     let server = ServerEnd {
         latest: LatestReader { out: latest_out },
@@ -115,6 +121,9 @@ pub fn bridge(capacity: BridgeCapacity) -> (ControlEnd, ServerEnd) {
             stats: Arc::clone(&stats),
         },
         acks: AckReader { rx: ack_rx },
+        stop: StopHandle {
+            stats: Arc::clone(&stats),
+        },
         stats,
     };
     (control, server)
@@ -129,9 +138,20 @@ pub struct ControlEnd {
     commands: rtrb::Consumer<CommandEnvelope>,
     acks: rtrb::Producer<Ack>,
     stats: Arc<BridgeStats>,
+    stops_seen: u64,
 }
 
 impl ControlEnd {
+    /// True once for every emergency stop requested through a [`StopHandle`]
+    /// since the last call (check it every step, before the command ring: a
+    /// stop must not depend on a free slot in a ring).
+    pub fn take_stop_request(&mut self) -> bool {
+        let n = self.stats.stop_requests.load(Ordering::Acquire);
+        let new = n != self.stops_seen;
+        self.stops_seen = n;
+        new
+    }
+
     /// Publishes a snapshot: it becomes the latest value, and is queued for the
     /// recorder (counted as a telemetry overflow when the ring is full).
     pub fn publish(&mut self, snapshot: &Snapshot) {
@@ -206,8 +226,24 @@ pub struct ServerEnd {
     pub commands: CommandSender,
     /// Answers to the commands.
     pub acks: AckReader,
+    /// Emergency stop, independent of the command ring.
+    pub stop: StopHandle,
     /// The shared counters.
     pub stats: Arc<BridgeStats>,
+}
+
+/// Requests an emergency stop without going through the command ring (so a full
+/// ring cannot delay it). Cloneable; any thread.
+#[derive(Debug, Clone)]
+pub struct StopHandle {
+    stats: Arc<BridgeStats>,
+}
+
+impl StopHandle {
+    /// Requests a stop; the control thread sees it at its next step.
+    pub fn request_stop(&self) {
+        self.stats.stop_requests.fetch_add(1, Ordering::Release);
+    }
 }
 
 /// Reads the latest snapshot (one reader).

@@ -452,6 +452,22 @@ pub enum AbortReason {
 }
 
 impl AbortReason {
+    /// The snake_case name, as in JSON.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Stop => "stop",
+            Self::Disarmed => "disarmed",
+            Self::CameraLost => "camera_lost",
+            Self::FriLost => "fri_lost",
+            Self::MagnetFault => "magnet_fault",
+            Self::OperatorLost => "operator_lost",
+            Self::Infeasible => "infeasible",
+            Self::LimitViolation => "limit_violation",
+            Self::Timeout => "timeout",
+            Self::Internal => "internal",
+        }
+    }
+
     /// A sentence for people.
     pub const fn message(self) -> &'static str {
         match self {
@@ -586,6 +602,19 @@ pub enum Refusal {
 }
 
 impl Refusal {
+    /// The snake_case name, as in JSON.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Busy => "busy",
+            Self::NotArmed => "not_armed",
+            Self::MotionRunning => "motion_running",
+            Self::ChecksFailed => "checks_failed",
+            Self::Infeasible => "infeasible",
+            Self::DeviceUnavailable => "device_unavailable",
+            Self::Invalid => "invalid",
+        }
+    }
+
     /// A sentence for people.
     pub const fn message(self) -> &'static str {
         match self {

@@ -250,8 +250,39 @@ fn states_have_names_and_motion_flags() {
     for st in TrialState::ALL {
         assert_eq!(serde_json::to_value(st).unwrap(), st.as_str());
     }
+    for r in [
+        AbortReason::CameraLost,
+        AbortReason::OperatorLost,
+        AbortReason::Stop,
+    ] {
+        assert_eq!(serde_json::to_value(r).unwrap(), r.as_str());
+    }
+    for r in [
+        Refusal::MotionRunning,
+        Refusal::NotArmed,
+        Refusal::DeviceUnavailable,
+    ] {
+        assert_eq!(serde_json::to_value(r).unwrap(), r.as_str());
+    }
     assert!(TrialState::Intercepting.arm_in_motion());
     assert!(!TrialState::Armed.arm_in_motion());
     assert!(TrialState::Armed.busy());
     assert!(!TrialState::Done.busy());
+}
+
+#[test]
+fn a_stop_request_is_seen_once_even_with_a_full_command_ring() {
+    let cap = BridgeCapacity {
+        commands: 1,
+        ..BridgeCapacity::default()
+    };
+    let (mut c, mut s) = bridge(cap);
+    s.commands.send(Command::Arm).unwrap();
+    assert!(s.commands.send(Command::Stop).is_err());
+    assert!(!c.take_stop_request());
+    let stop = s.stop.clone();
+    stop.request_stop();
+    assert!(c.take_stop_request());
+    assert!(!c.take_stop_request());
+    assert_eq!(s.stats.read().stop_requests, 1);
 }

@@ -1,0 +1,643 @@
+//! The REST handlers (CONTRACT.md, "HTTP") and the OpenAPI document.
+
+use std::sync::Arc;
+
+use axum::{
+    Json,
+    body::Bytes,
+    extract::{FromRequestParts, Path, Query, State, rejection::BytesRejection},
+    http::{HeaderValue, StatusCode, header, request::Parts},
+    response::{IntoResponse, Response},
+};
+use rt_core::{
+    bridge::{Command, Refusal},
+    params::Scenario,
+};
+use serde::{Deserialize, Serialize, de::DeserializeOwned};
+use utoipa::{
+    OpenApi, ToSchema,
+    openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme},
+};
+
+use crate::{
+    AppError, AppState,
+    lab::{CommandError, Lab},
+    records::{Records, TrialRecord},
+};
+
+/// Proof that the request may command the lab: the bearer token matched (when
+/// one is set) and the request does not come from a page of another origin.
+#[derive(Debug, Clone, Copy)]
+pub struct Operator;
+
+impl FromRequestParts<Arc<AppState>> for Operator {
+    type Rejection = AppError;
+
+    async fn from_request_parts(
+        parts: &mut Parts,
+        state: &Arc<AppState>,
+    ) -> Result<Self, Self::Rejection> {
+        if let Some(token) = &state.token {
+            let given = parts
+                .headers
+                .get(header::AUTHORIZATION)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.strip_prefix("Bearer "));
+            match given {
+                Some(g) if constant_time_eq(g.trim().as_bytes(), token.as_bytes()) => {}
+                Some(_) => return Err(AppError::Unauthorized("wrong bearer token".into())),
+                None => {
+                    return Err(AppError::Unauthorized(
+                        "this endpoint needs `Authorization: Bearer TOKEN`; viewers can only watch"
+                            .into(),
+                    ));
+                }
+            }
+        }
+        check_origin(parts, state)?;
+        Ok(Self)
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    let mut diff = a.len() ^ b.len();
+    for (i, x) in a.iter().enumerate() {
+        diff |= usize::from(x ^ b.get(i % b.len().max(1)).copied().unwrap_or(0));
+    }
+    diff == 0
+}
+
+/// A browser sends `Origin` with every POST/PUT; a page of another origin may
+/// not command the lab (CORS is closed unless `cors_origins` lists it).
+fn check_origin(parts: &Parts, state: &AppState) -> Result<(), AppError> {
+    let Some(origin) = parts
+        .headers
+        .get(header::ORIGIN)
+        .and_then(|v| v.to_str().ok())
+    else {
+        return Ok(());
+    };
+    let host = parts
+        .headers
+        .get(header::HOST)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let same = origin
+        .split_once("://")
+        .is_some_and(|(_, rest)| !host.is_empty() && rest == host);
+    if same || state.cors_origins.iter().any(|o| o == origin) {
+        Ok(())
+    } else {
+        Err(AppError::Forbidden(format!(
+            "commands from the web origin {origin} are not allowed (CORS is closed)"
+        )))
+    }
+}
+
+fn lab(state: &AppState) -> Result<&Arc<Lab>, AppError> {
+    state
+        .lab
+        .as_ref()
+        .ok_or_else(|| AppError::Unavailable("the lab is not running".into()))
+}
+
+fn records(state: &AppState) -> Result<Arc<Records>, AppError> {
+    state
+        .records
+        .clone()
+        .ok_or_else(|| AppError::Unavailable("trial records are not kept by this service".into()))
+}
+
+fn body_bytes(body: Result<Bytes, BytesRejection>) -> Result<Bytes, AppError> {
+    body.map_err(|r| {
+        if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            AppError::PayloadTooLarge("the request body is larger than the limit".into())
+        } else {
+            AppError::BadRequest {
+                message: format!("cannot read the request body: {}", r.body_text()),
+                field: None,
+            }
+        }
+    })
+}
+
+/// Parses JSON, naming the field at fault (`task.movement_time_s`, `on`).
+pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, AppError> {
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let value: T = serde_path_to_error::deserialize(&mut de).map_err(json_error)?;
+    de.end().map_err(|e| AppError::BadRequest {
+        message: format!("malformed JSON: {e}"),
+        field: None,
+    })?;
+    Ok(value)
+}
+
+fn json_error(e: serde_path_to_error::Error<serde_json::Error>) -> AppError {
+    let path = e.path().to_string();
+    let inner = e.inner();
+    let msg = inner.to_string();
+    // The unknown or missing key itself, when serde names it.
+    let named = ["unknown field `", "missing field `"]
+        .iter()
+        .find_map(|p| msg.split_once(p))
+        .and_then(|(_, rest)| rest.split_once('`'))
+        .map(|(name, _)| name.to_owned());
+    let field = match (path.as_str(), named) {
+        (".", Some(n)) => Some(n),
+        (".", None) => None,
+        (p, Some(n)) if !p.ends_with(&n) => Some(format!("{p}.{n}")),
+        (p, _) => Some(p.to_owned()),
+    };
+    let message = if inner.is_syntax() || inner.is_eof() {
+        format!("malformed JSON: {msg}")
+    } else {
+        match &field {
+            Some(f) => format!("{f}: {msg}"),
+            None => msg,
+        }
+    };
+    AppError::BadRequest { message, field }
+}
+
+/// A body that must be empty or `{}`.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct NoFields {}
+
+fn empty_body(body: Result<Bytes, BytesRejection>) -> Result<(), AppError> {
+    let bytes = body_bytes(body)?;
+    if bytes.iter().all(u8::is_ascii_whitespace) {
+        return Ok(());
+    }
+    parse_json::<NoFields>(&bytes).map(|_| ())
+}
+
+fn command_error(e: CommandError) -> AppError {
+    match e {
+        CommandError::Refused(r) => AppError::Conflict {
+            message: format!("refused: {}", r.message()),
+            field: None,
+            reason: Some(r.as_str()),
+        },
+        other => AppError::Unavailable(other.to_string()),
+    }
+}
+
+/// A command the control loop accepted.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Accepted {
+    /// Always true.
+    pub accepted: bool,
+    /// The command (`arm`, `disarm`, `magnet`, `set_params`).
+    pub command: &'static str,
+}
+
+async fn run(state: &AppState, command: Command) -> Result<Json<Accepted>, AppError> {
+    let name = command.name();
+    lab(state)?.command(command).await.map_err(command_error)?;
+    Ok(Json(Accepted {
+        accepted: true,
+        command: name,
+    }))
+}
+
+/// The latest state, as on the WebSocket (`"type": "state"`).
+#[utoipa::path(get, path = "/api/state", tag = "lab",
+    responses(
+        (status = 200, description = "the latest state message (schema: server/README.md)", body = Object),
+        (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)))]
+pub async fn get_state(State(state): State<Arc<AppState>>) -> Result<Response, AppError> {
+    let (_, text) = lab(&state)?
+        .latest()
+        .ok_or_else(|| AppError::Unavailable("the lab has not published a state yet".into()))?;
+    Ok((
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        )],
+        text.as_str().to_owned(),
+    )
+        .into_response())
+}
+
+/// The parameters in force (a scenario, CONTRACT.md "Scenario file").
+#[utoipa::path(get, path = "/api/params", tag = "lab",
+    responses(
+        (status = 200, description = "the scenario in force", body = Object),
+        (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)))]
+pub async fn get_params(State(state): State<Arc<AppState>>) -> Result<Json<Scenario>, AppError> {
+    Ok(Json(lab(&state)?.params()))
+}
+
+/// Sections that may change while a trial runs (they do not move the arm).
+const SAFE_WHILE_BUSY: [&str; 2] = ["name", "success"];
+
+/// Merges a JSON object into the parameters in force, validates the result and
+/// hands it to the control loop; on any error nothing changes.
+#[utoipa::path(put, path = "/api/params", tag = "lab",
+    request_body(content = Object, description = "a partial scenario, merged into the one in force: {\"task\": {\"movement_time_s\": 1.2}}"),
+    responses(
+        (status = 200, description = "the scenario now in force", body = Object),
+        (status = 400, description = "malformed, wrong type, unknown key or out of range; names the field", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "refused while a trial runs; names the field", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn put_params(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Json<Scenario>, AppError> {
+    let bytes = body_bytes(body)?;
+    let lab = lab(&state)?;
+    let patch: serde_json::Value = parse_json(&bytes)?;
+    if !patch.is_object() {
+        return Err(AppError::BadRequest {
+            message: "the body must be a JSON object (a partial scenario)".into(),
+            field: None,
+        });
+    }
+    let _guard = lab.params_update.lock().await;
+    let current = lab.params();
+    let current_json = serde_json::to_value(&current).map_err(anyhow::Error::from)?;
+    let mut merged = current_json.clone();
+    merge(&mut merged, &patch);
+    let new: Scenario = serde_path_to_error::deserialize(merged.clone()).map_err(json_error)?;
+    new.validate().map_err(|e| AppError::BadRequest {
+        message: e.to_string(),
+        field: e.field().map(str::to_owned),
+    })?;
+    let changed = changed_fields(&current_json, &merged);
+    if changed.is_empty() {
+        return Ok(Json(current));
+    }
+    if let Some((snapshot, _)) = lab.latest() {
+        if snapshot.trial_state.busy() {
+            if let Some(f) = changed.iter().find(|f| {
+                !SAFE_WHILE_BUSY
+                    .iter()
+                    .any(|s| f.split('.').next() == Some(*s))
+            }) {
+                return Err(AppError::Conflict {
+                    message: format!(
+                        "{f} cannot change while a trial runs (state: {})",
+                        snapshot.trial_state.as_str()
+                    ),
+                    field: Some(f.clone()),
+                    reason: Some(Refusal::Busy.as_str()),
+                });
+            }
+        }
+    }
+    lab.command(Command::SetParams(Box::new(new.clone())))
+        .await
+        .map_err(command_error)?;
+    lab.store_params(new.clone());
+    Ok(Json(new))
+}
+
+/// JSON merge (RFC 7386 without deletion): objects merge key by key, anything
+/// else replaces.
+fn merge(into: &mut serde_json::Value, patch: &serde_json::Value) {
+    match (into, patch) {
+        (serde_json::Value::Object(a), serde_json::Value::Object(b)) => {
+            for (k, v) in b {
+                match a.get_mut(k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        a.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v.clone(),
+    }
+}
+
+fn changed_fields(a: &serde_json::Value, b: &serde_json::Value) -> Vec<String> {
+    let mut out = Vec::new();
+    fn walk(a: &serde_json::Value, b: &serde_json::Value, path: &str, out: &mut Vec<String>) {
+        match (a, b) {
+            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+                for (k, vb) in y {
+                    let p = if path.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{path}.{k}")
+                    };
+                    match x.get(k) {
+                        Some(va) => walk(va, vb, &p, out),
+                        None => out.push(p),
+                    }
+                }
+            }
+            (x, y) if x != y => out.push(path.to_owned()),
+            _ => {}
+        }
+    }
+    walk(a, b, "", &mut out);
+    out
+}
+
+/// Arm: move home, magnet on, run the checks.
+#[utoipa::path(post, path = "/api/arm", tag = "commands",
+    request_body(content = Option<NoFields>, description = "empty or {}"),
+    responses(
+        (status = 200, description = "accepted", body = Accepted),
+        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn arm(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Json<Accepted>, AppError> {
+    empty_body(body)?;
+    run(&state, Command::Arm).await
+}
+
+/// Disarm.
+#[utoipa::path(post, path = "/api/disarm", tag = "commands",
+    request_body(content = Option<NoFields>, description = "empty or {}"),
+    responses(
+        (status = 200, description = "accepted", body = Accepted),
+        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn disarm(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Json<Accepted>, AppError> {
+    empty_body(body)?;
+    run(&state, Command::Disarm).await
+}
+
+/// `POST /api/magnet` body.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MagnetRequest {
+    /// true: hold the ball; false: drop it.
+    pub on: bool,
+}
+
+/// Switch the magnet (`{"on": false}` drops the ball).
+#[utoipa::path(post, path = "/api/magnet", tag = "commands",
+    request_body = MagnetRequest,
+    responses(
+        (status = 200, description = "accepted", body = Accepted),
+        (status = 400, description = "malformed; names the field", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn magnet(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Json<Accepted>, AppError> {
+    let req: MagnetRequest = parse_json(&body_bytes(body)?)?;
+    run(&state, Command::Magnet { on: req.on }).await
+}
+
+/// `POST /api/stop` answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct StopAnswer {
+    /// Always true: a stop is never refused.
+    pub accepted: bool,
+    /// The control loop confirmed it in time.
+    pub acknowledged: bool,
+}
+
+/// Emergency stop: always accepted, from any state, with or without a token or body.
+#[utoipa::path(post, path = "/api/stop", tag = "commands",
+    responses(
+        (status = 200, description = "stop requested", body = StopAnswer),
+        (status = 503, description = "no lab runs", body = crate::error::ErrorBody)))]
+pub async fn stop(State(state): State<Arc<AppState>>) -> Result<Json<StopAnswer>, AppError> {
+    let acknowledged = lab(&state)?.stop().await;
+    Ok(Json(StopAnswer {
+        accepted: true,
+        acknowledged,
+    }))
+}
+
+/// `POST /api/trials` answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct TrialStarted {
+    /// The new trial's id.
+    pub id: u64,
+}
+
+/// Runs one whole trial (arm, release, intercept); its result appears at
+/// `/api/trials/{id}` when it ends.
+#[utoipa::path(post, path = "/api/trials", tag = "trials",
+    request_body(content = Option<NoFields>, description = "empty or {}"),
+    responses(
+        (status = 202, description = "the trial started", body = TrialStarted),
+        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "refused (a trial runs, ...)", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn start_trial(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
+    empty_body(body)?;
+    let lab = lab(&state)?;
+    let records = records(&state)?;
+    let id = blocking({
+        let r = Arc::clone(&records);
+        move || r.create_trial()
+    })
+    .await?;
+    if let Err(e) = lab.command(Command::RunTrial { trial_id: id }).await {
+        let r = Arc::clone(&records);
+        blocking(move || r.delete_trial(id)).await?;
+        return Err(command_error(e));
+    }
+    Ok((StatusCode::ACCEPTED, Json(TrialStarted { id })))
+}
+
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> anyhow::Result<T> + Send + 'static,
+) -> Result<T, AppError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| AppError::Internal(e.into()))?
+        .map_err(AppError::Internal)
+}
+
+/// `GET /api/trials` query.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct ListQuery {
+    /// At most this many trials, newest first (1..1000, default 100).
+    pub limit: Option<u32>,
+}
+
+/// The trials, newest first.
+#[utoipa::path(get, path = "/api/trials", tag = "trials", params(ListQuery),
+    responses(
+        (status = 200, description = "trials, newest first", body = Vec<TrialRecord>),
+        (status = 400, description = "bad limit", body = crate::error::ErrorBody)))]
+pub async fn list_trials(
+    State(state): State<Arc<AppState>>,
+    query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<Vec<TrialRecord>>, AppError> {
+    let Query(q) = query.map_err(|e| AppError::field("limit", e.body_text()))?;
+    let limit = q.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(AppError::field(
+            "limit",
+            format!("limit = {limit} is out of range: must be in [1, 1000]"),
+        ));
+    }
+    let r = records(&state)?;
+    Ok(Json(blocking(move || r.list(limit)).await?))
+}
+
+fn trial_id(raw: &str) -> Result<u64, AppError> {
+    raw.parse::<u64>()
+        .ok()
+        .filter(|&id| id > 0)
+        .ok_or_else(|| AppError::field("id", format!("id = {raw:?} is not a trial id (1, 2, ...)")))
+}
+
+async fn existing(state: &AppState, raw: &str) -> Result<(Arc<Records>, TrialRecord), AppError> {
+    let id = trial_id(raw)?;
+    let r = records(state)?;
+    let rec = blocking({
+        let r = Arc::clone(&r);
+        move || r.get(id)
+    })
+    .await?
+    .ok_or_else(|| AppError::NotFound(format!("no trial {id}")))?;
+    Ok((r, rec))
+}
+
+/// One trial's result.
+#[utoipa::path(get, path = "/api/trials/{id}", tag = "trials",
+    params(("id" = u64, Path, description = "trial id")),
+    responses(
+        (status = 200, description = "the trial", body = TrialRecord),
+        (status = 400, description = "not a trial id", body = crate::error::ErrorBody),
+        (status = 404, description = "no such trial", body = crate::error::ErrorBody)))]
+pub async fn get_trial(
+    State(state): State<Arc<AppState>>,
+    Path(raw): Path<String>,
+) -> Result<Json<TrialRecord>, AppError> {
+    Ok(Json(existing(&state, &raw).await?.1))
+}
+
+/// A trial's signals at the control rate, as CSV (header row; NaN when unknown).
+#[utoipa::path(get, path = "/api/trials/{id}/recording.csv", tag = "trials",
+    params(("id" = u64, Path, description = "trial id")),
+    responses(
+        (status = 200, description = "CSV, one row per control step", content_type = "text/csv", body = String),
+        (status = 404, description = "no such trial or no recording", body = crate::error::ErrorBody)))]
+pub async fn recording_csv(
+    State(state): State<Arc<AppState>>,
+    Path(raw): Path<String>,
+) -> Result<Response, AppError> {
+    let (r, rec) = existing(&state, &raw).await?;
+    let path = r.recording_path(rec.id);
+    let bytes = tokio::fs::read(&path)
+        .await
+        .map_err(|_| AppError::NotFound(format!("trial {} has no recording", rec.id)))?;
+    Ok(download(
+        bytes,
+        "text/csv",
+        &format!("trial-{}.csv", rec.id),
+    ))
+}
+
+/// A trial's signals as MCAP (topic `/isochron/state`, JSON messages with a JSON schema).
+#[utoipa::path(get, path = "/api/trials/{id}/recording.mcap", tag = "trials",
+    params(("id" = u64, Path, description = "trial id")),
+    responses(
+        (status = 200, description = "MCAP file", content_type = "application/octet-stream", body = Vec<u8>),
+        (status = 404, description = "no such trial or no recording", body = crate::error::ErrorBody)))]
+pub async fn recording_mcap(
+    State(state): State<Arc<AppState>>,
+    Path(raw): Path<String>,
+) -> Result<Response, AppError> {
+    let (r, rec) = existing(&state, &raw).await?;
+    let path = r.recording_path(rec.id);
+    if !path.is_file() {
+        return Err(AppError::NotFound(format!(
+            "trial {} has no recording",
+            rec.id
+        )));
+    }
+    let bytes = blocking(move || crate::records::csv_to_mcap(&path)).await?;
+    Ok(download(
+        bytes,
+        "application/octet-stream",
+        &format!("trial-{}.mcap", rec.id),
+    ))
+}
+
+fn download(bytes: Vec<u8>, content_type: &'static str, name: &str) -> Response {
+    let disposition = HeaderValue::from_str(&format!("attachment; filename=\"{name}\""))
+        .unwrap_or_else(|_| HeaderValue::from_static("attachment"));
+    (
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static(content_type)),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        bytes,
+    )
+        .into_response()
+}
+
+/// Documents the WebSocket state/event stream (upgrade with `GET /ws`).
+#[utoipa::path(get, path = "/ws", tag = "streams",
+    responses((status = 101, description = "WebSocket: JSON text messages, each with \"type\" (hello, state, event) and \"t_s\"; state at the stream rate (100 Hz default). Schema: server/README.md")))]
+#[allow(dead_code)]
+fn ws_doc() {}
+
+/// Documents the camera stream (upgrade with `GET /ws/camera`).
+#[utoipa::path(get, path = "/ws/camera", tag = "streams",
+    responses((status = 101, description = "WebSocket: one binary message per camera frame (JPEG); slow clients get the newest frame only")))]
+#[allow(dead_code)]
+fn ws_camera_doc() {}
+
+/// This document.
+#[utoipa::path(get, path = "/api/openapi.json", tag = "service",
+    responses((status = 200, description = "the OpenAPI description of this API", body = Object)))]
+pub async fn openapi_json() -> Json<utoipa::openapi::OpenApi> {
+    Json(ApiDoc::openapi())
+}
+
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
+/// The OpenAPI description of the service.
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
+    paths(crate::health, get_state, get_params, put_params, arm, disarm, magnet, stop,
+          start_trial, list_trials, get_trial, recording_csv, recording_mcap, openapi_json,
+          ws_doc, ws_camera_doc),
+    components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer,
+                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters)),
+    modifiers(&BearerAuth),
+    tags((name = "service"), (name = "lab"), (name = "commands"), (name = "trials"), (name = "streams"))
+)]
+pub struct ApiDoc;

@@ -1,0 +1,479 @@
+//! The server side of the bridge: a named thread (`isochron-bridge`) drains the
+//! control thread's hand-offs at the stream rate, serialises each state message
+//! once and fans it out to every WebSocket client through bounded broadcast
+//! channels; HTTP handlers send commands and wait for their acknowledgement.
+
+use std::{
+    collections::HashMap,
+    sync::{
+        Arc, Mutex,
+        atomic::{AtomicBool, AtomicU64, Ordering},
+    },
+    thread::JoinHandle,
+    time::{Duration, Instant},
+};
+
+use axum::{body::Bytes, extract::ws::Utf8Bytes};
+use rt_core::{
+    bridge::{
+        BridgeCounters, BridgeStats, Command, Event, EventRecord, FrameReceiver, Refusal,
+        ServerEnd, Snapshot, StopHandle,
+    },
+    params::Scenario,
+};
+use serde::Serialize;
+use tokio::sync::{broadcast, oneshot};
+
+use crate::records::{Recorder, Records, TrialEnd};
+
+/// How the bridge thread and the stream behave.
+#[derive(Debug, Clone)]
+pub struct LabOptions {
+    /// State messages per second on `/ws`.
+    pub state_hz: f64,
+    /// How long a command waits for the control thread's answer.
+    pub ack_timeout: Duration,
+    /// A WebSocket client that cannot take a message within this time is dropped.
+    pub ws_send_timeout: Duration,
+    /// Messages buffered per WebSocket client before it skips (state) ones.
+    pub ws_buffer: usize,
+}
+
+impl Default for LabOptions {
+    fn default() -> Self {
+        Self {
+            state_hz: 100.0,
+            ack_timeout: Duration::from_secs(3),
+            ws_send_timeout: Duration::from_secs(2),
+            ws_buffer: 32,
+        }
+    }
+}
+
+/// Counters of the WebSocket stream (shown in every state message).
+#[derive(Debug, Default)]
+pub struct StreamStats {
+    /// Clients connected now (state stream and camera).
+    pub clients: AtomicU64,
+    /// State messages produced by the bridge thread.
+    pub state_messages: AtomicU64,
+    /// Messages a slow client skipped (it got the newer ones instead).
+    pub skipped: AtomicU64,
+    /// Clients dropped because they stalled.
+    pub dropped_clients: AtomicU64,
+    /// Camera frames forwarded.
+    pub frames: AtomicU64,
+}
+
+/// A copy of [`StreamStats`].
+#[derive(Debug, Clone, Copy, Serialize, utoipa::ToSchema)]
+pub struct StreamCounters {
+    /// Clients connected now.
+    pub clients: u64,
+    /// State messages produced.
+    pub state_messages: u64,
+    /// Messages slow clients skipped.
+    pub skipped: u64,
+    /// Clients dropped because they stalled.
+    pub dropped_clients: u64,
+    /// Camera frames forwarded.
+    pub frames: u64,
+}
+
+impl StreamStats {
+    /// A plain copy.
+    pub fn read(&self) -> StreamCounters {
+        StreamCounters {
+            clients: self.clients.load(Ordering::Relaxed),
+            state_messages: self.state_messages.load(Ordering::Relaxed),
+            skipped: self.skipped.load(Ordering::Relaxed),
+            dropped_clients: self.dropped_clients.load(Ordering::Relaxed),
+            frames: self.frames.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// Why a command did not go through.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum CommandError {
+    /// The control thread refused it.
+    #[error("{}", .0.message())]
+    Refused(Refusal),
+    /// The command ring is full (the control thread is behind).
+    #[error("the control loop is busy; try again")]
+    Full,
+    /// No control thread runs.
+    #[error("the lab is not running")]
+    NotRunning,
+    /// No answer within the timeout.
+    #[error("the control loop did not answer in time")]
+    NoAnswer,
+}
+
+#[derive(Serialize)]
+struct StateMessage<'a> {
+    #[serde(rename = "type")]
+    kind: &'static str,
+    #[serde(flatten)]
+    snapshot: &'a Snapshot,
+    bridge: BridgeCounters,
+    stream: StreamCounters,
+}
+
+#[derive(Serialize)]
+struct EventMessage<'a> {
+    #[serde(rename = "type")]
+    kind: &'static str,
+    #[serde(flatten)]
+    record: &'a EventRecord,
+    /// A sentence for people, for aborts.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    message: Option<&'static str>,
+}
+
+type Pending = HashMap<u64, oneshot::Sender<Result<(), Refusal>>>;
+
+/// The lab as the server sees it.
+#[derive(Debug)]
+pub struct Lab {
+    commands: Mutex<rt_core::bridge::CommandSender>,
+    pending: Mutex<Pending>,
+    stop: StopHandle,
+    state_tx: broadcast::Sender<Utf8Bytes>,
+    event_tx: broadcast::Sender<Utf8Bytes>,
+    frame_tx: broadcast::Sender<Bytes>,
+    latest: Mutex<Option<(Snapshot, Utf8Bytes)>>,
+    params: Mutex<Scenario>,
+    /// Serialises parameter changes (read-merge-validate-send-store).
+    pub params_update: tokio::sync::Mutex<()>,
+    bridge_stats: Arc<BridgeStats>,
+    stream: StreamStats,
+    options: LabOptions,
+    shutdown: Arc<AtomicBool>,
+    thread: Mutex<Option<JoinHandle<()>>>,
+}
+
+/// What the bridge thread owns.
+struct Pump {
+    lab: Arc<Lab>,
+    end_latest: rt_core::bridge::LatestReader,
+    end_telemetry: rt_core::bridge::TelemetryReader,
+    end_events: rt_core::bridge::EventReader,
+    end_acks: rt_core::bridge::AckReader,
+    frames: Option<FrameReceiver>,
+    records: Option<Arc<Records>>,
+    recorder: Recorder,
+    /// Trials whose end was recorded: their later snapshots are not recorded.
+    ended: Option<u64>,
+}
+
+impl Lab {
+    /// Starts the bridge thread over the server end of a bridge.
+    pub fn start(
+        end: ServerEnd,
+        frames: Option<FrameReceiver>,
+        params: Scenario,
+        records: Option<Arc<Records>>,
+        options: LabOptions,
+    ) -> anyhow::Result<Arc<Self>> {
+        let ServerEnd {
+            latest,
+            telemetry,
+            events,
+            commands,
+            acks,
+            stop,
+            stats,
+        } = end;
+        let (state_tx, _) = broadcast::channel(options.ws_buffer.max(1));
+        let (event_tx, _) = broadcast::channel(256);
+        let (frame_tx, _) = broadcast::channel(4);
+        let lab = Arc::new(Self {
+            commands: Mutex::new(commands),
+            pending: Mutex::new(HashMap::new()),
+            stop,
+            state_tx,
+            event_tx,
+            frame_tx,
+            latest: Mutex::new(None),
+            params: Mutex::new(params),
+            params_update: tokio::sync::Mutex::new(()),
+            bridge_stats: stats,
+            stream: StreamStats::default(),
+            options,
+            shutdown: Arc::new(AtomicBool::new(false)),
+            thread: Mutex::new(None),
+        });
+        let pump = Pump {
+            lab: Arc::clone(&lab),
+            end_latest: latest,
+            end_telemetry: telemetry,
+            end_events: events,
+            end_acks: acks,
+            frames,
+            records,
+            recorder: Recorder::default(),
+            ended: None,
+        };
+        let handle = std::thread::Builder::new()
+            .name("isochron-bridge".into())
+            .spawn(move || pump.run())?;
+        if let Ok(mut t) = lab.thread.lock() {
+            *t = Some(handle);
+        }
+        Ok(lab)
+    }
+
+    /// Stops the bridge thread (it finishes any open recording) and waits for it.
+    pub fn shutdown(&self) {
+        self.shutdown.store(true, Ordering::Release);
+        let handle = self.thread.lock().ok().and_then(|mut t| t.take());
+        if let Some(h) = handle {
+            let _ = h.join();
+        }
+    }
+
+    /// The stream options.
+    pub fn options(&self) -> &LabOptions {
+        &self.options
+    }
+
+    /// The stream counters.
+    pub fn stream(&self) -> &StreamStats {
+        &self.stream
+    }
+
+    /// The bridge counters.
+    pub fn bridge_counters(&self) -> BridgeCounters {
+        self.bridge_stats.read()
+    }
+
+    /// The latest snapshot and its JSON state message, once the lab published one.
+    pub fn latest(&self) -> Option<(Snapshot, Utf8Bytes)> {
+        self.latest.lock().ok().and_then(|l| l.clone())
+    }
+
+    /// The current parameters.
+    pub fn params(&self) -> Scenario {
+        self.params
+            .lock()
+            .map(|p| p.clone())
+            .unwrap_or_else(|p| p.into_inner().clone())
+    }
+
+    /// Stores parameters the control thread accepted.
+    pub fn store_params(&self, p: Scenario) {
+        match self.params.lock() {
+            Ok(mut g) => *g = p,
+            Err(poisoned) => *poisoned.into_inner() = p,
+        }
+    }
+
+    /// Subscribes to state messages.
+    pub fn subscribe_state(&self) -> broadcast::Receiver<Utf8Bytes> {
+        self.state_tx.subscribe()
+    }
+
+    /// Subscribes to event messages.
+    pub fn subscribe_events(&self) -> broadcast::Receiver<Utf8Bytes> {
+        self.event_tx.subscribe()
+    }
+
+    /// Subscribes to camera frames (JPEG).
+    pub fn subscribe_frames(&self) -> broadcast::Receiver<Bytes> {
+        self.frame_tx.subscribe()
+    }
+
+    /// Emergency stop: the stop flag (independent of the ring) and the command.
+    /// Returns true when the control thread acknowledged it in time.
+    pub async fn stop(&self) -> bool {
+        self.stop.request_stop();
+        self.command(Command::Stop).await.is_ok()
+    }
+
+    /// Sends a command and waits for its acknowledgement.
+    pub async fn command(&self, command: Command) -> Result<(), CommandError> {
+        let rx = {
+            let mut pending = self.pending.lock().map_err(|_| CommandError::NotRunning)?;
+            let mut tx = self.commands.lock().map_err(|_| CommandError::NotRunning)?;
+            if tx.is_abandoned() {
+                return Err(CommandError::NotRunning);
+            }
+            let id = tx.send(command).map_err(|_| CommandError::Full)?;
+            let (ack_tx, ack_rx) = oneshot::channel();
+            pending.insert(id, ack_tx);
+            (id, ack_rx)
+        };
+        let (id, rx) = rx;
+        match tokio::time::timeout(self.options.ack_timeout, rx).await {
+            Ok(Ok(outcome)) => outcome.map_err(CommandError::Refused),
+            Ok(Err(_)) => Err(CommandError::NotRunning),
+            Err(_) => {
+                if let Ok(mut p) = self.pending.lock() {
+                    p.remove(&id);
+                }
+                Err(CommandError::NoAnswer)
+            }
+        }
+    }
+}
+
+impl Pump {
+    fn run(mut self) {
+        let period = Duration::from_secs_f64(1.0 / self.lab.options.state_hz.clamp(1.0, 1000.0));
+        let mut next = Instant::now();
+        let mut events = Vec::with_capacity(64);
+        // Runs until shut down, or until nobody but this thread holds the lab.
+        while !self.lab.shutdown.load(Ordering::Acquire) && Arc::strong_count(&self.lab) > 1 {
+            self.tick(&mut events);
+            next += period;
+            let now = Instant::now();
+            if next > now {
+                std::thread::sleep(next - now);
+            } else {
+                // Behind (e.g. the machine was busy): do not try to catch up in a burst.
+                next = now;
+            }
+        }
+        self.tick(&mut events);
+        if let Some((id, n)) = self.recorder.finish() {
+            tracing::info!(trial = id, samples = n, "recording closed at shutdown");
+        }
+    }
+
+    fn tick(&mut self, events: &mut Vec<EventRecord>) {
+        self.dispatch_acks();
+        // Events first, then all telemetry: every snapshot published before an
+        // event was emitted is then in the ring, so a trial's recording is whole
+        // before its end is processed.
+        events.clear();
+        while let Some(e) = self.end_events.pop() {
+            events.push(e);
+        }
+        self.record_telemetry();
+        for e in events.iter() {
+            self.handle_event(e);
+        }
+        self.recorder.flush();
+        self.forward_frames();
+        self.publish_state();
+    }
+
+    fn dispatch_acks(&mut self) {
+        while let Some(ack) = self.end_acks.pop() {
+            // `ack.returned` (old parameters) is freed here, off the control thread.
+            let waiter = self
+                .lab
+                .pending
+                .lock()
+                .ok()
+                .and_then(|mut p| p.remove(&ack.id));
+            if let Some(tx) = waiter {
+                let _ = tx.send(ack.outcome);
+            }
+        }
+    }
+
+    fn record_telemetry(&mut self) {
+        while let Some(s) = self.end_telemetry.pop() {
+            let Some(records) = &self.records else {
+                continue;
+            };
+            if s.trial_id == 0 || self.ended == Some(s.trial_id) {
+                continue;
+            }
+            let path = records.recording_path(s.trial_id);
+            if let Err(e) = self.recorder.append(&path, s.trial_id, &s) {
+                tracing::error!(trial = s.trial_id, error = %e, "cannot record");
+            }
+        }
+    }
+
+    fn handle_event(&mut self, e: &EventRecord) {
+        let message = match e.event {
+            Event::Aborted { reason } => Some(reason.message()),
+            _ => None,
+        };
+        let msg = EventMessage {
+            kind: "event",
+            record: e,
+            message,
+        };
+        match serde_json::to_string(&msg) {
+            Ok(text) => {
+                let _ = self.lab.event_tx.send(text.into());
+            }
+            Err(err) => tracing::error!(error = %err, "cannot serialise an event"),
+        }
+        let end = match e.event {
+            Event::TrialFinished { result } => TrialEnd::Done(result),
+            Event::Aborted { reason } => TrialEnd::Aborted(reason.as_str()),
+            Event::StateChanged { .. } => return,
+        };
+        if e.trial_id == 0 {
+            return;
+        }
+        let samples = match self.recorder.current() {
+            Some(id) if id == e.trial_id => self.recorder.finish().map_or(0, |(_, n)| n),
+            _ => 0,
+        };
+        self.ended = Some(e.trial_id);
+        if let Some(records) = &self.records {
+            match records.finish_trial(e.trial_id, end, samples) {
+                Ok(true) => tracing::info!(trial = e.trial_id, samples, "trial recorded"),
+                Ok(false) => tracing::debug!(trial = e.trial_id, "trial end for no running trial"),
+                Err(err) => {
+                    tracing::error!(trial = e.trial_id, error = ?err, "cannot record the trial")
+                }
+            }
+        }
+    }
+
+    fn forward_frames(&mut self) {
+        let Some(frames) = self.frames.as_mut() else {
+            return;
+        };
+        let mut newest = None;
+        while let Some(f) = frames.pop() {
+            newest = Some(f);
+        }
+        if let Some(f) = newest {
+            self.lab.stream.frames.fetch_add(1, Ordering::Relaxed);
+            let _ = self.lab.frame_tx.send(Bytes::from(f.jpeg));
+        }
+    }
+
+    fn publish_state(&mut self) {
+        if !self.end_latest.updated() {
+            return;
+        }
+        let snapshot = *self.end_latest.read();
+        let msg = StateMessage {
+            kind: "state",
+            snapshot: &snapshot,
+            bridge: self.lab.bridge_stats.read(),
+            stream: self.lab.stream.read(),
+        };
+        let text: Utf8Bytes = match serde_json::to_string(&msg) {
+            Ok(t) => t.into(),
+            Err(err) => {
+                tracing::error!(error = %err, "cannot serialise the state");
+                return;
+            }
+        };
+        self.lab
+            .stream
+            .state_messages
+            .fetch_add(1, Ordering::Relaxed);
+        if let Ok(mut l) = self.lab.latest.lock() {
+            *l = Some((snapshot, text.clone()));
+        }
+        let _ = self.lab.state_tx.send(text);
+    }
+}
+
+impl Drop for Lab {
+    fn drop(&mut self) {
+        self.shutdown.store(true, Ordering::Release);
+    }
+}

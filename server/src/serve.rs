@@ -1,0 +1,118 @@
+//! `isochron serve`: the lab service.
+
+use std::{net::SocketAddr, path::PathBuf, sync::Arc};
+
+use anyhow::Context;
+use rt_core::params::Scenario;
+
+use crate::{
+    AppState, Records, app, check_bind,
+    config::{LabMode, ServeConfig},
+};
+
+/// The command line of `isochron serve` (each overrides the config file).
+#[derive(Debug, Clone, Default)]
+pub struct ServeArgs {
+    /// `--config FILE`.
+    pub config: Option<PathBuf>,
+    /// `--bind ADDR`.
+    pub bind: Option<SocketAddr>,
+    /// `--token TOKEN` (or `ISOCHRON_TOKEN`).
+    pub token: Option<String>,
+    /// `--web-dir DIR`.
+    pub web_dir: Option<PathBuf>,
+    /// `--data-dir DIR`.
+    pub data_dir: Option<PathBuf>,
+}
+
+/// Runs the service until SIGINT/SIGTERM.
+pub fn run(args: ServeArgs) -> anyhow::Result<()> {
+    let cfg = match &args.config {
+        Some(path) => ServeConfig::from_file(path)?,
+        None => ServeConfig::default(),
+    };
+    let bind = args.bind.unwrap_or(cfg.server.bind);
+    let token = args
+        .token
+        .or_else(|| cfg.server.token.clone())
+        .filter(|t| !t.is_empty());
+    check_bind(bind, token.as_deref())?;
+    let web_dir = args
+        .web_dir
+        .or_else(|| cfg.server.web_dir.clone())
+        .unwrap_or_else(crate::default_web_dir);
+    if !web_dir.join("index.html").is_file() {
+        tracing::warn!(dir = %web_dir.display(), "dashboard not built (run `make web`); serving the API only");
+    }
+    let data_dir = args.data_dir.unwrap_or_else(|| cfg.server.data_dir.clone());
+    let scenario = match &cfg.lab.scenario {
+        Some(path) => Scenario::from_file(path)?,
+        None => Scenario::default(),
+    };
+    if cfg.lab.mode == LabMode::Real {
+        anyhow::bail!(
+            "lab.mode = \"real\": the hardware drivers (FRI client, webcam, magnet) are not wired \
+             into `isochron serve` yet; use mode = \"simulated\""
+        );
+    }
+    let records = Arc::new(Records::open(&data_dir)?);
+    tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
+    tracing::warn!(
+        "the simulated lab's closed loop is not available yet: state and commands answer 503"
+    );
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name("isochron-http")
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let state = Arc::new(
+        AppState::new(web_dir)
+            .with_token(token)
+            .with_records(records)
+            .with_body_limit(cfg.server.body_limit_bytes)
+            .with_cors_origins(cfg.server.cors_origins.clone()),
+    );
+    let lab = state.lab.clone();
+    let result = runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(bind)
+            .await
+            .with_context(|| format!("cannot listen on {bind}"))?;
+        let local = listener.local_addr()?;
+        println!("isochron {} listening on http://{local}/", crate::VERSION);
+        axum::serve(listener, app(state))
+            .with_graceful_shutdown(shutdown_signal())
+            .await
+            .context("server failed")
+    });
+    if let Some(lab) = lab {
+        lab.shutdown();
+    }
+    result?;
+    tracing::info!("shut down cleanly");
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+}
