@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 pub use model::{ProcessModel, ProcessNoiseModel, StateCov, StateVec};
 pub use predict::{Crossing, Doubt, MotionPlan, MotionRequest, PassDirection, Prediction};
 
-use crate::params::{ParamError, check};
+use crate::params::{ParamError, PendulumParams, check};
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 
 /// How many past measurements (with the posterior after each) the filter keeps, so
@@ -86,7 +86,7 @@ impl Default for EkfParams {
             max_consecutive_rejections: 8,
             max_step_s: 0.05,
             horizon_s: 6.0,
-            min_observation_s: 1.0,
+            min_observation_s: 0.5,
             max_measurement_age_s: 0.25,
             commit_max_time_std_ms: 5.0,
         }
@@ -366,6 +366,19 @@ impl Ekf {
             consecutive_rejections: 0,
             counters: EkfCounters::default(),
         })
+    }
+
+    /// A filter for one trial of a scenario: the `[pendulum]` section, and the
+    /// intercept point drawn for the trial (`task.distance_m`, `task.intercept_height_m`).
+    pub fn for_trial(
+        params: EkfParams,
+        pendulum: &PendulumParams,
+        distance_m: f64,
+        intercept_height_m: f64,
+    ) -> Result<Self, EkfError> {
+        let model = PendulumModel::from_params(pendulum)?;
+        let geometry = PendulumGeometry::new(model.length_m, distance_m, intercept_height_m)?;
+        Self::new(params, model, geometry)
     }
 
     /// The parameters in use.

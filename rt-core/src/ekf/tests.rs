@@ -360,6 +360,18 @@ fn accuracy(
     ahead_s: f64,
 ) -> Accuracy {
     let period = model(0.03).small_angle_period_s();
+    accuracy_after(params, alpha_truth, trials, seed, ahead_s, period)
+}
+
+/// Like [`accuracy`], observing for `obs_s` (+ up to 0.5 s) after release.
+fn accuracy_after(
+    params: &EkfParams,
+    alpha_truth: f64,
+    trials: u64,
+    seed: u64,
+    ahead_s: f64,
+    obs_s: f64,
+) -> Accuracy {
     let mut acc = Accuracy {
         time_err_s: vec![],
         pos_err_at_pred_m: vec![],
@@ -371,7 +383,7 @@ fn accuracy(
     for trial in 0..trials {
         let mut rng = ChaCha8Rng::seed_from_u64(seed + trial);
         let angle = rng.random_range(15.0..35.0);
-        let now = period + rng.random_range(0.0..0.5);
+        let now = obs_s + rng.random_range(0.0..0.5);
         let mut truth = released(alpha_truth, angle);
         let meas = observe(&mut truth, lab_camera(), now, &mut rng);
         let mut ekf = Ekf::new(params.clone(), model(0.03), geom()).unwrap();
@@ -726,8 +738,8 @@ fn plan_motion_gives_the_start_time_and_confidence() {
         direction: PassDirection::Any,
     };
     // Early: not confident (short observation).
-    feed_in_arrival_order(&mut ekf, &meas, 0.3);
-    let plan = ekf.plan_motion(0.3, &req).unwrap().unwrap();
+    feed_in_arrival_order(&mut ekf, &meas, 0.2);
+    let plan = ekf.plan_motion(0.2, &req).unwrap().unwrap();
     assert!(!plan.confident);
     assert_eq!(plan.doubt, Doubt::ShortObservation);
     // After a period: confident; the motion starts duration + latency before the pass.
@@ -949,4 +961,28 @@ fn pass_time_std_is_calibrated_when_the_truth_carries_the_assumed_noise() {
         percentile(&mut sigmas, 0.5) * 1e3
     );
     assert!((lo..=hi).contains(&mean_sq));
+}
+
+#[test]
+fn half_a_second_of_observation_already_predicts_within_5_ms() {
+    // What lets the default `min_observation_s` be 0.5 s: the robot can then aim at
+    // the second pass after release (about 2.1 s) instead of the third.
+    let mut last = f64::INFINITY;
+    for obs in [0.3, 0.6, 1.0] {
+        let mut acc = accuracy_after(&EkfParams::default(), 0.03, 100, 50_000, 1.5, obs);
+        let (t95, _, p95) = report(&format!("observed {obs}..{} s", obs + 0.5), &mut acc);
+        assert!(t95 < 0.005 && p95 < 0.005);
+        assert!(t95 < last, "longer observation must predict better");
+        last = t95;
+    }
+}
+
+#[test]
+fn for_trial_builds_from_a_scenario_and_refuses_bad_input() {
+    let sc = crate::params::Scenario::default();
+    let ekf = Ekf::for_trial(EkfParams::default(), &sc.pendulum, 0.7, 0.3).unwrap();
+    assert!((ekf.geometry().rest_position_m() - Vector3::new(0.7, 0.0, 0.3)).norm() < 1e-12);
+    assert_eq!(ekf.model().damping_per_s, 0.03);
+    let err = Ekf::for_trial(EkfParams::default(), &sc.pendulum, f64::NAN, 0.3).unwrap_err();
+    assert!(matches!(err, EkfError::Params(ref e) if e.field() == Some("task.distance_m")));
 }
