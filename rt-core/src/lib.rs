@@ -16,6 +16,7 @@
 //! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
 //! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
 //! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
+//! | [`timing`] | Hopf speed dynamics, competing neurons, timed straight-line motion (eqs. 20-21) |
 
 pub mod bridge;
 pub mod control;
@@ -25,4 +26,5 @@ pub mod kinematics;
 pub mod magnet;
 pub mod params;
 pub mod pendulum;
+pub mod timing;
 pub mod trajectory;
