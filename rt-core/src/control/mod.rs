@@ -2,11 +2,17 @@
 
 pub mod judge;
 pub mod latency;
+pub mod posture;
 pub mod report;
 pub mod state;
 pub mod stats;
+pub mod step;
 
 pub use judge::{Judgement, PlannedMotion, TrialTrace, judge};
 pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
+pub use step::{
+    ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Measurement,
+    StepInput, StepOutput,
+};

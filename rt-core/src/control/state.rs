@@ -1,6 +1,6 @@
 //! The trial state machine of DESIGN.md ("The trial").
 //!
-//! `Idle -> Armed -> Released -> Tracking -> Intercepting -> Holding -> Done`,
+//! `Idle -> Arming -> Armed -> Released -> Tracking -> Intercepting -> Holding -> Done`,
 //! then back to `Idle` (home). `Abort(reason)` is reachable from every state and
 //! ends in a safe stop; from `Abort` and `Done` only `Idle` (reset) follows.
 
@@ -12,6 +12,8 @@ use serde::Serialize;
 pub enum TrialState {
     /// No trial; the robot may be anywhere safe.
     Idle,
+    /// Moving home in the coming motion's posture.
+    Arming,
     /// Robot at home in the coming motion's posture, magnet holding, checks passed.
     Armed,
     /// Magnet off: the ball swings, the filter has not initialised yet.
@@ -34,6 +36,7 @@ impl TrialState {
     pub const fn name(self) -> &'static str {
         match self {
             Self::Idle => "idle",
+            Self::Arming => "arming",
             Self::Armed => "armed",
             Self::Released => "released",
             Self::Tracking => "tracking",
@@ -46,7 +49,7 @@ impl TrialState {
 
     /// Whether the arm may be moving under the interception motion.
     pub const fn is_moving(self) -> bool {
-        matches!(self, Self::Intercepting)
+        matches!(self, Self::Arming | Self::Intercepting)
     }
 }
 
@@ -144,7 +147,8 @@ impl TrialMachine {
             // A stop is accepted from everywhere (even a second abort keeps the first reason out).
             (S::Abort(_), S::Abort(_)) => false,
             (_, S::Abort(_)) => true,
-            (S::Idle, S::Armed)
+            (S::Idle, S::Arming)
+            | (S::Arming, S::Armed)
             | (S::Armed, S::Released)
             | (S::Armed, S::Idle)
             | (S::Released, S::Tracking)
@@ -186,6 +190,7 @@ mod tests {
     fn the_happy_path_is_allowed_in_order_only() {
         let mut m = TrialMachine::new();
         for s in [
+            S::Arming,
             S::Armed,
             S::Released,
             S::Tracking,
@@ -196,7 +201,7 @@ mod tests {
         ] {
             m.go(s).unwrap();
         }
-        assert_eq!(m.transitions(), 7);
+        assert_eq!(m.transitions(), 8);
         // Skipping a state is refused and changes nothing.
         let err = m.go(S::Tracking).unwrap_err();
         assert_eq!((err.from, err.to), ("idle", "tracking"));
@@ -207,6 +212,7 @@ mod tests {
     fn abort_is_reachable_from_everywhere_and_keeps_its_first_reason() {
         let all = [
             S::Idle,
+            S::Arming,
             S::Armed,
             S::Released,
             S::Tracking,

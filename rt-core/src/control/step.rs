@@ -1,0 +1,874 @@
+//! The control step: called once per FRI message, it folds in the newest camera
+//! measurements, runs the filter, checks the interception condition, steps the
+//! timed motion, maps it through inverse kinematics in the planned posture,
+//! guards the command and returns it. No allocation, no lock, no log: what
+//! happens is counted in [`ControlCounters`].
+
+use nalgebra::{UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::latency::LatencyEstimator;
+use super::posture::{PostureError, flange_pose, plan_posture, Posture};
+use super::state::{AbortReason, TrialMachine, TrialState};
+use crate::ekf::{Ekf, EkfParams, MotionRequest, PassDirection};
+use crate::kinematics::analytic::ArmGeometry;
+use crate::kinematics::iiwa7::{
+    ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
+};
+use crate::kinematics::{Joints, Tool, tool_pose};
+use crate::params::{ParamError, Scenario, check};
+use crate::pendulum::{PendulumGeometry, PendulumModel};
+use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
+use crate::trajectory::profile::ProfileKind;
+
+/// The closed loop's settings: `[control]` in a scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControlParams {
+    /// Shortest duration of the joint-space move to home when arming, seconds.
+    pub home_move_time_s: f64,
+    /// How long the arm holds the intercept point after arriving, seconds.
+    pub hold_time_s: f64,
+    /// Abort when no pass has been committed to this long after release, seconds.
+    pub track_timeout_s: f64,
+    /// Abort when no camera measurement arrived for this long while tracking, seconds.
+    pub camera_timeout_s: f64,
+    /// Latency assumed until the online estimate is confident, milliseconds.
+    pub latency_prior_ms: f64,
+    /// Memory of the latency estimate, seconds of motion.
+    pub latency_memory_s: f64,
+    /// Joint position margin the planned motion keeps, degrees.
+    pub posture_margin_deg: f64,
+    /// Largest joint speed of a planned motion as a fraction of the limit.
+    pub max_speed_ratio: f64,
+    /// Take the shortest feasible duration when the asked one is too fast
+    /// (otherwise refuse the motion).
+    pub allow_shortest_feasible: bool,
+    /// Margin the command guard keeps from the joint position limits, degrees.
+    pub guard_margin_deg: f64,
+    /// Largest commanded joint step per period as a fraction of the speed limit.
+    pub guard_speed_ratio: f64,
+    /// Follow the filter's refined pass time while the motion runs.
+    pub retime: bool,
+}
+
+impl Default for ControlParams {
+    fn default() -> Self {
+        Self {
+            home_move_time_s: 2.0,
+            hold_time_s: 0.3,
+            track_timeout_s: 12.0,
+            camera_timeout_s: 0.5,
+            latency_prior_ms: 0.0,
+            latency_memory_s: 30.0,
+            posture_margin_deg: 5.0,
+            max_speed_ratio: 0.9,
+            allow_shortest_feasible: true,
+            guard_margin_deg: 2.0,
+            guard_speed_ratio: 1.0,
+            retime: true,
+        }
+    }
+}
+
+impl ControlParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within("control.home_move_time_s", self.home_move_time_s, 0.2, 30.0)?;
+        check::within("control.hold_time_s", self.hold_time_s, 0.0, 10.0)?;
+        check::within("control.track_timeout_s", self.track_timeout_s, 0.5, 120.0)?;
+        check::within("control.camera_timeout_s", self.camera_timeout_s, 0.05, 10.0)?;
+        check::within("control.latency_prior_ms", self.latency_prior_ms, 0.0, 500.0)?;
+        check::within("control.latency_memory_s", self.latency_memory_s, 0.5, 3600.0)?;
+        check::within("control.posture_margin_deg", self.posture_margin_deg, 0.0, 30.0)?;
+        check::within("control.max_speed_ratio", self.max_speed_ratio, 0.05, 1.0)?;
+        check::within("control.guard_margin_deg", self.guard_margin_deg, 0.0, 30.0)?;
+        check::within("control.guard_speed_ratio", self.guard_speed_ratio, 0.05, 1.0)
+    }
+}
+
+/// Errors of the controller's non-real-time calls (construction, arming).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ControlError {
+    /// A parameter was refused.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+    /// The motion's posture could not be planned.
+    #[error("infeasible motion: {0}")]
+    Infeasible(#[from] PostureError),
+    /// A part refused its set-up.
+    #[error("{0}")]
+    Setup(String),
+    /// Not allowed in the current state.
+    #[error("cannot {what} while {state}")]
+    State {
+        /// What was asked.
+        what: &'static str,
+        /// The current state's name.
+        state: &'static str,
+    },
+}
+
+/// Everything a trial's motion needs, planned before arming (not real-time:
+/// [`Controller::plan`] may take tens of milliseconds).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ArmPlan {
+    /// Distance robot base axis -> intercept point, metres.
+    pub distance_m: f64,
+    /// The intercept point (the ball at rest), base frame, metres.
+    pub intercept_m: Vector3<f64>,
+    /// The posture of the motion.
+    pub posture: Posture,
+    /// The motion's duration (the asked one, or the shortest feasible), seconds.
+    pub duration_s: f64,
+    /// The motion generator's arrival as CONTRACT.md measures it (end of the
+    /// best-fitting ideal profile) minus its nominal arrival, seconds; found by
+    /// running the generator once at plan time, and compensated when committing.
+    pub arrival_offset_s: f64,
+}
+
+/// A camera measurement: the ball's lateral position at its capture time.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Measurement {
+    /// Capture time, seconds (the control clock).
+    pub t_capture_s: f64,
+    /// Lateral (base y) position of the ball, metres.
+    pub lateral_m: f64,
+}
+
+/// One FRI message's worth of input.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepInput {
+    /// Time of the message, seconds (the control clock).
+    pub t_s: f64,
+    /// Measured joint positions, radians.
+    pub q_measured_rad: [f64; JOINTS],
+    /// Whether the session is in COMMANDING_ACTIVE (commands are executed).
+    pub commanding: bool,
+}
+
+/// The step's output (caller-owned).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOutput {
+    /// Joint command, radians (already guarded).
+    pub q_command_rad: [f64; JOINTS],
+    /// The trial state after the step.
+    pub state: TrialState,
+}
+
+impl Default for StepOutput {
+    fn default() -> Self {
+        Self {
+            q_command_rad: [0.0; JOINTS],
+            state: TrialState::Idle,
+        }
+    }
+}
+
+/// Counters the step keeps instead of logging.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct ControlCounters {
+    /// Steps run.
+    pub steps: u64,
+    /// Camera measurements received.
+    pub measurements: u64,
+    /// Measurements the filter fused.
+    pub fused: u64,
+    /// Measurements the filter refused (bad input or gated out).
+    pub rejected: u64,
+    /// Predictions asked of the filter that it could not give.
+    pub prediction_errors: u64,
+    /// Motion re-timings to a refined pass prediction.
+    pub retimes: u64,
+    /// Calls the timed motion refused.
+    pub motion_errors: u64,
+    /// Inverse-kinematics failures.
+    pub ik_failures: u64,
+    /// Commands the guard clamped to a position limit.
+    pub guard_position_clamps: u64,
+    /// Commands the guard clamped to the largest step per period.
+    pub guard_step_clamps: u64,
+    /// Commands that were not finite (replaced by the previous one).
+    pub guard_non_finite: u64,
+    /// Measured joint positions beyond a position limit.
+    pub measured_limit_violations: u64,
+    /// Steps without COMMANDING_ACTIVE.
+    pub not_commanding: u64,
+    /// Aborts.
+    pub aborts: u64,
+}
+
+impl ControlCounters {
+    /// Everything that counts as a limit violation in a trial's result.
+    pub fn limit_violations(&self) -> u64 {
+        self.guard_position_clamps
+            + self.guard_step_clamps
+            + self.guard_non_finite
+            + self.measured_limit_violations
+    }
+}
+
+/// What was decided when the interception condition was met.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Commit {
+    /// When the step that committed ran, seconds.
+    pub t_commit_s: f64,
+    /// When the motion starts (its `t = 0`), seconds.
+    pub motion_start_s: f64,
+    /// The motion's planned duration at commit, seconds.
+    pub duration_s: f64,
+    /// Predicted pass time, seconds.
+    pub predicted_pass_s: f64,
+    /// Its standard deviation, seconds.
+    pub predicted_pass_std_s: f64,
+    /// Predicted ball centre at the pass, metres.
+    pub predicted_ball_m: Vector3<f64>,
+    /// The latency compensated, seconds.
+    pub latency_s: f64,
+    /// The generator's arrival offset compensated, seconds.
+    pub arrival_offset_s: f64,
+    /// Direction of the committed pass (sign of the lateral velocity).
+    pub direction_positive: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct JointMove {
+    q0: Joints,
+    q1: Joints,
+    t0: f64,
+    duration_s: f64,
+}
+
+impl JointMove {
+    fn at(&self, t: f64) -> Joints {
+        let s = ProfileKind::MinJerk.position((t - self.t0) / self.duration_s);
+        self.q0 + (self.q1 - self.q0) * s
+    }
+
+    fn done(&self, t: f64) -> bool {
+        t >= self.t0 + self.duration_s
+    }
+}
+
+/// The closed-loop controller: one per robot; trials come and go.
+#[derive(Debug, Clone)]
+pub struct Controller {
+    params: ControlParams,
+    scenario: Scenario,
+    ekf_params: EkfParams,
+    model: PendulumModel,
+    tool: Tool,
+    machine: TrialMachine,
+    ekf: Option<Ekf>,
+    motion: TimedMotion,
+    sample: MotionSample,
+    latency: LatencyEstimator,
+    plan: Option<ArmPlan>,
+    home_m: Vector3<f64>,
+    jmove: Option<JointMove>,
+    q_meas: Joints,
+    q_cmd: Joints,
+    v_cmd: Joints,
+    have_cmd: bool,
+    t_last: Option<f64>,
+    t_state: f64,
+    t_release: f64,
+    t_last_measurement: f64,
+    commit: Option<Commit>,
+    counters: ControlCounters,
+    abort_reason: Option<AbortReason>,
+}
+
+impl Controller {
+    /// A controller for `scenario`'s lab with an FRI period of `period_s`.
+    pub fn new(
+        scenario: &Scenario,
+        params: &ControlParams,
+        ekf: &EkfParams,
+        timing: &TimingParams,
+        period_s: f64,
+    ) -> Result<Self, ControlError> {
+        scenario.validate()?;
+        params.validate()?;
+        ekf.validate()?;
+        timing.validate()?;
+        let model = PendulumModel::from_params(&scenario.pendulum)?;
+        let motion = TimedMotion::new(timing.clone())?;
+        let [hx, hy, hz] = scenario.task.home_m;
+        Ok(Self {
+            params: params.clone(),
+            scenario: scenario.clone(),
+            ekf_params: ekf.clone(),
+            model,
+            tool: Tool::along_z(scenario.task.tool_length_m),
+            machine: TrialMachine::new(),
+            ekf: None,
+            motion,
+            sample: MotionSample::default(),
+            latency: LatencyEstimator::new(
+                period_s,
+                params.latency_prior_ms * 1e-3,
+                params.latency_memory_s,
+            ),
+            plan: None,
+            home_m: Vector3::new(hx, hy, hz),
+            jmove: None,
+            q_meas: Joints::zeros(),
+            q_cmd: Joints::zeros(),
+            v_cmd: Joints::zeros(),
+            have_cmd: false,
+            t_last: None,
+            t_state: 0.0,
+            t_release: 0.0,
+            t_last_measurement: f64::NEG_INFINITY,
+            commit: None,
+            counters: ControlCounters::default(),
+            abort_reason: None,
+        })
+    }
+
+    /// Plans a trial's motion to the intercept point at `distance_m` (not
+    /// real-time: run it off the control thread, then hand it to [`Self::arm`]).
+    pub fn plan(
+        scenario: &Scenario,
+        params: &ControlParams,
+        timing: &TimingParams,
+        distance_m: f64,
+    ) -> Result<ArmPlan, ControlError> {
+        check::within("task.distance_m", distance_m, 0.1, 1.2)?;
+        let task = &scenario.task;
+        let home = Vector3::from(task.home_m);
+        let intercept = Vector3::new(distance_m, 0.0, task.intercept_height_m);
+        let tool = Tool::along_z(task.tool_length_m);
+        let margin = params.posture_margin_deg.to_radians();
+        let profile = ProfileKind::Hopf;
+        let mut duration = task.movement_time_s;
+        let posture = match plan_posture(
+            &tool,
+            &home,
+            &intercept,
+            profile,
+            duration,
+            margin,
+            params.max_speed_ratio,
+        ) {
+            Ok(p) => p,
+            Err(PostureError::TooFast { shortest_s, .. }) if params.allow_shortest_feasible => {
+                duration = shortest_s * 1.01;
+                plan_posture(
+                    &tool,
+                    &home,
+                    &intercept,
+                    profile,
+                    duration,
+                    margin,
+                    params.max_speed_ratio,
+                )?
+            }
+            Err(e) => return Err(e.into()),
+        };
+        let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
+        let arrival_offset_s =
+            generator_arrival_offset(timing, &home, &intercept, &posture, duration, period_s)?;
+        Ok(ArmPlan {
+            distance_m,
+            intercept_m: intercept,
+            posture,
+            duration_s: duration,
+            arrival_offset_s,
+        })
+    }
+
+    /// The current trial state.
+    pub fn state(&self) -> TrialState {
+        self.machine.state()
+    }
+
+    /// The counters.
+    pub fn counters(&self) -> &ControlCounters {
+        &self.counters
+    }
+
+    /// The latency estimator.
+    pub fn latency(&self) -> &LatencyEstimator {
+        &self.latency
+    }
+
+    /// The filter of the current trial, once armed.
+    pub fn ekf(&self) -> Option<&Ekf> {
+        self.ekf.as_ref()
+    }
+
+    /// The plan of the current trial, once armed.
+    pub fn arm_plan(&self) -> Option<&ArmPlan> {
+        self.plan.as_ref()
+    }
+
+    /// What was committed to, once the interception condition was met.
+    pub fn commit(&self) -> Option<&Commit> {
+        self.commit.as_ref()
+    }
+
+    /// The timed motion's latest sample.
+    pub fn motion_sample(&self) -> &MotionSample {
+        &self.sample
+    }
+
+    /// The last guarded joint command.
+    pub fn q_command(&self) -> &Joints {
+        &self.q_cmd
+    }
+
+    /// The home point of the motions (tool point), metres.
+    pub fn home_m(&self) -> Vector3<f64> {
+        self.home_m
+    }
+
+    /// The end point of the running (or last) motion: its last target, metres.
+    pub fn motion_target_m(&self) -> Vector3<f64> {
+        self.sample.target_m
+    }
+
+    /// The reason of the last abort.
+    pub fn abort_reason(&self) -> Option<AbortReason> {
+        self.abort_reason
+    }
+
+    /// The tool this controller plans with.
+    pub fn tool(&self) -> &Tool {
+        &self.tool
+    }
+
+    fn go(&mut self, t: f64, to: TrialState) {
+        if self.machine.go(to).is_ok() {
+            self.t_state = t;
+        }
+    }
+
+    /// Aborts the trial (safe stop: the commanded motion decelerates to rest).
+    pub fn abort(&mut self, t_s: f64, reason: AbortReason) {
+        if matches!(self.machine.state(), TrialState::Abort(_)) {
+            return;
+        }
+        self.machine.abort(reason);
+        self.t_state = t_s;
+        self.abort_reason = Some(reason);
+        self.counters.aborts += 1;
+        self.jmove = None;
+    }
+
+    /// Arms a trial with a plan from [`Self::plan`]: builds the filter for
+    /// the pendulum at the plan's distance and starts the move home in the
+    /// motion's posture; `Armed` once there. Allowed from `Idle`.
+    pub fn arm(&mut self, t_s: f64, plan: &ArmPlan) -> Result<(), ControlError> {
+        if self.machine.state() != TrialState::Idle {
+            return Err(ControlError::State {
+                what: "arm",
+                state: self.machine.state().name(),
+            });
+        }
+        let geometry = PendulumGeometry::new(
+            self.model.length_m,
+            plan.distance_m,
+            self.scenario.task.intercept_height_m,
+        )?;
+        let ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
+            .map_err(|e| ControlError::Setup(e.to_string()))?;
+        let q0 = if self.have_cmd { self.q_cmd } else { self.q_meas };
+        let q1 = plan.posture.q_home;
+        // Duration: at least the configured one, and slow enough for half the
+        // speed and acceleration limits (minimum jerk: peak speed 1.875 d/T,
+        // peak acceleration 5.77 d/T^2).
+        let mut dur = self.params.home_move_time_s;
+        for j in 0..JOINTS {
+            let d = (q1[j] - q0[j]).abs();
+            dur = dur
+                .max(1.875 * d / (0.5 * VELOCITY_LIMIT_RADPS[j]))
+                .max((5.78 * d / (0.5 * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
+        }
+        self.machine.go(TrialState::Arming).map_err(|_| ControlError::State {
+            what: "arm",
+            state: self.machine.state().name(),
+        })?;
+        self.t_state = t_s;
+        self.ekf = Some(ekf);
+        self.plan = Some(*plan);
+        self.commit = None;
+        self.abort_reason = None;
+        self.jmove = Some(JointMove {
+            q0,
+            q1,
+            t0: t_s,
+            duration_s: dur,
+        });
+        let _ = self.motion.reset(&self.home_m);
+        Ok(())
+    }
+
+    /// The magnet let go of the ball at `t_s`: `Armed -> Released`.
+    pub fn release(&mut self, t_s: f64) -> Result<(), ControlError> {
+        self.machine.go(TrialState::Released).map_err(|_| ControlError::State {
+            what: "release",
+            state: self.machine.state().name(),
+        })?;
+        self.t_state = t_s;
+        self.t_release = t_s;
+        self.t_last_measurement = t_s;
+        Ok(())
+    }
+
+    /// Back to `Idle` from `Done`, `Abort` or `Armed` (holding where it is).
+    pub fn reset(&mut self, t_s: f64) -> Result<(), ControlError> {
+        self.machine.go(TrialState::Idle).map_err(|_| ControlError::State {
+            what: "reset",
+            state: self.machine.state().name(),
+        })?;
+        self.t_state = t_s;
+        self.jmove = None;
+        Ok(())
+    }
+
+    /// One control step (see the module documentation). `measurements` are the
+    /// camera measurements that arrived since the last step.
+    pub fn step<I: IntoIterator<Item = Measurement>>(
+        &mut self,
+        input: &StepInput,
+        measurements: I,
+        out: &mut StepOutput,
+    ) {
+        let t = input.t_s;
+        let dt = match self.t_last {
+            Some(tl) if t > tl => t - tl,
+            _ => self.latency.period_s(),
+        };
+        self.t_last = Some(t);
+        self.counters.steps += 1;
+        self.q_meas = Joints::from(input.q_measured_rad);
+        for j in 0..JOINTS {
+            if !(self.q_meas[j].abs() <= POSITION_LIMIT_RAD[j]) {
+                self.counters.measured_limit_violations += 1;
+                break;
+            }
+        }
+        if !self.have_cmd {
+            self.q_cmd = self.q_meas;
+        }
+        if self.have_cmd && input.commanding {
+            self.latency.observe(&input.q_measured_rad);
+        }
+        self.fold_measurements(t, measurements);
+
+        let state = self.machine.state();
+        if !input.commanding {
+            self.counters.not_commanding += 1;
+            if !matches!(
+                state,
+                TrialState::Idle | TrialState::Armed | TrialState::Done | TrialState::Abort(_)
+            ) {
+                self.abort(t, AbortReason::FriLost);
+            }
+        }
+        let mut target = self.q_cmd;
+        match self.machine.state() {
+            TrialState::Idle | TrialState::Armed | TrialState::Done => {}
+            TrialState::Arming => {
+                if let Some(m) = self.jmove {
+                    target = m.at(t);
+                    let settled = (self.q_meas - m.q1).amax() < 0.2f64.to_radians();
+                    if m.done(t) && settled {
+                        self.jmove = None;
+                        target = m.q1;
+                        self.go(t, TrialState::Armed);
+                    } else if t - m.t0 > m.duration_s + 5.0 {
+                        self.abort(t, AbortReason::GuardTripped);
+                    }
+                }
+            }
+            TrialState::Released => {
+                if self.ekf.as_ref().is_some_and(Ekf::is_initialised) {
+                    self.go(t, TrialState::Tracking);
+                }
+                self.check_camera(t);
+            }
+            TrialState::Tracking => {
+                self.check_camera(t);
+                if self.machine.state() == TrialState::Tracking {
+                    self.try_commit(t, dt);
+                }
+            }
+            TrialState::Intercepting | TrialState::Holding => {
+                if let Some(q) = self.motion_command(t, dt) {
+                    target = q;
+                }
+            }
+            TrialState::Abort(_) => {
+                // Safe stop: the commanded velocity decays at half the
+                // acceleration limits until the arm rests.
+                for j in 0..JOINTS {
+                    let a = 0.5 * ACCELERATION_LIMIT_RADPS2[j] * dt;
+                    let v = self.v_cmd[j];
+                    self.v_cmd[j] = if v.abs() <= a { 0.0 } else { v - a * v.signum() };
+                    target[j] = self.q_cmd[j] + self.v_cmd[j] * dt;
+                }
+            }
+        }
+        let q = if input.commanding {
+            self.guard(&target, dt)
+        } else {
+            self.q_meas
+        };
+        if input.commanding {
+            self.v_cmd = (q - self.q_cmd) / dt;
+        } else {
+            self.v_cmd = Joints::zeros();
+        }
+        self.q_cmd = q;
+        self.have_cmd = true;
+        if input.commanding {
+            self.latency.commanded(&q.into());
+        }
+        out.q_command_rad = q.into();
+        out.state = self.machine.state();
+    }
+
+    fn fold_measurements<I: IntoIterator<Item = Measurement>>(&mut self, t: f64, meas: I) {
+        let active = matches!(
+            self.machine.state(),
+            TrialState::Released
+                | TrialState::Tracking
+                | TrialState::Intercepting
+                | TrialState::Holding
+        );
+        for m in meas {
+            self.counters.measurements += 1;
+            if !active {
+                continue;
+            }
+            let Some(ekf) = self.ekf.as_mut() else {
+                continue;
+            };
+            if m.t_capture_s < self.t_release {
+                // Captured while the magnet still held the ball.
+                continue;
+            }
+            if m.t_capture_s > t + 1e-9 {
+                self.counters.rejected += 1;
+                continue;
+            }
+            match ekf.measure(m.t_capture_s, m.lateral_m) {
+                Ok(crate::ekf::MeasureOutcome::Rejected { .. } | crate::ekf::MeasureOutcome::TooOld) => {
+                    self.counters.rejected += 1;
+                }
+                Ok(_) => {
+                    self.counters.fused += 1;
+                    self.t_last_measurement = self.t_last_measurement.max(m.t_capture_s);
+                }
+                Err(_) => self.counters.rejected += 1,
+            }
+        }
+    }
+
+    fn check_camera(&mut self, t: f64) {
+        if t - self.t_last_measurement > self.params.camera_timeout_s + self.scenario_latency_allowance() {
+            self.abort(t, AbortReason::CameraLost);
+        } else if t - self.t_release > self.params.track_timeout_s {
+            self.abort(t, AbortReason::PredictionTimeout);
+        }
+    }
+
+    /// Capture-to-arrival time of measurements is not known to the controller;
+    /// allow a generous fixed 0.2 s on top of the timeout.
+    fn scenario_latency_allowance(&self) -> f64 {
+        0.2
+    }
+
+    fn try_commit(&mut self, t: f64, dt: f64) {
+        let (Some(ekf), Some(plan)) = (self.ekf.as_ref(), self.plan.as_ref()) else {
+            return;
+        };
+        let latency_s = self.latency.latency_s();
+        let req = MotionRequest {
+            lateral_m: 0.0,
+            duration_s: (plan.duration_s + plan.arrival_offset_s).max(0.0),
+            latency_s,
+            pass_index: 0,
+            direction: PassDirection::Any,
+        };
+        let offset = plan.arrival_offset_s;
+        let mp = match ekf.plan_motion(t, &req) {
+            Ok(Some(mp)) => mp,
+            Ok(None) => return,
+            Err(_) => {
+                self.counters.prediction_errors += 1;
+                return;
+            }
+        };
+        if !mp.confident || mp.start_s >= t + dt {
+            return;
+        }
+        // Commit: the motion's t = 0 is mp.start_s (within this cycle).
+        let orientation = UnitQuaternion::from_rotation_matrix(&plan.posture.orientation);
+        let target = mp.pass.ball_m;
+        if self
+            .motion
+            .begin(&self.home_m, &target, &orientation, plan.duration_s)
+            .is_err()
+        {
+            self.counters.motion_errors += 1;
+            self.abort(t, AbortReason::Infeasible);
+            return;
+        }
+        self.motion.sample(&mut self.sample);
+        self.commit = Some(Commit {
+            t_commit_s: t,
+            motion_start_s: mp.start_s,
+            arrival_offset_s: offset,
+            duration_s: plan.duration_s,
+            predicted_pass_s: mp.pass.t_s,
+            predicted_pass_std_s: mp.pass.time_std_s,
+            predicted_ball_m: mp.pass.ball_m,
+            latency_s,
+            direction_positive: mp.pass.lateral_velocity_mps > 0.0,
+        });
+        self.go(t, TrialState::Intercepting);
+    }
+
+    /// Re-times the motion to the filter's latest prediction of the committed pass.
+    fn refine(&mut self, t: f64) {
+        let (Some(ekf), Some(c)) = (self.ekf.as_ref(), self.commit.as_ref()) else {
+            return;
+        };
+        let dir = if c.direction_positive {
+            PassDirection::TowardsPositiveY
+        } else {
+            PassDirection::TowardsNegativeY
+        };
+        let mut buf = [crate::ekf::Crossing::default(); 1];
+        let from = (c.predicted_pass_s - 0.3).max(t);
+        match ekf.crossings(from, 0.0, dir, &mut buf) {
+            Ok(1) if (buf[0].t_s - c.predicted_pass_s).abs() < 0.2 => {
+                let arrival = buf[0].t_s
+                    - self.latency.latency_s()
+                    - c.motion_start_s
+                    - c.arrival_offset_s;
+                if (arrival - self.motion.arrival_time_s()).abs() > 1e-5 {
+                    if self.motion.retime(arrival).is_ok() {
+                        self.counters.retimes += 1;
+                    }
+                }
+            }
+            Ok(_) => {}
+            Err(_) => self.counters.prediction_errors += 1,
+        }
+    }
+
+    fn motion_command(&mut self, t: f64, dt: f64) -> Option<Joints> {
+        let c = self.commit?;
+        let plan = self.plan?;
+        if t <= c.motion_start_s {
+            return Some(plan.posture.q_home);
+        }
+        if self.params.retime && self.machine.state() == TrialState::Intercepting {
+            self.refine(t);
+        }
+        let h = (t - c.motion_start_s).min(dt);
+        if self.motion.step(h, None, &mut self.sample).is_err() {
+            self.counters.motion_errors += 1;
+        }
+        let r = plan.posture.orientation;
+        let pose = flange_pose(&self.tool, &self.sample.position_m, &r);
+        let mut q = Joints::zeros();
+        match ArmGeometry::new(&pose) {
+            Ok(geo) => geo.solve(plan.posture.arm_angle_rad, plan.posture.flags, &mut q),
+            Err(_) => {
+                self.counters.ik_failures += 1;
+                self.abort(t, AbortReason::IkFailed);
+                return None;
+            }
+        }
+        match self.machine.state() {
+            TrialState::Intercepting if self.sample.phase == MotionPhase::Arrived => {
+                self.go(t, TrialState::Holding);
+            }
+            TrialState::Holding if t - self.t_state >= self.params.hold_time_s => {
+                self.go(t, TrialState::Done);
+            }
+            _ => {}
+        }
+        Some(q)
+    }
+
+    /// The command guard: finite, inside the position limits less the margin,
+    /// and no joint stepping faster than the speed limit allows.
+    fn guard(&mut self, target: &Joints, dt: f64) -> Joints {
+        let margin = self.params.guard_margin_deg.to_radians();
+        let mut q = *target;
+        if !q.iter().all(|v| v.is_finite()) {
+            self.counters.guard_non_finite += 1;
+            return self.q_cmd;
+        }
+        let mut pos_clamped = false;
+        let mut step_clamped = false;
+        for j in 0..JOINTS {
+            let lim = POSITION_LIMIT_RAD[j] - margin;
+            if q[j].abs() > lim {
+                q[j] = q[j].clamp(-lim, lim);
+                pos_clamped = true;
+            }
+            let max_step = VELOCITY_LIMIT_RADPS[j] * self.params.guard_speed_ratio * dt;
+            let step = q[j] - self.q_cmd[j];
+            if step.abs() > max_step {
+                q[j] = self.q_cmd[j] + max_step * step.signum();
+                step_clamped = true;
+            }
+        }
+        self.counters.guard_position_clamps += u64::from(pos_clamped);
+        self.counters.guard_step_clamps += u64::from(step_clamped);
+        q
+    }
+
+    /// The tool point of a joint vector (forward kinematics with this tool).
+    pub fn tool_point(&self, q: &[f64; JOINTS]) -> Vector3<f64> {
+        tool_pose(&Joints::from(*q), &self.tool).translation.vector
+    }
+}
+
+/// Runs the motion generator once, offline, over the planned motion at the FRI
+/// period and fits the ideal profile to its progress (CONTRACT.md's arrival):
+/// returns fitted arrival minus nominal arrival, seconds.
+fn generator_arrival_offset(
+    timing: &TimingParams,
+    start: &Vector3<f64>,
+    end: &Vector3<f64>,
+    posture: &Posture,
+    duration_s: f64,
+    period_s: f64,
+) -> Result<f64, ControlError> {
+    let mut m = TimedMotion::new(timing.clone())?;
+    let q = UnitQuaternion::from_rotation_matrix(&posture.orientation);
+    m.begin(start, end, &q, duration_s)
+        .map_err(|e| ControlError::Setup(e.to_string()))?;
+    let dir = (end - start).normalize();
+    let n = ((duration_s * 1.3) / period_s).ceil() as usize;
+    let mut ts = Vec::with_capacity(n + 1);
+    let mut ps = Vec::with_capacity(n + 1);
+    ts.push(0.0);
+    ps.push(0.0);
+    let mut s = MotionSample::default();
+    for k in 1..=n {
+        m.step(period_s, None, &mut s)
+            .map_err(|e| ControlError::Setup(e.to_string()))?;
+        ts.push(k as f64 * period_s);
+        ps.push((s.position_m - start).dot(&dir));
+    }
+    let (t0, dur, _) = super::judge::fit_profile(
+        ProfileKind::Hopf,
+        (end - start).norm(),
+        &ts,
+        &ps,
+        0.0,
+        duration_s,
+    );
+    Ok(t0 + dur - duration_s)
+}
