@@ -246,8 +246,16 @@ mod tests {
         let home = Vector3::new(0.30, 0.0, 0.50);
         for d in [0.35, 0.55, 0.80] {
             let end = Vector3::new(d, 0.0, 0.30);
-            let p = plan_posture(&tool, &home, &end, ProfileKind::Hopf, 1.5, 5f64.to_radians(), 0.9)
-                .unwrap();
+            let p = plan_posture(
+                &tool,
+                &home,
+                &end,
+                ProfileKind::Hopf,
+                1.5,
+                5f64.to_radians(),
+                0.9,
+            )
+            .unwrap();
             // The home joint vector puts the tool at home.
             let pose = tool_pose(&p.q_home, &tool);
             assert!((pose.translation.vector - home).norm() < 1e-6, "d={d}");

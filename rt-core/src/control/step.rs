@@ -8,7 +8,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::latency::LatencyEstimator;
-use super::posture::{PostureError, flange_pose, plan_posture, Posture};
+use super::posture::{Posture, PostureError, flange_pose, plan_posture};
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::ekf::{Ekf, EkfParams, MotionRequest, PassDirection};
 use crate::kinematics::analytic::ArmGeometry;
@@ -77,13 +77,38 @@ impl ControlParams {
         check::within("control.home_move_time_s", self.home_move_time_s, 0.2, 30.0)?;
         check::within("control.hold_time_s", self.hold_time_s, 0.0, 10.0)?;
         check::within("control.track_timeout_s", self.track_timeout_s, 0.5, 120.0)?;
-        check::within("control.camera_timeout_s", self.camera_timeout_s, 0.05, 10.0)?;
-        check::within("control.latency_prior_ms", self.latency_prior_ms, 0.0, 500.0)?;
-        check::within("control.latency_memory_s", self.latency_memory_s, 0.5, 3600.0)?;
-        check::within("control.posture_margin_deg", self.posture_margin_deg, 0.0, 30.0)?;
+        check::within(
+            "control.camera_timeout_s",
+            self.camera_timeout_s,
+            0.05,
+            10.0,
+        )?;
+        check::within(
+            "control.latency_prior_ms",
+            self.latency_prior_ms,
+            0.0,
+            500.0,
+        )?;
+        check::within(
+            "control.latency_memory_s",
+            self.latency_memory_s,
+            0.5,
+            3600.0,
+        )?;
+        check::within(
+            "control.posture_margin_deg",
+            self.posture_margin_deg,
+            0.0,
+            30.0,
+        )?;
         check::within("control.max_speed_ratio", self.max_speed_ratio, 0.05, 1.0)?;
         check::within("control.guard_margin_deg", self.guard_margin_deg, 0.0, 30.0)?;
-        check::within("control.guard_speed_ratio", self.guard_speed_ratio, 0.05, 1.0)
+        check::within(
+            "control.guard_speed_ratio",
+            self.guard_speed_ratio,
+            0.05,
+            1.0,
+        )
     }
 }
 
@@ -475,7 +500,11 @@ impl Controller {
         )?;
         let ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
             .map_err(|e| ControlError::Setup(e.to_string()))?;
-        let q0 = if self.have_cmd { self.q_cmd } else { self.q_meas };
+        let q0 = if self.have_cmd {
+            self.q_cmd
+        } else {
+            self.q_meas
+        };
         let q1 = plan.posture.q_home;
         // Duration: at least the configured one, and slow enough for half the
         // speed and acceleration limits (minimum jerk: peak speed 1.875 d/T,
@@ -487,10 +516,12 @@ impl Controller {
                 .max(1.875 * d / (0.5 * VELOCITY_LIMIT_RADPS[j]))
                 .max((5.78 * d / (0.5 * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
         }
-        self.machine.go(TrialState::Arming).map_err(|_| ControlError::State {
-            what: "arm",
-            state: self.machine.state().name(),
-        })?;
+        self.machine
+            .go(TrialState::Arming)
+            .map_err(|_| ControlError::State {
+                what: "arm",
+                state: self.machine.state().name(),
+            })?;
         self.t_state = t_s;
         self.ekf = Some(ekf);
         self.plan = Some(*plan);
@@ -508,10 +539,12 @@ impl Controller {
 
     /// The magnet let go of the ball at `t_s`: `Armed -> Released`.
     pub fn release(&mut self, t_s: f64) -> Result<(), ControlError> {
-        self.machine.go(TrialState::Released).map_err(|_| ControlError::State {
-            what: "release",
-            state: self.machine.state().name(),
-        })?;
+        self.machine
+            .go(TrialState::Released)
+            .map_err(|_| ControlError::State {
+                what: "release",
+                state: self.machine.state().name(),
+            })?;
         self.t_state = t_s;
         self.t_release = t_s;
         self.t_last_measurement = t_s;
@@ -520,10 +553,12 @@ impl Controller {
 
     /// Back to `Idle` from `Done`, `Abort` or `Armed` (holding where it is).
     pub fn reset(&mut self, t_s: f64) -> Result<(), ControlError> {
-        self.machine.go(TrialState::Idle).map_err(|_| ControlError::State {
-            what: "reset",
-            state: self.machine.state().name(),
-        })?;
+        self.machine
+            .go(TrialState::Idle)
+            .map_err(|_| ControlError::State {
+                what: "reset",
+                state: self.machine.state().name(),
+            })?;
         self.t_state = t_s;
         self.jmove = None;
         Ok(())
@@ -545,11 +580,13 @@ impl Controller {
         self.t_last = Some(t);
         self.counters.steps += 1;
         self.q_meas = Joints::from(input.q_measured_rad);
-        for j in 0..JOINTS {
-            if !(self.q_meas[j].abs() <= POSITION_LIMIT_RAD[j]) {
-                self.counters.measured_limit_violations += 1;
-                break;
-            }
+        let beyond = self
+            .q_meas
+            .iter()
+            .zip(POSITION_LIMIT_RAD)
+            .any(|(q, lim)| q.is_nan() || q.abs() > lim);
+        if beyond {
+            self.counters.measured_limit_violations += 1;
         }
         if !self.have_cmd {
             self.q_cmd = self.q_meas;
@@ -608,7 +645,11 @@ impl Controller {
                 for j in 0..JOINTS {
                     let a = 0.5 * ACCELERATION_LIMIT_RADPS2[j] * dt;
                     let v = self.v_cmd[j];
-                    self.v_cmd[j] = if v.abs() <= a { 0.0 } else { v - a * v.signum() };
+                    self.v_cmd[j] = if v.abs() <= a {
+                        0.0
+                    } else {
+                        v - a * v.signum()
+                    };
                     target[j] = self.q_cmd[j] + self.v_cmd[j] * dt;
                 }
             }
@@ -657,7 +698,10 @@ impl Controller {
                 continue;
             }
             match ekf.measure(m.t_capture_s, m.lateral_m) {
-                Ok(crate::ekf::MeasureOutcome::Rejected { .. } | crate::ekf::MeasureOutcome::TooOld) => {
+                Ok(
+                    crate::ekf::MeasureOutcome::Rejected { .. }
+                    | crate::ekf::MeasureOutcome::TooOld,
+                ) => {
                     self.counters.rejected += 1;
                 }
                 Ok(_) => {
@@ -670,7 +714,9 @@ impl Controller {
     }
 
     fn check_camera(&mut self, t: f64) {
-        if t - self.t_last_measurement > self.params.camera_timeout_s + self.scenario_latency_allowance() {
+        if t - self.t_last_measurement
+            > self.params.camera_timeout_s + self.scenario_latency_allowance()
+        {
             self.abort(t, AbortReason::CameraLost);
         } else if t - self.t_release > self.params.track_timeout_s {
             self.abort(t, AbortReason::PredictionTimeout);
@@ -748,14 +794,12 @@ impl Controller {
         let from = (c.predicted_pass_s - 0.3).max(t);
         match ekf.crossings(from, 0.0, dir, &mut buf) {
             Ok(1) if (buf[0].t_s - c.predicted_pass_s).abs() < 0.2 => {
-                let arrival = buf[0].t_s
-                    - self.latency.latency_s()
-                    - c.motion_start_s
-                    - c.arrival_offset_s;
-                if (arrival - self.motion.arrival_time_s()).abs() > 1e-5 {
-                    if self.motion.retime(arrival).is_ok() {
-                        self.counters.retimes += 1;
-                    }
+                let arrival =
+                    buf[0].t_s - self.latency.latency_s() - c.motion_start_s - c.arrival_offset_s;
+                if (arrival - self.motion.arrival_time_s()).abs() > 1e-5
+                    && self.motion.retime(arrival).is_ok()
+                {
+                    self.counters.retimes += 1;
                 }
             }
             Ok(_) => {}
