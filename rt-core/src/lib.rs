@@ -17,6 +17,7 @@
 //! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
 //! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
 //! | [`timing`] | Hopf speed dynamics, competing neurons, timed straight-line motion (eqs. 20-21) |
+//! | [`tuning`] | EKF noise estimated from recordings (maximum likelihood), the paper's Fig. 4 |
 
 pub mod bridge;
 pub mod control;
@@ -28,3 +29,4 @@ pub mod params;
 pub mod pendulum;
 pub mod timing;
 pub mod trajectory;
+pub mod tuning;

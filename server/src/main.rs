@@ -6,6 +6,8 @@ use clap::{Parser, Subcommand};
 use rt_core::params::Scenario;
 use tracing_subscriber::EnvFilter;
 
+mod cmd;
+
 #[derive(Debug, Parser)]
 #[command(name = "isochron", version = server::VERSION, about = "Timed interception of a swinging ball by a KUKA LBR iiwa 7")]
 struct Cli {
@@ -33,6 +35,8 @@ enum Command {
         #[arg(long)]
         data_dir: Option<PathBuf>,
     },
+    /// Estimate the EKF's noise parameters from a recorded trial (writes an [ekf] file and Fig. 4).
+    Tune(cmd::tune::TuneArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -83,6 +87,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             web_dir,
             data_dir,
         }),
+        Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

@@ -1,0 +1,422 @@
+#![doc = include_str!("README.md")]
+
+pub mod figure;
+
+use crate::ekf::{Ekf, EkfError, EkfParams, MeasureOutcome, Prediction, ProcessNoiseModel};
+use crate::params::ParamError;
+use crate::pendulum::{PendulumGeometry, PendulumModel};
+use serde::Serialize;
+
+/// Why a recording cannot be tuned on.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum TuneError {
+    /// The recording's text is not what we read.
+    #[error("recording: {0}")]
+    Format(String),
+    /// Too few measurements to estimate two noise parameters.
+    #[error("recording has {0} measurements; at least {MIN_MEASUREMENTS} are needed")]
+    TooShort(usize),
+    /// Bad parameters.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+    /// The filter refused the data.
+    #[error(transparent)]
+    Filter(#[from] EkfError),
+}
+
+/// Fewest measurements `tune` works on (about 10 s at 30 fps).
+pub const MIN_MEASUREMENTS: usize = 300;
+
+/// Lateral measurements of the swinging ball: capture times and positions.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Series {
+    /// Capture times, seconds, strictly increasing.
+    pub t_s: Vec<f64>,
+    /// Lateral positions `l sin(phi)`, metres.
+    pub z_m: Vec<f64>,
+}
+
+impl Series {
+    /// Reads a CSV recording: either the service's trial recording (columns
+    /// `measured_t_s`, `measured_x_m` and optionally `measured_valid`, one row per
+    /// control step, each measurement repeated until the next) or a plain file with
+    /// columns `t_s` and `x_m` (one row per measurement). Rows held while the magnet
+    /// held the ball are kept: the caller trims with [`Series::after`].
+    pub fn from_csv(text: &str) -> Result<Self, TuneError> {
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
+        let (_, header) = lines
+            .next()
+            .ok_or_else(|| TuneError::Format("empty file".into()))?;
+        let names: Vec<&str> = header.split(',').map(str::trim).collect();
+        let find = |n: &str| names.iter().position(|h| *h == n);
+        let (ti, zi, vi) = match (find("measured_t_s"), find("measured_x_m")) {
+            (Some(t), Some(z)) => (t, z, find("measured_valid")),
+            _ => match (find("t_s"), find("x_m")) {
+                (Some(t), Some(z)) => (t, z, None),
+                _ => {
+                    return Err(TuneError::Format(
+                        "needs columns measured_t_s and measured_x_m (a trial recording) \
+                         or t_s and x_m"
+                            .into(),
+                    ));
+                }
+            },
+        };
+        let mut s = Series::default();
+        for (no, line) in lines {
+            let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+            let cell = |i: usize| -> Result<f64, TuneError> {
+                let raw = cells.get(i).ok_or_else(|| {
+                    TuneError::Format(format!("line {}: too few columns", no + 1))
+                })?;
+                raw.parse::<f64>().map_err(|_| {
+                    TuneError::Format(format!(
+                        "line {}: column {:?} = {raw:?} is not a number",
+                        no + 1,
+                        names.get(i).copied().unwrap_or("?")
+                    ))
+                })
+            };
+            if let Some(v) = vi {
+                let valid = cells.get(v).copied().unwrap_or("");
+                if matches!(valid, "0" | "false" | "") {
+                    continue;
+                }
+            }
+            let (t, z) = (cell(ti)?, cell(zi)?);
+            if !t.is_finite() || !z.is_finite() {
+                continue; // no measurement at this row
+            }
+            match s.t_s.last() {
+                Some(&last) if t == last => continue, // repeated until the next frame
+                Some(&last) if t < last => {
+                    return Err(TuneError::Format(format!(
+                        "line {}: capture time {t} goes back before {last}",
+                        no + 1
+                    )));
+                }
+                _ => {}
+            }
+            s.t_s.push(t);
+            s.z_m.push(z);
+        }
+        Ok(s)
+    }
+
+    /// Number of measurements.
+    pub fn len(&self) -> usize {
+        self.t_s.len()
+    }
+
+    /// True when there is no measurement.
+    pub fn is_empty(&self) -> bool {
+        self.t_s.is_empty()
+    }
+
+    /// Mean spacing of the capture times, seconds.
+    pub fn mean_interval_s(&self) -> f64 {
+        match (self.t_s.first(), self.t_s.last()) {
+            (Some(a), Some(b)) if self.len() > 1 => (b - a) / (self.len() - 1) as f64,
+            _ => f64::NAN,
+        }
+    }
+}
+
+/// The two noise parameters `tune` estimates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct NoiseEstimate {
+    /// Lateral measurement noise, metres (`R = measurement_noise_m^2`).
+    pub measurement_noise_m: f64,
+    /// Process noise: `accel_psd_rad2ps3` (continuous model) or `accel_var_rad2ps4`
+    /// (the paper's sigma), whichever the filter's `process_noise_model` uses.
+    pub process_noise: f64,
+    /// Name of the parameter `process_noise` is.
+    pub process_noise_param: &'static str,
+}
+
+/// Consistency of a filter on a recording: its innovations should be white with the
+/// variance it predicts.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Consistency {
+    /// Measurements fused (the NIS is averaged over these).
+    pub fused: usize,
+    /// Measurements gated out.
+    pub rejected: usize,
+    /// Mean normalised innovation squared (1 for a consistent filter).
+    pub nis_mean: f64,
+    /// Two-sided 95% bounds for `nis_mean` of a consistent filter with `fused` samples.
+    pub nis_bounds_95: [f64; 2],
+    /// Whether `nis_mean` lies within the bounds.
+    pub nis_consistent: bool,
+    /// Lag-one autocorrelation of the normalised innovations (0 when white).
+    pub innovation_autocorr_lag1: f64,
+    /// Negative log-likelihood of the innovations per measurement.
+    pub nll_per_measurement: f64,
+}
+
+/// What [`tune`] found.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TuneReport {
+    /// Measurements used.
+    pub measurements: usize,
+    /// Mean capture interval, seconds.
+    pub mean_interval_s: f64,
+    /// The parameters before tuning.
+    pub before: NoiseEstimate,
+    /// Consistency before tuning.
+    pub before_consistency: Consistency,
+    /// The estimate.
+    pub estimate: NoiseEstimate,
+    /// Consistency with the estimate.
+    pub consistency: Consistency,
+    /// Likelihood evaluations the search took.
+    pub evaluations: usize,
+}
+
+/// Two-sided 95% bounds of the mean of `n` chi-square(1) samples (Wilson-Hilferty).
+pub fn nis_bounds_95(n: usize) -> [f64; 2] {
+    if n == 0 {
+        return [f64::NAN, f64::NAN];
+    }
+    // The sum of n chi-square(1) samples is chi-square(n); its quantiles by
+    // Wilson-Hilferty, divided by n for the mean.
+    let c = 2.0 / (9.0 * n as f64);
+    let z = 1.959_963_984_540_054;
+    let at = |zz: f64| (1.0 - c + zz * c.sqrt()).powi(3);
+    [at(-z), at(z)]
+}
+
+/// One pass of the filter over the series with the given parameters.
+///
+/// Calls `each(i, prediction_before, outcome, innovation, innovation_variance)` per
+/// measurement after the filter is running, for figures.
+pub fn run_filter(
+    series: &Series,
+    params: &EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+    mut each: impl FnMut(usize, &Prediction, MeasureOutcome, f64, f64, &Ekf),
+) -> Result<Consistency, TuneError> {
+    params.validate()?;
+    let mut ekf = Ekf::new(params.clone(), model, geometry)?;
+    let r = params.measurement_noise_m.powi(2);
+    let mut pred = Prediction::default();
+    let (mut fused, mut rejected) = (0usize, 0usize);
+    let (mut nis_sum, mut nll) = (0.0, 0.0);
+    let mut nus: Vec<f64> = Vec::with_capacity(series.len());
+    for (i, (&t, &z)) in series.t_s.iter().zip(&series.z_m).enumerate() {
+        let running = ekf.is_initialised() && ekf.predict_at(t, &mut pred).is_ok();
+        let (nu, s) = if running {
+            (z - pred.lateral_m, pred.lateral_std_m.powi(2) + r)
+        } else {
+            (f64::NAN, f64::NAN)
+        };
+        let outcome = ekf.measure(t, z)?;
+        match outcome {
+            MeasureOutcome::Fused { nis } if running && s > 0.0 => {
+                fused += 1;
+                nis_sum += nis;
+                nll += 0.5 * (s.ln() + nu * nu / s + std::f64::consts::TAU.ln());
+                nus.push(nu / s.sqrt());
+            }
+            MeasureOutcome::Rejected { .. } => rejected += 1,
+            _ => {}
+        }
+        if running {
+            each(i, &pred, outcome, nu, s, &ekf);
+        }
+    }
+    let nis_mean = if fused > 0 {
+        nis_sum / fused as f64
+    } else {
+        f64::NAN
+    };
+    let bounds = nis_bounds_95(fused);
+    Ok(Consistency {
+        fused,
+        rejected,
+        nis_mean,
+        nis_bounds_95: bounds,
+        nis_consistent: nis_mean >= bounds[0] && nis_mean <= bounds[1],
+        innovation_autocorr_lag1: autocorr_lag1(&nus),
+        // Rejected measurements carry the gate's worth of surprise, so a filter that
+        // rejects much cannot look likely.
+        nll_per_measurement: (nll + rejected as f64 * 0.5 * params.gate_nis)
+            / (fused + rejected).max(1) as f64,
+    })
+}
+
+fn autocorr_lag1(x: &[f64]) -> f64 {
+    if x.len() < 3 {
+        return f64::NAN;
+    }
+    let m = x.iter().sum::<f64>() / x.len() as f64;
+    let var: f64 = x.iter().map(|v| (v - m).powi(2)).sum();
+    let cov: f64 = x.windows(2).map(|w| (w[0] - m) * (w[1] - m)).sum();
+    if var > 0.0 { cov / var } else { f64::NAN }
+}
+
+fn process_noise(p: &EkfParams) -> (f64, &'static str) {
+    match p.process_noise_model {
+        ProcessNoiseModel::Continuous => (p.accel_psd_rad2ps3, "accel_psd_rad2ps3"),
+        ProcessNoiseModel::Paper => (p.accel_var_rad2ps4, "accel_var_rad2ps4"),
+    }
+}
+
+/// `params` with the two noise parameters replaced.
+pub fn with_noise(params: &EkfParams, r_std_m: f64, q: f64) -> EkfParams {
+    let mut p = params.clone();
+    p.measurement_noise_m = r_std_m;
+    match p.process_noise_model {
+        ProcessNoiseModel::Continuous => p.accel_psd_rad2ps3 = q,
+        ProcessNoiseModel::Paper => p.accel_var_rad2ps4 = q,
+    }
+    p
+}
+
+/// Estimates the measurement noise and the process noise of `params`' noise model by
+/// maximising the likelihood of the filter's innovations over the recording
+/// (Nelder-Mead on the logarithms of both), then reports the consistency of the
+/// result. `params` supplies everything else (model, gate, damping estimation).
+pub fn tune(
+    series: &Series,
+    params: &EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+) -> Result<TuneReport, TuneError> {
+    if series.len() < MIN_MEASUREMENTS {
+        return Err(TuneError::TooShort(series.len()));
+    }
+    params.validate()?;
+    // Wide gate while searching: a too-small R must not hide its misfit by rejecting.
+    let mut search = params.clone();
+    search.gate_nis = 1e6;
+    let before_consistency = run_filter(series, params, model, geometry, |_, _, _, _, _, _| {})?;
+    let (q0, q_name) = process_noise(params);
+    let mut evaluations = 0usize;
+    let mut cost = |x: [f64; 2]| -> f64 {
+        evaluations += 1;
+        let p = with_noise(&search, x[0].exp(), x[1].exp());
+        if p.validate().is_err() {
+            return f64::INFINITY;
+        }
+        run_filter(series, &p, model, geometry, |_, _, _, _, _, _| {})
+            .map_or(f64::INFINITY, |c| c.nll_per_measurement)
+    };
+    // Start from the given values, and from a coarse grid if they are far off.
+    let mut best = [params.measurement_noise_m.ln(), q0.max(1e-12).ln()];
+    let mut best_cost = cost(best);
+    for dr in [-2.0_f64, 0.0, 2.0] {
+        for dq in [-4.0_f64, -2.0, 0.0, 2.0, 4.0] {
+            let x = [best[0] + dr, best[1] + dq];
+            let c = cost(x);
+            if c < best_cost {
+                best_cost = c;
+                best = x;
+            }
+        }
+    }
+    let found = nelder_mead(&mut cost, best, [0.5, 1.0], 1e-7, 200);
+    let estimate_params = with_noise(params, found[0].exp(), found[1].exp());
+    let consistency = run_filter(
+        series,
+        &estimate_params,
+        model,
+        geometry,
+        |_, _, _, _, _, _| {},
+    )?;
+    Ok(TuneReport {
+        measurements: series.len(),
+        mean_interval_s: series.mean_interval_s(),
+        before: NoiseEstimate {
+            measurement_noise_m: params.measurement_noise_m,
+            process_noise: q0,
+            process_noise_param: q_name,
+        },
+        before_consistency,
+        estimate: NoiseEstimate {
+            measurement_noise_m: found[0].exp(),
+            process_noise: found[1].exp(),
+            process_noise_param: q_name,
+        },
+        consistency,
+        evaluations,
+    })
+}
+
+/// Minimises `f` over two variables by the Nelder-Mead simplex method.
+fn nelder_mead(
+    f: &mut impl FnMut([f64; 2]) -> f64,
+    start: [f64; 2],
+    step: [f64; 2],
+    tol: f64,
+    max_iter: usize,
+) -> [f64; 2] {
+    let mut pts = [
+        start,
+        [start[0] + step[0], start[1]],
+        [start[0], start[1] + step[1]],
+    ];
+    let mut val = pts.map(&mut *f);
+    for _ in 0..max_iter {
+        // Order best..worst.
+        let mut idx = [0usize, 1, 2];
+        idx.sort_by(|&a, &b| val[a].total_cmp(&val[b]));
+        pts = idx.map(|i| pts[i]);
+        val = idx.map(|i| val[i]);
+        if (val[2] - val[0]).abs() <= tol * (val[0].abs() + tol) {
+            break;
+        }
+        let c = [(pts[0][0] + pts[1][0]) / 2.0, (pts[0][1] + pts[1][1]) / 2.0];
+        let along = |k: f64| [c[0] + k * (pts[2][0] - c[0]), c[1] + k * (pts[2][1] - c[1])];
+        let xr = along(-1.0);
+        let fr = f(xr);
+        if fr < val[0] {
+            let xe = along(-2.0);
+            let fe = f(xe);
+            (pts[2], val[2]) = if fe < fr { (xe, fe) } else { (xr, fr) };
+        } else if fr < val[1] {
+            (pts[2], val[2]) = (xr, fr);
+        } else {
+            let xc = if fr < val[2] { along(-0.5) } else { along(0.5) };
+            let fc = f(xc);
+            if fc < val[2].min(fr) {
+                (pts[2], val[2]) = (xc, fc);
+            } else {
+                for i in 1..3 {
+                    pts[i] = [(pts[0][0] + pts[i][0]) / 2.0, (pts[0][1] + pts[i][1]) / 2.0];
+                    val[i] = f(pts[i]);
+                }
+            }
+        }
+    }
+    let best = (0..3)
+        .min_by(|&a, &b| val[a].total_cmp(&val[b]))
+        .unwrap_or(0);
+    pts[best]
+}
+
+/// The tuned parameters as a scenario fragment (`[ekf]` section) the service loads.
+pub fn params_toml(params: &EkfParams, report: &TuneReport) -> String {
+    let p = with_noise(
+        params,
+        report.estimate.measurement_noise_m,
+        report.estimate.process_noise,
+    );
+    let body = toml::to_string_pretty(&p).unwrap_or_default();
+    format!(
+        "# EKF noise estimated by `isochron tune` from {} measurements\n\
+         # (mean NIS {:.3}, 95% bounds [{:.3}, {:.3}]).\n[ekf]\n{body}",
+        report.measurements,
+        report.consistency.nis_mean,
+        report.consistency.nis_bounds_95[0],
+        report.consistency.nis_bounds_95[1],
+    )
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,182 @@
+use super::figure::{fig4_data, fig4_svg};
+use super::*;
+use crate::pendulum::PendulumSim;
+use nalgebra::Vector2;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    // Box-Muller.
+    let u1: f64 = rng.random_range(f64::EPSILON..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+fn lab() -> (PendulumModel, PendulumGeometry) {
+    let model = PendulumModel {
+        length_m: 1.93,
+        gravity_mps2: 9.81,
+        damping_per_s: 0.03,
+    };
+    (model, PendulumGeometry::new(1.93, 0.6, 0.3).unwrap())
+}
+
+/// A swing recorded at `fps` for `duration_s` with white measurement noise of
+/// `r_std_m` and a piecewise-constant random angular acceleration of variance `sigma`.
+fn recording(seed: u64, fps: f64, duration_s: f64, r_std_m: f64, sigma: f64) -> Series {
+    let (model, geometry) = lab();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut sim =
+        PendulumSim::free(model, geometry, Vector2::new(25f64.to_radians(), 0.0), 0.0).unwrap();
+    let dt = 1.0 / fps;
+    let n = (duration_s * fps) as usize;
+    let mut s = Series::default();
+    for k in 0..n {
+        let t = k as f64 * dt;
+        s.t_s.push(t);
+        s.z_m.push(sim.lateral_m() + r_std_m * gauss(&mut rng));
+        sim.advance_to_with_accel(t + dt, sigma.sqrt() * gauss(&mut rng))
+            .unwrap();
+    }
+    s
+}
+
+fn paper_filter() -> EkfParams {
+    EkfParams {
+        process_noise_model: ProcessNoiseModel::Paper,
+        estimate_damping: false,
+        // Deliberately wrong starting values.
+        measurement_noise_m: 0.006,
+        accel_var_rad2ps4: 1e-4,
+        ..EkfParams::default()
+    }
+}
+
+#[test]
+fn tune_recovers_known_noise_within_20_percent_and_is_consistent() {
+    let (r_true, sigma_true) = (0.002, 0.01);
+    let series = recording(7, 30.0, 120.0, r_true, sigma_true);
+    let (model, geometry) = lab();
+    let report = tune(&series, &paper_filter(), model, geometry).unwrap();
+    let r_err = report.estimate.measurement_noise_m / r_true - 1.0;
+    let q_err = report.estimate.process_noise / sigma_true - 1.0;
+    eprintln!(
+        "R std {:.5} m ({:+.1}%), sigma {:.5} ({:+.1}%), NIS {:.3} in [{:.3}, {:.3}], {} evaluations",
+        report.estimate.measurement_noise_m,
+        100.0 * r_err,
+        report.estimate.process_noise,
+        100.0 * q_err,
+        report.consistency.nis_mean,
+        report.consistency.nis_bounds_95[0],
+        report.consistency.nis_bounds_95[1],
+        report.evaluations
+    );
+    assert!(r_err.abs() < 0.2, "measurement noise off by {r_err}");
+    assert!(q_err.abs() < 0.2, "process noise off by {q_err}");
+    assert!(
+        report.consistency.nis_consistent,
+        "{:?}",
+        report.consistency
+    );
+    assert!(!report.before_consistency.nis_consistent);
+    assert!(report.consistency.innovation_autocorr_lag1.abs() < 0.1);
+    assert_eq!(report.estimate.process_noise_param, "accel_var_rad2ps4");
+}
+
+#[test]
+fn tuned_toml_loads_back_as_ekf_params() {
+    let series = recording(3, 30.0, 20.0, 0.002, 0.01);
+    let (model, geometry) = lab();
+    let report = tune(&series, &paper_filter(), model, geometry).unwrap();
+    let text = params_toml(&paper_filter(), &report);
+    #[derive(serde::Deserialize)]
+    struct File {
+        ekf: EkfParams,
+    }
+    let back: File = toml::from_str(&text).unwrap();
+    back.ekf.validate().unwrap();
+    assert_eq!(
+        back.ekf.measurement_noise_m,
+        report.estimate.measurement_noise_m
+    );
+    assert_eq!(back.ekf.accel_var_rad2ps4, report.estimate.process_noise);
+}
+
+#[test]
+fn too_short_a_recording_is_refused() {
+    let series = recording(1, 30.0, 5.0, 0.002, 0.01);
+    let (model, geometry) = lab();
+    let e = tune(&series, &paper_filter(), model, geometry).unwrap_err();
+    assert!(matches!(e, TuneError::TooShort(150)), "{e}");
+}
+
+#[test]
+fn reads_both_csv_shapes() {
+    let plain = Series::from_csv("t_s,x_m\n0.0,0.1\n0.033,0.09\n").unwrap();
+    assert_eq!(plain.t_s, vec![0.0, 0.033]);
+    let rec = Series::from_csv(
+        "trial_state,t_s,measured_valid,measured_t_s,measured_x_m\n\
+         held,0.000,0,0,0\n\
+         tracking,0.005,1,0.001,0.2\n\
+         tracking,0.010,1,0.001,0.2\n\
+         tracking,0.040,1,0.034,0.19\n",
+    )
+    .unwrap();
+    assert_eq!(rec.t_s, vec![0.001, 0.034]);
+    assert_eq!(rec.z_m, vec![0.2, 0.19]);
+}
+
+#[test]
+fn bad_csv_names_the_line_and_column() {
+    let e = Series::from_csv("t_s,x_m\n0.0,abc\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("line 2") && e.contains("x_m"), "{e}");
+    let e = Series::from_csv("a,b\n1,2\n").unwrap_err().to_string();
+    assert!(e.contains("measured_x_m"), "{e}");
+    let e = Series::from_csv("t_s,x_m\n1.0,0.1\n0.5,0.1\n")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("goes back"), "{e}");
+    assert!(Series::from_csv("").is_err());
+}
+
+#[test]
+fn nis_bounds_match_chi_square_quantiles() {
+    // chi2(100) 2.5% and 97.5% quantiles are 74.22 and 129.56.
+    let [lo, hi] = nis_bounds_95(100);
+    assert!((lo - 0.7422).abs() < 0.002, "{lo}");
+    assert!((hi - 1.2956).abs() < 0.002, "{hi}");
+}
+
+#[test]
+fn figure_has_every_panel_and_a_300_step_prediction() {
+    let series = recording(5, 30.0, 15.0, 0.002, 0.001);
+    let (model, geometry) = lab();
+    let mut p = paper_filter();
+    p.measurement_noise_m = 0.002;
+    let d = fig4_data(&series, &p, model, geometry).unwrap();
+    assert_eq!(d.prediction_t_s.len(), figure::PREDICTION_STEPS);
+    assert_eq!(d.t_s.len(), d.estimate_deg.len());
+    // The estimate follows the measured angle closely.
+    let n = d.t_s.len();
+    let rms = (d.measured_deg[n / 2..]
+        .iter()
+        .zip(&d.estimate_deg[n / 2..])
+        .map(|(a, b)| (a - b).powi(2))
+        .sum::<f64>()
+        / (n - n / 2) as f64)
+        .sqrt();
+    assert!(rms < 0.1, "estimate rms {rms} deg");
+    let svg = fig4_svg(&d, "test");
+    assert!(svg.starts_with("<svg"));
+    for title in [
+        "Angle",
+        "300-step prediction",
+        "angular velocity",
+        "Kalman gain",
+    ] {
+        assert!(svg.contains(title), "{title}");
+    }
+    assert_eq!(svg.matches("<polyline").count(), 5);
+}

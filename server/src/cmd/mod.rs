@@ -1,0 +1,3 @@
+//! The `isochron` subcommands, one file each.
+
+pub mod tune;

@@ -1,0 +1,96 @@
+//! `isochron tune` as a user runs it.
+
+use std::process::Command;
+
+use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+
+fn isochron() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_isochron"))
+}
+
+fn temp_dir(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("isochron-tune-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// 40 s of a 1.93 m pendulum at 30 fps with 2 mm of deterministic pseudo-noise.
+fn write_recording(path: &std::path::Path) {
+    let model = PendulumModel {
+        length_m: 1.93,
+        gravity_mps2: 9.81,
+        damping_per_s: 0.03,
+    };
+    let geometry = PendulumGeometry::new(1.93, 0.6, 0.3).unwrap();
+    let mut sim =
+        PendulumSim::free(model, geometry, nalgebra::Vector2::new(0.4, 0.0), 0.0).unwrap();
+    let mut seed: u64 = 12345;
+    let mut uniform = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut text = String::from("t_s,x_m\n");
+    for k in 0..1200 {
+        let t = f64::from(k) / 30.0;
+        sim.advance_to(t).unwrap();
+        // Sum of 12 uniforms: approximately normal, std 1.
+        let n: f64 = (0..12).map(|_| uniform()).sum::<f64>() - 6.0;
+        text.push_str(&format!("{t},{}\n", sim.lateral_m() + 0.002 * n));
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+#[test]
+fn tune_writes_parameters_and_the_figure() {
+    let dir = temp_dir("ok");
+    let rec = dir.join("swing.csv");
+    write_recording(&rec);
+    let out = isochron()
+        .args(["tune", "--json", "--recording"])
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let r = j["estimate"]["measurement_noise_m"].as_f64().unwrap();
+    assert!((r / 0.002 - 1.0).abs() < 0.2, "R std {r}");
+    assert_eq!(j["measurements"], 1200);
+    let params = std::fs::read_to_string(dir.join("swing.ekf.toml")).unwrap();
+    assert!(params.contains("[ekf]") && params.contains("measurement_noise_m"));
+    let svg = std::fs::read_to_string(dir.join("swing.fig4.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("Kalman gain"));
+}
+
+#[test]
+fn tune_refuses_bad_recordings_with_one_line() {
+    let dir = temp_dir("bad");
+    for (name, text, needle) in [
+        ("cols.csv", "a,b\n1,2\n", "measured_x_m"),
+        ("short.csv", "t_s,x_m\n0,0.1\n0.033,0.1\n", "at least"),
+        ("nan.csv", "t_s,x_m\n0,zero\n", "line 2"),
+    ] {
+        let rec = dir.join(name);
+        std::fs::write(&rec, text).unwrap();
+        let out = isochron()
+            .args(["tune", "--recording"])
+            .arg(&rec)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{name} accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("isochron:")).collect();
+        assert_eq!(lines.len(), 1, "{err}");
+        assert!(lines[0].contains(needle), "{name}: {err}");
+    }
+    let out = isochron()
+        .args(["tune", "--recording", "/nonexistent/rec.csv"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+}
