@@ -78,10 +78,13 @@ pub fn fig4_data(
     Ok(d)
 }
 
+/// One curve: name, colour, times, values, drawn as dots (else a line).
+type Curve<'a> = (&'a str, &'a str, &'a [f64], &'a [f64], bool);
+
 struct Panel<'a> {
     title: &'a str,
     unit: &'a str,
-    lines: Vec<(&'a str, &'a str, &'a [f64], &'a [f64], bool)>,
+    lines: Vec<Curve<'a>>,
 }
 
 const W: f64 = 900.0;
