@@ -50,16 +50,18 @@ pub const TORQUE_LIMIT_NM: [f64; JOINTS] = [176.0, 176.0, 110.0, 110.0, 110.0, 4
 
 /// Conservative default joint acceleration limits, rad/s^2.
 ///
-/// KUKA does not publish acceleration limits for the iiwa 7. These defaults are
-/// deliberately modest (about 2.5x the velocity limit per second, so a joint reaches
-/// full speed in no less than 0.4 s); a motion of the paper's lab (0.35..0.80 m in
-/// 1.5 s, sinusoidal profile) needs well under half of them.
+/// KUKA does not publish acceleration limits for the iiwa 7. These defaults are five
+/// times the velocity limit per second (a joint reaches full speed in no less than
+/// 0.2 s), modest for an arm of this class. A motion of the paper's lab (0.35..0.80 m
+/// in 1.5 s, sinusoidal profile, planned posture) needs at most about half of them
+/// (the largest, A4 at d = 0.80 m, 47%; see `trajectory`'s README); at half these
+/// values acceleration, not velocity, would bind the far end of the range.
 pub const ACCELERATION_LIMIT_RADPS2: [f64; JOINTS] = [
-    deg(245.0),
-    deg(245.0),
-    deg(250.0),
-    deg(325.0),
-    deg(350.0),
-    deg(450.0),
-    deg(450.0),
+    deg(490.0),
+    deg(490.0),
+    deg(500.0),
+    deg(650.0),
+    deg(700.0),
+    deg(900.0),
+    deg(900.0),
 ];

@@ -1,3 +1,14 @@
 #![doc = include_str!("README.md")]
 
+pub mod path;
+pub mod plan;
 pub mod profile;
+
+#[cfg(test)]
+mod tests;
+
+pub use path::{MotionRequest, tool_rotation};
+pub use plan::{
+    Binding, ElbowPolicy, LimitKind, MotionPlan, PlanError, PlanSummary, TrajectoryParams,
+    evaluate, plan,
+};
