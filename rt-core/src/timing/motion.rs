@@ -1,6 +1,6 @@
 //! The timed straight-line Cartesian motion with online re-planning.
 
-use std::f64::consts::TAU;
+use std::f64::consts::{PI, TAU};
 
 use nalgebra::{UnitQuaternion, Vector3};
 use serde::Serialize;
@@ -140,6 +140,7 @@ pub struct TimedMotion {
     omega_rad_per_s: f64,
     phase_rad: f64,
     frozen: bool,
+    schedule_tau: f64,
     centred: bool,
     end_advance_s: f64,
     last_measured_m: Option<Vector3<f64>>,
@@ -175,6 +176,7 @@ impl TimedMotion {
             omega_rad_per_s: 0.0,
             phase_rad: 0.0,
             frozen: false,
+            schedule_tau: 0.0,
             centred: false,
             end_advance_s: 0.0,
             last_measured_m: None,
@@ -279,6 +281,7 @@ impl TimedMotion {
         self.omega_rad_per_s = TAU / duration_s;
         self.phase_rad = 0.0;
         self.frozen = false;
+        self.schedule_tau = 0.0;
         self.centred = false;
         self.end_advance_s = 0.0;
         self.last_measured_m = None;
@@ -514,6 +517,30 @@ impl TimedMotion {
         self.position_m += self.direction * ds;
     }
 
+    /// Back on schedule soon, not only at the end: while the motion lags its
+    /// ideal schedule (the profile's closed form, centred after the neurons'
+    /// hand-over) by `lag`, its end is planned `schedule_gain * lag` earlier,
+    /// faded out over the second half of the motion so that it still ends at
+    /// `t_end`. Returns the end time to plan for.
+    fn schedule_end(&mut self, t_end: f64, remaining: f64) -> f64 {
+        let gain = self.params.schedule_gain;
+        let ready = self.centred || self.profile == ProfileKind::MinJerk;
+        let done = self.state.s.max(0.0);
+        let total = done + remaining;
+        if gain <= 0.0 || !ready || self.frozen || total <= 0.0 {
+            return t_end;
+        }
+        let d0 = self.end_advance_s;
+        let span = self.arrival_s - 2.0 * d0;
+        self.schedule_tau = inverse_position(self.profile, done / total, self.schedule_tau);
+        let on_schedule = d0 + span * self.schedule_tau;
+        let lag = (self.t_s - on_schedule).clamp(-0.1, 0.1);
+        let fade = ((TAU - self.params.replan_freeze_rad - self.phase_rad) / PI).clamp(0.0, 1.0);
+        // Never squeeze or stretch what is left by more than half.
+        let left = t_end - self.t_s;
+        (t_end - gain * fade * lag).clamp(self.t_s + 0.5 * left, t_end + 0.5 * left)
+    }
+
     fn hopf_substep(&mut self, h: f64, remaining: f64) {
         // The neurons hand over in a few tau_u, during which the cycle barely
         // runs: once u_hopf has taken over, the cycle is `delay` behind the
@@ -531,9 +558,10 @@ impl TimedMotion {
             self.centred = true;
         }
         let t_end = self.arrival_s - self.end_advance_s;
-        let t_rem = t_end - self.t_s;
+        let t_plan = self.schedule_end(t_end, remaining);
+        let t_rem = t_plan - self.t_s;
         if !self.frozen && t_rem > h {
-            match replan(self.state.a, remaining, t_rem) {
+            match replan(self.state.a, remaining, t_rem, self.phase_rad) {
                 Some(phi) if TAU - phi > self.params.replan_freeze_rad => {
                     let w_nom = TAU / self.arrival_s;
                     self.omega_rad_per_s = ((TAU - phi) / t_rem).clamp(0.5 * w_nom, 2.0 * w_nom);
@@ -572,9 +600,10 @@ impl TimedMotion {
     }
 
     fn min_jerk_substep(&mut self, h: f64, remaining: f64) {
-        let t_rem = self.arrival_s - self.t_s;
+        let t_end = self.arrival_s;
+        let t_rem = self.schedule_end(t_end, remaining) - self.t_s;
         let s_old = self.state.s;
-        let (ds, v, acc, last) = if t_rem <= h * (1.0 + 1e-9) {
+        let (ds, v, acc, last) = if t_end - self.t_s <= h * (1.0 + 1e-9) {
             (remaining, 0.0, 0.0, true)
         } else {
             let (ds, v, acc) = quintic_step(remaining, self.state.a, self.accel_mps2, t_rem, h);
@@ -605,10 +634,12 @@ impl TimedMotion {
 /// now, covers `remaining` metres in exactly `t_rem` seconds and ends at rest:
 /// `a = R_h (1 - cos phi)`, `remaining = (R_h / omega) ((2 pi - phi) + sin phi)`,
 /// `omega = (2 pi - phi) / t_rem`. Eliminating `R_h` and `omega` leaves
-/// `g(phi) = remaining / (a t_rem)` with `g` falling from infinity (phi -> 0)
-/// to 1/3 (phi -> 2 pi), solved by bisection. `None` when no such cycle
-/// exists (the path speed is already too high for the distance left).
-fn replan(a: f64, remaining: f64, t_rem: f64) -> Option<f64> {
+/// `g(phi) = remaining / (a t_rem) = q` with `g` falling from infinity
+/// (phi -> 0) to 1/3 (phi -> 2 pi). Solved as the rising root of
+/// `q (1 - cos phi)(2 pi - phi) - (2 pi - phi + sin phi)` by Newton from
+/// `guess` (the last phase), with bisection as the safeguard. `None` when no
+/// such cycle exists (the path speed is already too high for the distance left).
+fn replan(a: f64, remaining: f64, t_rem: f64, guess: f64) -> Option<f64> {
     if a <= 0.0 {
         return Some(0.0);
     }
@@ -616,20 +647,57 @@ fn replan(a: f64, remaining: f64, t_rem: f64) -> Option<f64> {
     if !q.is_finite() || q <= 1.0 / 3.0 {
         return None;
     }
-    let g = |phi: f64| {
-        let one_minus_cos = 2.0 * (0.5 * phi).sin().powi(2);
-        (TAU - phi + phi.sin()) / (one_minus_cos * (TAU - phi))
+    let k = |phi: f64| {
+        let (sin, cos) = phi.sin_cos();
+        let m = 1.0 - cos;
+        let p = TAU - phi;
+        let y = q * m * p - (p + sin);
+        let dy = q * (sin * p - m) + m;
+        (y, dy)
     };
-    let (mut lo, mut hi) = (0.0_f64, TAU);
-    for _ in 0..48 {
-        let mid = 0.5 * (lo + hi);
-        if g(mid) > q {
-            lo = mid;
-        } else {
-            hi = mid;
+    Some(rising_root(0.0, TAU * (1.0 - 1e-9), guess, k))
+}
+
+/// `tau` in `[0, 1]` with `kind.position(tau) = f` (both shapes rise
+/// monotonically), by Newton from `guess` with bisection as the safeguard.
+fn inverse_position(kind: ProfileKind, f: f64, guess: f64) -> f64 {
+    let f = f.clamp(0.0, 1.0);
+    rising_root(0.0, 1.0, guess, |tau| {
+        (kind.position(tau) - f, kind.velocity(tau))
+    })
+}
+
+/// The root of `f` (returning value and derivative) on `[lo, hi]`, where `f`
+/// is negative below the root and positive above it: Newton steps from `x0`,
+/// bisection whenever a step leaves the bracket; at most 60 iterations.
+fn rising_root(mut lo: f64, mut hi: f64, x0: f64, f: impl Fn(f64) -> (f64, f64)) -> f64 {
+    let mut x = if x0.is_finite() {
+        x0.clamp(lo, hi)
+    } else {
+        0.5 * (lo + hi)
+    };
+    for _ in 0..60 {
+        let (y, dy) = f(x);
+        if y == 0.0 {
+            return x;
         }
+        if y < 0.0 {
+            lo = x;
+        } else {
+            hi = x;
+        }
+        let newton = x - y / dy;
+        let next = if dy > 0.0 && newton > lo && newton < hi {
+            newton
+        } else {
+            0.5 * (lo + hi)
+        };
+        if (next - x).abs() <= 1e-14 * (1.0 + x.abs()) || hi - lo <= 1e-14 {
+            return next;
+        }
+        x = next;
     }
-    Some(0.5 * (lo + hi))
+    x
 }
 
 /// The minimum-jerk quintic from `(0, v0, a0)` to `(l, 0, 0)` in `t` seconds
@@ -665,5 +733,42 @@ mod quintic_tests {
         assert!((x - 0.7).abs() < 1e-12 && v.abs() < 1e-12 && a.abs() < 1e-12);
         let (x, v, a) = quintic_step(0.7, 0.3, -0.2, 0.8, 0.0);
         assert!(x.abs() < 1e-15 && (v - 0.3).abs() < 1e-15 && (a + 0.2).abs() < 1e-15);
+    }
+}
+
+#[cfg(test)]
+mod root_tests {
+    use super::*;
+
+    #[test]
+    fn replan_recovers_the_phase_of_an_ideal_cycle() {
+        // On the ideal cycle (R = 0.5, T = 1.5): a, L and t_rem at phase phi.
+        let (r, t) = (0.5, 1.5);
+        let w = TAU / t;
+        for i in 1..60 {
+            let phi = TAU * f64::from(i) / 61.0;
+            let a = r * (1.0 - phi.cos());
+            let left = r / w * ((TAU - phi) + phi.sin());
+            let t_rem = (TAU - phi) / w;
+            for guess in [0.0, phi, TAU] {
+                let got = replan(a, left, t_rem, guess).unwrap();
+                assert!((got - phi).abs() < 1e-9, "{phi} from {guess}: {got}");
+            }
+        }
+        assert_eq!(replan(0.3, 0.01, 1.0, 1.0), None);
+    }
+
+    #[test]
+    fn inverse_position_inverts_both_shapes() {
+        for kind in [ProfileKind::Hopf, ProfileKind::MinJerk] {
+            for i in 0..=100 {
+                let tau = f64::from(i) / 100.0;
+                let f = kind.position(tau);
+                for guess in [0.0, 0.5, 1.0] {
+                    let got = inverse_position(kind, f, guess);
+                    assert!((kind.position(got) - f).abs() < 1e-12, "{kind:?} {tau}");
+                }
+            }
+        }
     }
 }

@@ -46,6 +46,10 @@ pub struct TimingParams {
     /// Time constant of the critically damped filter a new target passes
     /// through (keeps the velocity direction continuous), seconds (0: none).
     pub target_smoothing_s: f64,
+    /// How hard a lagging motion hurries back onto its schedule: the cycle's
+    /// end is planned `schedule_gain * lag` earlier while it lags (0: the lost
+    /// progress is only made up by the planned end).
+    pub schedule_gain: f64,
     /// Remaining oscillator phase below which amplitude and frequency are no
     /// longer re-planned (the re-plan is ill-conditioned at the very end), rad.
     pub replan_freeze_rad: f64,
@@ -65,8 +69,9 @@ impl Default for TimingParams {
             neuron_competition: 6.0,
             neuron_floor: 0.01,
             max_substep_s: 0.001,
-            progress_feedback_per_s: 50.0,
+            progress_feedback_per_s: 100.0,
             target_smoothing_s: 0.03,
+            schedule_gain: 10.0,
             replan_freeze_rad: 0.6,
         }
     }
