@@ -22,6 +22,10 @@ const MAX_IEKF_ITERATIONS: usize = 4;
 /// The iterated update stops when the angle moves less than this, radians.
 const IEKF_TOLERANCE_RAD: f64 = 1e-7;
 
+/// A filter that initialised itself from measurements restarts at its first
+/// rejection until it has fused this many.
+const YOUNG_FILTER_FUSED: u32 = 3;
+
 /// Shortest spacing of the two measurements the filter initialises from, seconds.
 const MIN_INIT_GAP_S: f64 = 1e-3;
 
@@ -327,6 +331,7 @@ pub struct Ekf {
     t_init: f64,
     t_last_fused: f64,
     consecutive_rejections: u32,
+    fused_since_init: u32,
     counters: EkfCounters,
 }
 
@@ -364,6 +369,7 @@ impl Ekf {
             t_init: 0.0,
             t_last_fused: 0.0,
             consecutive_rejections: 0,
+            fused_since_init: 0,
             counters: EkfCounters::default(),
         })
     }
@@ -444,6 +450,8 @@ impl Ekf {
         let x = Vector3::new(phi_rad, rate_radps, self.model.damping_per_s);
         let p = Matrix3::from_diagonal(&Vector3::new(sa * sa, sr * sr, self.alpha_var()));
         self.start_running(t_s, x, p);
+        // A state set by hand is not suspected of coming from an outlier.
+        self.fused_since_init = YOUNG_FILTER_FUSED;
         Ok(())
     }
 
@@ -468,6 +476,7 @@ impl Ekf {
         self.t_init = t;
         self.t_last_fused = t;
         self.consecutive_rejections = 0;
+        self.fused_since_init = 0;
     }
 
     /// Fuses one lateral measurement `z_m` (base-frame y of the ball centre, metres)
@@ -602,6 +611,7 @@ impl Ekf {
         match kind {
             EntryKind::Fused => {
                 self.counters.fused += 1;
+                self.fused_since_init = self.fused_since_init.saturating_add(1);
                 self.consecutive_rejections = 0;
                 self.t_last_fused = self.t_last_fused.max(t);
                 MeasureOutcome::Fused { nis }
@@ -609,7 +619,9 @@ impl Ekf {
             _ => {
                 self.counters.rejected += 1;
                 self.consecutive_rejections += 1;
-                if self.consecutive_rejections >= self.params.max_consecutive_rejections {
+                // A young filter that rejects was most likely started from an outlier.
+                let young = self.fused_since_init < YOUNG_FILTER_FUSED;
+                if young || self.consecutive_rejections >= self.params.max_consecutive_rejections {
                     self.counters.reinitialisations += 1;
                     self.reset();
                     if z.abs() < self.model.length_m {

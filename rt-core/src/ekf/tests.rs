@@ -986,3 +986,33 @@ fn for_trial_builds_from_a_scenario_and_refuses_bad_input() {
     let err = Ekf::for_trial(EkfParams::default(), &sc.pendulum, f64::NAN, 0.3).unwrap_err();
     assert!(matches!(err, EkfError::Params(ref e) if e.field() == Some("task.distance_m")));
 }
+
+#[test]
+fn recovers_when_it_initialised_from_an_outlier() {
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let mut truth = released(0.03, 25.0);
+    let mut meas = observe(
+        &mut truth,
+        Camera {
+            drop_rate: 0.0,
+            ..lab_camera()
+        },
+        2.0,
+        &mut rng,
+    );
+    meas[1].z += 0.5;
+    let mut ekf = default_ekf();
+    for m in &meas {
+        ekf.measure(m.t_c, m.z).unwrap();
+    }
+    let c = ekf.counters();
+    assert_eq!(c.reinitialisations, 1, "{c:?}");
+    assert_eq!(c.initialisations, 2);
+    let (t, x, _) = ekf.posterior().unwrap();
+    let mut check = released(0.03, 25.0);
+    check.advance_to(t).unwrap();
+    assert!((L * x[0].sin() - check.lateral_m()).abs() < 0.002);
+    // Recently restarted: a plan is not confident yet right after the restart.
+    let t0 = ekf.initialised_at_s().unwrap();
+    assert!(t0 < 0.15, "restarted at {t0}");
+}
