@@ -15,6 +15,7 @@
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
 //! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
 //! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
+//! | [`sim`] | the simulated lab: virtual-time runtime wiring truth, camera, FRI robot and control |
 //! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
 //! | [`timing`] | Hopf speed dynamics, competing neurons, timed straight-line motion (eqs. 20-21) |
 //! | [`tuning`] | EKF noise estimated from recordings (maximum likelihood), the paper's Fig. 4 |
@@ -27,6 +28,7 @@ pub mod kinematics;
 pub mod magnet;
 pub mod params;
 pub mod pendulum;
+pub mod sim;
 pub mod timing;
 pub mod trajectory;
 pub mod tuning;

@@ -37,6 +37,8 @@ enum Command {
     },
     /// Estimate the EKF's noise parameters from a recorded trial (writes an [ekf] file and Fig. 4).
     Tune(cmd::tune::TuneArgs),
+    /// Run N closed-loop trials of a scenario in virtual time and judge them on ground truth.
+    Trials(cmd::trials::TrialsArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -88,6 +90,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data_dir,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
+        Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

@@ -296,6 +296,7 @@ pub struct Controller {
     q_cmd: Joints,
     v_cmd: Joints,
     have_cmd: bool,
+    have_meas: bool,
     t_last: Option<f64>,
     t_state: f64,
     t_release: f64,
@@ -306,18 +307,13 @@ pub struct Controller {
 }
 
 impl Controller {
-    /// A controller for `scenario`'s lab with an FRI period of `period_s`.
-    pub fn new(
-        scenario: &Scenario,
-        params: &ControlParams,
-        ekf: &EkfParams,
-        timing: &TimingParams,
-        period_s: f64,
-    ) -> Result<Self, ControlError> {
+    /// A controller for `scenario`'s lab (its `[control]`, `[ekf]` and
+    /// `[timing]` sections) with an FRI period of `period_s`.
+    pub fn new(scenario: &Scenario, period_s: f64) -> Result<Self, ControlError> {
         scenario.validate()?;
-        params.validate()?;
-        ekf.validate()?;
-        timing.validate()?;
+        let params = &scenario.control;
+        let ekf = &scenario.ekf;
+        let timing = &scenario.timing;
         let model = PendulumModel::from_params(&scenario.pendulum)?;
         let motion = TimedMotion::new(timing.clone())?;
         let [hx, hy, hz] = scenario.task.home_m;
@@ -343,6 +339,7 @@ impl Controller {
             q_cmd: Joints::zeros(),
             v_cmd: Joints::zeros(),
             have_cmd: false,
+            have_meas: false,
             t_last: None,
             t_state: 0.0,
             t_release: 0.0,
@@ -355,12 +352,9 @@ impl Controller {
 
     /// Plans a trial's motion to the intercept point at `distance_m` (not
     /// real-time: run it off the control thread, then hand it to [`Self::arm`]).
-    pub fn plan(
-        scenario: &Scenario,
-        params: &ControlParams,
-        timing: &TimingParams,
-        distance_m: f64,
-    ) -> Result<ArmPlan, ControlError> {
+    pub fn plan(scenario: &Scenario, distance_m: f64) -> Result<ArmPlan, ControlError> {
+        let params = &scenario.control;
+        let timing = &scenario.timing;
         check::within("task.distance_m", distance_m, 0.1, 1.2)?;
         let task = &scenario.task;
         let home = Vector3::from(task.home_m);
@@ -487,9 +481,13 @@ impl Controller {
     /// the pendulum at the plan's distance and starts the move home in the
     /// motion's posture; `Armed` once there. Allowed from `Idle`.
     pub fn arm(&mut self, t_s: f64, plan: &ArmPlan) -> Result<(), ControlError> {
-        if self.machine.state() != TrialState::Idle {
+        if self.machine.state() != TrialState::Idle || !self.have_meas {
             return Err(ControlError::State {
-                what: "arm",
+                what: if self.have_meas {
+                    "arm"
+                } else {
+                    "arm before the robot's first FRI message"
+                },
                 state: self.machine.state().name(),
             });
         }
@@ -580,6 +578,7 @@ impl Controller {
         self.t_last = Some(t);
         self.counters.steps += 1;
         self.q_meas = Joints::from(input.q_measured_rad);
+        self.have_meas = true;
         let beyond = self
             .q_meas
             .iter()
@@ -915,4 +914,102 @@ fn generator_arrival_offset(
         duration_s,
     );
     Ok(t0 + dur - duration_s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_new_scenario_sections_are_validated_by_name() {
+        let field = |text: &str| Scenario::from_toml_str(text).unwrap_err().to_string();
+        assert!(field("[control]\nguard_margin_deg = 100").contains("control.guard_margin_deg"));
+        assert!(field("[ekf]\nmeasurement_noise_m = -1").contains("ekf.measurement_noise_m"));
+        assert!(field("[timing]\nbogus = 1").contains("bogus"));
+        let s = Scenario::from_toml_str("[control]\nhold_time_s = 0.5").unwrap();
+        assert_eq!(s.control.hold_time_s, 0.5);
+        let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
+        assert_eq!(again, s);
+    }
+
+    #[test]
+    fn planning_finds_the_generators_arrival_and_refuses_what_cannot_be_reached() {
+        let s = Scenario::default();
+        let plan = Controller::plan(&s, 0.6).unwrap();
+        assert_eq!(plan.duration_s, 1.5);
+        // The Hopf generator's best-fitting ideal profile ends a few ms early.
+        assert!(plan.arrival_offset_s.abs() < 0.05, "{plan:?}");
+        // 1.1 m is out of reach at any duration.
+        let err = Controller::plan(&s, 1.1).unwrap_err();
+        assert!(matches!(err, ControlError::Infeasible(_)), "{err}");
+        // Too fast without the shortest-feasible fallback: refused, naming the joint.
+        let mut fast = Scenario::default();
+        fast.task.movement_time_s = 0.8;
+        fast.control.allow_shortest_feasible = false;
+        let err = Controller::plan(&fast, 0.8).unwrap_err().to_string();
+        assert!(err.contains("shortest feasible duration"), "{err}");
+        fast.control.allow_shortest_feasible = true;
+        let plan = Controller::plan(&fast, 0.8).unwrap();
+        assert!(plan.duration_s > 1.3, "{plan:?}");
+    }
+
+    #[test]
+    fn arming_moves_home_and_a_stop_decelerates_to_rest() {
+        let s = Scenario::default();
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        let plan = Controller::plan(&s, 0.5).unwrap();
+        let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];
+        let mut out = StepOutput::default();
+        let none = std::iter::empty::<Measurement>();
+        c.step(
+            &StepInput {
+                t_s: 0.0,
+                q_measured_rad: q,
+                commanding: true,
+            },
+            none,
+            &mut out,
+        );
+        c.arm(0.0, &plan).unwrap();
+        // Refused twice.
+        assert!(c.arm(0.0, &plan).is_err());
+        let mut t = 0.0;
+        while c.state() != TrialState::Armed && t < 20.0 {
+            t += 0.005;
+            c.step(
+                &StepInput {
+                    t_s: t,
+                    q_measured_rad: q,
+                    commanding: true,
+                },
+                std::iter::empty(),
+                &mut out,
+            );
+            q = out.q_command_rad; // a perfect robot
+        }
+        assert_eq!(c.state(), TrialState::Armed);
+        let home = c.tool_point(&q);
+        assert!((home - Vector3::from(s.task.home_m)).norm() < 1e-6);
+        assert_eq!(c.counters().limit_violations(), 0);
+        // A stop from Armed: nothing moves afterwards.
+        c.abort(t, AbortReason::StopRequested);
+        for _ in 0..10 {
+            t += 0.005;
+            c.step(
+                &StepInput {
+                    t_s: t,
+                    q_measured_rad: q,
+                    commanding: true,
+                },
+                std::iter::empty(),
+                &mut out,
+            );
+            assert_eq!(out.q_command_rad, q);
+        }
+        assert_eq!(c.state(), TrialState::Abort(AbortReason::StopRequested));
+        // Release is refused after an abort; a reset is allowed.
+        assert!(c.release(t).is_err());
+        c.reset(t).unwrap();
+        assert_eq!(c.state(), TrialState::Idle);
+    }
 }

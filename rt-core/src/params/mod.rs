@@ -371,6 +371,12 @@ pub struct Scenario {
     pub robot: RobotParams,
     /// How trials are judged.
     pub success: SuccessParams,
+    /// The extended Kalman filter and predictor.
+    pub ekf: crate::ekf::EkfParams,
+    /// The Hopf timing dynamics and the timed motion.
+    pub timing: crate::timing::TimingParams,
+    /// The closed loop (trial states, latency estimate, guard).
+    pub control: crate::control::ControlParams,
 }
 
 impl Default for Scenario {
@@ -382,6 +388,9 @@ impl Default for Scenario {
             camera: CameraParams::default(),
             robot: RobotParams::default(),
             success: SuccessParams::default(),
+            ekf: crate::ekf::EkfParams::default(),
+            timing: crate::timing::TimingParams::default(),
+            control: crate::control::ControlParams::default(),
         }
     }
 }
@@ -400,7 +409,10 @@ impl Scenario {
         self.task.validate()?;
         self.camera.validate()?;
         self.robot.validate()?;
-        self.success.validate()
+        self.success.validate()?;
+        self.ekf.validate()?;
+        self.timing.validate()?;
+        self.control.validate()
     }
 
     /// Parses and validates a scenario from TOML text. Unknown keys are refused.

@@ -1,3 +1,4 @@
 //! The `isochron` subcommands, one file each.
 
+pub mod trials;
 pub mod tune;

@@ -1,0 +1,360 @@
+//! The virtual-time runtime: one thread, deterministic for a seed, faster than
+//! real time. Every FRI message goes through the simulated controller's codec
+//! and the real client ([`FriClient`]); every camera frame through the camera
+//! model; the controller's step is the same one the real-time runtime runs.
+
+use std::time::Instant;
+
+use nalgebra::Vector3;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::camera::ModelCamera;
+use super::robot::VirtualRobot;
+use crate::control::judge::{PlannedMotion, TrialTrace, judge, pass_times};
+use crate::control::{
+    ControlError, Controller, Measurement, StepInput, StepOutput, TrialRecord, TrialState,
+};
+use crate::fri::codec::{CommandEncoder, Monitoring, MonitoringDecoder};
+use crate::fri::proto::SessionState;
+use crate::kinematics::iiwa7::JOINTS;
+use crate::params::Scenario;
+use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::trajectory::profile::ProfileKind;
+
+/// The control step as the FRI cycle calls it: the controller, the camera
+/// measurements delivered since the last message, and the cycle's timing.
+#[derive(Debug)]
+pub struct LoopStep {
+    /// The controller.
+    pub controller: Controller,
+    /// Camera measurements delivered since the last step.
+    pub inbox: Vec<Measurement>,
+    /// The last step's output.
+    pub out: StepOutput,
+    /// Steps whose computation took longer than the FRI period.
+    pub deadline_misses: u64,
+    /// Longest step, nanoseconds.
+    pub max_step_ns: u64,
+}
+
+impl LoopStep {
+    /// Wraps a controller.
+    pub fn new(controller: Controller) -> Self {
+        Self {
+            controller,
+            inbox: Vec::with_capacity(64),
+            out: StepOutput::default(),
+            deadline_misses: 0,
+            max_step_ns: 0,
+        }
+    }
+
+    /// One step for the monitoring message `m` received at `t_s`; returns the
+    /// command to send.
+    pub fn run(&mut self, t_s: f64, period_s: f64, m: &Monitoring) -> [f64; JOINTS] {
+        let started = Instant::now();
+        let q = m
+            .measured_joint_position_rad
+            .unwrap_or(self.out.q_command_rad);
+        let si = StepInput {
+            t_s,
+            q_measured_rad: q,
+            commanding: m.session_state == SessionState::CommandingActive,
+        };
+        self.controller
+            .step(&si, self.inbox.drain(..), &mut self.out);
+        let ns = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        self.max_step_ns = self.max_step_ns.max(ns);
+        if ns as f64 * 1e-9 > period_s {
+            self.deadline_misses += 1;
+        }
+        self.out.q_command_rad
+    }
+}
+
+/// What one trial drew from the seed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrialDraw {
+    /// Distance to the intercept point, metres.
+    pub distance_m: f64,
+    /// Release angle (signed), degrees.
+    pub release_angle_deg: f64,
+    /// Wait between armed and release, seconds.
+    pub release_wait_s: f64,
+    /// Phase of the camera's first frame, seconds.
+    pub camera_phase_s: f64,
+    /// Seed of the trial's own random draws.
+    pub seed: u64,
+}
+
+/// Draws trial `index` of a run with `seed` (independent of the other trials).
+pub fn draw_trial(scenario: &Scenario, seed: u64, index: usize) -> TrialDraw {
+    let mix = seed
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add((index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+    let mut rng = ChaCha8Rng::seed_from_u64(mix);
+    let d = scenario.task.distance_m.lerp(rng.random_range(0.0..=1.0));
+    let a = scenario
+        .pendulum
+        .release_angle_deg
+        .lerp(rng.random_range(0.0..=1.0));
+    let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+    TrialDraw {
+        distance_m: d,
+        release_angle_deg: sign * a,
+        release_wait_s: rng.random_range(0.2..0.6),
+        camera_phase_s: rng.random_range(0.0..1.0 / scenario.camera.fps),
+        seed: rng.random(),
+    }
+}
+
+/// Errors setting up the lab.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum LabError {
+    /// The controller refused its parameters.
+    #[error(transparent)]
+    Control(#[from] ControlError),
+    /// The simulated robot refused its parameters or its session.
+    #[error("simulated robot: {0}")]
+    Robot(String),
+}
+
+/// The virtual-time lab: one simulated robot and controller across trials
+/// (so the latency estimate carries over, as it does in the lab).
+#[derive(Debug)]
+pub struct VirtualLab {
+    scenario: Scenario,
+    robot: VirtualRobot,
+    mon_dec: MonitoringDecoder,
+    cmd_enc: CommandEncoder,
+    cmd_seq: u32,
+    step: LoopStep,
+    period_ns: u64,
+    t_ns: u64,
+    seed: u64,
+    trace: TrialTrace,
+    passes: Vec<f64>,
+}
+
+/// Joint angles of the simulated robot at power-on, degrees.
+pub const INITIAL_JOINTS_DEG: [f64; JOINTS] = [0.0, 30.0, 0.0, -80.0, 0.0, 60.0, 0.0];
+/// Longest a trial may take in virtual time, seconds.
+const TRIAL_TIMEOUT_S: f64 = 40.0;
+/// Time after `Done` still recorded (for the judge), seconds.
+const AFTER_DONE_S: f64 = 0.3;
+
+impl VirtualLab {
+    /// A lab for `scenario`, its simulated robot seeded from `seed`.
+    pub fn new(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
+        let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
+        let controller = Controller::new(scenario, period_s)?;
+        let q0 = INITIAL_JOINTS_DEG.map(f64::to_radians);
+        let robot = VirtualRobot::new(&scenario.robot, q0, seed);
+        let mut lab = Self {
+            scenario: scenario.clone(),
+            robot,
+            mon_dec: MonitoringDecoder::new(),
+            cmd_enc: CommandEncoder::new(),
+            cmd_seq: 0,
+            step: LoopStep::new(controller),
+            period_ns: u64::from(scenario.robot.fri_period_ms) * 1_000_000,
+            t_ns: 0,
+            seed,
+            trace: TrialTrace::with_capacity(20_000),
+            passes: Vec::with_capacity(16),
+        };
+        // A few messages so the controller knows where the arm is.
+        for _ in 0..10 {
+            lab.tick();
+        }
+        Ok(lab)
+    }
+
+    /// The controller (for inspection).
+    pub fn controller(&self) -> &Controller {
+        &self.step.controller
+    }
+
+    /// The virtual time, seconds.
+    pub fn t_s(&self) -> f64 {
+        self.t_ns as f64 * 1e-9
+    }
+
+    /// One FRI period: the controller's monitoring datagram is decoded, the
+    /// control step runs, its command is encoded and handed back.
+    fn tick(&mut self) {
+        self.t_ns += self.period_ns;
+        let now = self.t_ns;
+        let Some(bytes) = self.robot.tick(now) else {
+            return;
+        };
+        let Ok(m) = self.mon_dec.decode(bytes) else {
+            return;
+        };
+        let period_s = self.period_ns as f64 * 1e-9;
+        let q = self.step.run(now as f64 * 1e-9, period_s, &m);
+        let seq = self.cmd_seq;
+        self.cmd_seq = self.cmd_seq.wrapping_add(1);
+        if let Ok(reply) = self.cmd_enc.encode(seq, m.sequence_counter, Some(&q)) {
+            // The reply reaches the controller a few microseconds later (loopback).
+            self.robot.on_reply(reply, now + 20_000);
+        }
+    }
+
+    /// Runs trial `index` of the run and judges it.
+    pub fn run_trial(&mut self, index: usize) -> TrialRecord {
+        let draw = draw_trial(&self.scenario, self.seed, index);
+        let mut rec = TrialRecord {
+            trial: index,
+            seed: self.seed,
+            distance_m: draw.distance_m,
+            release_angle_deg: draw.release_angle_deg,
+            success: false,
+            failure: None,
+            final_state: "idle".to_owned(),
+            abort_reason: None,
+            planned_movement_time_s: self.scenario.task.movement_time_s,
+            judgement: None,
+            prediction_crossing_time_error_ms: None,
+            prediction_position_error_m: None,
+            latency_estimate_ms: self.step.controller.latency().latency_s() * 1e3,
+            limit_violations: 0,
+            deadline_misses: 0,
+        };
+        let plan = match Controller::plan(&self.scenario, draw.distance_m) {
+            Ok(p) => p,
+            Err(e) => {
+                rec.failure = Some(e.to_string());
+                rec.decide(&self.scenario.success);
+                return rec;
+            }
+        };
+        rec.planned_movement_time_s = plan.duration_s;
+        let before = *self.step.controller.counters();
+        let robot_violations = self.robot.violations;
+        let misses_before = self.step.deadline_misses;
+        let outcome = self.simulate(&draw, &plan);
+        let c = self.step.controller.counters();
+        rec.limit_violations = c.limit_violations() - before.limit_violations()
+            + (self.robot.violations - robot_violations);
+        rec.deadline_misses = self.step.deadline_misses - misses_before;
+        let state = self.step.controller.state();
+        rec.final_state = state.name().to_owned();
+        if let TrialState::Abort(r) = state {
+            rec.abort_reason = Some(r.name().to_owned());
+        }
+        if let Err(msg) = outcome {
+            rec.failure = Some(msg);
+        }
+        if let Some(commit) = self.step.controller.commit().copied() {
+            rec.latency_estimate_ms = commit.latency_s * 1e3;
+            let motion = PlannedMotion {
+                start_m: self.step.controller.home_m(),
+                end_m: self.step.controller.motion_target_m(),
+                profile: ProfileKind::Hopf,
+                duration_s: commit.duration_s,
+                commanded_start_s: commit.motion_start_s,
+            };
+            match judge(&self.trace, &motion, &plan.intercept_m) {
+                Ok(j) => rec.judgement = Some(j),
+                Err(e) => {
+                    if rec.failure.is_none() {
+                        rec.failure = Some(format!("not judged: {e}"));
+                    }
+                }
+            }
+            // The prediction at commit against the truth: the true pass nearest
+            // to the predicted one.
+            pass_times(&self.trace, plan.intercept_m.y, &mut self.passes);
+            if let Some(&tp) = self.passes.iter().min_by(|a, b| {
+                (*a - commit.predicted_pass_s)
+                    .abs()
+                    .total_cmp(&(*b - commit.predicted_pass_s).abs())
+            }) {
+                rec.prediction_crossing_time_error_ms = Some((commit.predicted_pass_s - tp) * 1e3);
+                let i = self
+                    .trace
+                    .t_s
+                    .partition_point(|&x| x < tp)
+                    .min(self.trace.len() - 1);
+                rec.prediction_position_error_m =
+                    Some((commit.predicted_ball_m - self.trace.ball_m[i]).norm());
+            }
+        }
+        let t = self.t_s();
+        let _ = self.step.controller.reset(t);
+        rec.decide(&self.scenario.success);
+        rec
+    }
+
+    fn simulate(&mut self, draw: &TrialDraw, plan: &crate::control::ArmPlan) -> Result<(), String> {
+        self.trace.clear();
+        let model =
+            PendulumModel::from_params(&self.scenario.pendulum).map_err(|e| e.to_string())?;
+        let geometry = PendulumGeometry::new(
+            self.scenario.pendulum.length_m,
+            draw.distance_m,
+            self.scenario.task.intercept_height_m,
+        )
+        .map_err(|e| e.to_string())?;
+        let t0 = self.t_s();
+        let mut ball =
+            PendulumSim::held_at(model, geometry, draw.release_angle_deg.to_radians(), t0)
+                .map_err(|e| e.to_string())?;
+        let mut rng = ChaCha8Rng::seed_from_u64(draw.seed);
+        let mut camera = ModelCamera::new(&self.scenario.camera, t0 + draw.camera_phase_s);
+        self.step
+            .controller
+            .arm(t0, plan)
+            .map_err(|e| e.to_string())?;
+        let mut released_at: Option<f64> = None;
+        let mut armed_at: Option<f64> = None;
+        let mut done_at: Option<f64> = None;
+        loop {
+            let t_next = (self.t_ns + self.period_ns) as f64 * 1e-9;
+            // Camera frames captured up to the next message.
+            while camera.next_capture_s() <= t_next {
+                let tc = camera.next_capture_s();
+                ball.advance_to(tc.max(ball.time_s()))
+                    .map_err(|e| e.to_string())?;
+                camera.capture(ball.lateral_m(), &mut rng);
+            }
+            ball.advance_to(t_next).map_err(|e| e.to_string())?;
+            camera.deliver(t_next, &mut self.step.inbox);
+            self.tick();
+            let t = self.t_s();
+            let q = *self.robot.joints();
+            let tool = self.step.controller.tool_point(&q);
+            self.trace.push(t, tool, ball.ball_position_m());
+            let state = self.step.controller.state();
+            match state {
+                TrialState::Armed => {
+                    let since = *armed_at.get_or_insert(t);
+                    if released_at.is_none() && t - since >= draw.release_wait_s {
+                        ball.release(t).map_err(|e| e.to_string())?;
+                        self.step.controller.release(t).map_err(|e| e.to_string())?;
+                        released_at = Some(t);
+                    }
+                }
+                TrialState::Done => {
+                    let since = *done_at.get_or_insert(t);
+                    if t - since >= AFTER_DONE_S {
+                        return Ok(());
+                    }
+                }
+                TrialState::Abort(_) => return Ok(()),
+                _ => {}
+            }
+            if t - t0 > TRIAL_TIMEOUT_S {
+                return Err(format!("timeout in state {}", state.name()));
+            }
+        }
+    }
+}
+
+/// Tool point helper for tests: where the tool is for joint vector `q`.
+pub fn tool_point(controller: &Controller, q: &[f64; JOINTS]) -> Vector3<f64> {
+    controller.tool_point(q)
+}

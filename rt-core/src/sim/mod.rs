@@ -1,0 +1,7 @@
+#![doc = include_str!("README.md")]
+
+pub mod camera;
+pub mod lab;
+pub mod robot;
+
+pub use lab::{LabError, LoopStep, TrialDraw, VirtualLab, draw_trial};
