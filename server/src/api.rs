@@ -142,13 +142,15 @@ fn json_error(e: serde_path_to_error::Error<serde_json::Error>) -> AppError {
         .find_map(|p| msg.split_once(p))
         .and_then(|(_, rest)| rest.split_once('`'))
         .map(|(name, _)| name.to_owned());
+    let syntax = inner.is_syntax() || inner.is_eof();
     let field = match (path.as_str(), named) {
-        (".", Some(n)) => Some(n),
-        (".", None) => None,
+        _ if syntax && path.contains('?') => None,
+        ("." | "?", Some(n)) => Some(n),
+        ("." | "?", None) => None,
         (p, Some(n)) if !p.ends_with(&n) => Some(format!("{p}.{n}")),
         (p, _) => Some(p.to_owned()),
     };
-    let message = if inner.is_syntax() || inner.is_eof() {
+    let message = if syntax {
         format!("malformed JSON: {msg}")
     } else {
         match &field {
@@ -168,6 +170,13 @@ fn empty_body(body: Result<Bytes, BytesRejection>) -> Result<(), AppError> {
     let bytes = body_bytes(body)?;
     if bytes.iter().all(u8::is_ascii_whitespace) {
         return Ok(());
+    }
+    let value: serde_json::Value = parse_json(&bytes)?;
+    if !value.is_object() {
+        return Err(AppError::BadRequest {
+            message: "the body must be empty or a JSON object without fields ({})".into(),
+            field: None,
+        });
     }
     parse_json::<NoFields>(&bytes).map(|_| ())
 }

@@ -205,6 +205,29 @@ pub fn app(state: Arc<AppState>) -> Router {
     router.with_state(state)
 }
 
+/// Kernel send buffer asked for each connection, bytes (Linux doubles it). It
+/// bounds how much a client that stops reading can have queued: beyond it the
+/// client's sends stall, it skips state messages and is dropped after the send
+/// timeout, instead of the kernel buffering megabytes (seconds of stale state).
+pub const SOCKET_SEND_BUFFER_BYTES: usize = 256 * 1024;
+
+/// Tunes every accepted connection (no Nagle delay, bounded send buffer);
+/// `isochron serve` and the tests serve through this.
+pub fn tuned_listener(
+    listener: tokio::net::TcpListener,
+) -> impl axum::serve::Listener<Io = tokio::net::TcpStream, Addr = SocketAddr> {
+    use axum::serve::ListenerExt;
+    listener.tap_io(|tcp: &mut tokio::net::TcpStream| {
+        if let Err(e) = tcp.set_nodelay(true) {
+            tracing::debug!(error = %e, "cannot set TCP_NODELAY");
+        }
+        if let Err(e) = socket2::SockRef::from(&*tcp).set_send_buffer_size(SOCKET_SEND_BUFFER_BYTES)
+        {
+            tracing::debug!(error = %e, "cannot set the send buffer size");
+        }
+    })
+}
+
 /// Why `isochron serve` refuses to start.
 #[derive(Debug, thiserror::Error)]
 pub enum ServeConfigError {

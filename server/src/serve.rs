@@ -81,7 +81,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot listen on {bind}"))?;
         let local = listener.local_addr()?;
         println!("isochron {} listening on http://{local}/", crate::VERSION);
-        axum::serve(listener, app(state))
+        axum::serve(crate::tuned_listener(listener), app(state))
             .with_graceful_shutdown(shutdown_signal())
             .await
             .context("server failed")

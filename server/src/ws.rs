@@ -142,6 +142,9 @@ async fn state_client(socket: WebSocket, lab: Arc<Lab>, hello: Utf8Bytes) {
             Sent::Ok => {}
             Sent::Closed => break,
             Sent::Stalled => {
+                // What it will never get counts as skipped.
+                let lost = (states.len() + events.len()) as u64 + 1;
+                lab.stream().skipped.fetch_add(lost, Ordering::Relaxed);
                 lab.stream().dropped_clients.fetch_add(1, Ordering::Relaxed);
                 tracing::info!("dropped a WebSocket client that stopped reading");
                 break;
@@ -174,6 +177,8 @@ async fn camera_client(socket: WebSocket, lab: Arc<Lab>) {
             Sent::Ok => {}
             Sent::Closed => break,
             Sent::Stalled => {
+                let lost = frames.len() as u64 + 1;
+                lab.stream().skipped.fetch_add(lost, Ordering::Relaxed);
                 lab.stream().dropped_clients.fetch_add(1, Ordering::Relaxed);
                 break;
             }

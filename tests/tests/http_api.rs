@@ -1,0 +1,685 @@
+//! The REST API on a real port over the real bridge: validation, access control,
+//! parameters, commands, trials with records and recordings, OpenAPI.
+
+#[path = "http_support/mod.rs"]
+mod http_support;
+
+use std::{sync::atomic::Ordering, time::Duration};
+
+use http_support::{start_service, start_service_in, temp_dir, trial_state, wait_for};
+use isochron_tests::http;
+use rt_core::bridge::TrialState;
+use serde_json::{Value, json};
+use server::LabOptions;
+
+const TOKEN: &str = "s3cret-token";
+const AUTH: (&str, &str) = ("Authorization", "Bearer s3cret-token");
+
+fn opts() -> LabOptions {
+    LabOptions::default()
+}
+
+#[tokio::test]
+async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_changes_nothing() {
+    let svc = start_service(Some(TOKEN), opts()).await;
+    let params_before = http(svc.addr, "GET", "/api/params", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(params_before.status, 200);
+    let big = vec![b' '; 1024 * 1024];
+    let mut big_json = b"{\"on\": true, \"pad\": \"".to_vec();
+    big_json.extend(std::iter::repeat_n(b'x', 1024 * 1024));
+    big_json.extend(b"\"}");
+    // (method, path, body, status, field)
+    type Case<'a> = (&'a str, &'a str, Vec<u8>, u16, Option<&'a str>);
+    let cases: Vec<Case> = vec![
+        ("PUT", "/api/params", b"{".to_vec(), 400, None),
+        ("PUT", "/api/params", b"not json".to_vec(), 400, None),
+        ("PUT", "/api/params", b"[1, 2]".to_vec(), 400, None),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"movement_time_s": "fast"}}"#.to_vec(),
+            400,
+            Some("task.movement_time_s"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"pendulum": {"length_m": "NaN"}}"#.to_vec(),
+            400,
+            Some("pendulum.length_m"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"pendulum": {"length_m": "inf"}}"#.to_vec(),
+            400,
+            Some("pendulum.length_m"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"pendulum": {"length_m": 1e999}}"#.to_vec(),
+            400,
+            Some("pendulum.length_m"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"movement_time_s": -1.0}}"#.to_vec(),
+            400,
+            Some("task.movement_time_s"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"movment_time_s": 1.2}}"#.to_vec(),
+            400,
+            Some("task.movment_time_s"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"bogus": 1}"#.to_vec(),
+            400,
+            Some("bogus"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"camera": {"width_px": 1.5}}"#.to_vec(),
+            400,
+            Some("camera.width_px"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"camera": {"drop_rate": 2.0}}"#.to_vec(),
+            400,
+            Some("camera.drop_rate"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"distance_m": [0.9, 0.5]}}"#.to_vec(),
+            400,
+            Some("task.distance_m"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"home_m": [0.3, 0.0]}}"#.to_vec(),
+            400,
+            Some("task.home_m"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"movement_time_s": null}}"#.to_vec(),
+            400,
+            Some("task.movement_time_s"),
+        ),
+        ("PUT", "/api/params", big.clone(), 413, None),
+        ("POST", "/api/magnet", b"{".to_vec(), 400, None),
+        ("POST", "/api/magnet", b"{}".to_vec(), 400, Some("on")),
+        (
+            "POST",
+            "/api/magnet",
+            br#"{"on": "yes"}"#.to_vec(),
+            400,
+            Some("on"),
+        ),
+        (
+            "POST",
+            "/api/magnet",
+            br#"{"on": 1}"#.to_vec(),
+            400,
+            Some("on"),
+        ),
+        (
+            "POST",
+            "/api/magnet",
+            br#"{"on": true, "volts": 12}"#.to_vec(),
+            400,
+            Some("volts"),
+        ),
+        ("POST", "/api/magnet", b"".to_vec(), 400, None),
+        ("POST", "/api/magnet", big_json.clone(), 413, None),
+        ("POST", "/api/arm", b"{".to_vec(), 400, None),
+        (
+            "POST",
+            "/api/arm",
+            br#"{"force": true}"#.to_vec(),
+            400,
+            Some("force"),
+        ),
+        ("POST", "/api/arm", big.clone(), 413, None),
+        ("POST", "/api/disarm", br#"[]"#.to_vec(), 400, None),
+        (
+            "POST",
+            "/api/disarm",
+            br#"{"now": 1}"#.to_vec(),
+            400,
+            Some("now"),
+        ),
+        ("POST", "/api/disarm", big.clone(), 413, None),
+        ("POST", "/api/trials", b"{".to_vec(), 400, None),
+        (
+            "POST",
+            "/api/trials",
+            br#"{"n": 5}"#.to_vec(),
+            400,
+            Some("n"),
+        ),
+        ("POST", "/api/trials", big.clone(), 413, None),
+        ("GET", "/api/trials/abc", vec![], 400, Some("id")),
+        ("GET", "/api/trials/0", vec![], 400, Some("id")),
+        (
+            "GET",
+            "/api/trials/-3/recording.csv",
+            vec![],
+            400,
+            Some("id"),
+        ),
+        ("GET", "/api/trials?limit=0", vec![], 400, Some("limit")),
+        ("GET", "/api/trials?limit=many", vec![], 400, Some("limit")),
+        ("GET", "/api/trials/12345", vec![], 404, None),
+    ];
+    for (method, path, body, status, field) in &cases {
+        let ct = ("Content-Type", "application/json");
+        let r = http(svc.addr, method, path, &[AUTH, ct], body)
+            .await
+            .unwrap();
+        let what = format!(
+            "{method} {path} {:?}",
+            String::from_utf8_lossy(&body[..body.len().min(60)])
+        );
+        assert_eq!(
+            r.status,
+            *status,
+            "{what}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        let j = r
+            .json()
+            .unwrap_or_else(|e| panic!("{what}: error body is not JSON: {e}"));
+        assert!(
+            j["error"].as_str().is_some_and(|s| !s.is_empty()),
+            "{what}: {j}"
+        );
+        assert_eq!(j["field"].as_str(), *field, "{what}: {j}");
+    }
+    // Nothing changed: parameters, the lab's state, and the control thread got no command.
+    let params_after = http(svc.addr, "GET", "/api/params", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(params_after.json().unwrap(), params_before.json().unwrap());
+    assert_eq!(svc.test_lab.stats.commands.load(Ordering::Relaxed), 0);
+    let state = http(svc.addr, "GET", "/api/state", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(state["trial_state"], "idle");
+    assert_eq!(state["magnet"], "unknown");
+    let trials = http(svc.addr, "GET", "/api/trials", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(trials, json!([]));
+}
+
+#[tokio::test]
+async fn without_the_token_commands_are_401_and_nothing_happens_with_it_they_work() {
+    let svc = start_service(Some(TOKEN), opts()).await;
+    let commands: [(&str, &str, &[u8]); 6] = [
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"movement_time_s": 1.2}}"#,
+        ),
+        ("POST", "/api/arm", b""),
+        ("POST", "/api/disarm", b""),
+        ("POST", "/api/magnet", br#"{"on": false}"#),
+        ("POST", "/api/trials", b""),
+        // A malformed body still gets 401 first: nothing is parsed for strangers.
+        ("POST", "/api/magnet", b"{"),
+    ];
+    for wrong in [
+        None,
+        Some("Bearer nope"),
+        Some("Basic czNjcmV0LXRva2Vu"),
+        Some("Bearer "),
+    ] {
+        for (method, path, body) in &commands {
+            let headers: Vec<(&str, &str)> = wrong.iter().map(|w| ("Authorization", *w)).collect();
+            let r = http(svc.addr, method, path, &headers, body).await.unwrap();
+            assert_eq!(r.status, 401, "{method} {path} with {wrong:?}");
+            assert_eq!(r.header("www-authenticate"), Some("Bearer"));
+            assert_eq!(r.json().unwrap()["field"], "authorization");
+        }
+    }
+    assert_eq!(svc.test_lab.stats.commands.load(Ordering::Relaxed), 0);
+    assert_eq!(trial_state(&svc), TrialState::Idle);
+    let p = http(svc.addr, "GET", "/api/params", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(p["task"]["movement_time_s"], 1.5);
+    assert_eq!(
+        http(svc.addr, "GET", "/api/trials", &[], b"")
+            .await
+            .unwrap()
+            .json()
+            .unwrap(),
+        json!([])
+    );
+    // Viewers can watch.
+    for path in [
+        "/api/state",
+        "/api/params",
+        "/api/trials",
+        "/api/health",
+        "/api/openapi.json",
+    ] {
+        assert_eq!(
+            http(svc.addr, "GET", path, &[], b"").await.unwrap().status,
+            200,
+            "{path}"
+        );
+    }
+
+    // With the token they work.
+    let r = http(
+        svc.addr,
+        "PUT",
+        "/api/params",
+        &[AUTH],
+        br#"{"task": {"movement_time_s": 1.2}}"#,
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().unwrap()["task"]["movement_time_s"], 1.2);
+    let r = http(svc.addr, "POST", "/api/arm", &[AUTH], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 200);
+    assert_eq!(
+        r.json().unwrap(),
+        json!({"accepted": true, "command": "arm"})
+    );
+    wait_for(Duration::from_secs(5), || {
+        trial_state(&svc) == TrialState::Armed
+    })
+    .await;
+    let r = http(
+        svc.addr,
+        "POST",
+        "/api/magnet",
+        &[AUTH],
+        br#"{"on": false}"#,
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200);
+    wait_for(Duration::from_secs(5), || {
+        svc.lab
+            .latest()
+            .is_some_and(|(s, _)| s.magnet == rt_core::bridge::MagnetState::Off)
+    })
+    .await;
+    // Refused by the lab in its state: 409 with the reason.
+    let r = http(svc.addr, "POST", "/api/arm", &[AUTH], b"{}")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 409);
+    assert_eq!(r.json().unwrap()["reason"], "busy");
+    let r = http(svc.addr, "POST", "/api/disarm", &[AUTH], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 200);
+    wait_for(Duration::from_secs(5), || {
+        trial_state(&svc) == TrialState::Idle
+    })
+    .await;
+    let r = http(svc.addr, "POST", "/api/disarm", &[AUTH], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 409);
+    assert_eq!(r.json().unwrap()["reason"], "not_armed");
+
+    // Stop always works: no token, any body, any state.
+    let before = svc.test_lab.stats.stops.load(Ordering::Relaxed);
+    for body in [&b""[..], b"{", b"{\"x\": 1}"] {
+        let r = http(svc.addr, "POST", "/api/stop", &[], body)
+            .await
+            .unwrap();
+        assert_eq!(r.status, 200);
+        let j = r.json().unwrap();
+        assert_eq!(j["accepted"], true);
+        assert_eq!(j["acknowledged"], true);
+    }
+    assert_eq!(svc.test_lab.stats.stops.load(Ordering::Relaxed), before + 3);
+}
+
+#[tokio::test]
+async fn stop_aborts_a_running_trial_without_a_token() {
+    let svc = start_service(Some(TOKEN), opts()).await;
+    let r = http(svc.addr, "POST", "/api/trials", &[AUTH], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202);
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    wait_for(Duration::from_secs(5), || {
+        trial_state(&svc) == TrialState::Released
+    })
+    .await;
+    let r = http(svc.addr, "POST", "/api/stop", &[], b"").await.unwrap();
+    assert_eq!(r.status, 200);
+    wait_for(Duration::from_secs(5), || {
+        trial_state(&svc) == TrialState::Aborted
+    })
+    .await;
+    let records = std::sync::Arc::clone(&svc.records);
+    wait_for(Duration::from_secs(5), || {
+        records
+            .get(id)
+            .unwrap()
+            .is_some_and(|t| t.status == "aborted")
+    })
+    .await;
+    let rec = http(svc.addr, "GET", &format!("/api/trials/{id}"), &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(rec["status"], "aborted");
+    assert_eq!(rec["abort_reason"], "stop");
+    assert_eq!(rec["success"], false);
+}
+
+#[tokio::test]
+async fn a_page_of_another_origin_cannot_command_the_lab() {
+    let svc = start_service(None, opts()).await;
+    let evil = ("Origin", "http://evil.example");
+    let r = http(svc.addr, "POST", "/api/arm", &[evil], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 403);
+    assert!(r.header("access-control-allow-origin").is_none());
+    assert_eq!(svc.test_lab.stats.commands.load(Ordering::Relaxed), 0);
+    // The service's own page (same origin) may.
+    let own = format!("http://{}", svc.addr);
+    let r = http(
+        svc.addr,
+        "POST",
+        "/api/arm",
+        &[("Origin", own.as_str())],
+        b"",
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    // Without a token (loopback service), commands are open to local tools.
+    let r = http(svc.addr, "POST", "/api/disarm", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 200);
+}
+
+#[tokio::test]
+async fn risky_parameter_changes_are_refused_while_a_trial_runs() {
+    let svc = start_service(None, opts()).await;
+    let r = http(svc.addr, "POST", "/api/trials", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202);
+    wait_for(Duration::from_secs(5), || trial_state(&svc).busy()).await;
+    let r = http(
+        svc.addr,
+        "PUT",
+        "/api/params",
+        &[],
+        br#"{"task": {"movement_time_s": 1.1}}"#,
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    let j = r.json().unwrap();
+    assert_eq!(j["field"], "task.movement_time_s");
+    // Judging tolerances do not move the arm: allowed.
+    let r = http(
+        svc.addr,
+        "PUT",
+        "/api/params",
+        &[],
+        br#"{"success": {"timing_tolerance_ms": 15.0}}"#,
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    let p = http(svc.addr, "GET", "/api/params", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(p["task"]["movement_time_s"], 1.5);
+    assert_eq!(p["success"]["timing_tolerance_ms"], 15.0);
+}
+
+#[tokio::test]
+async fn a_trial_is_recorded_survives_a_restart_and_its_recordings_open() {
+    let data = temp_dir("restart");
+    let id;
+    {
+        let svc = start_service_in(data.clone(), None, opts()).await;
+        let r = http(svc.addr, "POST", "/api/trials", &[], b"")
+            .await
+            .unwrap();
+        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+        id = r.json().unwrap()["id"].as_u64().unwrap();
+        let path = format!("/api/trials/{id}");
+        let running = http(svc.addr, "GET", &path, &[], b"")
+            .await
+            .unwrap()
+            .json()
+            .unwrap();
+        assert_eq!(running["status"], "running");
+        let records = std::sync::Arc::clone(&svc.records);
+        wait_for(Duration::from_secs(10), || {
+            records.get(id).unwrap().is_some_and(|t| t.status == "done")
+        })
+        .await;
+    }
+    // A new service over the same data directory.
+    let svc = start_service_in(data, None, opts()).await;
+    let rec = http(svc.addr, "GET", &format!("/api/trials/{id}"), &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(rec.status, 200);
+    let rec = rec.json().unwrap();
+    assert_eq!(rec["status"], "done");
+    assert_eq!(rec["success"], true);
+    assert_eq!(rec["timing_error_ms"], 1.5);
+    assert_eq!(rec["position_error_m"], 0.004);
+    let samples = rec["samples"].as_u64().unwrap();
+    // Arming .. Holding: 6 states of 40 steps each, recorded at the control rate.
+    assert!(samples >= 200, "{rec}");
+    let list = http(svc.addr, "GET", "/api/trials", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(list[0]["id"], id);
+
+    let csv = http(
+        svc.addr,
+        "GET",
+        &format!("/api/trials/{id}/recording.csv"),
+        &[],
+        b"",
+    )
+    .await
+    .unwrap();
+    assert_eq!(csv.status, 200);
+    assert_eq!(csv.header("content-type"), Some("text/csv"));
+    let text = String::from_utf8(csv.body).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(header[0], "trial_state");
+    assert!(header.contains(&"q7_rad") && header.contains(&"u_hopf"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len() as u64, samples);
+    assert!(rows.iter().all(|r| r.len() == header.len()));
+    let t_col = header.iter().position(|h| *h == "t_s").unwrap();
+    let times: Vec<f64> = rows.iter().map(|r| r[t_col].parse().unwrap()).collect();
+    assert!(
+        times.windows(2).all(|w| w[1] > w[0]),
+        "rows in time order, no gaps in order"
+    );
+    let states: std::collections::BTreeSet<&str> = rows.iter().map(|r| r[0]).collect();
+    for s in ["arming", "released", "tracking", "intercepting", "holding"] {
+        assert!(states.contains(s), "{s} recorded: {states:?}");
+    }
+
+    let mcap = http(
+        svc.addr,
+        "GET",
+        &format!("/api/trials/{id}/recording.mcap"),
+        &[],
+        b"",
+    )
+    .await
+    .unwrap();
+    assert_eq!(mcap.status, 200);
+    let msgs: Vec<_> = mcap::MessageStream::new(&mcap.body)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(msgs.len() as u64, samples);
+    assert_eq!(msgs[0].channel.topic, "/isochron/state");
+    assert_eq!(msgs[0].channel.message_encoding, "json");
+    let schema = msgs[0].channel.schema.as_ref().unwrap();
+    assert_eq!(schema.encoding, "jsonschema");
+    let first: Value = serde_json::from_slice(&msgs[0].data).unwrap();
+    assert_eq!(first["t_s"].as_f64().unwrap(), times[0]);
+    assert_eq!(msgs[0].log_time, (times[0] * 1e9) as u64);
+    assert!(msgs.windows(2).all(|w| w[1].log_time >= w[0].log_time));
+}
+
+#[tokio::test]
+async fn the_openapi_document_validates_and_lists_every_endpoint() {
+    let svc = start_service(None, opts()).await;
+    let r = http(svc.addr, "GET", "/api/openapi.json", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 200);
+    let doc = r.json().unwrap();
+    assert!(doc["openapi"].as_str().unwrap().starts_with("3.1"));
+    assert!(doc["info"]["title"].is_string() && doc["info"]["version"].is_string());
+    let expected = [
+        ("get", "/api/health"),
+        ("get", "/api/state"),
+        ("get", "/api/params"),
+        ("put", "/api/params"),
+        ("post", "/api/arm"),
+        ("post", "/api/disarm"),
+        ("post", "/api/magnet"),
+        ("post", "/api/stop"),
+        ("post", "/api/trials"),
+        ("get", "/api/trials"),
+        ("get", "/api/trials/{id}"),
+        ("get", "/api/trials/{id}/recording.csv"),
+        ("get", "/api/trials/{id}/recording.mcap"),
+        ("get", "/api/openapi.json"),
+        ("get", "/ws"),
+        ("get", "/ws/camera"),
+    ];
+    let paths = doc["paths"].as_object().unwrap();
+    let mut listed = 0;
+    for (path, item) in paths {
+        for (method, op) in item.as_object().unwrap() {
+            listed += 1;
+            assert!(
+                expected.contains(&(method.as_str(), path.as_str())),
+                "unexpected {method} {path}"
+            );
+            let responses = op["responses"].as_object().unwrap();
+            assert!(!responses.is_empty(), "{method} {path} has responses");
+            for (code, resp) in responses {
+                assert!(code.len() == 3 && code.parse::<u16>().is_ok(), "{code}");
+                assert!(resp["description"].is_string(), "{method} {path} {code}");
+            }
+            // Path parameters are declared.
+            for name in ["id"] {
+                if path.contains(&format!("{{{name}}}")) {
+                    let params = op["parameters"].as_array().unwrap();
+                    assert!(
+                        params.iter().any(|p| p["name"] == name
+                            && p["in"] == "path"
+                            && p["required"] == true)
+                    );
+                }
+            }
+        }
+    }
+    assert_eq!(listed, expected.len(), "every endpoint, once");
+    for (method, path) in expected {
+        assert!(
+            doc["paths"][path][method].is_object(),
+            "{method} {path} listed"
+        );
+    }
+    // Commands declare the bearer scheme; every $ref resolves.
+    assert_eq!(
+        doc["components"]["securitySchemes"]["bearer"]["scheme"],
+        "bearer"
+    );
+    assert!(doc["paths"]["/api/arm"]["post"]["security"].is_array());
+    fn refs(v: &Value, out: &mut Vec<String>) {
+        match v {
+            Value::Object(m) => {
+                for (k, x) in m {
+                    if k == "$ref" {
+                        out.push(x.as_str().unwrap().to_owned());
+                    } else {
+                        refs(x, out);
+                    }
+                }
+            }
+            Value::Array(a) => a.iter().for_each(|x| refs(x, out)),
+            _ => {}
+        }
+    }
+    let mut all = Vec::new();
+    refs(&doc, &mut all);
+    assert!(!all.is_empty());
+    for r in all {
+        let ptr = r.strip_prefix('#').unwrap();
+        assert!(doc.pointer(ptr).is_some(), "dangling $ref {r}");
+    }
+}
+
+#[tokio::test]
+async fn without_a_lab_state_and_commands_are_503_json() {
+    let state = server::AppState::new(temp_dir("web"));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(
+        async move { axum::serve(listener, server::app(std::sync::Arc::new(state))).await },
+    );
+    for (m, p) in [
+        ("GET", "/api/state"),
+        ("POST", "/api/arm"),
+        ("POST", "/api/stop"),
+        ("GET", "/api/trials"),
+    ] {
+        let r = http(addr, m, p, &[], b"").await.unwrap();
+        assert_eq!(r.status, 503, "{m} {p}");
+        assert!(r.json().unwrap()["error"].is_string());
+    }
+}

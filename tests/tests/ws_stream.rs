@@ -1,0 +1,293 @@
+//! The WebSocket streams on a real port over the real bridge: rate and fields of
+//! state messages, many clients plus a stalled one, events, camera frames.
+
+#[path = "http_support/mod.rs"]
+mod http_support;
+
+use std::{
+    sync::atomic::Ordering,
+    time::{Duration, Instant},
+};
+
+use futures_util::StreamExt;
+use http_support::{PERIOD, start_service, wait_for};
+use isochron_tests::http;
+use rt_core::bridge::Frame;
+use serde_json::Value;
+use server::LabOptions;
+use tokio_tungstenite::tungstenite::Message;
+
+type Ws =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+async fn connect(addr: std::net::SocketAddr, path: &str) -> Ws {
+    let (ws, resp) = tokio_tungstenite::connect_async(format!("ws://{addr}{path}"))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), 101);
+    ws
+}
+
+/// Reads text messages for `window`; returns them parsed.
+async fn read_for(ws: &mut Ws, window: Duration) -> Vec<Value> {
+    let end = tokio::time::Instant::now() + window;
+    let mut out = Vec::new();
+    loop {
+        match tokio::time::timeout_at(end, ws.next()).await {
+            Err(_) => return out,
+            Ok(Some(Ok(Message::Text(t)))) => out.push(serde_json::from_str(&t).unwrap()),
+            Ok(Some(Ok(_))) => {}
+            Ok(other) => panic!("stream ended: {other:?}"),
+        }
+    }
+}
+
+fn states(msgs: &[Value]) -> Vec<&Value> {
+    msgs.iter().filter(|m| m["type"] == "state").collect()
+}
+
+#[tokio::test]
+async fn a_client_gets_at_least_50_state_messages_per_second_with_the_documented_fields() {
+    let svc = start_service(None, LabOptions::default()).await;
+    let mut ws = connect(svc.addr, "/ws").await;
+    let first = read_for(&mut ws, Duration::from_millis(200)).await;
+    assert_eq!(first[0]["type"], "hello");
+    assert!(first[0]["t_s"].is_number() && first[0]["state_hz"] == 100.0);
+
+    let window = Duration::from_secs(2);
+    let msgs = read_for(&mut ws, window).await;
+    let st = states(&msgs);
+    let rate = st.len() as f64 / window.as_secs_f64();
+    println!("state messages per second: {rate:.1}");
+    assert!(rate >= 50.0, "{rate} state messages per second");
+    for m in &msgs {
+        assert!(m["type"].is_string() && m["t_s"].is_number(), "{m}");
+    }
+    for m in &st {
+        assert!(m["trial_state"].is_string());
+        assert!(m["pendulum"]["measured"]["x_m"].is_number());
+        assert!(m["pendulum"]["x_m"].is_number());
+        assert!(m["pendulum"]["sigma_x_m"].is_null() || m["pendulum"]["sigma_x_m"].is_number());
+        let horizon = m["pendulum"]["horizon"].as_array().unwrap();
+        assert_eq!(horizon.len(), 10);
+        assert!(horizon[0]["sigma_m"].is_number());
+        for k in ["a", "b", "u_init", "u_hopf", "u_final"] {
+            assert!(m["hopf"][k].is_number(), "hopf.{k}");
+        }
+        for k in ["speed_planned_mps", "speed_executed_mps", "arrival_t_s"] {
+            assert!(m["path"].get(k).is_some(), "path.{k}");
+        }
+        assert_eq!(m["robot"]["q_rad"].as_array().unwrap().len(), 7);
+        assert_eq!(m["robot"]["q_limit_rad"].as_array().unwrap().len(), 7);
+        assert_eq!(m["robot"]["tool_m"].as_array().unwrap().len(), 3);
+        assert!(m["fri"]["session"].is_string() && m["fri"]["quality"].is_string());
+        assert!(m["fri"]["late_replies"].is_number());
+        assert!(m["magnet"].is_string());
+        assert!(m["timing"]["deadline_misses"].is_number());
+        assert!(m["counters"]["steps"].is_number());
+        assert!(m["bridge"]["telemetry_overflows"].is_number());
+        assert!(m["stream"]["skipped"].is_number());
+    }
+    // Fresh: time moves forward.
+    let t: Vec<f64> = st.iter().map(|m| m["t_s"].as_f64().unwrap()).collect();
+    assert!(t.windows(2).all(|w| w[1] > w[0]));
+}
+
+#[tokio::test]
+async fn twenty_clients_and_one_that_never_reads_do_not_slow_the_others_or_the_loop() {
+    let options = LabOptions {
+        ws_send_timeout: Duration::from_millis(500),
+        ..LabOptions::default()
+    };
+    let svc = start_service(None, options).await;
+    let stats = &svc.test_lab.stats;
+
+    // Baseline of the control loop without clients.
+    let window = Duration::from_secs(2);
+    let (s0, l0) = (
+        stats.steps.load(Ordering::Relaxed),
+        stats.late_periods.load(Ordering::Relaxed),
+    );
+    tokio::time::sleep(window).await;
+    let base_steps = stats.steps.load(Ordering::Relaxed) - s0;
+    let base_late = stats.late_periods.load(Ordering::Relaxed) - l0;
+
+    // A client that never reads, with a tiny receive buffer so the server's
+    // writes to it stall quickly.
+    let sock = tokio::net::TcpSocket::new_v4().unwrap();
+    sock.set_recv_buffer_size(4096).unwrap();
+    let stream = sock.connect(svc.addr).await.unwrap();
+    let (_stalled, _) = tokio_tungstenite::client_async(format!("ws://{}/ws", svc.addr), stream)
+        .await
+        .unwrap();
+
+    let mut clients = Vec::new();
+    for _ in 0..20 {
+        clients.push(connect(svc.addr, "/ws").await);
+    }
+    let (s1, l1) = (
+        stats.steps.load(Ordering::Relaxed),
+        stats.late_periods.load(Ordering::Relaxed),
+    );
+    let tasks: Vec<_> = clients
+        .into_iter()
+        .map(|mut ws| {
+            tokio::spawn(async move {
+                let msgs = read_for(&mut ws, window).await;
+                states(&msgs).len()
+            })
+        })
+        .collect();
+    let mut rates = Vec::new();
+    for t in tasks {
+        rates.push(t.await.unwrap() as f64 / window.as_secs_f64());
+    }
+    let load_steps = stats.steps.load(Ordering::Relaxed) - s1;
+    let load_late = stats.late_periods.load(Ordering::Relaxed) - l1;
+    let min = rates.iter().copied().fold(f64::INFINITY, f64::min);
+    println!(
+        "20 clients + 1 stalled: min rate {min:.1}/s; control steps {load_steps} (baseline {base_steps}), \
+         late periods {load_late} (baseline {base_late}), publish max {} us",
+        stats.publish_max_ns.load(Ordering::Relaxed) / 1000
+    );
+    assert!(
+        min >= 50.0,
+        "slowest client got {min} state messages per second: {rates:?}"
+    );
+    // The control loop kept its pace: steps within 10% of the nominal count.
+    let nominal = window.as_secs_f64() / PERIOD.as_secs_f64();
+    assert!(
+        load_steps as f64 >= 0.9 * nominal,
+        "{load_steps} steps of {nominal}"
+    );
+
+    // The stalled client is skipped, then dropped, and both are counted.
+    let lab = std::sync::Arc::clone(&svc.lab);
+    wait_for(Duration::from_secs(30), || {
+        let s = lab.stream().read();
+        s.skipped > 0 && s.dropped_clients >= 1
+    })
+    .await;
+    // ... and the counters reach the state messages the dashboard shows.
+    wait_for(Duration::from_secs(5), || {
+        lab.latest().is_some_and(|(_, text)| {
+            let j: Value = serde_json::from_str(&text).unwrap();
+            j["stream"]["dropped_clients"].as_u64() >= Some(1)
+        })
+    })
+    .await;
+    let state = http(svc.addr, "GET", "/api/state", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert!(state["stream"]["dropped_clients"].as_u64().unwrap() >= 1);
+    assert_eq!(state["bridge"]["telemetry_overflows"], 0);
+}
+
+#[tokio::test]
+async fn events_of_a_trial_arrive_in_order_with_type_and_time() {
+    let svc = start_service(None, LabOptions::default()).await;
+    let mut ws = connect(svc.addr, "/ws").await;
+    let r = http(svc.addr, "POST", "/api/trials", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202);
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let mut events = Vec::new();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !events
+        .iter()
+        .any(|e: &Value| e["event"]["kind"] == "trial_finished")
+    {
+        assert!(
+            Instant::now() < deadline,
+            "no trial_finished event: {events:?}"
+        );
+        let msgs = read_for(&mut ws, Duration::from_millis(100)).await;
+        events.extend(msgs.into_iter().filter(|m| m["type"] == "event"));
+    }
+    let to: Vec<&str> = events
+        .iter()
+        .filter(|e| e["event"]["kind"] == "state_changed")
+        .map(|e| e["event"]["to"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        to,
+        [
+            "arming",
+            "armed",
+            "released",
+            "tracking",
+            "intercepting",
+            "holding",
+            "done"
+        ]
+    );
+    for e in &events {
+        assert_eq!(e["trial_id"], id);
+        assert!(e["t_s"].is_number());
+    }
+    let fin = events
+        .iter()
+        .find(|e| e["event"]["kind"] == "trial_finished")
+        .unwrap();
+    assert_eq!(fin["event"]["result"]["success"], true);
+    assert!(fin["event"]["result"]["timing_error_ms"].is_number());
+}
+
+#[tokio::test]
+async fn camera_frames_arrive_on_their_own_endpoint_without_delaying_state() {
+    let mut svc = start_service(None, LabOptions::default()).await;
+    let mut frames_tx = svc.test_lab.frames.take().unwrap();
+    let mut cam = connect(svc.addr, "/ws/camera").await;
+    let mut ws = connect(svc.addr, "/ws").await;
+    // A vision thread: 30 frames per second of 200 kB each.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let vision = {
+        let stop = std::sync::Arc::clone(&stop);
+        std::thread::Builder::new()
+            .name("isochron-test-vision".into())
+            .spawn(move || {
+                let mut i = 0u64;
+                while !stop.load(Ordering::Relaxed) {
+                    let mut jpeg = vec![0u8; 200_000];
+                    jpeg[..2].copy_from_slice(&[0xff, 0xd8]);
+                    jpeg[2..10].copy_from_slice(&i.to_le_bytes());
+                    frames_tx.send(Frame { t_us: i, jpeg });
+                    i += 1;
+                    std::thread::sleep(Duration::from_millis(33));
+                }
+            })
+            .unwrap()
+    };
+    let window = Duration::from_secs(2);
+    let cam_task = tokio::spawn(async move {
+        let end = tokio::time::Instant::now() + window;
+        let mut seen = Vec::new();
+        while let Ok(Some(Ok(m))) = tokio::time::timeout_at(end, cam.next()).await {
+            if let Message::Binary(b) = m {
+                assert_eq!(b.len(), 200_000);
+                assert_eq!(&b[..2], &[0xff, 0xd8]);
+                seen.push(u64::from_le_bytes(b[2..10].try_into().unwrap()));
+            }
+        }
+        seen
+    });
+    let msgs = read_for(&mut ws, window).await;
+    let seen = cam_task.await.unwrap();
+    stop.store(true, Ordering::Relaxed);
+    vision.join().unwrap();
+    let rate = states(&msgs).len() as f64 / window.as_secs_f64();
+    println!(
+        "camera frames received: {}; state rate meanwhile {rate:.1}/s",
+        seen.len()
+    );
+    assert!(seen.len() >= 20, "{} frames in {window:?}", seen.len());
+    assert!(seen.windows(2).all(|w| w[1] > w[0]), "frames in order");
+    assert!(rate >= 50.0, "{rate}");
+    assert!(
+        msgs.iter().all(|m| m["type"] != "frame"),
+        "video never on the state stream"
+    );
+}
