@@ -39,6 +39,8 @@ enum Command {
     Tune(cmd::tune::TuneArgs),
     /// Run N closed-loop trials of a scenario in virtual time and judge them on ground truth.
     Trials(cmd::trials::TrialsArgs),
+    /// Measure the hot paths and the real-time loop (1 ms FRI over loopback UDP).
+    Bench(cmd::bench::BenchArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -91,6 +93,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
+        Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

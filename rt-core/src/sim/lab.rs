@@ -36,6 +36,8 @@ pub struct LoopStep {
     pub deadline_misses: u64,
     /// Longest step, nanoseconds.
     pub max_step_ns: u64,
+    /// When `Some`, every step's duration is appended, nanoseconds (for benches).
+    pub step_ns: Option<Vec<u64>>,
 }
 
 impl LoopStep {
@@ -47,6 +49,7 @@ impl LoopStep {
             out: StepOutput::default(),
             deadline_misses: 0,
             max_step_ns: 0,
+            step_ns: None,
         }
     }
 
@@ -66,6 +69,9 @@ impl LoopStep {
             .step(&si, self.inbox.drain(..), &mut self.out);
         let ns = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);
         self.max_step_ns = self.max_step_ns.max(ns);
+        if let Some(v) = self.step_ns.as_mut() {
+            v.push(ns);
+        }
         if ns as f64 * 1e-9 > period_s {
             self.deadline_misses += 1;
         }
@@ -177,6 +183,11 @@ impl VirtualLab {
         &self.step.controller
     }
 
+    /// The loop adapter (step timing, deadline misses).
+    pub fn loop_step(&mut self) -> &mut LoopStep {
+        &mut self.step
+    }
+
     /// The virtual time, seconds.
     pub fn t_s(&self) -> f64 {
         self.t_ns as f64 * 1e-9
@@ -199,7 +210,7 @@ impl VirtualLab {
         self.cmd_seq = self.cmd_seq.wrapping_add(1);
         if let Ok(reply) = self.cmd_enc.encode(seq, m.sequence_counter, Some(&q)) {
             // The reply reaches the controller a few microseconds later (loopback).
-            self.robot.on_reply(reply, now + 20_000);
+            let _ = self.robot.on_reply(reply, now + 20_000);
         }
     }
 

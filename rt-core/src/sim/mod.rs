@@ -2,6 +2,7 @@
 
 pub mod camera;
 pub mod lab;
+pub mod realtime;
 pub mod robot;
 
 pub use lab::{LabError, LoopStep, TrialDraw, VirtualLab, draw_trial};

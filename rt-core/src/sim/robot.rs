@@ -120,18 +120,20 @@ impl VirtualRobot {
         self.enc.encode(&m).ok()
     }
 
-    /// Takes a command datagram that arrived at `now_ns`.
-    pub fn on_reply(&mut self, bytes: &[u8], now_ns: u64) {
+    /// Takes a command datagram that arrived at `now_ns`; returns the sequence
+    /// counter of the monitoring message it answers (`None` if it did not decode).
+    pub fn on_reply(&mut self, bytes: &[u8], now_ns: u64) -> Option<u32> {
         let c = match self.dec.decode(bytes) {
             Ok(c) => c,
             Err(_) => {
                 self.decode_errors += 1;
-                return;
+                return None;
             }
         };
         self.reflected = c.sequence_counter;
+        let answers = Some(c.reflected_sequence_counter);
         let Some(q) = c.joint_position_rad else {
-            return;
+            return answers;
         };
         self.commands += 1;
         let period_s = self.period_ns as f64 * 1e-9;
@@ -143,7 +145,7 @@ impl VirtualRobot {
         });
         if bad {
             self.violations += 1;
-            return;
+            return answers;
         }
         self.last_command = Some(q);
         let jitter = if self.jitter_ns > 0.0 {
@@ -156,5 +158,11 @@ impl VirtualRobot {
         let at = at.max(self.last_apply_ns);
         self.last_apply_ns = at;
         self.pending.push_back((at, q));
+        answers
+    }
+
+    /// The sequence counter the next monitoring message will carry.
+    pub fn next_sequence(&self) -> u32 {
+        self.seq
     }
 }

@@ -1,4 +1,5 @@
 //! The `isochron` subcommands, one file each.
 
+pub mod bench;
 pub mod trials;
 pub mod tune;
