@@ -131,6 +131,9 @@ pub struct Summary {
     pub deadline_misses: u64,
     /// Wall-clock time of the whole run, seconds.
     pub wall_s: f64,
+    /// How the camera measurements were produced (`"model"` or `"full"`), when known.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vision: Option<String>,
 }
 
 impl Summary {
@@ -185,6 +188,7 @@ impl Summary {
             limit_violations: records.iter().map(|r| r.limit_violations).sum(),
             deadline_misses: records.iter().map(|r| r.deadline_misses).sum(),
             wall_s,
+            vision: None,
         }
     }
 }

@@ -48,7 +48,9 @@ pub struct ControlParams {
     pub guard_margin_deg: f64,
     /// Largest commanded joint step per period as a fraction of the speed limit.
     pub guard_speed_ratio: f64,
-    /// Follow the filter's refined pass time while the motion runs.
+    /// Follow the filter's refined pass time while the motion runs (trades the
+    /// constancy of the movement time for arrival accuracy; off by default: the
+    /// commit threshold already bounds the pass-time uncertainty).
     pub retime: bool,
 }
 
@@ -66,7 +68,7 @@ impl Default for ControlParams {
             allow_shortest_feasible: true,
             guard_margin_deg: 2.0,
             guard_speed_ratio: 1.0,
-            retime: true,
+            retime: false,
         }
     }
 }

@@ -183,6 +183,13 @@ impl VirtualLab {
         &self.step.controller
     }
 
+    /// How this lab produces camera measurements: always the measurement model
+    /// (`"model"`) until the rendering + detector path is wired in; a scenario
+    /// asking for `vision = "full"` is run with the model and says so.
+    pub fn vision_used(&self) -> &'static str {
+        "model"
+    }
+
     /// The loop adapter (step timing, deadline misses).
     pub fn loop_step(&mut self) -> &mut LoopStep {
         &mut self.step

@@ -49,6 +49,13 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     };
     let started = Instant::now();
     let mut lab = VirtualLab::new(&scenario, args.seed)?;
+    if scenario.camera.vision == rt_core::params::VisionMode::Full && lab.vision_used() != "full" {
+        eprintln!(
+            "isochron trials: camera.vision = \"full\" is not wired into the simulated lab yet; \
+             using the measurement model (\"vision\": \"{}\" in the summary)",
+            lab.vision_used()
+        );
+    }
     let bar =
         ProgressBar::with_draw_target(Some(args.n as u64), ProgressDrawTarget::stderr_with_hz(5));
     bar.set_style(
@@ -75,7 +82,8 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     if let Some(mut w) = per_trial {
         w.flush()?;
     }
-    let summary = Summary::of(&scenario.name, &records, started.elapsed().as_secs_f64());
+    let mut summary = Summary::of(&scenario.name, &records, started.elapsed().as_secs_f64());
+    summary.vision = Some(lab.vision_used().to_owned());
     if args.json {
         return Ok(serde_json::to_string(&summary)?);
     }
@@ -89,7 +97,7 @@ fn human(s: &Summary) -> String {
          position error p50 {:.4} m, p95 {:.4} m, max {:.4} m\n\
          movement time  mean {:.4} s, std {:.5} s ({:.4}..{:.4})\n\
          distance       {:.3}..{:.3} m\n\
-         aborted {}, limit violations {}, deadline misses {}, wall {:.1} s",
+         aborted {}, limit violations {}, deadline misses {}, wall {:.1} s, vision {}",
         s.scenario,
         s.successes,
         s.trials,
@@ -112,6 +120,7 @@ fn human(s: &Summary) -> String {
         s.limit_violations,
         s.deadline_misses,
         s.wall_s,
+        s.vision.as_deref().unwrap_or("?"),
     )
 }
 
