@@ -3,12 +3,15 @@
 //! IK step, and a posture plan.
 
 use std::hint::black_box;
+use std::time::Instant;
 
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{Criterion, criterion_group};
 use rt_core::kinematics::{
     ArmFlags, ArmGeometry, Jacobian, Joints, NumericIk, Tool, arm_angle, flange_pose, jacobian,
     tool_pose,
 };
+use rt_core::params::TaskParams;
+use rt_core::trajectory::{MotionRequest, TrajectoryParams, plan};
 
 fn kinematics(c: &mut Criterion) {
     let q = Joints::from([0.3, 0.7, -0.4, -1.3, 0.5, 1.0, -0.2]);
@@ -42,5 +45,59 @@ fn kinematics(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, kinematics);
-criterion_main!(benches);
+fn planning(c: &mut Criterion) {
+    let req = MotionRequest::interception(&TaskParams::default(), 0.80);
+    let params = TrajectoryParams::default();
+    let mut g = c.benchmark_group("plan");
+    g.sample_size(10);
+    g.bench_function("posture_plan_d080", |b| {
+        b.iter(|| plan(black_box(&req), &params))
+    });
+    g.finish();
+    let Ok(p) = plan(&req, &params) else {
+        return;
+    };
+    let mut out = Joints::zeros();
+    let prev = p.home_q;
+    c.bench_function("plan_joints_at_per_cycle", |b| {
+        b.iter(|| p.joints_at(black_box(0.37), &prev, &mut out))
+    });
+}
+
+/// Per-call latency distribution of one analytic IK solve (pose -> joints at a
+/// given arm angle, with the limit check) over poses along the lab's path:
+/// criterion reports means, the contract wants the tail.
+fn ik_percentiles() {
+    let req = MotionRequest::interception(&TaskParams::default(), 0.80);
+    let Ok(p) = plan(&req, &TrajectoryParams::default()) else {
+        return;
+    };
+    let n = 200_000;
+    let mut ns = Vec::with_capacity(n);
+    let mut q = p.home_q;
+    for k in 0..n {
+        let s = (k % 1500) as f64 / 1500.0;
+        let prev = q;
+        let t0 = Instant::now();
+        let r = p.joints_at(black_box(s), &prev, &mut q);
+        ns.push(t0.elapsed().as_nanos() as u64);
+        black_box(r).ok();
+    }
+    ns.sort_unstable();
+    let pct = |f: f64| ns[((n as f64 * f) as usize).min(n - 1)] as f64 / 1e3;
+    println!(
+        "ik_solve_us (per-cycle analytic, {n} calls): p50 {:.3} p99 {:.3} p999 {:.3} max {:.3}",
+        pct(0.5),
+        pct(0.99),
+        pct(0.999),
+        ns[n - 1] as f64 / 1e3
+    );
+}
+
+criterion_group!(benches, kinematics, planning);
+
+fn main() {
+    benches();
+    ik_percentiles();
+    Criterion::default().configure_from_args().final_summary();
+}

@@ -41,6 +41,8 @@ enum Command {
     Trials(cmd::trials::TrialsArgs),
     /// Measure the hot paths and the real-time loop (1 ms FRI over loopback UDP).
     Bench(cmd::bench::BenchArgs),
+    /// iiwa 7 kinematics: forward (fk), inverse (ik) and motion planning (plan).
+    Kin(cmd::kin::KinArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -94,6 +96,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
+        Command::Kin(args) => cmd::kin::run(args),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

@@ -126,3 +126,55 @@ pub fn min_position_margin(q: &Joints) -> (f64, usize) {
     }
     best
 }
+
+/// Why a pose given as numbers was refused.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum PoseError {
+    /// NaN or an infinity.
+    #[error("the position and rotation must be finite numbers")]
+    NotFinite,
+    /// The matrix is not a rotation (to 1e-6).
+    #[error(
+        "R is not a rotation matrix (|R^T R - I| = {orthogonality:.1e}, det = {determinant:.3})"
+    )]
+    NotRotation {
+        /// Largest entry of `R^T R - I`.
+        orthogonality: f64,
+        /// The determinant.
+        determinant: f64,
+    },
+}
+
+/// A pose from a position (metres) and a rotation matrix given by rows, checked to
+/// be a rotation within 1e-6 and then re-orthonormalised (parse at the boundary).
+pub fn pose_from_rows(p_m: [f64; 3], r_rows: [[f64; 3]; 3]) -> Result<Pose, PoseError> {
+    if !p_m
+        .iter()
+        .chain(r_rows.iter().flatten())
+        .all(|v| v.is_finite())
+    {
+        return Err(PoseError::NotFinite);
+    }
+    let m = nalgebra::Matrix3::from_fn(|i, j| r_rows[i][j]);
+    let orthogonality = (m.transpose() * m - nalgebra::Matrix3::identity()).amax();
+    let determinant = m.determinant();
+    if orthogonality > 1e-6 || determinant < 0.0 {
+        return Err(PoseError::NotRotation {
+            orthogonality,
+            determinant,
+        });
+    }
+    let r = nalgebra::Rotation3::from_matrix_eps(&m, 1e-12, 100, nalgebra::Rotation3::identity());
+    Ok(Pose::from_parts(Translation3::from(Vector3::from(p_m)), r))
+}
+
+/// A pose as a position (metres) and rotation rows.
+pub fn pose_to_rows(pose: &Pose) -> ([f64; 3], [[f64; 3]; 3]) {
+    let t = pose.translation.vector;
+    let m = pose.rotation.matrix();
+    (
+        [t.x, t.y, t.z],
+        std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)])),
+    )
+}

@@ -2,4 +2,5 @@
 
 pub mod bench;
 pub mod trials;
+pub mod kin;
 pub mod tune;
