@@ -1,6 +1,6 @@
 //! The `isochron` subcommands, one file each.
 
 pub mod bench;
-pub mod trials;
 pub mod kin;
+pub mod trials;
 pub mod tune;
