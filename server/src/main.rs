@@ -43,6 +43,8 @@ enum Command {
     Bench(cmd::bench::BenchArgs),
     /// iiwa 7 kinematics: forward (fk), inverse (ik) and motion planning (plan).
     Kin(cmd::kin::KinArgs),
+    /// Switch the pendulum's magnet or ask its state (the Arduino firmware over serial); prints JSON.
+    Magnet(cmd::magnet::MagnetArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -97,6 +99,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Kin(args) => cmd::kin::run(args),
+        Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

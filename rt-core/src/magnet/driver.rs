@@ -32,6 +32,8 @@ pub struct Answer {
     pub reply: OkReply,
     /// From writing the command to reading its answer.
     pub rtt: Duration,
+    /// When the command was written to the port.
+    pub sent: Instant,
 }
 
 impl Answer {
@@ -47,8 +49,10 @@ impl Answer {
 /// Something that happened, with the time it was seen (passed to the hook).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MagnetEvent {
-    /// When the driver saw it (for a switch by command: when the answer arrived,
-    /// at most one round trip after the pin changed).
+    /// When it happened: for a switch by command, when the command's last byte
+    /// reached the board (write time + wire time, at most the round trip; the
+    /// pin switches then); for
+    /// the rest, when the driver read the device's line.
     pub at: Instant,
     /// What happened.
     pub kind: EventKind,
@@ -625,7 +629,11 @@ impl Worker {
                         let rtt = at.saturating_duration_since(sent);
                         self.view.last_rtt_us = u32::try_from(rtt.as_micros()).unwrap_or(u32::MAX);
                         self.view.commands += 1;
-                        return Exchange::Answer(Answer { reply: ok, rtt });
+                        return Exchange::Answer(Answer {
+                            reply: ok,
+                            rtt,
+                            sent,
+                        });
                     }
                     Line::Err(code) if !matches!(cmd, Command::Ping(_)) => {
                         self.view.commands += 1;
@@ -655,13 +663,17 @@ impl Worker {
         let timeout = ms(self.params.command_timeout_ms);
         match self.exchange(cmd, Instant::now() + timeout) {
             Exchange::Answer(a) => {
-                let at = Instant::now();
+                let (at, cause) = if matches!(cmd, Command::Magnet(_)) {
+                    // The pin switched when the command's last byte arrived,
+                    // before the answer was sent back.
+                    (
+                        a.sent + self.wire_time(cmd.line().len() + 1).min(a.rtt),
+                        SwitchCause::Command,
+                    )
+                } else {
+                    (Instant::now(), SwitchCause::Status)
+                };
                 if let Some(s) = a.status() {
-                    let cause = if matches!(cmd, Command::Magnet(_)) {
-                        SwitchCause::Command
-                    } else {
-                        SwitchCause::Status
-                    };
                     self.view.hold_max_ms = s.hold_max_ms;
                     if let Some(r) = s.reset {
                         self.view.last_reset = Some(r);
@@ -698,6 +710,11 @@ impl Worker {
                 })
             }
         }
+    }
+
+    /// How long `bytes` take on the wire (10 bits each at the configured baud).
+    fn wire_time(&self, bytes: usize) -> Duration {
+        Duration::from_secs_f64(bytes as f64 * 10.0 / f64::from(self.params.baud))
     }
 
     fn serve(&mut self, req: Request) {

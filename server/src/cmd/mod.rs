@@ -2,5 +2,6 @@
 
 pub mod bench;
 pub mod kin;
+pub mod magnet;
 pub mod trials;
 pub mod tune;
