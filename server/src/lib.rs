@@ -10,6 +10,7 @@ pub mod error;
 pub mod lab;
 pub mod records;
 pub mod serve;
+pub mod simlab;
 pub mod ws;
 
 use std::{

@@ -57,8 +57,18 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     }
     let records = Arc::new(Records::open(&data_dir)?);
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
-    tracing::warn!(
-        "the simulated lab's closed loop is not available yet: state and commands answer 503"
+    let options = crate::LabOptions {
+        state_hz: cfg.server.state_hz,
+        ws_send_timeout: std::time::Duration::from_millis(cfg.server.ws_send_timeout_ms),
+        ..crate::LabOptions::default()
+    };
+    let seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(1, |d| d.as_secs());
+    let (lab, sim) =
+        crate::simlab::start_simulated(scenario, Some(Arc::clone(&records)), options, seed)?;
+    tracing::info!(
+        "simulated lab running (simulated pendulum, camera model, robot over the FRI codec)"
     );
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -71,10 +81,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         AppState::new(web_dir)
             .with_token(token)
             .with_records(records)
+            .with_lab(Arc::clone(&lab))
             .with_body_limit(cfg.server.body_limit_bytes)
             .with_cors_origins(cfg.server.cors_origins.clone()),
     );
-    let lab = state.lab.clone();
     let result = runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind(bind)
             .await
@@ -86,9 +96,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .await
             .context("server failed")
     });
-    if let Some(lab) = lab {
-        lab.shutdown();
-    }
+    lab.shutdown();
+    drop(sim);
     result?;
     tracing::info!("shut down cleanly");
     Ok(())
