@@ -19,6 +19,7 @@
 //! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
 //! | [`timing`] | Hopf speed dynamics, competing neurons, timed straight-line motion (eqs. 20-21) |
 //! | [`tuning`] | EKF noise estimated from recordings (maximum likelihood), the paper's Fig. 4 |
+//! | [`vision`] | ball detection (OpenCV), camera sources, calibration, the vision thread |
 
 pub mod bridge;
 pub mod control;
@@ -32,3 +33,4 @@ pub mod sim;
 pub mod timing;
 pub mod trajectory;
 pub mod tuning;
+pub mod vision;

@@ -1,0 +1,732 @@
+//! The simulated camera: the true ball rendered through a pinhole camera onto a
+//! textured, cluttered lab background, with lighting variation, motion blur over
+//! the exposure, pixel noise, dropped frames and latency.
+//!
+//! Speed: the background (texture and clutter) is rendered once, and a few
+//! full-frame lighting variants with static pixel noise are prepared from it. Each
+//! frame picks a variant and redraws only the ball's region (ball, blur, shading,
+//! fresh noise) in place; the region is restored before the next frame.
+
+use nalgebra::{Rotation3, Vector3};
+use opencv::{
+    core::{self, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Point, Rect, Scalar},
+    imgproc,
+};
+use rand::{Rng, RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::{
+    CameraIntrinsics, CameraPose, Detector, DetectorParams, Measurement, SwingPlaneCalibration,
+    VisionError,
+};
+use crate::params::{CameraParams, ParamError, VisionMode, check};
+
+/// The ball's true state in the robot base frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BallState {
+    /// Ball centre, metres.
+    pub centre_m: Vector3<f64>,
+    /// Ball velocity, m/s (the ball moves linearly over the short exposure).
+    pub velocity_mps: Vector3<f64>,
+}
+
+/// The simulated camera's own settings (the `[camera]` section of the scenario
+/// gives frame rate, size, noise, drops, latency and the vision mode).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimCameraParams {
+    /// Horizontal field of view, degrees (Logitech C920: about 70).
+    pub hfov_deg: f64,
+    /// Where the camera stands, robot base frame.
+    pub pose: CameraPose,
+    /// Exposure time, milliseconds (the ball is smeared over it).
+    pub exposure_ms: f64,
+    /// Standard deviation of the capture -> available latency around `camera.latency_ms`, ms.
+    pub latency_jitter_ms: f64,
+    /// Ball colour under full light, RGB 0..255 (optic yellow).
+    pub ball_rgb: [f64; 3],
+    /// Number of clutter objects drawn on the background.
+    pub clutter_count: u32,
+    /// Relative lighting change between frames and across the image, 0..0.5.
+    pub lighting_variation: f64,
+    /// Number of pre-rendered lighting variants (each a full frame of static noise).
+    pub lighting_variants: u32,
+    /// In `model` mode: standard deviation of the measured centre, pixels.
+    pub model_noise_px: f64,
+    /// Seed of the background (texture and clutter).
+    pub scene_seed: u64,
+}
+
+impl Default for SimCameraParams {
+    fn default() -> Self {
+        Self {
+            hfov_deg: 70.0,
+            pose: CameraPose::default(),
+            exposure_ms: 6.0,
+            latency_jitter_ms: 1.0,
+            ball_rgb: [205.0, 235.0, 60.0],
+            clutter_count: 40,
+            lighting_variation: 0.1,
+            lighting_variants: 4,
+            model_noise_px: 0.3,
+            scene_seed: 7,
+        }
+    }
+}
+
+impl SimCameraParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), ParamError> {
+        check::within("sim_camera.hfov_deg", self.hfov_deg, 10.0, 150.0)?;
+        self.pose.validate("sim_camera.pose")?;
+        check::within("sim_camera.exposure_ms", self.exposure_ms, 0.0, 100.0)?;
+        check::within(
+            "sim_camera.latency_jitter_ms",
+            self.latency_jitter_ms,
+            0.0,
+            100.0,
+        )?;
+        for (i, v) in self.ball_rgb.iter().enumerate() {
+            check::within(&format!("sim_camera.ball_rgb[{i}]"), *v, 0.0, 255.0)?;
+        }
+        check::within_u32("sim_camera.clutter_count", self.clutter_count, 0, 1000)?;
+        check::within(
+            "sim_camera.lighting_variation",
+            self.lighting_variation,
+            0.0,
+            0.5,
+        )?;
+        check::within_u32(
+            "sim_camera.lighting_variants",
+            self.lighting_variants,
+            1,
+            16,
+        )?;
+        check::within("sim_camera.model_noise_px", self.model_noise_px, 0.0, 50.0)
+    }
+}
+
+/// Lighting of one variant: gain * (1 + gx (x/W - 1/2) + gy (y/H - 1/2)).
+#[derive(Debug, Clone, Copy)]
+struct Light {
+    gain: f64,
+    gx: f64,
+    gy: f64,
+}
+
+/// A ball counts as visible when this many pixels of background surround it
+/// inside the frame (a ball touching the frame's edge may be cut off, and is not
+/// reported).
+pub const VISIBLE_MARGIN_PX: f64 = 2.0;
+
+const NOISE_TABLE: usize = 1 << 16;
+
+/// The simulated camera (see the module docs).
+pub struct SimCamera {
+    camera: CameraParams,
+    params: SimCameraParams,
+    intrinsics: CameraIntrinsics,
+    camera_from_base: Rotation3<f64>,
+    position: Vector3<f64>,
+    ball_radius_m: f64,
+    width: i32,
+    height: i32,
+    background: Vec<u8>,
+    variants: Vec<Mat>,
+    lights: Vec<Light>,
+    noise: Vec<f32>,
+    rng: ChaCha8Rng,
+    dirty: Option<(usize, Rect)>,
+    backup: Vec<u8>,
+    current: usize,
+}
+
+impl std::fmt::Debug for SimCamera {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimCamera")
+            .field("camera", &self.camera)
+            .field("params", &self.params)
+            .finish_non_exhaustive()
+    }
+}
+
+/// The ball as the camera sees it: centre and radius in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BallImage {
+    /// Centre column, pixels.
+    pub x_px: f64,
+    /// Centre row, pixels.
+    pub y_px: f64,
+    /// Radius, pixels.
+    pub r_px: f64,
+}
+
+impl SimCamera {
+    /// Builds the camera and renders its background. `seed` drives the per-frame
+    /// randomness (noise, lighting, drops); the background comes from
+    /// `params.scene_seed`.
+    pub fn new(
+        camera: &CameraParams,
+        params: &SimCameraParams,
+        ball_radius_m: f64,
+        seed: u64,
+    ) -> Result<Self, VisionError> {
+        camera.validate()?;
+        params.validate()?;
+        check::within("pendulum.ball_radius_m", ball_radius_m, 0.005, 0.2)?;
+        super::limit_opencv_threads()?;
+        let (w, h) = (camera.width_px as i32, camera.height_px as i32);
+        let intrinsics =
+            CameraIntrinsics::from_hfov(camera.width_px, camera.height_px, params.hfov_deg);
+        let mut scene = ChaCha8Rng::seed_from_u64(params.scene_seed);
+        let noise = noise_table(&mut scene);
+        let mut bg = Mat::new_rows_cols_with_default(h, w, core::CV_8UC3, Scalar::all(0.0))?;
+        paint_texture(bg.data_bytes_mut()?, w as usize, h as usize, &mut scene);
+        draw_clutter(&mut bg, params, &mut scene)?;
+        let background = bg.data_bytes()?.to_vec();
+        let mut lights = Vec::new();
+        let mut variants = Vec::new();
+        let lv = params.lighting_variation;
+        for k in 0..params.lighting_variants {
+            let light = if k == 0 {
+                Light {
+                    gain: 1.0,
+                    gx: 0.0,
+                    gy: 0.0,
+                }
+            } else {
+                Light {
+                    gain: 1.0 + lv * scene.random_range(-1.0..=1.0),
+                    gx: lv * scene.random_range(-1.0..=1.0),
+                    gy: lv * scene.random_range(-1.0..=1.0),
+                }
+            };
+            let mut m = bg.try_clone()?;
+            light_and_noise(
+                m.data_bytes_mut()?,
+                &background,
+                w as usize,
+                h as usize,
+                light,
+                camera.image_noise,
+                &noise,
+                &mut scene,
+            );
+            lights.push(light);
+            variants.push(m);
+        }
+        Ok(Self {
+            camera: camera.clone(),
+            params: params.clone(),
+            intrinsics,
+            camera_from_base: params.pose.base_from_camera().inverse(),
+            position: params.pose.position(),
+            ball_radius_m,
+            width: w,
+            height: h,
+            background,
+            variants,
+            lights,
+            noise,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            dirty: None,
+            backup: Vec::new(),
+            current: 0,
+        })
+    }
+
+    /// Restarts the per-frame randomness (the background is kept).
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
+    /// The intrinsics the camera renders with.
+    pub fn intrinsics(&self) -> &CameraIntrinsics {
+        &self.intrinsics
+    }
+
+    /// The camera's settings.
+    pub fn params(&self) -> &SimCameraParams {
+        &self.params
+    }
+
+    /// The scenario's camera section.
+    pub fn camera_params(&self) -> &CameraParams {
+        &self.camera
+    }
+
+    /// The exact calibration of this camera for a ball resting at `rest_b`.
+    pub fn true_calibration(&self, rest_b: &Vector3<f64>) -> SwingPlaneCalibration {
+        SwingPlaneCalibration::from_pose(
+            self.intrinsics,
+            &self.params.pose,
+            rest_b,
+            self.ball_radius_m,
+        )
+    }
+
+    /// Where the ball centre at `centre_b` (base frame) appears; `None` behind the camera.
+    pub fn project(&self, centre_b: &Vector3<f64>) -> Option<BallImage> {
+        let p_c = self.camera_from_base * (centre_b - self.position);
+        let uv = self.intrinsics.project(&p_c)?;
+        Some(BallImage {
+            x_px: uv.x,
+            y_px: uv.y,
+            r_px: 0.5 * (self.intrinsics.fx_px + self.intrinsics.fy_px) * self.ball_radius_m
+                / p_c.z,
+        })
+    }
+
+    /// Whether the whole ball is inside the image, with a ring of at least
+    /// [`VISIBLE_MARGIN_PX`] pixels of background around it.
+    pub fn fully_visible(&self, centre_b: &Vector3<f64>) -> bool {
+        let m = VISIBLE_MARGIN_PX;
+        self.project(centre_b).is_some_and(|b| {
+            b.x_px - b.r_px >= m
+                && b.y_px - b.r_px >= m
+                && b.x_px + b.r_px <= f64::from(self.width) - 1.0 - m
+                && b.y_px + b.r_px <= f64::from(self.height) - 1.0 - m
+        })
+    }
+
+    /// Draws whether the next frame is lost (`camera.drop_rate`).
+    pub fn next_dropped(&mut self) -> bool {
+        self.rng.random::<f64>() < self.camera.drop_rate
+    }
+
+    /// Capture -> available delay of the next frame, seconds.
+    pub fn next_latency_s(&mut self) -> f64 {
+        let j = self.params.latency_jitter_ms * gauss(&mut self.rng);
+        (self.camera.latency_ms + j).max(0.0) * 1e-3
+    }
+
+    /// A noisy projection of the ball, without an image (`vision = "model"`);
+    /// `None` when the ball is not fully visible.
+    pub fn model_observation(&mut self, ball: &BallState) -> Option<BallImage> {
+        if !self.fully_visible(&ball.centre_m) {
+            return None;
+        }
+        let b = self.project(&ball.centre_m)?;
+        let s = self.params.model_noise_px;
+        Some(BallImage {
+            x_px: b.x_px + s * gauss(&mut self.rng),
+            y_px: b.y_px + s * gauss(&mut self.rng),
+            r_px: b.r_px + 0.5 * s * gauss(&mut self.rng),
+        })
+    }
+
+    /// Renders the frame taken with the ball in `ball` at the middle of the
+    /// exposure (`None`: no ball in view). The returned image stays valid until
+    /// the next call.
+    pub fn render(&mut self, ball: Option<&BallState>) -> Result<&Mat, VisionError> {
+        // Undo the previous frame's ball.
+        if let Some((k, rect)) = self.dirty.take() {
+            let w = self.width as usize;
+            let data = self.variants[k].data_bytes_mut()?;
+            let rw = rect.width as usize * 3;
+            for (i, row) in (rect.y..rect.y + rect.height).enumerate() {
+                let start = (row as usize * w + rect.x as usize) * 3;
+                data[start..start + rw].copy_from_slice(&self.backup[i * rw..(i + 1) * rw]);
+            }
+        }
+        let k = self.rng.random_range(0..self.variants.len());
+        self.current = k;
+        if let Some(ball) = ball {
+            self.draw_ball(k, ball)?;
+        }
+        Ok(&self.variants[k])
+    }
+
+    /// The last rendered image.
+    pub fn image(&self) -> &Mat {
+        &self.variants[self.current]
+    }
+
+    fn draw_ball(&mut self, k: usize, ball: &BallState) -> Result<(), VisionError> {
+        // Sub-samples along the exposure, each projected with perspective.
+        let t_exp = self.params.exposure_ms * 1e-3;
+        let start = ball.centre_m - ball.velocity_mps * (0.5 * t_exp);
+        let end = ball.centre_m + ball.velocity_mps * (0.5 * t_exp);
+        let (Some(b0), Some(b1)) = (self.project(&start), self.project(&end)) else {
+            return Ok(());
+        };
+        let blur_px = (b1.x_px - b0.x_px).hypot(b1.y_px - b0.y_px);
+        let n = ((blur_px / 0.75).ceil() as usize + 1).clamp(1, 32);
+        let mut subs = [(0.0f64, 0.0f64, 0.0f64); 32];
+        let mut x_lo = f64::INFINITY;
+        let mut x_hi = f64::NEG_INFINITY;
+        let mut y_lo = f64::INFINITY;
+        let mut y_hi = f64::NEG_INFINITY;
+        for (i, s) in subs.iter_mut().take(n).enumerate() {
+            let f = if n == 1 {
+                0.5
+            } else {
+                i as f64 / (n - 1) as f64
+            };
+            let Some(b) = self.project(&(start + (end - start) * f)) else {
+                return Ok(());
+            };
+            *s = (b.x_px, b.y_px, b.r_px);
+            x_lo = x_lo.min(b.x_px - b.r_px);
+            x_hi = x_hi.max(b.x_px + b.r_px);
+            y_lo = y_lo.min(b.y_px - b.r_px);
+            y_hi = y_hi.max(b.y_px + b.r_px);
+        }
+        let x0 = ((x_lo - 2.0).floor() as i32).clamp(0, self.width);
+        let x1 = ((x_hi + 2.0).ceil() as i32 + 1).clamp(0, self.width);
+        let y0 = ((y_lo - 2.0).floor() as i32).clamp(0, self.height);
+        let y1 = ((y_hi + 2.0).ceil() as i32 + 1).clamp(0, self.height);
+        if x1 <= x0 || y1 <= y0 {
+            return Ok(());
+        }
+        let rect = Rect::new(x0, y0, x1 - x0, y1 - y0);
+        let w = self.width as usize;
+        let (wf, hf) = (f64::from(self.width), f64::from(self.height));
+        let light = self.lights[k];
+        let sigma = self.camera.image_noise as f32;
+        let colour = [
+            self.params.ball_rgb[2],
+            self.params.ball_rgb[1],
+            self.params.ball_rgb[0],
+        ];
+        let inv_n = 1.0 / n as f64;
+        let rw = rect.width as usize * 3;
+        self.backup.clear();
+        let data = self.variants[k].data_bytes_mut()?;
+        for y in y0..y1 {
+            let row_start = (y as usize * w + x0 as usize) * 3;
+            self.backup
+                .extend_from_slice(&data[row_start..row_start + rw]);
+            let mut off = self.rng.random_range(0..NOISE_TABLE - rw);
+            for x in x0..x1 {
+                let (px, py) = (f64::from(x), f64::from(y));
+                let mut cover = 0.0;
+                let mut shade = 0.0;
+                for &(u, v, r) in &subs[..n] {
+                    let (dx, dy) = (px - u, py - v);
+                    let d = dx.hypot(dy);
+                    let c = (r - d + 0.5).clamp(0.0, 1.0);
+                    if c > 0.0 {
+                        // Lambertian sphere lit from above and in front.
+                        let q = ((dx * dx + dy * dy) / (r * r)).min(1.0);
+                        let nz = (1.0 - q).sqrt();
+                        let lambert = (-0.4 * dy / r + 0.9165 * nz).max(0.0);
+                        cover += c;
+                        shade += c * (0.55 + 0.45 * lambert);
+                    }
+                }
+                cover *= inv_n;
+                shade *= inv_n;
+                let g =
+                    light.gain * (1.0 + light.gx * (px / wf - 0.5) + light.gy * (py / hf - 0.5));
+                let i = (y as usize * w + x as usize) * 3;
+                for ch in 0..3 {
+                    let bgv = f64::from(self.background[i + ch]);
+                    let val = g * (bgv * (1.0 - cover) + colour[ch] * shade)
+                        + f64::from(sigma * self.noise[off]);
+                    off += 1;
+                    data[i + ch] = val.round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        self.dirty = Some((k, rect));
+        Ok(())
+    }
+}
+
+/// Approximately standard normal: the sum of 12 uniforms minus 6 (Irwin-Hall).
+fn gauss(rng: &mut impl Rng) -> f64 {
+    let mut s = 0.0;
+    for _ in 0..12 {
+        s += rng.random::<f64>();
+    }
+    s - 6.0
+}
+
+fn noise_table(rng: &mut impl Rng) -> Vec<f32> {
+    (0..NOISE_TABLE).map(|_| gauss(rng) as f32).collect()
+}
+
+/// A smooth colour field (bilinear over a coarse random grid) with fine texture
+/// and wall-panel stripes, in muted colours.
+fn paint_texture(data: &mut [u8], w: usize, h: usize, rng: &mut impl Rng) {
+    const GX: usize = 17;
+    const GY: usize = 10;
+    let mut grid = [[0.0f64; 3]; GX * GY];
+    for c in &mut grid {
+        let base = rng.random_range(60.0..190.0);
+        for ch in c.iter_mut() {
+            *ch = base + rng.random_range(-25.0..25.0);
+        }
+    }
+    let stripe_period = rng.random_range(40.0..120.0);
+    let mut hash: u32 = rng.random();
+    for y in 0..h {
+        let gy = y as f64 / h as f64 * (GY - 1) as f64;
+        let (iy, fy) = ((gy as usize).min(GY - 2), gy.fract());
+        for x in 0..w {
+            let gx = x as f64 / w as f64 * (GX - 1) as f64;
+            let (ix, fx) = ((gx as usize).min(GX - 2), gx.fract());
+            let stripe = 8.0 * (x as f64 * std::f64::consts::TAU / stripe_period).sin();
+            hash ^= hash << 13;
+            hash ^= hash >> 17;
+            hash ^= hash << 5;
+            let grain = f64::from(hash & 31) - 15.5;
+            let i = (y * w + x) * 3;
+            for ch in 0..3 {
+                let a = grid[iy * GX + ix][ch] * (1.0 - fx) + grid[iy * GX + ix + 1][ch] * fx;
+                let b = grid[(iy + 1) * GX + ix][ch] * (1.0 - fx)
+                    + grid[(iy + 1) * GX + ix + 1][ch] * fx;
+                let v = a * (1.0 - fy) + b * fy + stripe + grain;
+                data[i + ch] = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+}
+
+/// BGR of a hue (degrees), saturation and value (0..1).
+fn hsv_bgr(h_deg: f64, s: f64, v: f64) -> Scalar {
+    let c = v * s;
+    let hp = (h_deg.rem_euclid(360.0)) / 60.0;
+    let x = c * (1.0 - (hp % 2.0 - 1.0).abs());
+    let (r, g, b) = match hp as u32 {
+        0 => (c, x, 0.0),
+        1 => (x, c, 0.0),
+        2 => (0.0, c, x),
+        3 => (0.0, x, c),
+        4 => (x, 0.0, c),
+        _ => (c, 0.0, x),
+    };
+    let m = v - c;
+    Scalar::new((b + m) * 255.0, (g + m) * 255.0, (r + m) * 255.0, 0.0)
+}
+
+/// A colour that is not the ball's: another hue, or washed out.
+fn other_colour(rng: &mut impl Rng) -> Scalar {
+    if rng.random_bool(0.3) {
+        let v = rng.random_range(0.1..1.0);
+        return hsv_bgr(rng.random_range(0.0..360.0), rng.random_range(0.0..0.2), v);
+    }
+    // Hues well away from the ball's 48..100 degrees.
+    let h = if rng.random_bool(0.35) {
+        rng.random_range(0.0..32.0)
+    } else {
+        rng.random_range(125.0..350.0)
+    };
+    hsv_bgr(h, rng.random_range(0.4..1.0), rng.random_range(0.3..1.0))
+}
+
+/// Clutter: boxes, cables and round things in other colours anywhere, and
+/// ball-coloured things that are not balls (bars, a square, a ring, a cable) in
+/// the top and bottom bands of the image, away from where the ball swings.
+fn draw_clutter(bg: &mut Mat, p: &SimCameraParams, rng: &mut impl Rng) -> Result<(), VisionError> {
+    let (w, h) = (bg.cols(), bg.rows());
+    let aa = imgproc::LINE_AA;
+    for _ in 0..p.clutter_count {
+        let c = other_colour(rng);
+        let (x, y) = (rng.random_range(0..w), rng.random_range(0..h));
+        match rng.random_range(0..4) {
+            0 => {
+                let rect = Rect::new(x, y, rng.random_range(15..200), rng.random_range(15..160));
+                imgproc::rectangle(bg, rect, c, imgproc::FILLED, aa, 0)?;
+            }
+            1 => {
+                let p2 = Point::new(
+                    x + rng.random_range(-300..300),
+                    y + rng.random_range(-200..200),
+                );
+                imgproc::line(bg, Point::new(x, y), p2, c, rng.random_range(2..7), aa, 0)?;
+            }
+            _ => {
+                // Ball-sized round things in other colours.
+                imgproc::circle(
+                    bg,
+                    Point::new(x, y),
+                    rng.random_range(8..45),
+                    c,
+                    imgproc::FILLED,
+                    aa,
+                    0,
+                )?;
+            }
+        }
+    }
+    // Ball-coloured decoys, in the top 20% and the bottom 12% of the image.
+    let ball = hsv_bgr(72.0, 0.75, 0.9);
+    if p.clutter_count > 0 {
+        let x = rng.random_range(0..(w - 200).max(1));
+        imgproc::rectangle(
+            bg,
+            Rect::new(x, band(rng, h), 160, 14),
+            ball,
+            imgproc::FILLED,
+            aa,
+            0,
+        )?;
+        let x = rng.random_range(0..(w - 60).max(1));
+        imgproc::rectangle(
+            bg,
+            Rect::new(x, band(rng, h), 36, 36),
+            ball,
+            imgproc::FILLED,
+            aa,
+            0,
+        )?;
+        let x = rng.random_range(40..(w - 40).max(41));
+        imgproc::circle(bg, Point::new(x, band(rng, h) + 20), 20, ball, 4, aa, 0)?;
+        let x = rng.random_range(0..(w - 300).max(1));
+        let y = band(rng, h);
+        imgproc::line(
+            bg,
+            Point::new(x, y),
+            Point::new(x + 250, y + 8),
+            ball,
+            5,
+            aa,
+            0,
+        )?;
+    }
+    Ok(())
+}
+
+/// A row in the top 20% or the bottom 12% of an image of height `h`.
+fn band(rng: &mut impl Rng, h: i32) -> i32 {
+    if rng.random_bool(0.5) {
+        rng.random_range(5..(h / 5 - 50).max(6))
+    } else {
+        rng.random_range((h * 88 / 100)..(h - 20).max(h * 88 / 100 + 1))
+    }
+}
+
+/// `out = background * light + sigma * noise`, rows drawn from the noise table at
+/// random offsets.
+#[allow(clippy::too_many_arguments)]
+fn light_and_noise(
+    out: &mut [u8],
+    bg: &[u8],
+    w: usize,
+    h: usize,
+    light: Light,
+    sigma: f64,
+    noise: &[f32],
+    rng: &mut impl Rng,
+) {
+    let row = w * 3;
+    for y in 0..h {
+        let mut off = rng.random_range(0..noise.len() - row);
+        let gy = light.gy * (y as f64 / h as f64 - 0.5);
+        for x in 0..w {
+            let g = light.gain * (1.0 + light.gx * (x as f64 / w as f64 - 0.5) + gy);
+            let i = y * row + x * 3;
+            for ch in 0..3 {
+                let v = f64::from(bg[i + ch]) * g + sigma * f64::from(noise[off]);
+                off += 1;
+                out[i + ch] = v.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    }
+}
+
+/// The simulated lab's camera and vision in virtual time: capture, drop, render,
+/// detect and convert, or the fast noisy projection in `model` mode.
+#[derive(Debug)]
+pub struct SimVision {
+    camera: SimCamera,
+    detector: Detector,
+    calibration: SwingPlaneCalibration,
+    mode: VisionMode,
+    frame: u64,
+}
+
+impl SimVision {
+    /// The camera of `camera` + `sim`, the detector, and the calibration the
+    /// system believes in (from [`SwingPlaneCalibration::from_rest_observation`] or
+    /// [`SimCamera::true_calibration`]).
+    pub fn new(
+        camera: SimCamera,
+        detector: DetectorParams,
+        calibration: SwingPlaneCalibration,
+    ) -> Result<Self, VisionError> {
+        let mode = camera.camera.vision;
+        Ok(Self {
+            camera,
+            detector: Detector::new(detector)?,
+            calibration,
+            mode,
+            frame: 0,
+        })
+    }
+
+    /// Seconds between frames.
+    pub fn frame_period_s(&self) -> f64 {
+        1.0 / self.camera.camera.fps
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> &SimCamera {
+        &self.camera
+    }
+
+    /// Replaces the calibration (e.g. for a new rest position) and forgets the track.
+    pub fn set_calibration(&mut self, calibration: SwingPlaneCalibration) {
+        self.calibration = calibration;
+        self.detector.reset();
+    }
+
+    /// Restarts the per-frame randomness and the frame count; forgets the track.
+    pub fn reset(&mut self, seed: u64) {
+        self.camera.reseed(seed);
+        self.detector.reset();
+        self.frame = 0;
+    }
+
+    /// One frame taken at `t_capture_s` (middle of the exposure) of the ball in
+    /// `ball` (`None`: not in view). `Ok(None)` when the frame is lost; otherwise
+    /// the measurement (found or not) with its availability time.
+    pub fn capture(
+        &mut self,
+        t_capture_s: f64,
+        ball: Option<&BallState>,
+    ) -> Result<Option<Measurement>, VisionError> {
+        let frame = self.frame;
+        self.frame += 1;
+        if self.camera.next_dropped() {
+            return Ok(None);
+        }
+        let t_available_s = t_capture_s + self.camera.next_latency_s();
+        let m = match self.mode {
+            VisionMode::Full => {
+                let image = self.camera.render(ball)?;
+                match self.detector.detect(image, t_capture_s)? {
+                    Some(det) => Measurement::from_detection(
+                        frame,
+                        t_capture_s,
+                        t_available_s,
+                        &det,
+                        &self.calibration,
+                    ),
+                    None => Measurement::missing(frame, t_capture_s, t_available_s),
+                }
+            }
+            VisionMode::Model => match ball.and_then(|b| self.camera.model_observation(b)) {
+                Some(b) => Measurement::from_detection(
+                    frame,
+                    t_capture_s,
+                    t_available_s,
+                    &super::Detection {
+                        x_px: b.x_px,
+                        y_px: b.y_px,
+                        r_px: b.r_px,
+                        confidence: 1.0,
+                        elongation: 1.0,
+                        tracked: false,
+                    },
+                    &self.calibration,
+                ),
+                None => Measurement::missing(frame, t_capture_s, t_available_s),
+            },
+        };
+        Ok(Some(m))
+    }
+}

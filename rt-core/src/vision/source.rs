@@ -1,0 +1,416 @@
+//! Camera sources behind one trait, and the MJPG recorder.
+//!
+//! Every source timestamps its frames at capture on a [`Clock`] (seconds since
+//! the clock's epoch), so the filter can compensate the delay.
+
+use std::{
+    path::{Path, PathBuf},
+    time::{Duration, Instant},
+};
+
+use opencv::{
+    core::{Mat, MatTraitConst, Size},
+    prelude::{VideoCaptureTrait, VideoCaptureTraitConst, VideoWriterTrait, VideoWriterTraitConst},
+    videoio::{self, VideoCapture, VideoWriter},
+};
+
+use super::{BallState, SimCamera, VisionError};
+use crate::params::{CameraParams, check};
+
+/// A monotonic clock: seconds since an epoch shared by the threads that compare times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Clock {
+    epoch: Instant,
+}
+
+impl Clock {
+    /// A clock whose zero is `epoch`.
+    pub const fn new(epoch: Instant) -> Self {
+        Self { epoch }
+    }
+
+    /// A clock whose zero is now.
+    pub fn start() -> Self {
+        Self::new(Instant::now())
+    }
+
+    /// Seconds since the epoch.
+    pub fn now_s(&self) -> f64 {
+        self.epoch.elapsed().as_secs_f64()
+    }
+
+    /// Sleeps until the clock reads `t_s` (returns at once if it has passed).
+    pub fn sleep_until(&self, t_s: f64) {
+        let dt = t_s - self.now_s();
+        if dt > 0.0 && dt.is_finite() {
+            std::thread::sleep(Duration::from_secs_f64(dt.min(3600.0)));
+        }
+    }
+}
+
+/// One captured image.
+#[derive(Debug)]
+pub struct Frame<'a> {
+    /// Frame number from the source, from 0 (lost frames leave gaps).
+    pub index: u64,
+    /// When the image was taken (middle of the exposure), seconds on the source's clock.
+    pub t_capture_s: f64,
+    /// The 8-bit BGR image; valid until the next call to the source.
+    pub image: &'a Mat,
+}
+
+/// Anything that delivers timestamped frames.
+pub trait FrameSource: Send {
+    /// Waits for the next frame; `Ok(None)` at the end of the stream.
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError>;
+
+    /// The nominal frame rate, frames per second.
+    fn fps(&self) -> f64;
+}
+
+/// A V4L2 webcam: `[camera]` gives resolution and frame rate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WebcamParams {
+    /// Device path, e.g. `/dev/video0`.
+    pub device: PathBuf,
+    /// Resolution, frame rate and the exposure -> delivery latency (`latency_ms`).
+    pub camera: CameraParams,
+}
+
+/// A V4L2 webcam through OpenCV: one-frame buffer, frames stamped at capture.
+pub struct WebcamSource {
+    cap: VideoCapture,
+    image: Mat,
+    clock: Clock,
+    latency_s: f64,
+    fps: f64,
+    index: u64,
+}
+
+impl std::fmt::Debug for WebcamSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WebcamSource")
+            .field("fps", &self.fps)
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl WebcamSource {
+    /// Opens the device and asks for the resolution, frame rate and a buffer of 1.
+    pub fn open(params: &WebcamParams, clock: Clock) -> Result<Self, VisionError> {
+        params.camera.validate()?;
+        let what = params.device.display().to_string();
+        let open_err = |reason: String| VisionError::Open {
+            what: what.clone(),
+            reason,
+        };
+        if !params.device.exists() {
+            return Err(open_err("no such device".into()));
+        }
+        let mut cap = VideoCapture::from_file(&params.device, videoio::CAP_V4L2)
+            .map_err(|e| open_err(e.message))?;
+        if !cap.is_opened()? {
+            return Err(open_err("OpenCV could not open it as a V4L2 camera".into()));
+        }
+        let c = &params.camera;
+        let mjpg = VideoWriter::fourcc('M', 'J', 'P', 'G')?;
+        cap.set(videoio::CAP_PROP_FOURCC, f64::from(mjpg))?;
+        cap.set(videoio::CAP_PROP_FRAME_WIDTH, f64::from(c.width_px))?;
+        cap.set(videoio::CAP_PROP_FRAME_HEIGHT, f64::from(c.height_px))?;
+        cap.set(videoio::CAP_PROP_FPS, c.fps)?;
+        // V4L2 keeps 4 frames by default: old frames would add latency.
+        cap.set(videoio::CAP_PROP_BUFFERSIZE, 1.0)?;
+        let fps = cap.get(videoio::CAP_PROP_FPS)?;
+        Ok(Self {
+            cap,
+            image: Mat::default(),
+            clock,
+            latency_s: c.latency_ms * 1e-3,
+            fps: if fps.is_finite() && fps > 0.0 {
+                fps
+            } else {
+                c.fps
+            },
+            index: 0,
+        })
+    }
+}
+
+impl FrameSource for WebcamSource {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        if !self.cap.grab()? {
+            return Err(VisionError::Open {
+                what: "webcam".into(),
+                reason: "the camera stopped delivering frames".into(),
+            });
+        }
+        // Stamp at delivery, minus the camera's exposure -> delivery latency.
+        let t_capture_s = self.clock.now_s() - self.latency_s;
+        if !self.cap.retrieve(&mut self.image, 0)? || self.image.empty() {
+            return Err(VisionError::BadFrame(
+                "the webcam returned an empty image".into(),
+            ));
+        }
+        let index = self.index;
+        self.index += 1;
+        Ok(Some(Frame {
+            index,
+            t_capture_s,
+            image: &self.image,
+        }))
+    }
+
+    fn fps(&self) -> f64 {
+        self.fps
+    }
+}
+
+/// A recorded video, optionally paced at its frame rate and looped.
+pub struct VideoFileSource {
+    cap: VideoCapture,
+    image: Mat,
+    path: PathBuf,
+    clock: Option<Clock>,
+    start_s: f64,
+    looping: bool,
+    fps: f64,
+    index: u64,
+    file_index: u64,
+}
+
+impl std::fmt::Debug for VideoFileSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VideoFileSource")
+            .field("path", &self.path)
+            .field("fps", &self.fps)
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl VideoFileSource {
+    /// Opens a video file. With a clock, frames are delivered at the file's frame
+    /// rate and stamped on the clock; without, as fast as they decode, stamped
+    /// `index / fps` (the file's own time).
+    pub fn open(path: &Path, pace: Option<Clock>, looping: bool) -> Result<Self, VisionError> {
+        let what = path.display().to_string();
+        if !path.is_file() {
+            return Err(VisionError::Open {
+                what,
+                reason: "no such file".into(),
+            });
+        }
+        let cap =
+            VideoCapture::from_file(path, videoio::CAP_FFMPEG).map_err(|e| VisionError::Open {
+                what: what.clone(),
+                reason: e.message,
+            })?;
+        if !cap.is_opened()? {
+            return Err(VisionError::Open {
+                what,
+                reason: "not a video OpenCV can decode".into(),
+            });
+        }
+        let fps = cap.get(videoio::CAP_PROP_FPS)?;
+        let fps = if fps.is_finite() && (0.1..=1000.0).contains(&fps) {
+            fps
+        } else {
+            30.0
+        };
+        Ok(Self {
+            cap,
+            image: Mat::default(),
+            path: path.to_owned(),
+            start_s: pace.map_or(0.0, |c| c.now_s()),
+            clock: pace,
+            looping,
+            fps,
+            index: 0,
+            file_index: 0,
+        })
+    }
+
+    /// Number of frames the container declares (may be approximate or 0).
+    pub fn frame_count(&self) -> u64 {
+        self.cap
+            .get(videoio::CAP_PROP_FRAME_COUNT)
+            .ok()
+            .filter(|n| n.is_finite() && *n > 0.0)
+            .map_or(0, |n| n as u64)
+    }
+}
+
+impl FrameSource for VideoFileSource {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        let mut ok = self.cap.read(&mut self.image)? && !self.image.empty();
+        if !ok && self.looping && self.file_index > 0 {
+            self.cap.set(videoio::CAP_PROP_POS_FRAMES, 0.0)?;
+            self.file_index = 0;
+            ok = self.cap.read(&mut self.image)? && !self.image.empty();
+        }
+        if !ok {
+            return Ok(None);
+        }
+        let index = self.index;
+        self.index += 1;
+        self.file_index += 1;
+        let t_file = index as f64 / self.fps;
+        let t_capture_s = match self.clock {
+            Some(clock) => {
+                let t = self.start_s + t_file;
+                clock.sleep_until(t);
+                t
+            }
+            None => t_file,
+        };
+        Ok(Some(Frame {
+            index,
+            t_capture_s,
+            image: &self.image,
+        }))
+    }
+
+    fn fps(&self) -> f64 {
+        self.fps
+    }
+}
+
+/// The simulated camera in real time: frames at the scenario's rate, each
+/// delivered after its latency, showing the ball that `truth` reports for the
+/// capture time (`None`: no ball in view). Lost frames are skipped.
+pub struct SimCameraSource<F> {
+    camera: SimCamera,
+    truth: F,
+    clock: Clock,
+    start_s: f64,
+    index: u64,
+}
+
+impl<F> std::fmt::Debug for SimCameraSource<F> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimCameraSource")
+            .field("camera", &self.camera)
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<F: FnMut(f64) -> Option<BallState> + Send> SimCameraSource<F> {
+    /// Starts the frame clock now.
+    pub fn new(camera: SimCamera, truth: F, clock: Clock) -> Self {
+        Self {
+            camera,
+            truth,
+            start_s: clock.now_s(),
+            clock,
+            index: 0,
+        }
+    }
+}
+
+impl<F: FnMut(f64) -> Option<BallState> + Send> FrameSource for SimCameraSource<F> {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        let period = 1.0 / self.camera.camera_params().fps;
+        loop {
+            let index = self.index;
+            self.index += 1;
+            let t_capture_s = self.start_s + index as f64 * period;
+            if self.camera.next_dropped() {
+                continue;
+            }
+            let latency = self.camera.next_latency_s();
+            let ball = (self.truth)(t_capture_s);
+            self.clock.sleep_until(t_capture_s + latency);
+            let image = self.camera.render(ball.as_ref())?;
+            return Ok(Some(Frame {
+                index,
+                t_capture_s,
+                image,
+            }));
+        }
+    }
+
+    fn fps(&self) -> f64 {
+        self.camera.camera_params().fps
+    }
+}
+
+/// Writes frames to an MJPG `.avi` file.
+pub struct Recorder {
+    writer: VideoWriter,
+    size: Size,
+    frames: u64,
+}
+
+impl std::fmt::Debug for Recorder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Recorder")
+            .field("size", &self.size)
+            .field("frames", &self.frames)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Recorder {
+    /// Creates (or replaces) `path` for `width_px` x `height_px` BGR frames at `fps`.
+    pub fn create(
+        path: &Path,
+        width_px: u32,
+        height_px: u32,
+        fps: f64,
+    ) -> Result<Self, VisionError> {
+        check::within("recorder.fps", fps, 0.1, 1000.0)?;
+        check::within_u32("recorder.width_px", width_px, 16, 7680)?;
+        check::within_u32("recorder.height_px", height_px, 16, 4320)?;
+        let size = Size::new(width_px as i32, height_px as i32);
+        let fourcc = VideoWriter::fourcc('M', 'J', 'P', 'G')?;
+        let what = path.display().to_string();
+        let writer =
+            VideoWriter::new_with_backend(path, videoio::CAP_FFMPEG, fourcc, fps, size, true)
+                .map_err(|e| VisionError::Open {
+                    what: what.clone(),
+                    reason: e.message,
+                })?;
+        // VideoWriter reports failure only through is_opened().
+        if !writer.is_opened()? {
+            return Err(VisionError::Open {
+                what,
+                reason: "cannot write an MJPG .avi there".into(),
+            });
+        }
+        Ok(Self {
+            writer,
+            size,
+            frames: 0,
+        })
+    }
+
+    /// Appends one frame of the recorder's size.
+    pub fn write(&mut self, image: &Mat) -> Result<(), VisionError> {
+        if image.size()? != self.size || image.typ() != opencv::core::CV_8UC3 {
+            return Err(VisionError::BadFrame(format!(
+                "the recorder takes {}x{} BGR frames, got {}x{} of type {}",
+                self.size.width,
+                self.size.height,
+                image.cols(),
+                image.rows(),
+                image.typ()
+            )));
+        }
+        self.writer.write(image)?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Frames written so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Finishes the file.
+    pub fn finish(mut self) -> Result<u64, VisionError> {
+        self.writer.release()?;
+        Ok(self.frames)
+    }
+}
