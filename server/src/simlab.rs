@@ -306,6 +306,8 @@ impl Runtime {
                         None,
                     )
                 }
+                // Held while the arm is still moving home: not yet.
+                Some(tr) if !tr.released => (Err(Refusal::NotArmed), None),
                 // Nothing held: switching off is harmless.
                 _ => (Ok(()), None),
             },
