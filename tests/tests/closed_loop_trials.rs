@@ -112,3 +112,13 @@ fn an_unreachable_distance_is_refused_with_its_reason() {
     assert!(why.contains("infeasible"), "{why}");
     assert!(rs[0].judgement.is_none());
 }
+
+#[test]
+fn a_trial_with_rendered_frames_and_the_detector_hits() {
+    let s = scenario("paper.toml");
+    assert_eq!(s.camera.vision, VisionMode::Full);
+    let mut lab = VirtualLab::new(&s, 11).unwrap();
+    assert_eq!(lab.vision_used(), "full");
+    let rs: Vec<_> = (0..2).map(|i| lab.run_trial(i)).collect();
+    assert!(rs.iter().all(|r| r.success), "{}", report(&rs));
+}

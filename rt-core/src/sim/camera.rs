@@ -65,6 +65,12 @@ impl ModelCamera {
         ));
     }
 
+    /// Advances the frame schedule without capturing (another camera took the frame).
+    pub fn skip(&mut self) {
+        self.next_capture_s += self.period_s;
+        self.frames += 1;
+    }
+
     /// Moves the measurements available by `t_s` into `out`.
     pub fn deliver(&mut self, t_s: f64, out: &mut Vec<Measurement>) {
         while let Some(&(avail, m)) = self.in_flight.front() {

@@ -10,6 +10,8 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
+use crate::params::VisionMode;
+use crate::vision::{BallState, DetectorParams, SimCamera, SimCameraParams, SimVision};
 use super::robot::VirtualRobot;
 use crate::control::judge::{PlannedMotion, TrialTrace, judge, pass_times};
 use crate::control::{
@@ -142,6 +144,8 @@ pub struct VirtualLab {
     seed: u64,
     trace: TrialTrace,
     passes: Vec<f64>,
+    vision: Option<SimVision>,
+    in_flight: std::collections::VecDeque<(f64, Measurement)>,
 }
 
 /// Joint angles of the simulated robot at power-on, degrees.
@@ -158,6 +162,28 @@ impl VirtualLab {
         let controller = Controller::new(scenario, period_s)?;
         let q0 = INITIAL_JOINTS_DEG.map(f64::to_radians);
         let robot = VirtualRobot::new(&scenario.robot, q0, seed);
+        // Full vision: frames rendered and run through the OpenCV detector.
+        let vision = if scenario.camera.vision == VisionMode::Full {
+            let cam = SimCamera::new(
+                &scenario.camera,
+                &SimCameraParams::default(),
+                scenario.pendulum.ball_radius_m,
+                seed,
+            )
+            .map_err(|e| LabError::Robot(format!("camera: {e}")))?;
+            let rest = nalgebra::Vector3::new(
+                scenario.task.distance_m.lo,
+                0.0,
+                scenario.task.intercept_height_m,
+            );
+            let cal = cam.true_calibration(&rest);
+            Some(
+                SimVision::new(cam, DetectorParams::default(), cal)
+                    .map_err(|e| LabError::Robot(format!("vision: {e}")))?,
+            )
+        } else {
+            None
+        };
         let mut lab = Self {
             scenario: scenario.clone(),
             robot,
@@ -170,6 +196,8 @@ impl VirtualLab {
             seed,
             trace: TrialTrace::with_capacity(20_000),
             passes: Vec::with_capacity(16),
+            vision,
+            in_flight: std::collections::VecDeque::with_capacity(64),
         };
         // A few messages so the controller knows where the arm is.
         for _ in 0..10 {
@@ -183,11 +211,10 @@ impl VirtualLab {
         &self.step.controller
     }
 
-    /// How this lab produces camera measurements: always the measurement model
-    /// (`"model"`) until the rendering + detector path is wired in; a scenario
-    /// asking for `vision = "full"` is run with the model and says so.
+    /// How this lab produces camera measurements: `"full"` (rendered frames
+    /// through the OpenCV detector) or `"model"` (the measurement model).
     pub fn vision_used(&self) -> &'static str {
-        "model"
+        if self.vision.is_some() { "full" } else { "model" }
     }
 
     /// The loop adapter (step timing, deadline misses).
@@ -323,6 +350,12 @@ impl VirtualLab {
                 .map_err(|e| e.to_string())?;
         let mut rng = ChaCha8Rng::seed_from_u64(draw.seed);
         let mut camera = ModelCamera::new(&self.scenario.camera, t0 + draw.camera_phase_s);
+        if let Some(v) = self.vision.as_mut() {
+            let cal = v.camera().true_calibration(&geometry.rest_position_m());
+            v.set_calibration(cal);
+            v.reset(draw.seed);
+        }
+        self.in_flight.clear();
         self.step
             .controller
             .arm(t0, plan)
@@ -337,10 +370,36 @@ impl VirtualLab {
                 let tc = camera.next_capture_s();
                 ball.advance_to(tc.max(ball.time_s()))
                     .map_err(|e| e.to_string())?;
-                camera.capture(ball.lateral_m(), &mut rng);
+                if let Some(v) = self.vision.as_mut() {
+                    camera.skip();
+                    let state = BallState {
+                        centre_m: ball.ball_position_m(),
+                        velocity_mps: ball.ball_velocity_mps(),
+                    };
+                    match v.capture(tc, Some(&state)) {
+                        Ok(Some(m)) if m.found => self.in_flight.push_back((
+                            m.t_available_s,
+                            Measurement {
+                                t_capture_s: m.t_capture_s,
+                                lateral_m: m.lateral_m,
+                            },
+                        )),
+                        Ok(_) => {}
+                        Err(e) => return Err(format!("vision: {e}")),
+                    }
+                } else {
+                    camera.capture(ball.lateral_m(), &mut rng);
+                }
             }
             ball.advance_to(t_next).map_err(|e| e.to_string())?;
             camera.deliver(t_next, &mut self.step.inbox);
+            while let Some(&(avail, m)) = self.in_flight.front() {
+                if avail > t_next {
+                    break;
+                }
+                self.step.inbox.push(m);
+                self.in_flight.pop_front();
+            }
             self.tick();
             let t = self.t_s();
             let q = *self.robot.joints();
