@@ -10,8 +10,6 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
-use crate::params::VisionMode;
-use crate::vision::{BallState, DetectorParams, SimCamera, SimCameraParams, SimVision};
 use super::robot::VirtualRobot;
 use crate::control::judge::{PlannedMotion, TrialTrace, judge, pass_times};
 use crate::control::{
@@ -21,8 +19,10 @@ use crate::fri::codec::{CommandEncoder, Monitoring, MonitoringDecoder};
 use crate::fri::proto::SessionState;
 use crate::kinematics::iiwa7::JOINTS;
 use crate::params::Scenario;
+use crate::params::VisionMode;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use crate::trajectory::profile::ProfileKind;
+use crate::vision::{BallState, DetectorParams, SimCamera, SimCameraParams, SimVision};
 
 /// The control step as the FRI cycle calls it: the controller, the camera
 /// measurements delivered since the last message, and the cycle's timing.
@@ -214,7 +214,11 @@ impl VirtualLab {
     /// How this lab produces camera measurements: `"full"` (rendered frames
     /// through the OpenCV detector) or `"model"` (the measurement model).
     pub fn vision_used(&self) -> &'static str {
-        if self.vision.is_some() { "full" } else { "model" }
+        if self.vision.is_some() {
+            "full"
+        } else {
+            "model"
+        }
     }
 
     /// The loop adapter (step timing, deadline misses).
