@@ -14,12 +14,13 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
+.PHONY: eval help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
 	@echo "make test   install what is missing, then formatting, lints and every test"
 	@echo "make bench  criterion benches and 'isochron bench'"
+	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
 	@echo "make deps   install missing system and npm packages (idempotent)"
 
 ## deps: install only what is missing.
@@ -92,3 +93,8 @@ test: lint test-web test-rust
 
 bench: deps
 	$(CARGO) bench --workspace
+
+## eval: the evaluation report beside the paper's results (reports/eval/report.md).
+EVAL_N ?= 30
+eval: release
+	./target/release/isochron eval --out reports/eval --n $(EVAL_N) --seed 1

@@ -7,6 +7,7 @@ use rt_core::params::Scenario;
 use tracing_subscriber::EnvFilter;
 
 mod cmd;
+mod svg;
 
 #[derive(Debug, Parser)]
 #[command(name = "isochron", version = server::VERSION, about = "Timed interception of a swinging ball by a KUKA LBR iiwa 7")]
@@ -45,6 +46,8 @@ enum Command {
     Kin(cmd::kin::KinArgs),
     /// Switch the pendulum's magnet or ask its state (the Arduino firmware over serial); prints JSON.
     Magnet(cmd::magnet::MagnetArgs),
+    /// Run trials across distances and movement times and write a report beside the paper's results.
+    Eval(cmd::eval::EvalArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -100,6 +103,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Kin(args) => cmd::kin::run(args),
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
+        Command::Eval(args) => print_out(&cmd::eval::run(args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

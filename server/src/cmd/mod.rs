@@ -1,6 +1,7 @@
 //! The `isochron` subcommands, one file each.
 
 pub mod bench;
+pub mod eval;
 pub mod kin;
 pub mod magnet;
 pub mod trials;
