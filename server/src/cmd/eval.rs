@@ -74,6 +74,16 @@ fn num(v: &Value, path: &[&str]) -> f64 {
     cur.as_f64().unwrap_or(f64::NAN)
 }
 
+/// A per-trial value, flat (as `isochron trials --per-trial` writes it) or under `judgement`.
+fn field(v: &Value, key: &str) -> f64 {
+    let flat = num(v, &[key]);
+    if flat.is_finite() {
+        flat
+    } else {
+        num(v, &["judgement", key])
+    }
+}
+
 fn check_args(a: &EvalArgs) -> anyhow::Result<()> {
     if a.n == 0 || a.n > 10_000 {
         bail!("--n = {} is out of range: must be in [1, 10000]", a.n);
@@ -222,7 +232,7 @@ pub fn write_report(
         let ci = wilson_ci95(ok, n);
         let mut te: Vec<f64> = trials
             .iter()
-            .map(|v| num(v, &["judgement", "timing_error_ms"]))
+            .map(|v| field(v, "timing_error_ms"))
             .filter(|x| x.is_finite())
             .collect();
         te.sort_by(f64::total_cmp);
@@ -235,7 +245,7 @@ pub fn write_report(
         };
         let mt: Vec<f64> = trials
             .iter()
-            .map(|v| num(v, &["judgement", "movement_time_s"]))
+            .map(|v| field(v, "movement_time_s"))
             .filter(|x| x.is_finite())
             .collect();
         let mean = mt.iter().sum::<f64>() / mt.len().max(1) as f64;
@@ -259,7 +269,7 @@ pub fn write_report(
     // Per cell.
     let _ = writeln!(
         md,
-        "\n## By distance and movement time\n\n| movement time | distance band | trials | successes | rate | 95% CI | timing p95 (ms) | position p95 (mm) | failures (first reason) |\n|---|---|---|---|---|---|---|---|---|"
+        "\n## By distance and movement time\n\n| movement time | distance band | trials | successes | rate | 95% CI | timing p95 (ms) | position p95 (mm) | planned duration max (s) | failures (first reason) |\n|---|---|---|---|---|---|---|---|---|---|"
     );
     for c in cells {
         let n = c.trials.len();
@@ -274,9 +284,15 @@ pub fn write_report(
             .iter()
             .find_map(|v| v["failure"].as_str())
             .unwrap_or("");
+        let planned_max = c
+            .trials
+            .iter()
+            .map(|v| field(v, "planned_movement_time_s"))
+            .filter(|x| x.is_finite())
+            .fold(f64::NAN, f64::max);
         let _ = writeln!(
             md,
-            "| {} s | {:.2}..{:.2} m | {n} | {ok} | {} | {}..{} | {:.1} | {:.1} | {} |",
+            "| {} s | {:.2}..{:.2} m | {n} | {ok} | {} | {}..{} | {:.1} | {:.1} | {:.3} | {} |",
             c.movement_time_s,
             c.band_m.0,
             c.band_m.1,
@@ -285,9 +301,17 @@ pub fn write_report(
             pct(ci[1]),
             num(&c.summary, &["timing_error_ms", "p95"]),
             1e3 * num(&c.summary, &["position_error_m", "p95"]),
+            planned_max,
             reason.replace('|', "/")
         );
     }
+    let _ = writeln!(
+        md,
+        "\nWhere the asked movement time is not feasible within the joint limits (90% of the \
+         velocity limits, 5 deg position margin) the controller takes the shortest feasible \
+         duration and says so: the column *planned duration max* shows it. A trial the \
+         system refuses counts as a failure with its reason."
+    );
     // Figures.
     let mut figs: Vec<(&str, String, &str)> = Vec::new();
     let bars: Vec<Bar> = cells
@@ -322,7 +346,7 @@ pub fn write_report(
     let all_te: Vec<f64> = cells
         .iter()
         .flat_map(|c| c.trials.iter())
-        .map(|v| num(v, &["judgement", "timing_error_ms"]))
+        .map(|v| field(v, "timing_error_ms"))
         .collect();
     figs.push((
         "timing_error_histogram.svg",
@@ -340,12 +364,7 @@ pub fn write_report(
                 .iter()
                 .filter(|c| c.movement_time_s == t)
                 .flat_map(|c| c.trials.iter())
-                .map(|v| {
-                    (
-                        num(v, &["distance_m"]),
-                        num(v, &["judgement", "movement_time_s"]),
-                    )
-                })
+                .map(|v| (num(v, &["distance_m"]), field(v, "movement_time_s")))
                 .collect(),
         })
         .collect();
@@ -433,7 +452,7 @@ mod tests {
                 .map(|&(ok, d, te)| {
                     json!({"success": ok, "distance_m": d,
                            "failure": if ok { Value::Null } else { json!("timing_error 25.0 ms > 20 ms") },
-                           "judgement": {"timing_error_ms": te, "movement_time_s": t + te / 1e3}})
+                           "timing_error_ms": te, "movement_time_s": t + te / 1e3, "planned_movement_time_s": t})
                 })
                 .collect(),
             command: format!("isochron trials --t {t}"),
