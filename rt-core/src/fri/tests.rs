@@ -1,7 +1,11 @@
 //! Unit and property tests of the FRI codec, guard, client and simulated controller.
 
 use proptest::prelude::*;
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
+
 use prost::Message;
+use rand::SeedableRng;
 
 use super::codec::*;
 use super::proto::*;
@@ -297,4 +301,532 @@ proptest! {
         prop_assert_eq!(c.reflected_sequence_counter, refl);
         prop_assert_eq!(c.joint_position_rad, (!header_only).then_some(q));
     }
+}
+
+// ---------------------------------------------------------------------------
+// Client + simulated controller in virtual time (no sockets, real datagrams).
+
+use super::client::*;
+use super::guard::*;
+use super::sim::*;
+use super::stats::LatencyHistogram;
+use crate::kinematics::iiwa7::{POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS};
+
+/// A test control: in COMMANDING_ACTIVE moves A1 at `speed_radps` from the
+/// hand-over position, or jumps by `jump_rad` once after `jump_after` steps.
+#[derive(Debug, Default)]
+struct Mover {
+    start: Option<Joints>,
+    steps: u64,
+    calls: u64,
+    speed_radps: f64,
+    jump_rad: Option<f64>,
+    jump_after: u64,
+    absolute_a1: Option<f64>,
+    stops: Vec<StopReason>,
+    commands: Vec<(u64, f64)>,
+}
+
+impl ControlStep for Mover {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        self.calls += 1;
+        if !input.commanding {
+            return;
+        }
+        let s = *self.start.get_or_insert(*command_rad);
+        self.steps += 1;
+        command_rad[0] = s[0] + self.speed_radps * self.steps as f64 * input.receive_period_s;
+        if let Some(j) = self.jump_rad
+            && self.steps >= self.jump_after
+        {
+            command_rad[0] = s[0] + j;
+        }
+        if let Some(a) = self.absolute_a1 {
+            command_rad[0] = a;
+        }
+        self.commands.push((input.now_ns, command_rad[0]));
+    }
+
+    fn stop(&mut self, reason: StopReason) {
+        self.stops.push(reason);
+    }
+}
+
+const MS: u64 = 1_000_000;
+
+struct Rig {
+    sim: SimController,
+    client: FriClient,
+    t_ns: u64,
+    /// One-way delay client <-> controller, ns.
+    hop_ns: u64,
+}
+
+impl Rig {
+    fn new(p: FriSimParams, c: FriClientParams) -> Self {
+        let mut sim = SimController::new(p, 1_790_000_000_000_000_000).unwrap();
+        sim.request_commanding();
+        Self {
+            sim,
+            client: FriClient::new(c).unwrap(),
+            t_ns: 0,
+            hop_ns: 50_000,
+        }
+    }
+
+    fn period_ns(&self) -> u64 {
+        self.sim.params().period_ns()
+    }
+
+    /// Runs `n` controller periods.
+    fn run(&mut self, n: u64, ctl: &mut impl ControlStep) {
+        for _ in 0..n {
+            let t = self.t_ns;
+            if let Some(m) = self.sim.tick(t)
+                && let Some(r) = self.client.on_datagram(m, t + self.hop_ns, ctl)
+            {
+                self.sim.on_reply(r, t + 2 * self.hop_ns);
+            }
+            self.client.poll(t + self.hop_ns, ctl);
+            self.t_ns += self.period_ns();
+        }
+    }
+
+    /// Runs until `cond` or `max` periods; returns the periods run.
+    fn run_until(
+        &mut self,
+        max: u64,
+        ctl: &mut impl ControlStep,
+        cond: impl Fn(&Self) -> bool,
+    ) -> u64 {
+        for k in 0..max {
+            if cond(self) {
+                return k;
+            }
+            self.run(1, ctl);
+        }
+        panic!("condition not reached in {max} periods");
+    }
+}
+
+fn active(r: &Rig) -> bool {
+    r.client.state() == LinkState::CommandingActive
+}
+
+#[test]
+fn virtual_session_walks_the_states_moves_the_joints_and_closes() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.2,
+        ..Mover::default()
+    };
+    assert_eq!(rig.sim.state(), SessionState::MonitoringWait);
+    assert_eq!(rig.sim.quality(), ConnectionQuality::Fair);
+    rig.run_until(200, &mut ctl, active);
+    let q0 = rig.sim.joint_rad()[0];
+    rig.run(200, &mut ctl); // 1 s at 5 ms
+    let moved = rig.sim.joint_rad()[0] - q0;
+    // 0.2 rad/s for 1 s, less what is still in the latency + servo lag (~13 ms).
+    assert!((0.19..=0.201).contains(&moved), "A1 moved {moved} rad");
+    let st = Arc::clone(rig.sim.stats());
+    for s in [
+        "MONITORING_WAIT",
+        "MONITORING_READY",
+        "COMMANDING_WAIT",
+        "COMMANDING_ACTIVE",
+    ] {
+        assert!(st.states_reached().contains(&s), "{s} not reached");
+    }
+    assert_eq!(st.mirror_mismatches.load(Relaxed), 0);
+    assert_eq!(st.client_sequence_errors.load(Relaxed), 0);
+    assert_eq!(st.violations.load(Relaxed), 0);
+    let cs = rig.client.stats().snapshot();
+    assert_eq!(cs.replies, st.replies.load(Relaxed));
+    assert_eq!(cs.received, st.messages_sent.load(Relaxed));
+    assert_eq!(cs.guard_step + cs.guard_position + cs.guard_non_finite, 0);
+    assert_eq!(rig.sim.quality(), ConnectionQuality::Excellent);
+    // Closing: one IDLE, the client goes quiet and the control is told.
+    rig.sim.request_close();
+    rig.run(3, &mut ctl);
+    assert!(rig.sim.is_closed());
+    assert_eq!(rig.client.state(), LinkState::Idle);
+    assert_eq!(ctl.stops, vec![StopReason::SessionClosed]);
+    assert_eq!(cs.replies, rig.client.stats().snapshot().replies);
+    assert!(st.reached(SessionState::Idle));
+}
+
+#[test]
+fn the_joints_follow_with_the_configured_latency_and_lag() {
+    let p = FriSimParams {
+        latency_ms: 8.0,
+        latency_jitter_ms: 0.0,
+        servo_time_constant_ms: 5.0,
+        fri_period_ms: 1,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.5,
+        ..Mover::default()
+    };
+    rig.run_until(500, &mut ctl, active);
+    rig.run(400, &mut ctl);
+    // On a ramp, position = command delayed by latency + tau (+ the hop).
+    let q = rig.sim.joint_rad()[0];
+    let now = rig.t_ns - rig.period_ns();
+    let (t_cmd, _) = ctl
+        .commands
+        .iter()
+        .rev()
+        .find(|(_, a1)| *a1 <= q)
+        .copied()
+        .unwrap();
+    let lag_ms = (now - t_cmd) as f64 / 1e6;
+    assert!((12.0..=14.5).contains(&lag_ms), "lag {lag_ms} ms");
+}
+
+#[test]
+fn guard_clips_a_jump_and_the_controller_stays_in_commanding() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover {
+        jump_rad: Some(0.5),
+        jump_after: 5,
+        ..Mover::default()
+    };
+    rig.run_until(200, &mut ctl, active);
+    rig.run(100, &mut ctl);
+    let cs = rig.client.stats().snapshot();
+    assert!(cs.guard_step > 0);
+    assert_eq!(rig.sim.stats().violations.load(Relaxed), 0);
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+    // The clipped command approaches the target at 95% of the velocity limit.
+    let max_step = 0.95 * VELOCITY_LIMIT_RADPS[0] * 0.005;
+    for w in ctl.commands.windows(2) {
+        assert!((w[1].1 - w[0].1).abs() <= 0.5); // what the control asked for
+    }
+    let sent = rig.client.stats().commanded_rad.load();
+    let start = ctl.start.unwrap()[0];
+    assert!(
+        (sent[0] - start - 0.5).abs() < 1e-9,
+        "reached the target: {}",
+        sent[0]
+    );
+    assert!(max_step > 0.0);
+}
+
+#[test]
+fn a_forced_jump_aborts_commanding_and_the_client_reports_it() {
+    let c = FriClientParams {
+        guard_enabled: false,
+        ..FriClientParams::default()
+    };
+    let mut rig = Rig::new(FriSimParams::default(), c);
+    let mut ctl = Mover {
+        jump_rad: Some(0.5),
+        jump_after: 5,
+        ..Mover::default()
+    };
+    rig.run_until(200, &mut ctl, active);
+    rig.run(20, &mut ctl);
+    let st = rig.sim.stats();
+    assert_eq!(st.violations.load(Relaxed), 1);
+    match st.last_abort() {
+        Some(AbortReason::VelocityLimit {
+            joint: 0,
+            step_rad,
+            max_step_rad,
+        }) => {
+            assert!((step_rad - 0.5).abs() < 1e-9);
+            assert!((max_step_rad - VELOCITY_LIMIT_RADPS[0] * 0.005).abs() < 1e-12);
+        }
+        other => panic!("unexpected abort {other:?}"),
+    }
+    assert_eq!(rig.sim.state(), SessionState::MonitoringReady);
+    assert_eq!(rig.client.stats().snapshot().commanding_lost, 1);
+    assert_eq!(
+        ctl.stops,
+        vec![StopReason::LeftCommanding(SessionState::MonitoringReady)]
+    );
+    assert!(st.report().abort_reason.unwrap().contains("A1"));
+}
+
+#[test]
+fn a_position_beyond_the_limit_is_clamped_or_aborts() {
+    let beyond = POSITION_LIMIT_RAD[0] + 0.1;
+    let p = FriSimParams {
+        initial_joint_position_deg: [169.0, 30.0, 0.0, -80.0, 0.0, 60.0, 0.0],
+        ..FriSimParams::default()
+    };
+    for guard_enabled in [true, false] {
+        let mut rig = Rig::new(
+            p.clone(),
+            FriClientParams {
+                guard_enabled,
+                ..FriClientParams::default()
+            },
+        );
+        let mut ctl = Mover {
+            absolute_a1: Some(beyond),
+            ..Mover::default()
+        };
+        rig.run_until(200, &mut ctl, active);
+        rig.run(40, &mut ctl);
+        let st = rig.sim.stats();
+        if guard_enabled {
+            assert_eq!(st.violations.load(Relaxed), 0);
+            assert!(rig.client.stats().snapshot().guard_position > 0);
+            let a1 = rig.client.stats().commanded_rad.load()[0];
+            assert!(a1 <= POSITION_LIMIT_RAD[0] - 0.5f64.to_radians() + 1e-12);
+        } else {
+            assert!(matches!(
+                st.last_abort(),
+                Some(AbortReason::PositionLimit { joint: 0, .. })
+            ));
+        }
+    }
+}
+
+#[test]
+fn a_nan_command_is_held() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover {
+        absolute_a1: Some(f64::NAN),
+        ..Mover::default()
+    };
+    rig.run_until(200, &mut ctl, active);
+    rig.run(10, &mut ctl);
+    assert!(rig.client.stats().snapshot().guard_non_finite >= 10);
+    assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0);
+}
+
+#[test]
+fn a_silent_controller_stops_the_motion_after_two_periods() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover::default();
+    rig.run_until(200, &mut ctl, active);
+    let last_rx = rig.t_ns - rig.period_ns() + rig.hop_ns;
+    let p = rig.period_ns();
+    assert!(!rig.client.poll(last_rx + 2 * p - 1, &mut ctl));
+    assert!(ctl.stops.is_empty());
+    assert!(rig.client.poll(last_rx + 2 * p, &mut ctl));
+    assert_eq!(ctl.stops, vec![StopReason::ControllerSilent]);
+    assert_eq!(rig.client.state(), LinkState::Disconnected);
+    assert_eq!(rig.client.stats().snapshot().silences, 1);
+    // Only once per silence.
+    assert!(!rig.client.poll(last_rx + 10 * p, &mut ctl));
+}
+
+#[test]
+fn five_percent_loss_is_survived_and_counted() {
+    let p = FriSimParams {
+        packet_loss: 0.05,
+        seed: 7,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.05,
+        ..Mover::default()
+    };
+    rig.run_until(400, &mut ctl, active);
+    rig.run(2000, &mut ctl);
+    let st = rig.sim.stats();
+    let dropped = st.messages_dropped.load(Relaxed);
+    assert!((50..=160).contains(&dropped), "dropped {dropped}");
+    assert_eq!(st.last_abort(), None);
+    assert_eq!(st.commanding_entered.load(Relaxed), 1);
+    assert_eq!(st.aborts.load(Relaxed), 0);
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+    let cs = rig.client.stats().snapshot();
+    // Every lost message is a missed cycle for the client and a missing reply
+    // for the controller (the last few may still be pending).
+    assert!(cs.missed_cycles + 1 >= dropped && cs.missed_cycles <= dropped);
+    let missing = st.missing_replies.load(Relaxed);
+    assert!(
+        missing + 1 >= dropped && missing <= dropped,
+        "{missing} vs {dropped}"
+    );
+    // Two losses in a row leave the client without a message for two periods:
+    // it tells the control (which here ignores it), and commanding goes on.
+    assert!(ctl.stops.iter().all(|r| *r == StopReason::ControllerSilent));
+    assert_eq!(cs.silences as usize, ctl.stops.len());
+    assert_eq!(cs.guard_step, 0, "commands stay continuous across the gaps");
+}
+
+#[test]
+fn losing_half_the_replies_drops_out_of_commanding() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover::default();
+    rig.run_until(200, &mut ctl, active);
+    let mut p = rig.sim.params().clone();
+    p.reply_loss = 0.5;
+    // Same controller state, lossy return path: rebuild is not possible, so
+    // emulate loss by not delivering every other reply.
+    for k in 0..100 {
+        let t = rig.t_ns;
+        if let Some(m) = rig.sim.tick(t)
+            && let Some(r) = rig.client.on_datagram(m, t + rig.hop_ns, &mut ctl)
+            && k % 2 == 0
+        {
+            rig.sim.on_reply(r, t + 2 * rig.hop_ns);
+        }
+        rig.t_ns += rig.period_ns();
+    }
+    assert!(matches!(
+        rig.sim.stats().last_abort(),
+        Some(AbortReason::QualityDropped { .. })
+    ));
+    assert!(rig.sim.quality() < ConnectionQuality::Good);
+    assert_eq!(rig.client.stats().snapshot().commanding_lost, 1);
+    assert!(matches!(ctl.stops[0], StopReason::LeftCommanding(_)));
+    assert!(p.validate().is_ok());
+}
+
+#[test]
+fn late_replies_are_graded_and_degrade_quality() {
+    let p = FriSimParams {
+        reply_delay_ms: 7.0,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover::default();
+    rig.run(100, &mut ctl);
+    let st = rig.sim.stats();
+    assert!(st.late_replies.load(Relaxed) >= 95);
+    assert_eq!(rig.sim.quality(), ConnectionQuality::Poor);
+    assert!(!st.reached(SessionState::MonitoringReady));
+    let rtt = st.rtt.summary_us();
+    assert!((7000.0..=8800.0).contains(&rtt.p50), "{rtt:?}");
+}
+
+#[test]
+fn receive_multiplier_two_answers_every_other_message() {
+    let p = FriSimParams {
+        receive_multiplier: 2,
+        fri_period_ms: 2,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.1,
+        ..Mover::default()
+    };
+    rig.run_until(400, &mut ctl, active);
+    rig.run(200, &mut ctl);
+    let st = rig.sim.stats();
+    let sent = st.messages_sent.load(Relaxed);
+    let replies = st.replies.load(Relaxed);
+    assert!(
+        replies * 2 <= sent && replies * 2 + 2 >= sent,
+        "{replies} of {sent}"
+    );
+    assert_eq!(st.missing_replies.load(Relaxed), 0);
+    assert_eq!(
+        ctl.calls, sent,
+        "the control steps once per controller message"
+    );
+    assert_eq!(rig.client.receive_period_ns(), 4 * MS);
+    assert_eq!(st.violations.load(Relaxed), 0);
+}
+
+#[test]
+fn garbage_to_either_side_is_counted_and_ignored() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover::default();
+    rig.run_until(200, &mut ctl, active);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let valid = rig.sim.tick(rig.t_ns).unwrap().to_vec();
+    for k in 0..200 {
+        let len = rand::RngExt::random_range(&mut rng, 0..1600);
+        let junk: Vec<u8> = (0..len).map(|_| rand::RngExt::random(&mut rng)).collect();
+        assert!(rig.client.on_datagram(&junk, rig.t_ns, &mut ctl).is_none());
+        rig.sim.on_reply(&junk, rig.t_ns);
+        let cut = &valid[..k % valid.len()];
+        let _ = rig.client.on_datagram(cut, rig.t_ns, &mut ctl);
+        rig.sim.on_reply(cut, rig.t_ns);
+    }
+    assert!(rig.client.stats().snapshot().decode_errors >= 200);
+    assert!(rig.sim.stats().decode_errors.load(Relaxed) >= 200);
+    rig.t_ns += rig.period_ns();
+    rig.run(50, &mut ctl);
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+    assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0);
+}
+
+#[test]
+fn histogram_quantiles_are_within_a_bucket() {
+    let h = LatencyHistogram::new();
+    for v in 1..=1000u64 {
+        h.record_ns(v * 1000);
+    }
+    let p50 = h.quantile_ns(0.5) as f64;
+    assert!((500_000.0..=500_000.0 * 1.26).contains(&p50), "{p50}");
+    let p99 = h.quantile_ns(0.99) as f64;
+    assert!((990_000.0..=1_000_000.0).contains(&p99), "{p99}");
+    assert_eq!(h.max_ns(), 1_000_000);
+    assert_eq!(LatencyHistogram::new().quantile_ns(0.5), 0);
+    h.record_ns(0);
+    h.record_ns(u64::MAX);
+    assert_eq!(h.max_ns(), u64::MAX);
+}
+
+#[test]
+fn guard_never_lets_a_command_exceed_the_limits() {
+    let g = CommandGuard::default();
+    let prev = [0.0; 7];
+    let mut cmd = [10.0, -10.0, f64::NAN, 0.0, 0.0, 0.0, 0.0];
+    let out = g.apply(&mut cmd, &prev, 0.005);
+    assert!(out.held_non_finite);
+    assert_eq!(cmd, prev);
+    let mut cmd = [10.0, -10.0, 0.001, 0.0, 0.0, 0.0, 0.0];
+    let out = g.apply(&mut cmd, &prev, 0.005);
+    assert!(out.clamped_step && !out.held_non_finite);
+    let max = g.max_step_rad(0.005);
+    assert!((cmd[0] - max[0]).abs() < 1e-15 && (cmd[1] + max[1]).abs() < 1e-15);
+    assert_eq!(cmd[2], 0.001);
+}
+
+#[test]
+fn params_are_validated_naming_the_field() {
+    let bad = FriSimParams {
+        fri_period_ms: 0,
+        ..FriSimParams::default()
+    };
+    assert_eq!(
+        bad.validate().unwrap_err().field(),
+        Some("fri_sim.fri_period_ms")
+    );
+    let bad = FriSimParams {
+        packet_loss: f64::NAN,
+        ..FriSimParams::default()
+    };
+    assert_eq!(
+        bad.validate().unwrap_err().field(),
+        Some("fri_sim.packet_loss")
+    );
+    let bad = FriSimParams {
+        receive_multiplier: 30,
+        fri_period_ms: 5,
+        ..FriSimParams::default()
+    };
+    assert_eq!(
+        bad.validate().unwrap_err().field(),
+        Some("fri_sim.receive_multiplier")
+    );
+    assert!(SimController::new(bad, 0).is_err());
+    let bad = FriClientParams {
+        guard: GuardParams {
+            velocity_fraction: 1.5,
+            ..GuardParams::default()
+        },
+        ..FriClientParams::default()
+    };
+    assert_eq!(
+        FriClient::new(bad).unwrap_err().field(),
+        Some("fri.guard.velocity_fraction")
+    );
+    let toml_err = toml::from_str::<FriSimParams>("fri_period_mss = 5").unwrap_err();
+    assert!(toml_err.to_string().contains("fri_period_mss"));
+    let from_robot = FriSimParams::from_robot(&crate::params::RobotParams::default());
+    assert_eq!(from_robot, FriSimParams::default());
 }

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod eval;
+pub mod fri_sim;
 pub mod kin;
 pub mod magnet;
 pub mod trials;

@@ -1,0 +1,221 @@
+//! The simulated controller over real UDP, on its own thread (`isochron-fri-sim`).
+//!
+//! The thread sends a monitoring datagram to the client every send period
+//! (absolute schedule; a slot missed by more than a period is counted as an
+//! overrun and the schedule restarts from now) and, between sends, waits on its
+//! socket for replies (`ppoll`, nanosecond timeout) until the next send time.
+
+use std::net::{SocketAddr, UdpSocket};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use super::net::wait_readable;
+use super::proto::SessionState;
+use super::sim::{FriSimParams, SimController, SimReport, SimStats};
+use crate::params::ParamError;
+
+/// How the runner drives the session.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SimRunOptions {
+    /// Ask for commanding as soon as the session is MONITORING_READY.
+    pub auto_command: bool,
+    /// Close the session (send IDLE) after this long.
+    pub duration: Option<Duration>,
+}
+
+/// Why the simulated controller could not start.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SimError {
+    /// Invalid parameters.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+    /// The socket could not be bound.
+    #[error("cannot bind the simulated controller to {addr}: {source}")]
+    Bind {
+        /// The address asked for.
+        addr: SocketAddr,
+        /// The reason.
+        source: std::io::Error,
+    },
+    /// Socket or thread setup failed.
+    #[error("simulated controller I/O: {0}")]
+    Io(#[from] std::io::Error),
+    /// The thread did not finish in time.
+    #[error("the simulated controller did not finish within {0:?}")]
+    Timeout(Duration),
+    /// The thread panicked.
+    #[error("the simulated controller thread panicked")]
+    Panicked,
+}
+
+/// A running simulated controller.
+#[derive(Debug)]
+pub struct SimServer {
+    stats: Arc<SimStats>,
+    local: SocketAddr,
+    command: Arc<AtomicBool>,
+    close: Arc<AtomicBool>,
+    pause: Arc<AtomicBool>,
+    handle: Option<JoinHandle<()>>,
+}
+
+impl SimServer {
+    /// Binds `bind` and starts sending to `client` every period.
+    pub fn spawn(
+        params: FriSimParams,
+        bind: SocketAddr,
+        client: SocketAddr,
+        opts: SimRunOptions,
+    ) -> Result<Self, SimError> {
+        let epoch_unix_ns = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        let sim = SimController::new(params, epoch_unix_ns)?;
+        let socket =
+            UdpSocket::bind(bind).map_err(|source| SimError::Bind { addr: bind, source })?;
+        socket.set_nonblocking(true)?;
+        let local = socket.local_addr()?;
+        let stats = Arc::clone(sim.stats());
+        let command = Arc::new(AtomicBool::new(opts.auto_command));
+        let close = Arc::new(AtomicBool::new(false));
+        let pause = Arc::new(AtomicBool::new(false));
+        let flags = (Arc::clone(&command), Arc::clone(&close), Arc::clone(&pause));
+        let handle = std::thread::Builder::new()
+            .name("isochron-fri-sim".into())
+            .spawn(move || run(socket, client, sim, opts, &flags.0, &flags.1, &flags.2))?;
+        Ok(Self {
+            stats,
+            local,
+            command,
+            close,
+            pause,
+            handle: Some(handle),
+        })
+    }
+
+    /// The bound address (replies must come here).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// The controller's counters (lock-free).
+    pub fn stats(&self) -> &Arc<SimStats> {
+        &self.stats
+    }
+
+    /// Asks for commanding (taken up once MONITORING_READY).
+    pub fn request_commanding(&self) {
+        self.command.store(true, Relaxed);
+    }
+
+    /// Falls silent (sends nothing) while `true`, as a crashed controller would.
+    pub fn set_silent(&self, silent: bool) {
+        self.pause.store(silent, Relaxed);
+    }
+
+    /// True once the thread has ended.
+    pub fn is_finished(&self) -> bool {
+        self.handle.as_ref().is_none_or(JoinHandle::is_finished)
+    }
+
+    /// Sends IDLE, waits for the thread (at most `timeout`) and reports.
+    pub fn close(mut self, timeout: Duration) -> Result<SimReport, SimError> {
+        self.close.store(true, Relaxed);
+        self.join(timeout)
+    }
+
+    /// Waits for the thread to end by itself (the run's duration), at most `timeout`.
+    pub fn wait(mut self, timeout: Duration) -> Result<SimReport, SimError> {
+        self.join(timeout)
+    }
+
+    fn join(&mut self, timeout: Duration) -> Result<SimReport, SimError> {
+        let start = Instant::now();
+        while !self.is_finished() {
+            if start.elapsed() > timeout {
+                return Err(SimError::Timeout(timeout));
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        match self.handle.take() {
+            Some(h) => h.join().map_err(|_| SimError::Panicked)?,
+            None => return Err(SimError::Panicked),
+        }
+        Ok(self.stats.report())
+    }
+}
+
+impl Drop for SimServer {
+    fn drop(&mut self) {
+        self.close.store(true, Relaxed);
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+fn run(
+    socket: UdpSocket,
+    client: SocketAddr,
+    mut sim: SimController,
+    opts: SimRunOptions,
+    command: &AtomicBool,
+    close: &AtomicBool,
+    pause: &AtomicBool,
+) {
+    let epoch = Instant::now();
+    let period = Duration::from_millis(u64::from(sim.params().fri_period_ms));
+    let stats = Arc::clone(sim.stats());
+    let mut next_send = Duration::ZERO;
+    let mut buf = [0u8; 2048];
+    loop {
+        let now = epoch.elapsed();
+        if now >= next_send {
+            let closing = close.load(Relaxed) || opts.duration.is_some_and(|d| now >= d);
+            if closing {
+                sim.request_close();
+            }
+            if command.load(Relaxed) && sim.state() == SessionState::MonitoringReady {
+                sim.request_commanding();
+                command.store(false, Relaxed);
+            }
+            let t = now.as_nanos() as u64;
+            // Closing always sends IDLE, even while silent.
+            if (!pause.load(Relaxed) || closing)
+                && let Some(bytes) = sim.tick(t)
+            {
+                let _ = socket.send_to(bytes, client);
+            }
+            if sim.is_closed() {
+                break;
+            }
+            next_send += period;
+            if next_send <= now {
+                // A whole slot was missed (the thread was not scheduled).
+                stats.overruns.fetch_add(1, Relaxed);
+                next_send = now + period;
+            }
+        }
+        let wait = next_send.saturating_sub(epoch.elapsed());
+        match wait_readable(&socket, wait) {
+            Ok(true) => {}
+            Ok(false) => continue,
+            Err(_) => break,
+        }
+        match socket.recv_from(&mut buf) {
+            Ok((n, from)) => {
+                if from != client {
+                    stats.foreign_datagrams.fetch_add(1, Relaxed);
+                    continue;
+                }
+                let t = epoch.elapsed().as_nanos() as u64;
+                sim.on_reply(&buf[..n], t);
+            }
+            // Nothing after all, or an ICMP "port unreachable" (no client yet).
+            Err(_) => {}
+        }
+    }
+}
