@@ -48,6 +48,8 @@ enum Command {
     Magnet(cmd::magnet::MagnetArgs),
     /// Run trials across distances and movement times and write a report beside the paper's results.
     Eval(cmd::eval::EvalArgs),
+    /// A standalone simulated KUKA FRI controller (any FRI 1.15 client can connect).
+    FriSim(cmd::fri_sim::FriSimArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -104,6 +106,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Kin(args) => cmd::kin::run(args),
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
         Command::Eval(args) => print_out(&cmd::eval::run(args)?),
+        Command::FriSim(args) => print_out(&cmd::fri_sim::run(args)?),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

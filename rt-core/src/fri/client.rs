@@ -414,8 +414,7 @@ impl FriClient {
                 st.missed_cycles.fetch_add(u64::from(gap - 1), Relaxed);
             }
             if let Some(t) = self.last_rx_ns
-                && gap >= 1
-                && gap < 1 << 20
+                && (1..1 << 20).contains(&gap)
                 && self.send_period_ns > 0
             {
                 let expected = self.send_period_ns * u64::from(gap);

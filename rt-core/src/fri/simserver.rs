@@ -205,17 +205,15 @@ fn run(
             Ok(false) => continue,
             Err(_) => break,
         }
-        match socket.recv_from(&mut buf) {
-            Ok((n, from)) => {
-                if from != client {
-                    stats.foreign_datagrams.fetch_add(1, Relaxed);
-                    continue;
-                }
-                let t = epoch.elapsed().as_nanos() as u64;
-                sim.on_reply(&buf[..n], t);
+        // An error here is nothing after all, or an ICMP "port unreachable"
+        // (no client yet): go on.
+        if let Ok((n, from)) = socket.recv_from(&mut buf) {
+            if from != client {
+                stats.foreign_datagrams.fetch_add(1, Relaxed);
+                continue;
             }
-            // Nothing after all, or an ICMP "port unreachable" (no client yet).
-            Err(_) => {}
+            let t = epoch.elapsed().as_nanos() as u64;
+            sim.on_reply(&buf[..n], t);
         }
     }
 }

@@ -40,8 +40,8 @@ pub struct FriSimArgs {
     pub json: bool,
 }
 
-/// Runs the simulated controller for the asked duration and prints its summary.
-pub fn run(args: FriSimArgs) -> anyhow::Result<()> {
+/// Runs the simulated controller for the asked duration; returns its summary.
+pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
     check::within("--duration-s", args.duration_s, 0.01, 86_400.0)?;
     let params = FriSimParams {
         fri_period_ms: args.period_ms,
@@ -49,9 +49,12 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<()> {
         seed: args.seed,
         ..FriSimParams::default()
     };
-    params
-        .validate()
-        .map_err(|e| anyhow::anyhow!(e.to_string().replace("fri_sim.fri_period_ms", "--period-ms")))?;
+    params.validate().map_err(|e| {
+        anyhow::anyhow!(
+            e.to_string()
+                .replace("fri_sim.fri_period_ms", "--period-ms")
+        )
+    })?;
     let duration = Duration::from_secs_f64(args.duration_s);
     let server = SimServer::spawn(
         params,
@@ -75,9 +78,9 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<()> {
         .wait(duration + Duration::from_secs(5))
         .context("the simulated controller did not finish")?;
     if args.json {
-        crate::print_out(&serde_json::to_string(&report)?)
+        Ok(serde_json::to_string(&report)?)
     } else {
-        crate::print_out(&format!(
+        Ok(format!(
             "messages sent {}, replies {}, late {}, missing {}\nstates reached: {}\nviolations {}{}\nround trip us: p50 {:.1}, p99 {:.1}, max {:.1}",
             report.messages_sent,
             report.replies,
