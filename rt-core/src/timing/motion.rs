@@ -141,6 +141,7 @@ pub struct TimedMotion {
     phase_rad: f64,
     frozen: bool,
     schedule_tau: f64,
+    lag_offset_s: f64,
     centred: bool,
     end_advance_s: f64,
     last_measured_m: Option<Vector3<f64>>,
@@ -177,6 +178,7 @@ impl TimedMotion {
             phase_rad: 0.0,
             frozen: false,
             schedule_tau: 0.0,
+            lag_offset_s: 0.0,
             centred: false,
             end_advance_s: 0.0,
             last_measured_m: None,
@@ -282,6 +284,7 @@ impl TimedMotion {
         self.phase_rad = 0.0;
         self.frozen = false;
         self.schedule_tau = 0.0;
+        self.lag_offset_s = 0.0;
         self.centred = false;
         self.end_advance_s = 0.0;
         self.last_measured_m = None;
@@ -299,6 +302,13 @@ impl TimedMotion {
             return Err(TimingError::NotStarted);
         }
         finite_vec("target_m", target_m)?;
+        if self.phase == MotionPhase::Moving {
+            // A moved target rescales the path; it is not a delay: keep the
+            // schedule lag continuous across the change.
+            let (before, _) = self.schedule_lag(&self.target_m, self.schedule_tau);
+            let (after, _) = self.schedule_lag(target_m, self.schedule_tau);
+            self.lag_offset_s += before - after;
+        }
         self.target_m = *target_m;
         let d = (target_m - self.start_m).norm().max(MIN_DISTANCE_M);
         self.nominal_radius_mps = d / self.arrival_s;
@@ -522,23 +532,35 @@ impl TimedMotion {
     /// hand-over) by `lag`, its end is planned `schedule_gain * lag` earlier,
     /// faded out over the second half of the motion so that it still ends at
     /// `t_end`. Returns the end time to plan for.
-    fn schedule_end(&mut self, t_end: f64, remaining: f64) -> f64 {
+    fn schedule_end(&mut self, t_end: f64) -> f64 {
         let gain = self.params.schedule_gain;
         let ready = self.centred || self.profile == ProfileKind::MinJerk;
-        let done = self.state.s.max(0.0);
-        let total = done + remaining;
-        if gain <= 0.0 || !ready || self.frozen || total <= 0.0 {
+        if gain <= 0.0 || !ready || self.frozen {
             return t_end;
         }
-        let d0 = self.end_advance_s;
-        let span = self.arrival_s - 2.0 * d0;
-        self.schedule_tau = inverse_position(self.profile, done / total, self.schedule_tau);
-        let on_schedule = d0 + span * self.schedule_tau;
-        let lag = (self.t_s - on_schedule).clamp(-0.1, 0.1);
+        let (lag, tau) = self.schedule_lag(&self.target_m, self.schedule_tau);
+        self.schedule_tau = tau;
+        let lag = (lag + self.lag_offset_s).clamp(-0.1, 0.1);
         let fade = ((TAU - self.params.replan_freeze_rad - self.phase_rad) / PI).clamp(0.0, 1.0);
-        // Never squeeze or stretch what is left by more than half.
+        // Never squeeze or stretch what is left by more than a quarter.
         let left = t_end - self.t_s;
-        (t_end - gain * fade * lag).clamp(self.t_s + 0.5 * left, t_end + 0.5 * left)
+        (t_end - gain * fade * lag).clamp(t_end - 0.25 * left, t_end + 0.25 * left)
+    }
+
+    /// How far the motion lags its schedule towards `target`, seconds, with
+    /// the schedule position `tau` found from `guess`: the fraction done
+    /// `s / (s + |target - p|)` is where the centred ideal profile was at
+    /// `t - lag`.
+    fn schedule_lag(&self, target: &Vector3<f64>, guess: f64) -> (f64, f64) {
+        let done = self.state.s.max(0.0);
+        let total = done + (target - self.position_m).norm();
+        if total <= 0.0 {
+            return (0.0, guess);
+        }
+        let tau = inverse_position(self.profile, done / total, guess);
+        let d0 = self.end_advance_s;
+        let on_schedule = d0 + (self.arrival_s - 2.0 * d0) * tau;
+        (self.t_s - on_schedule, tau)
     }
 
     fn hopf_substep(&mut self, h: f64, remaining: f64) {
@@ -558,7 +580,7 @@ impl TimedMotion {
             self.centred = true;
         }
         let t_end = self.arrival_s - self.end_advance_s;
-        let t_plan = self.schedule_end(t_end, remaining);
+        let t_plan = self.schedule_end(t_end);
         let t_rem = t_plan - self.t_s;
         if !self.frozen && t_rem > h {
             match replan(self.state.a, remaining, t_rem, self.phase_rad) {
@@ -579,7 +601,10 @@ impl TimedMotion {
                     self.phase_rad = phi;
                     self.replans += 1;
                 }
-                _ => self.frozen = true,
+                Some(_) => self.frozen = true,
+                // No cosine from this speed fits the distance left (the target
+                // came closer): keep the cycle and try again next substep.
+                None => {}
             }
         } else {
             self.frozen = true;
@@ -601,7 +626,7 @@ impl TimedMotion {
 
     fn min_jerk_substep(&mut self, h: f64, remaining: f64) {
         let t_end = self.arrival_s;
-        let t_rem = self.schedule_end(t_end, remaining) - self.t_s;
+        let t_rem = self.schedule_end(t_end) - self.t_s;
         let s_old = self.state.s;
         let (ds, v, acc, last) = if t_end - self.t_s <= h * (1.0 + 1e-9) {
             (remaining, 0.0, 0.0, true)
