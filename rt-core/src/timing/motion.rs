@@ -140,6 +140,7 @@ pub struct TimedMotion {
     omega_rad_per_s: f64,
     phase_rad: f64,
     frozen: bool,
+    fed_back: bool,
     schedule_tau: f64,
     lag_offset_s: f64,
     centred: bool,
@@ -177,6 +178,7 @@ impl TimedMotion {
             omega_rad_per_s: 0.0,
             phase_rad: 0.0,
             frozen: false,
+            fed_back: false,
             schedule_tau: 0.0,
             lag_offset_s: 0.0,
             centred: false,
@@ -283,6 +285,7 @@ impl TimedMotion {
         self.omega_rad_per_s = TAU / duration_s;
         self.phase_rad = 0.0;
         self.frozen = false;
+        self.fed_back = false;
         self.schedule_tau = 0.0;
         self.lag_offset_s = 0.0;
         self.centred = false;
@@ -404,6 +407,7 @@ impl TimedMotion {
                 .map(|last| (m - last).dot(&self.direction) / dt_s);
             self.last_measured_m = Some(*m);
             if self.phase == MotionPhase::Moving && self.params.progress_feedback_per_s > 0.0 {
+                self.fed_back = true;
                 let k = 1.0 - (-self.params.progress_feedback_per_s * dt_s).exp();
                 let d = (m - self.position_m) * k;
                 self.state.s += d.dot(&self.direction);
@@ -535,7 +539,9 @@ impl TimedMotion {
     fn schedule_end(&mut self, t_end: f64) -> f64 {
         let gain = self.params.schedule_gain;
         let ready = self.centred || self.profile == ProfileKind::MinJerk;
-        if gain <= 0.0 || !ready || self.frozen {
+        // Only measurements reveal lost progress; without them the plan is
+        // only rescaled.
+        if gain <= 0.0 || !ready || self.frozen || !self.fed_back {
             return t_end;
         }
         let (lag, tau) = self.schedule_lag(&self.target_m, self.schedule_tau);

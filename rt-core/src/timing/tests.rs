@@ -438,29 +438,43 @@ fn bad_input_is_refused_and_changes_nothing() {
 
 #[test]
 fn a_retimed_motion_arrives_at_the_new_time() {
-    let mut m = TimedMotion::new(TimingParams::default()).unwrap();
-    let target = home() + dir() * 0.5;
-    m.begin(&home(), &target, &tool_down(), T).unwrap();
-    let mut out = MotionSample::default();
-    let mut t = Vec::new();
-    let mut s = Vec::new();
-    for i in 0..400 {
-        if i == 100 {
-            m.retime(1.6).unwrap();
+    for kind in [ProfileKind::Hopf, ProfileKind::MinJerk] {
+        let mut m = TimedMotion::new(params(kind)).unwrap();
+        let target = home() + dir() * 0.5;
+        m.begin(&home(), &target, &tool_down(), T).unwrap();
+        let mut out = MotionSample::default();
+        let mut last_v = Vector3::zeros();
+        let mut max_accel: f64 = 0.0;
+        let (mut left_at_old, mut left_at_new) = (0.0, 0.0);
+        for i in 1..=400 {
+            if i == 100 {
+                m.retime(1.6).unwrap();
+            }
+            m.step(0.005, None, &mut out).unwrap();
+            max_accel = max_accel.max((out.velocity_mps - last_v).norm() / 0.005);
+            last_v = out.velocity_mps;
+            if i == 300 {
+                left_at_old = (out.position_m - target).norm();
+            }
+            if i == 320 {
+                left_at_new = (out.position_m - target).norm();
+                assert_eq!(out.arrival_time_s, 1.6);
+            }
         }
-        m.step(0.005, None, &mut out).unwrap();
-        t.push(out.t_s);
-        s.push((out.position_m - home()).dot(&dir()));
+        eprintln!(
+            "{kind:?} re-timed 1.5 -> 1.6 s at 0.5 s: {left_at_old:.2e} m left at 1.5 s, \
+             {left_at_new:.2e} m at 1.6 s; max command accel {max_accel:.2} m/s^2"
+        );
+        assert!(
+            left_at_old > 3e-4,
+            "{kind:?}: arrived early ({left_at_old} m left at 1.5 s)"
+        );
+        assert!(
+            left_at_new < 1e-4,
+            "{kind:?}: {left_at_new} m left at 1.6 s"
+        );
+        assert!(max_accel < 2.0, "{kind:?}: {max_accel}");
     }
-    assert!((out.position_m - target).norm() < 1e-3);
-    // The motion took 1.6 s instead of 1.5 s: its end is within a few ms of 1.6 s.
-    let end = t
-        .iter()
-        .zip(&s)
-        .find(|(_, s)| **s > 0.5 - 1e-4)
-        .map(|(t, _)| *t)
-        .unwrap();
-    assert!(end > 1.5 && end <= 1.6, "end {end}");
 }
 
 #[test]
