@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: eval help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
+.PHONY: test-browser eval help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -89,7 +89,12 @@ test-rust: deps firmware
 	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
 
-test: lint test-web test-rust
+## test-browser: the dashboard in headless Chromium against `isochron serve` (the simulated lab).
+test-browser: web
+	$(CARGO) build --bin isochron
+	web/e2e/run.sh ./target/debug/isochron
+
+test: lint test-web test-browser test-rust
 
 bench: deps
 	$(CARGO) bench --workspace

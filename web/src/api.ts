@@ -53,7 +53,17 @@ export interface TrialRecord {
   movement_time_s?: number;
   distance_m?: number;
   reason?: string | null;
+  /** `running`, `done`, `aborted` or `interrupted`. */
+  status?: string;
+  abort_reason?: string | null;
   [k: string]: unknown;
+}
+
+/** The verdict of a trial: `hit`, `miss` (aborted counts as a miss) or `null` while unfinished. */
+export function verdict(t: TrialRecord): "hit" | "miss" | null {
+  if (t.status === "running" || t.status === "interrupted") return null;
+  if (t.status === "aborted") return "miss";
+  return typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : null;
 }
 
 /** `GET /api/trials` answers a list, or an object holding one. */

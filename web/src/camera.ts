@@ -39,6 +39,7 @@ export class CameraView {
       this.url = next;
     };
     this.img.src = next;
+    this.img.hidden = false;
     this.frames += 1;
   }
 

@@ -51,7 +51,7 @@ export class Plots {
       const h = document.createElement("h3");
       h.textContent = title;
       box.append(h);
-      root.append(box);
+      root.insertBefore(box, root.querySelector(".phase-panel"));
       return box;
     };
     const xRange = (): uPlot.Range.MinMax => {
@@ -166,9 +166,12 @@ export class Plots {
         row: (s) => [s.t_s, s.timing.step_us, s.timing.period_mean_us],
       });
     }
-    window.addEventListener("resize", () => {
+    // Sizes are known only once every box is in the grid: set them now and on resize.
+    const fit = () => {
       for (const c of this.charts) c.plot.setSize(size(c.plot.root.parentElement as HTMLElement));
-    });
+    };
+    new ResizeObserver(fit).observe(root);
+    fit();
   }
 
   /** Takes one state message (cheap: no drawing). */
@@ -188,7 +191,7 @@ export class Plots {
   draw(): void {
     if (!this.dirty) return;
     this.dirty = false;
-    for (const c of this.charts) c.plot.setData(c.win.data() as unknown as uPlot.AlignedData);
+    for (const c of this.charts) c.plot.setData(c.win.plotData() as uPlot.AlignedData);
     this.drawPhase();
   }
 

@@ -9,6 +9,7 @@ export class SeriesWindow {
   private readonly cols: Float64Array[];
   private len = 0;
   private readonly views: Float64Array[];
+  private readonly plain: (number | null)[][];
 
   constructor(columns: number, capacity: number) {
     if (!Number.isInteger(columns) || columns < 1) throw new Error("columns must be >= 1");
@@ -16,6 +17,7 @@ export class SeriesWindow {
     this.capacity = capacity;
     this.cols = Array.from({ length: columns }, () => new Float64Array(capacity));
     this.views = this.cols.map((c) => c.subarray(0, 0));
+    this.plain = this.cols.map(() => []);
   }
 
   /** Number of rows held. */
@@ -44,6 +46,23 @@ export class SeriesWindow {
   /** The columns, oldest first (views into the storage, valid until the next push). */
   data(): Float64Array[] {
     return this.views;
+  }
+
+  /**
+   * The columns as uPlot wants them: plain arrays with `null` for gaps (NaN would
+   * poison uPlot's axis ranges). The arrays are reused from call to call.
+   */
+  plotData(): (number | null)[][] {
+    for (let i = 0; i < this.cols.length; i++) {
+      const out = this.plain[i];
+      const col = this.cols[i];
+      out.length = this.len;
+      for (let k = 0; k < this.len; k++) {
+        const v = col[k];
+        out[k] = Number.isFinite(v) ? v : null;
+      }
+    }
+    return this.plain;
   }
 
   /** The newest x value, or NaN when empty. */

@@ -1,5 +1,5 @@
 import uPlot from "uplot";
-import { call, trialList, type TrialRecord } from "./api";
+import { call, trialList, verdict, type TrialRecord } from "./api";
 import { COLORS } from "./plots";
 import { fmt, pct, wilson } from "./stats";
 
@@ -20,8 +20,8 @@ export class TrialsView {
   }
 
   private render(): void {
-    const judged = this.trials.filter((t) => typeof t.success === "boolean");
-    const ok = judged.filter((t) => t.success).length;
+    const judged = this.trials.filter((t) => verdict(t) !== null);
+    const ok = judged.filter((t) => verdict(t) === "hit").length;
     const [lo, hi] = wilson(ok, judged.length);
     const summary = this.root.querySelector(".summary") as HTMLElement;
     summary.textContent = judged.length
@@ -29,16 +29,18 @@ export class TrialsView {
       : "no trials yet";
     const body = this.root.querySelector("tbody") as HTMLElement;
     body.replaceChildren();
-    for (const t of [...this.trials].reverse()) {
+    const newestFirst = [...this.trials].sort((a, b) => b.id - a.id);
+    for (const t of newestFirst) {
+      const v = verdict(t);
       const tr = document.createElement("tr");
       const cells = [
         String(t.id),
-        typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : "…",
+        v ?? t.status ?? "…",
         fmt(t.distance_m, 3),
         fmt(t.timing_error_ms, 1),
         fmt(t.position_error_m !== undefined ? t.position_error_m * 1000 : undefined, 1),
         fmt(t.movement_time_s, 3),
-        typeof t.reason === "string" ? t.reason : "",
+        typeof t.abort_reason === "string" ? t.abort_reason : typeof t.reason === "string" ? t.reason : "",
       ];
       for (const c of cells) {
         const td = document.createElement("td");
@@ -58,7 +60,7 @@ export class TrialsView {
       show.addEventListener("click", () => void this.plotTrial(t.id));
       dl.append(show);
       tr.append(dl);
-      tr.classList.add(t.success ? "hit" : "miss");
+      if (v) tr.classList.add(v);
       body.append(tr);
     }
   }

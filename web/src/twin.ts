@@ -65,7 +65,7 @@ export class Twin {
     this.scene.background = new THREE.Color("#f4f6f8");
     this.camera = new THREE.PerspectiveCamera(45, 1, 0.01, 50);
     this.camera.up.set(0, 0, 1);
-    this.camera.position.set(-1.4, -2.2, 1.5);
+    this.camera.position.set(-0.9, -1.7, 1.2);
     this.scene.add(new THREE.HemisphereLight("#ffffff", "#8899aa", 2.2));
     const sun = new THREE.DirectionalLight("#ffffff", 1.5);
     sun.position.set(2, -2, 4);

@@ -42,6 +42,12 @@ describe("series window", () => {
     expect(w.length).toBe(0);
     expect(Number.isNaN(w.lastX())).toBe(true);
   });
+  it("gives uPlot nulls for gaps", () => {
+    const w = new SeriesWindow(2, 4);
+    w.push([0, 1]);
+    w.push([1, Number.NaN]);
+    expect(w.plotData()).toEqual([[0, 1], [1, null]]);
+  });
   it("refuses rows of the wrong width", () => {
     const w = new SeriesWindow(2, 3);
     expect(() => w.push([1])).toThrow();
@@ -106,5 +112,16 @@ describe("trials", () => {
     expect(trialList([{ id: 1 }]).length).toBe(1);
     expect(trialList({ trials: [{ id: 1 }, { id: 2 }] }).length).toBe(2);
     expect(trialList("x")).toEqual([]);
+  });
+});
+
+import { verdict } from "./api";
+describe("trial verdicts", () => {
+  it("counts only finished trials, aborted as a miss", () => {
+    expect(verdict({ id: 1, status: "running", success: false })).toBeNull();
+    expect(verdict({ id: 1, status: "interrupted" })).toBeNull();
+    expect(verdict({ id: 1, status: "aborted", success: false })).toBe("miss");
+    expect(verdict({ id: 1, status: "done", success: true })).toBe("hit");
+    expect(verdict({ id: 1, status: "done", success: false })).toBe("miss");
   });
 });
