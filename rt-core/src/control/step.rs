@@ -31,7 +31,8 @@ pub struct ControlParams {
     pub hold_time_s: f64,
     /// Abort when no pass has been committed to this long after release, seconds.
     pub track_timeout_s: f64,
-    /// Abort when no camera measurement arrived for this long while tracking, seconds.
+    /// Abort when no camera measurement arrived for this long while tracking, seconds
+    /// (longer than the ball spends outside the image at the ends of a long swing).
     pub camera_timeout_s: f64,
     /// Latency assumed until the online estimate is confident, milliseconds.
     pub latency_prior_ms: f64,
@@ -60,7 +61,7 @@ impl Default for ControlParams {
             home_move_time_s: 2.0,
             hold_time_s: 0.3,
             track_timeout_s: 12.0,
-            camera_timeout_s: 0.5,
+            camera_timeout_s: 2.0,
             latency_prior_ms: 0.0,
             latency_memory_s: 30.0,
             posture_margin_deg: 5.0,
