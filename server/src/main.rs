@@ -50,6 +50,8 @@ enum Command {
     Eval(cmd::eval::EvalArgs),
     /// A standalone simulated KUKA FRI controller (any FRI 1.15 client can connect).
     FriSim(cmd::fri_sim::FriSimArgs),
+    /// Run the ball detector over a recorded video.
+    Detect(cmd::detect::DetectArgs),
     /// Scenario files.
     Scenario {
         #[command(subcommand)]
@@ -107,6 +109,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
         Command::Eval(args) => print_out(&cmd::eval::run(args)?),
         Command::FriSim(args) => print_out(&cmd::fri_sim::run(args)?),
+        Command::Detect(args) => cmd::detect::run(args),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

@@ -31,6 +31,16 @@ pub struct BallState {
     pub velocity_mps: Vector3<f64>,
 }
 
+impl BallState {
+    /// A ball at `centre_m` moving with `velocity_mps` (base frame).
+    pub fn from_arrays(centre_m: [f64; 3], velocity_mps: [f64; 3]) -> Self {
+        Self {
+            centre_m: Vector3::from(centre_m),
+            velocity_mps: Vector3::from(velocity_mps),
+        }
+    }
+}
+
 /// The simulated camera's own settings (the `[camera]` section of the scenario
 /// gives frame rate, size, noise, drops, latency and the vision mode).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
