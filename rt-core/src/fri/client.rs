@@ -109,6 +109,18 @@ pub enum StopReason {
     SessionClosed,
 }
 
+impl std::fmt::Display for StopReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::LeftCommanding(s) => {
+                write!(f, "the FRI session left commanding for {}", s.name())
+            }
+            Self::ControllerSilent => f.write_str("the robot controller fell silent"),
+            Self::SessionClosed => f.write_str("the robot controller closed the FRI session"),
+        }
+    }
+}
+
 /// What the control step sees, once per controller message.
 #[derive(Debug, Clone, Copy)]
 pub struct StepInput<'a> {

@@ -1,8 +1,10 @@
 #![doc = include_str!("README.md")]
 
 pub mod camera;
+pub mod fri_step;
 pub mod lab;
 pub mod realtime;
 pub mod robot;
 
+pub use fri_step::FriLoopStep;
 pub use lab::{LabError, LoopStep, TrialDraw, VirtualLab, draw_trial};

@@ -1,0 +1,308 @@
+//! The closed loop's control step behind the FRI client session.
+//!
+//! [`FriLoopStep`] implements [`fri::client::ControlStep`](crate::fri::client::ControlStep):
+//! once per controller message the FRI client ([`crate::fri::FriClient`]) calls
+//! [`step`](crate::fri::client::ControlStep::step), which folds in the camera
+//! measurements waiting in [`LoopStep::inbox`], runs [`Controller::step`] on the
+//! measured joint positions of the message and leaves the controller's joint
+//! command for the client to guard and send. When the session stops commanding
+//! (the controller aborted or left COMMANDING_*, fell silent, or closed the
+//! session), [`stop`](crate::fri::client::ControlStep::stop) aborts the running
+//! trial ([`AbortReason::FriLost`]) and keeps the FRI reason
+//! ([`FriLoopStep::last_stop`]).
+//!
+//! The same value runs in virtual time ([`super::VirtualLab`], one thread) and
+//! in real time (on the session's thread, [`crate::fri::FriSession`]); the
+//! step neither allocates, locks, logs nor blocks once the inbox has its
+//! capacity. The control clock is the session's: `t_s = now_ns * 1e-9`, so
+//! camera measurements must carry capture times on the same clock.
+
+use super::lab::LoopStep;
+use crate::control::{AbortReason, Controller, TrialState};
+use crate::fri::client::{ControlStep, StepInput, StopReason};
+use crate::fri::codec::Joints;
+use crate::fri::proto::SessionState;
+
+/// The closed loop's control step as the FRI session calls it (see the module
+/// documentation).
+#[derive(Debug)]
+pub struct FriLoopStep {
+    /// The control step: the controller, its camera inbox and its step timing.
+    pub step: LoopStep,
+    last_t_s: f64,
+    last_stop: Option<StopReason>,
+    stops: u64,
+    trial_aborts: u64,
+}
+
+impl FriLoopStep {
+    /// Wraps a controller.
+    pub fn new(controller: Controller) -> Self {
+        Self::from_step(LoopStep::new(controller))
+    }
+
+    /// Wraps an existing loop step.
+    pub fn from_step(step: LoopStep) -> Self {
+        Self {
+            step,
+            last_t_s: 0.0,
+            last_stop: None,
+            stops: 0,
+            trial_aborts: 0,
+        }
+    }
+
+    /// The controller.
+    pub fn controller(&self) -> &Controller {
+        &self.step.controller
+    }
+
+    /// The controller, to arm, release or reset trials between steps.
+    pub fn controller_mut(&mut self) -> &mut Controller {
+        &mut self.step.controller
+    }
+
+    /// The session time of the last step, seconds (`now_ns * 1e-9`).
+    pub fn last_t_s(&self) -> f64 {
+        self.last_t_s
+    }
+
+    /// Why the session last told the control to stop, if it did since
+    /// [`clear_stop`](Self::clear_stop).
+    pub fn last_stop(&self) -> Option<StopReason> {
+        self.last_stop
+    }
+
+    /// Forgets the last stop reason (at the start of a trial).
+    pub fn clear_stop(&mut self) {
+        self.last_stop = None;
+    }
+
+    /// Stop events received from the session.
+    pub fn stops(&self) -> u64 {
+        self.stops
+    }
+
+    /// Stop events that aborted a running trial.
+    pub fn trial_aborts(&self) -> u64 {
+        self.trial_aborts
+    }
+
+    /// The wrapped loop step.
+    pub fn into_inner(self) -> LoopStep {
+        self.step
+    }
+}
+
+impl ControlStep for FriLoopStep {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        let m = input.monitoring;
+        if m.session_state == SessionState::CommandingActive && !input.commanding {
+            // Between `receiveMultiplier` answers (or before the hand-over):
+            // nothing is sent, so the controller waits for the answered
+            // message (its step spans the whole receive period). The inbox
+            // keeps the measurements until then.
+            return;
+        }
+        let t_s = input.now_ns as f64 * 1e-9;
+        self.last_t_s = t_s;
+        let q = self.step.run(t_s, input.receive_period_s, m);
+        if input.commanding {
+            *command_rad = q;
+        }
+    }
+
+    fn stop(&mut self, reason: StopReason) {
+        self.stops += 1;
+        self.last_stop = Some(reason);
+        let running = !matches!(
+            self.step.controller.state(),
+            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+        );
+        if running {
+            self.trial_aborts += 1;
+            self.step
+                .controller
+                .abort(self.last_t_s, AbortReason::FriLost);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::Controller;
+    use crate::fri::client::{FriClient, FriClientParams};
+    use crate::fri::sim::{FriSimParams, SimController};
+    use crate::params::Scenario;
+
+    const PERIOD_NS: u64 = 5_000_000;
+
+    struct Rig {
+        sim: SimController,
+        client: FriClient,
+        ctl: FriLoopStep,
+        t_ns: u64,
+    }
+
+    impl Rig {
+        fn new() -> Self {
+            let mut s = Scenario::default();
+            s.robot.fri_period_ms = 5;
+            s.camera.vision = crate::params::VisionMode::Model;
+            let controller = Controller::new(&s, 0.005).unwrap();
+            let mut p = FriSimParams::from_robot(&s.robot);
+            p.seed = 7;
+            let mut sim = SimController::new(p, 0).unwrap();
+            sim.request_commanding();
+            Self {
+                sim,
+                client: FriClient::new(FriClientParams::default()).unwrap(),
+                ctl: FriLoopStep::new(controller),
+                t_ns: 0,
+            }
+        }
+
+        /// One period; returns whether the controller's message was answered.
+        fn tick(&mut self) -> bool {
+            self.t_ns += PERIOD_NS;
+            let now = self.t_ns;
+            self.client.poll(now, &mut self.ctl);
+            let Some(bytes) = self.sim.tick(now) else {
+                return false;
+            };
+            match self.client.on_datagram(bytes, now, &mut self.ctl) {
+                Some(reply) => {
+                    self.sim.on_reply(reply, now + 20_000);
+                    true
+                }
+                None => false,
+            }
+        }
+
+        fn until(&mut self, max_ticks: usize, mut done: impl FnMut(&Self) -> bool) {
+            for _ in 0..max_ticks {
+                if done(self) {
+                    return;
+                }
+                self.tick();
+            }
+            assert!(done(self), "condition not reached in {max_ticks} periods");
+        }
+
+        fn commanding(&mut self) {
+            self.until(400, |r| r.sim.state() == SessionState::CommandingActive);
+            // One more period so the client has seen COMMANDING_ACTIVE.
+            self.tick();
+        }
+
+        fn arm(&mut self) {
+            let s = {
+                let mut s = Scenario::default();
+                s.camera.vision = crate::params::VisionMode::Model;
+                s
+            };
+            let plan = Controller::plan(&s, 0.5).unwrap();
+            let t = self.ctl.last_t_s();
+            self.ctl.controller_mut().arm(t, &plan).unwrap();
+            self.until(4000, |r| r.ctl.controller().state() == TrialState::Armed);
+        }
+    }
+
+    #[test]
+    fn the_session_runs_the_controller_and_its_commands_move_the_joints() {
+        let mut r = Rig::new();
+        r.commanding();
+        let q0 = *r.sim.joint_rad();
+        r.arm();
+        // The arm went home in the motion's posture through the session.
+        let home = r.ctl.controller().arm_plan().unwrap().posture.q_home;
+        let q = r.sim.joint_rad();
+        let moved = (0..7).map(|j| (q[j] - q0[j]).abs()).fold(0.0, f64::max);
+        assert!(moved > 0.05, "the joints did not move: {moved}");
+        let off = (0..7).map(|j| (q[j] - home[j]).abs()).fold(0.0, f64::max);
+        assert!(off < 0.2f64.to_radians(), "not at home: {off} rad");
+        let c = r.ctl.controller().counters();
+        assert!(c.steps > 100);
+        assert_eq!(c.limit_violations(), 0);
+        let st = r.client.stats().snapshot();
+        assert!(st.commands > 100, "{st:?}");
+        assert_eq!(st.guard_step + st.guard_position + st.guard_non_finite, 0);
+        assert_eq!(
+            r.sim
+                .stats()
+                .violations
+                .load(std::sync::atomic::Ordering::Relaxed),
+            0
+        );
+        assert_eq!(r.ctl.stops(), 0);
+        // The controller's last command is what the client sent.
+        let sent = r.client.stats().commanded_rad.load();
+        let last: [f64; 7] = (*r.ctl.controller().q_command()).into();
+        assert_eq!(sent, last);
+    }
+
+    #[test]
+    fn a_session_that_leaves_commanding_aborts_the_running_trial() {
+        let mut r = Rig::new();
+        r.commanding();
+        let plan = Controller::plan(&Scenario::default(), 0.5).unwrap();
+        let t = r.ctl.last_t_s();
+        r.ctl.controller_mut().arm(t, &plan).unwrap();
+        for _ in 0..20 {
+            r.tick();
+        }
+        assert_eq!(r.ctl.controller().state(), TrialState::Arming);
+        // The controller stops getting answers: the quality drops and the
+        // controller leaves commanding.
+        for _ in 0..400 {
+            r.t_ns += PERIOD_NS;
+            let now = r.t_ns;
+            if let Some(b) = r.sim.tick(now) {
+                let _ = r.client.on_datagram(b, now, &mut r.ctl);
+            }
+            if r.ctl.last_stop().is_some() {
+                break;
+            }
+        }
+        assert!(
+            matches!(r.ctl.last_stop(), Some(StopReason::LeftCommanding(_))),
+            "{:?}",
+            r.ctl.last_stop()
+        );
+        assert_eq!(
+            r.ctl.controller().state(),
+            TrialState::Abort(AbortReason::FriLost)
+        );
+        assert_eq!(r.ctl.trial_aborts(), 1);
+    }
+
+    #[test]
+    fn a_silent_controller_aborts_and_an_idle_controller_is_not_a_trial_abort() {
+        let mut r = Rig::new();
+        r.commanding();
+        let plan = Controller::plan(&Scenario::default(), 0.5).unwrap();
+        let t = r.ctl.last_t_s();
+        r.ctl.controller_mut().arm(t, &plan).unwrap();
+        r.tick();
+        // Silence: no datagram for two periods.
+        r.t_ns += 3 * PERIOD_NS;
+        assert!(r.client.poll(r.t_ns, &mut r.ctl));
+        assert_eq!(r.ctl.last_stop(), Some(StopReason::ControllerSilent));
+        assert_eq!(
+            r.ctl.controller().state(),
+            TrialState::Abort(AbortReason::FriLost)
+        );
+        // Back to idle; closing the session now stops, but aborts no trial.
+        let t = r.ctl.last_t_s();
+        r.ctl.controller_mut().reset(t).unwrap();
+        r.ctl.clear_stop();
+        r.tick(); // the controller is back: the client sees COMMANDING_ACTIVE again
+        r.sim.request_close();
+        r.until(10, |r| r.ctl.last_stop().is_some());
+        assert_eq!(r.ctl.last_stop(), Some(StopReason::SessionClosed));
+        assert_eq!(r.ctl.controller().state(), TrialState::Idle);
+        assert_eq!(r.ctl.trial_aborts(), 1);
+        assert_eq!(r.ctl.stops(), 2);
+    }
+}
