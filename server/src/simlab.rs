@@ -539,13 +539,11 @@ impl Runtime {
         let ms = c.motion_sample();
         let moving = matches!(c.state(), TrialState::Intercepting);
         s.hopf.active = moving;
-        (s.hopf.u_init, s.hopf.u_hopf, s.hopf.u_final) = match ms.phase {
-            rt_core::timing::MotionPhase::Idle => (1.0, 0.0, 0.0),
-            rt_core::timing::MotionPhase::Moving => (0.0, 1.0, 0.0),
-            rt_core::timing::MotionPhase::Arrived => (0.0, 0.0, 1.0),
-        };
-        s.hopf.a = f64::NAN;
-        s.hopf.b = f64::NAN;
+        s.hopf.u_init = ms.neurons.u_init;
+        s.hopf.u_hopf = ms.neurons.u_hopf;
+        s.hopf.u_final = ms.neurons.u_final;
+        s.hopf.a = ms.a;
+        s.hopf.b = ms.b;
         s.path.speed_planned_mps = ms.planned_path_speed_mps;
         let q = *self.robot.joints();
         let tool = c.tool_point(&q);

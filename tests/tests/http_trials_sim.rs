@@ -56,15 +56,31 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
     assert_eq!(r.status, 409);
     let deadline = Instant::now() + Duration::from_secs(60);
+    // The timing system as the dashboard sees it: the oscillator's real state
+    // and neurons, and the planned path speed, while the arm moves.
+    let (mut max_planned, mut max_a, mut hopf_won) = (0.0f64, 0.0f64, false);
     let rec = loop {
+        if let Some((s, _)) = lab.latest()
+            && s.trial_state == rt_core::bridge::TrialState::Intercepting
+        {
+            assert!(s.hopf.a.is_finite() && s.hopf.b.is_finite(), "{:?}", s.hopf);
+            max_planned = max_planned.max(s.path.speed_planned_mps);
+            max_a = max_a.max(s.hopf.a);
+            hopf_won |= s.hopf.u_hopf > s.hopf.u_init && s.hopf.u_hopf > s.hopf.u_final;
+        }
         let rec = records.get(id).unwrap().unwrap();
         if rec.status != "running" {
             break rec;
         }
         assert!(Instant::now() < deadline, "trial {id} did not end");
-        tokio::time::sleep(Duration::from_millis(50)).await;
+        tokio::time::sleep(Duration::from_millis(10)).await;
     };
-    println!("simulated trial: {rec:?}");
+    println!(
+        "simulated trial: {rec:?}; peak planned speed {max_planned:.3} m/s, peak a {max_a:.3}"
+    );
+    assert!(max_planned > 0.1, "planned path speed {max_planned}");
+    assert!(max_a > 0.1, "Hopf a {max_a}");
+    assert!(hopf_won, "u_hopf never won while intercepting");
     assert_eq!(rec.status, "done", "{rec:?}");
     let timing = rec.timing_error_ms.unwrap();
     let position = rec.position_error_m.unwrap();
