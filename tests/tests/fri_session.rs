@@ -133,11 +133,11 @@ fn full_session(period_ms: u32) {
     assert_eq!(
         report.states_reached,
         vec![
-            "IDLE",
             "MONITORING_WAIT",
             "MONITORING_READY",
             "COMMANDING_WAIT",
-            "COMMANDING_ACTIVE"
+            "COMMANDING_ACTIVE",
+            "IDLE"
         ]
     );
     // Counters agree: every reply the client sent arrived, in sequence, and the

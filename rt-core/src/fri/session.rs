@@ -166,12 +166,13 @@ fn run<C: ControlStep>(
                     continue;
                 }
                 let to = params.controller.unwrap_or(from);
-                let late_after = client.late_after_ns();
                 if let Some(reply) = client.on_datagram(&buf[..n], t_rx, &mut control) {
                     if socket.send_to(reply, to).is_err() {
                         stats.send_errors.fetch_add(1, Relaxed);
                     }
-                    stats.record_reply_latency(now_ns().saturating_sub(t_rx), late_after);
+                    let took = now_ns().saturating_sub(t_rx);
+                    // The threshold after the datagram: the first one sets the period.
+                    stats.record_reply_latency(took, client.late_after_ns());
                 }
                 if params.exit_on_idle && client.state() == LinkState::Idle {
                     break;

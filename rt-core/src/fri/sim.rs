@@ -9,7 +9,7 @@
 use std::collections::VecDeque;
 use std::fmt;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU8, AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicU8, AtomicU16, AtomicU64, Ordering::Relaxed};
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -327,6 +327,8 @@ pub struct SimStats {
     state: AtomicU8,
     quality: AtomicU8,
     states_reached: AtomicU8,
+    /// The states in the order first reached, 3 bits each (state + 1).
+    states_order: AtomicU16,
     /// Monitoring messages produced (including injected losses and IDLE).
     pub messages_sent: AtomicU64,
     /// Monitoring messages dropped by injection.
@@ -402,13 +404,26 @@ impl SimStats {
         self.states_reached.load(Relaxed) & (1 << s as u8) != 0
     }
 
-    /// The states reached, in FRI order.
+    /// The states reached, in the order first reached (e.g. MONITORING_WAIT,
+    /// ..., COMMANDING_ACTIVE, IDLE).
     pub fn states_reached(&self) -> Vec<&'static str> {
-        ALL_STATES
-            .iter()
-            .filter(|s| self.reached(**s))
-            .map(|s| s.name())
+        let order = self.states_order.load(Relaxed);
+        (0..ALL_STATES.len())
+            .map(|k| usize::from((order >> (3 * k)) & 7))
+            .take_while(|code| *code != 0)
+            .filter_map(|code| ALL_STATES.get(code - 1).map(|s| s.name()))
             .collect()
+    }
+
+    /// Marks `s` reached (by the controller's thread, the only writer).
+    fn mark_reached(&self, s: SessionState) {
+        let bit = 1u8 << s as u8;
+        let before = self.states_reached.fetch_or(bit, Relaxed);
+        if before & bit == 0 {
+            let k = before.count_ones();
+            let order = self.states_order.load(Relaxed) | ((s as u16 + 1) << (3 * k));
+            self.states_order.store(order, Relaxed);
+        }
     }
 
     /// The last abort, if any.
@@ -665,7 +680,7 @@ impl SimController {
         }
         self.state = s;
         self.stats.state.store(s as u8, Relaxed);
-        self.stats.states_reached.fetch_or(1 << s as u8, Relaxed);
+        self.stats.mark_reached(s);
     }
 
     fn set_quality(&mut self, q: ConnectionQuality) {

@@ -453,6 +453,17 @@ fn virtual_session_walks_the_states_moves_the_joints_and_closes() {
     assert_eq!(ctl.stops, vec![StopReason::SessionClosed]);
     assert_eq!(cs.replies, rig.client.stats().snapshot().replies);
     assert!(st.reached(SessionState::Idle));
+    // In the order reached: the controller never starts in IDLE, it ends there.
+    assert_eq!(
+        st.states_reached(),
+        [
+            "MONITORING_WAIT",
+            "MONITORING_READY",
+            "COMMANDING_WAIT",
+            "COMMANDING_ACTIVE",
+            "IDLE"
+        ]
+    );
 }
 
 #[test]
