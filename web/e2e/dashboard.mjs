@@ -114,6 +114,36 @@ try {
     );
     measured.history_summary = await page.textContent("#trials .summary");
   });
+  await check("operator: during the trial the phase portrait traced the Hopf limit cycle from rest and back", async () => {
+    const p = await page.evaluate(() => window.__isochron.phase());
+    measured.phase = {
+      points: p.points,
+      max_a_mps: +p.max_a.toFixed(3),
+      b_range: [+p.min_b.toFixed(3), +p.max_b.toFixed(3)],
+      first: p.first.map((v) => +v.toFixed(3)),
+      last: p.last.map((v) => +v.toFixed(3)),
+    };
+    assert(p.motions >= 1 && p.points >= 30, `portrait has ${p.points} points over ${p.motions} motions`);
+    // Peak path speed 2 R_h: a real motion, not the rest point.
+    assert(p.max_a > 0.05, `peak a ${p.max_a}`);
+    // The limit cycle is a circle of radius R_h = max_a / 2 around (R_h, 0): b goes
+    // down to -R_h and up to +R_h (a line or a stuck point would not).
+    const rh = p.max_a / 2;
+    assert(p.min_b < -0.6 * rh && p.max_b > 0.6 * rh, `b spans [${p.min_b}, ${p.max_b}], R_h ${rh}`);
+    // From rest to the arrival back at rest.
+    assert(Math.hypot(...p.first) < 0.3 * rh, `first point ${p.first} is not at rest`);
+    assert(Math.hypot(...p.last) < 0.3 * rh, `last point ${p.last} is not at rest`);
+  });
+  await check("operator: the neuron plot switched u_init -> u_hopf -> u_final, u_hopf for the movement time", async () => {
+    const T = (await api("GET", "/api/params")).json.task.movement_time_s;
+    const leads = await page.evaluate(() => window.__isochron.neurons());
+    const seq = leads.map((l) => l.neuron);
+    measured.neuron_leads = leads.map((l) => `${l.neuron} ${(l.t1_s - l.t0_s).toFixed(2)} s`);
+    const k = seq.lastIndexOf("hopf");
+    assert(k > 0 && seq[k - 1] === "init" && seq[k + 1] === "final", `leads: ${seq.join(" -> ")}`);
+    const dur = leads[k].t1_s - leads[k].t0_s;
+    assert(Math.abs(dur - T) < 0.15, `u_hopf led for ${dur.toFixed(3)} s, the movement time is ${T} s`);
+  });
   await check("operator: the emergency stop key stops a running motion", async () => {
     await page.click("#btn-trial");
     await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });

@@ -3,6 +3,7 @@ import { call } from "./api";
 import { CameraView } from "./camera";
 import { Link, wsUrl, type LinkStatus } from "./connection";
 import { Controls, ParamsPanel } from "./controls";
+import type { Lead } from "./hopf";
 import { Plots } from "./plots";
 import { fmt } from "./stats";
 import { TrialsView } from "./trials";
@@ -118,7 +119,15 @@ void call("GET", "/api/health").catch(() => onStatus("lost"));
 /** What the browser tests read. */
 declare global {
   interface Window {
-    __isochron: { points: () => number[]; twinFrames: () => number; fps: () => number; received: () => number; state: () => string };
+    __isochron: {
+      points: () => number[];
+      twinFrames: () => number;
+      fps: () => number;
+      received: () => number;
+      state: () => string;
+      phase: () => ReturnType<Plots["phaseStats"]>;
+      neurons: () => Lead[];
+    };
   }
 }
 window.__isochron = {
@@ -127,4 +136,6 @@ window.__isochron = {
   fps: () => fps,
   received: () => link.received,
   state: () => latest?.trial_state ?? "",
+  phase: () => plots.phaseStats(),
+  neurons: () => plots.neuronLeads(),
 };

@@ -1,5 +1,6 @@
 import uPlot from "uplot";
 import "uplot/dist/uPlot.min.css";
+import { leads, PhaseTrail, type Lead } from "./hopf";
 import { SeriesWindow } from "./series";
 import { num, type StateMessage } from "./types";
 
@@ -29,6 +30,9 @@ function size(el: HTMLElement): { width: number; height: number } {
   return { width: Math.max(240, el.clientWidth - 8), height: 170 };
 }
 
+/** Legends name the series; live values under a hover cursor would read "--" most of the time. */
+const LEGEND: uPlot.Legend = { live: false };
+
 function line(label: string, stroke: string, extra: Partial<uPlot.Series> = {}): uPlot.Series {
   return { label, stroke, width: 1.5, points: { show: false }, ...extra };
 }
@@ -39,7 +43,8 @@ export class Plots {
   private latest: StateMessage | null = null;
   private dirty = false;
   private phase: CanvasRenderingContext2D | null;
-  private phaseTrail: SeriesWindow = new SeriesWindow(2, 600);
+  private phaseTrail = new PhaseTrail();
+  private phaseDirty = true;
 
   constructor(root: HTMLElement, phaseCanvas: HTMLCanvasElement) {
     this.phase = phaseCanvas.getContext("2d");
@@ -68,6 +73,7 @@ export class Plots {
       const plot = new uPlot(
         {
           ...size(el),
+          legend: LEGEND,
           scales: { x: timeScale },
           series: [
             { label: "t (s)" },
@@ -99,6 +105,7 @@ export class Plots {
       const plot = new uPlot(
         {
           ...size(el),
+          legend: LEGEND,
           scales: { x: { time: false } },
           series: [{ label: "t (s)" }, line("planned", COLORS.blue), line("executed", COLORS.red, { dash: [6, 3] })],
           hooks: { draw: [(u) => this.drawArrival(u)] },
@@ -118,6 +125,7 @@ export class Plots {
       const plot = new uPlot(
         {
           ...size(el),
+          legend: LEGEND,
           scales: { x: { time: false }, y: { range: [-0.1, 1.1] } },
           series: [{ label: "t (s)" }, line("u_init", COLORS.orange), line("u_Hopf", COLORS.blue), line("u_final", COLORS.green)],
         },
@@ -136,6 +144,7 @@ export class Plots {
       const plot = new uPlot(
         {
           ...size(el),
+          legend: LEGEND,
           scales: { x: { time: false }, y: { range: [-1.05, 1.05] } },
           series: [{ label: "t (s)" }, ...JOINT_COLORS.map((c, i) => line(`A${i + 1}`, c))],
         },
@@ -154,6 +163,7 @@ export class Plots {
       const plot = new uPlot(
         {
           ...size(el),
+          legend: LEGEND,
           scales: { x: { time: false } },
           series: [{ label: "t (s)" }, line("step", COLORS.purple), line("period", COLORS.grey)],
         },
@@ -180,10 +190,11 @@ export class Plots {
       // The lab restarted its clock: start the plots afresh.
       for (const c of this.charts) c.win.clear();
       this.phaseTrail.clear();
+      this.phaseDirty = true;
     }
     this.latest = s;
     for (const c of this.charts) c.win.push(c.row(s));
-    this.phaseTrail.push([s.hopf.a, s.hopf.b]);
+    if (this.phaseTrail.push(s.hopf)) this.phaseDirty = true;
     this.dirty = true;
   }
 
@@ -192,12 +203,25 @@ export class Plots {
     if (!this.dirty) return;
     this.dirty = false;
     for (const c of this.charts) c.plot.setData(c.win.plotData() as uPlot.AlignedData);
-    this.drawPhase();
+    if (this.phaseDirty) {
+      this.phaseDirty = false;
+      this.drawPhase();
+    }
   }
 
   /** Points held per plot (the browser test watches them grow). */
   pointCounts(): number[] {
     return [...this.charts.map((c) => c.win.length), this.phaseTrail.length];
+  }
+
+  /** The phase portrait's points over the last motion (the browser test reads them). */
+  phaseStats(): ReturnType<PhaseTrail["stats"]> & { motions: number } {
+    return { ...this.phaseTrail.stats(), motions: this.phaseTrail.motions };
+  }
+
+  /** Which neuron led when, over the neuron plot's window. */
+  neuronLeads(): Lead[] {
+    return leads(this.charts[2].win.data());
   }
 
   private drawHorizon(u: uPlot): void {
@@ -264,11 +288,21 @@ export class Plots {
     if (!ctx) return;
     const { width: w, height: h } = ctx.canvas;
     ctx.clearRect(0, 0, w, h);
-    const [a, b] = this.phaseTrail.data();
-    let r = 0.05;
-    for (let i = 0; i < a.length; i++) r = Math.max(r, Math.abs(a[i]), Math.abs(b[i]));
-    const s = (Math.min(w, h) / 2 - 12) / r;
-    const cx = w / 2, cy = h / 2;
+    const t = this.phaseTrail;
+    const n = t.length;
+    const st = t.stats();
+    // Equal scales on both axes, fitted to the points and the origin (rest).
+    let a0 = 0, a1 = 0.05, b0 = -0.025, b1 = 0.025;
+    for (let i = 0; i < n; i++) {
+      a0 = Math.min(a0, t.a[i]);
+      a1 = Math.max(a1, t.a[i]);
+      b0 = Math.min(b0, t.b[i]);
+      b1 = Math.max(b1, t.b[i]);
+    }
+    const pad = 18;
+    const s = Math.min((w - 2 * pad) / (a1 - a0), (h - 2 * pad) / (b1 - b0));
+    const cx = w / 2 - ((a0 + a1) / 2) * s, cy = h / 2 + ((b0 + b1) / 2) * s;
+    const X = (a: number) => cx + a * s, Y = (b: number) => cy - b * s;
     ctx.strokeStyle = "#bbb";
     ctx.lineWidth = 1;
     ctx.beginPath();
@@ -279,22 +313,43 @@ export class Plots {
     ctx.stroke();
     ctx.fillStyle = "#555";
     ctx.font = "12px system-ui, sans-serif";
-    ctx.fillText("a", w - 12, cy - 4);
+    ctx.textAlign = "right";
+    ctx.fillText("a: path speed (m/s)", w - 4, cy + 14);
+    ctx.textAlign = "left";
     ctx.fillText("b", cx + 4, 12);
+    if (n === 0) {
+      ctx.textAlign = "center";
+      ctx.fillText("no motion yet: the arc appears during a trial", w / 2, h - 6);
+      ctx.textAlign = "left";
+      return;
+    }
+    // The ideal limit cycle for this motion's peak speed 2 R_h: radius R_h around (R_h, 0).
+    const rh = st.max_a / 2;
+    if (rh > 1e-3) {
+      ctx.strokeStyle = COLORS.grey;
+      ctx.setLineDash([3, 4]);
+      ctx.beginPath();
+      ctx.arc(X(rh), Y(0), rh * s, 0, 2 * Math.PI);
+      ctx.stroke();
+      ctx.setLineDash([]);
+    }
     ctx.strokeStyle = COLORS.blue;
     ctx.lineWidth = 2;
     ctx.beginPath();
-    for (let i = 0; i < a.length; i++) {
-      const x = cx + a[i] * s, y = cy - b[i] * s;
-      if (i === 0) ctx.moveTo(x, y);
-      else ctx.lineTo(x, y);
+    for (let i = 0; i < n; i++) {
+      if (i === 0) ctx.moveTo(X(t.a[i]), Y(t.b[i]));
+      else ctx.lineTo(X(t.a[i]), Y(t.b[i]));
     }
     ctx.stroke();
-    if (a.length > 0) {
-      ctx.fillStyle = COLORS.red;
-      ctx.beginPath();
-      ctx.arc(cx + a[a.length - 1] * s, cy - b[b.length - 1] * s, 4, 0, 2 * Math.PI);
-      ctx.fill();
-    }
+    ctx.fillStyle = COLORS.grey;
+    ctx.beginPath();
+    ctx.arc(X(t.a[0]), Y(t.b[0]), 3, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.fillStyle = COLORS.red;
+    ctx.beginPath();
+    ctx.arc(X(t.a[n - 1]), Y(t.b[n - 1]), 4, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.fillStyle = "#555";
+    ctx.fillText(`peak a ${st.max_a.toFixed(2)} m/s · R_h ${rh.toFixed(2)}`, 4, h - 6);
   }
 }

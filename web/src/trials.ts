@@ -10,6 +10,8 @@ export class TrialsView {
 
   constructor(private readonly root: HTMLElement) {}
 
+  private again: number | undefined;
+
   async refresh(): Promise<void> {
     try {
       this.trials = trialList(await call<unknown>("GET", "/api/trials"));
@@ -17,6 +19,10 @@ export class TrialsView {
       return;
     }
     this.render();
+    // The service writes a trial's record just after announcing its end: while one
+    // is still running here, look again shortly (once per second at most).
+    window.clearTimeout(this.again);
+    if (this.trials.some((t) => t.status === "running")) this.again = window.setTimeout(() => void this.refresh(), 1000);
   }
 
   private render(): void {
