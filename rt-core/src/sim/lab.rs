@@ -10,13 +10,15 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
-use super::robot::VirtualRobot;
+use super::fri_step::FriLoopStep;
 use crate::control::judge::{PlannedMotion, TrialTrace, judge, pass_times};
 use crate::control::{
     ControlError, Controller, Measurement, StepInput, StepOutput, TrialRecord, TrialState,
 };
-use crate::fri::codec::{CommandEncoder, Monitoring, MonitoringDecoder};
+use crate::fri::client::{FriClient, FriClientParams, LinkState};
+use crate::fri::codec::Monitoring;
 use crate::fri::proto::SessionState;
+use crate::fri::sim::{FriSimParams, SimController};
 use crate::kinematics::iiwa7::JOINTS;
 use crate::params::Scenario;
 use crate::params::VisionMode;
@@ -129,16 +131,16 @@ pub enum LabError {
     Robot(String),
 }
 
-/// The virtual-time lab: one simulated robot and controller across trials
-/// (so the latency estimate carries over, as it does in the lab).
+/// The virtual-time lab: one simulated KUKA controller ([`SimController`]),
+/// one FRI client session ([`FriClient`]) and one closed-loop controller
+/// ([`FriLoopStep`]) across trials (so the latency estimate carries over, as
+/// it does in the lab).
 #[derive(Debug)]
 pub struct VirtualLab {
     scenario: Scenario,
-    robot: VirtualRobot,
-    mon_dec: MonitoringDecoder,
-    cmd_enc: CommandEncoder,
-    cmd_seq: u32,
-    step: LoopStep,
+    robot: SimController,
+    client: FriClient,
+    step: FriLoopStep,
     period_ns: u64,
     t_ns: u64,
     seed: u64,
@@ -150,18 +152,54 @@ pub struct VirtualLab {
 
 /// Joint angles of the simulated robot at power-on, degrees.
 pub const INITIAL_JOINTS_DEG: [f64; JOINTS] = [0.0, 30.0, 0.0, -80.0, 0.0, 60.0, 0.0];
+/// Monitoring datagram sent -> command datagram back at the controller, in
+/// virtual time (a loopback round trip), nanoseconds.
+pub const LOOPBACK_NS: u64 = 20_000;
+/// Unix time of the lab's time 0 (message timestamps; fixed for determinism), ns.
+const EPOCH_UNIX_NS: u64 = 1_700_000_000_000_000_000;
+/// Longest wait for the session to reach COMMANDING_ACTIVE, seconds.
+const COMMANDING_TIMEOUT_S: f64 = 5.0;
+
+/// The simulated KUKA controller of `scenario`'s lab: its `[robot]` section
+/// (FRI period, command-to-motion latency and jitter) over
+/// [`FriSimParams`]'s defaults (5 ms servo lag), the joints at
+/// [`INITIAL_JOINTS_DEG`], its random draws seeded with `seed`. The jitter is
+/// capped at the latency (a command never takes effect before it arrives).
+pub fn robot_params(scenario: &Scenario, seed: u64) -> FriSimParams {
+    let mut p = FriSimParams::from_robot(&scenario.robot);
+    p.latency_jitter_ms = p.latency_jitter_ms.min(p.latency_ms);
+    p.initial_joint_position_deg = INITIAL_JOINTS_DEG;
+    p.seed = seed;
+    p
+}
 /// Longest a trial may take in virtual time, seconds.
 const TRIAL_TIMEOUT_S: f64 = 40.0;
 /// Time after `Done` still recorded (for the judge), seconds.
 const AFTER_DONE_S: f64 = 0.3;
 
 impl VirtualLab {
-    /// A lab for `scenario`, its simulated robot seeded from `seed`.
+    /// A lab for `scenario`, its simulated robot seeded from `seed`
+    /// ([`robot_params`]).
     pub fn new(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
-        let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
+        Self::with_robot(scenario, seed, robot_params(scenario, seed))
+    }
+
+    /// A lab for `scenario` whose simulated KUKA controller has `robot`
+    /// (e.g. [`robot_params`] with injected faults). Brings the FRI session up
+    /// to COMMANDING_ACTIVE.
+    pub fn with_robot(
+        scenario: &Scenario,
+        seed: u64,
+        robot: FriSimParams,
+    ) -> Result<Self, LabError> {
+        let period_ms = robot.fri_period_ms * robot.receive_multiplier;
+        let period_s = f64::from(period_ms) * 1e-3;
         let controller = Controller::new(scenario, period_s)?;
-        let q0 = INITIAL_JOINTS_DEG.map(f64::to_radians);
-        let robot = VirtualRobot::new(&scenario.robot, q0, seed);
+        let robot_period_ns = robot.period_ns();
+        let robot =
+            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
+        let client = FriClient::new(FriClientParams::default())
+            .map_err(|e| LabError::Robot(e.to_string()))?;
         // Full vision: frames rendered and run through the OpenCV detector.
         let vision = if scenario.camera.vision == VisionMode::Full {
             let cam = SimCamera::new(
@@ -187,11 +225,9 @@ impl VirtualLab {
         let mut lab = Self {
             scenario: scenario.clone(),
             robot,
-            mon_dec: MonitoringDecoder::new(),
-            cmd_enc: CommandEncoder::new(),
-            cmd_seq: 0,
-            step: LoopStep::new(controller),
-            period_ns: u64::from(scenario.robot.fri_period_ms) * 1_000_000,
+            client,
+            step: FriLoopStep::new(controller),
+            period_ns: robot_period_ns,
             t_ns: 0,
             seed,
             trace: TrialTrace::with_capacity(20_000),
@@ -199,16 +235,46 @@ impl VirtualLab {
             vision,
             in_flight: std::collections::VecDeque::with_capacity(64),
         };
-        // A few messages so the controller knows where the arm is.
-        for _ in 0..10 {
-            lab.tick();
-        }
+        lab.ensure_commanding()?;
         Ok(lab)
+    }
+
+    /// Runs the session until the client is in COMMANDING_ACTIVE (asking the
+    /// controller for commanding first, as the robot program does).
+    fn ensure_commanding(&mut self) -> Result<(), LabError> {
+        let max = (COMMANDING_TIMEOUT_S * 1e9 / self.period_ns as f64).ceil() as usize;
+        for _ in 0..max {
+            if self.client.state() == LinkState::CommandingActive
+                && self.robot.state() == SessionState::CommandingActive
+            {
+                return Ok(());
+            }
+            if self.robot.state() != SessionState::CommandingActive {
+                self.robot.request_commanding();
+            }
+            self.tick();
+        }
+        Err(LabError::Robot(format!(
+            "the FRI session did not reach COMMANDING_ACTIVE within {COMMANDING_TIMEOUT_S} s \
+             (controller {}, quality {})",
+            self.robot.state().name(),
+            self.robot.quality().name()
+        )))
+    }
+
+    /// The simulated KUKA controller (for inspection).
+    pub fn robot(&self) -> &SimController {
+        &self.robot
+    }
+
+    /// The FRI client session (for inspection).
+    pub fn client(&self) -> &FriClient {
+        &self.client
     }
 
     /// The controller (for inspection).
     pub fn controller(&self) -> &Controller {
-        &self.step.controller
+        self.step.controller()
     }
 
     /// How this lab produces camera measurements: `"full"` (rendered frames
@@ -223,7 +289,7 @@ impl VirtualLab {
 
     /// The loop adapter (step timing, deadline misses).
     pub fn loop_step(&mut self) -> &mut LoopStep {
-        &mut self.step
+        &mut self.step.step
     }
 
     /// The virtual time, seconds.
@@ -231,24 +297,19 @@ impl VirtualLab {
         self.t_ns as f64 * 1e-9
     }
 
-    /// One FRI period: the controller's monitoring datagram is decoded, the
-    /// control step runs, its command is encoded and handed back.
+    /// One controller send period: the simulated controller's monitoring
+    /// datagram goes to the FRI client, which runs the control step and
+    /// returns the command datagram; that reaches the controller a loopback
+    /// round trip later. A silent controller is noticed by the client's poll.
     fn tick(&mut self) {
         self.t_ns += self.period_ns;
         let now = self.t_ns;
+        self.client.poll(now, &mut self.step);
         let Some(bytes) = self.robot.tick(now) else {
             return;
         };
-        let Ok(m) = self.mon_dec.decode(bytes) else {
-            return;
-        };
-        let period_s = self.period_ns as f64 * 1e-9;
-        let q = self.step.run(now as f64 * 1e-9, period_s, &m);
-        let seq = self.cmd_seq;
-        self.cmd_seq = self.cmd_seq.wrapping_add(1);
-        if let Ok(reply) = self.cmd_enc.encode(seq, m.sequence_counter, Some(&q)) {
-            // The reply reaches the controller a few microseconds later (loopback).
-            let _ = self.robot.on_reply(reply, now + 20_000);
+        if let Some(reply) = self.client.on_datagram(bytes, now, &mut self.step) {
+            self.robot.on_reply(reply, now + LOOPBACK_NS);
         }
     }
 
@@ -268,7 +329,7 @@ impl VirtualLab {
             judgement: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
-            latency_estimate_ms: self.step.controller.latency().latency_s() * 1e3,
+            latency_estimate_ms: self.step.step.controller.latency().latency_s() * 1e3,
             limit_violations: 0,
             deadline_misses: 0,
         };
@@ -281,27 +342,45 @@ impl VirtualLab {
             }
         };
         rec.planned_movement_time_s = plan.duration_s;
-        let before = *self.step.controller.counters();
-        let robot_violations = self.robot.violations;
-        let misses_before = self.step.deadline_misses;
+        // A controller abort in an earlier trial left the session out of
+        // commanding: the robot program starts the overlay again.
+        if let Err(e) = self.ensure_commanding() {
+            rec.failure = Some(e.to_string());
+            rec.decide(&self.scenario.success);
+            return rec;
+        }
+        self.step.clear_stop();
+        let before = *self.step.step.controller.counters();
+        let fri_before = self.fri_counts();
+        let misses_before = self.step.step.deadline_misses;
         let outcome = self.simulate(&draw, &plan);
-        let c = self.step.controller.counters();
+        let c = self.step.controller().counters();
+        let fri = self.fri_counts();
         rec.limit_violations = c.limit_violations() - before.limit_violations()
-            + (self.robot.violations - robot_violations);
-        rec.deadline_misses = self.step.deadline_misses - misses_before;
-        let state = self.step.controller.state();
+            + (fri.violations - fri_before.violations);
+        rec.deadline_misses = self.step.step.deadline_misses - misses_before;
+        let state = self.step.controller().state();
         rec.final_state = state.name().to_owned();
         if let TrialState::Abort(r) = state {
-            rec.abort_reason = Some(r.name().to_owned());
+            let mut why = r.name().to_owned();
+            if let Some(stop) = self.step.last_stop() {
+                why.push_str(&format!(": {stop}"));
+            }
+            if fri.aborts > fri_before.aborts
+                && let Some(a) = self.robot.stats().last_abort()
+            {
+                why.push_str(&format!(" (the robot controller aborted commanding: {a})"));
+            }
+            rec.abort_reason = Some(why);
         }
         if let Err(msg) = outcome {
             rec.failure = Some(msg);
         }
-        if let Some(commit) = self.step.controller.commit().copied() {
+        if let Some(commit) = self.step.step.controller.commit().copied() {
             rec.latency_estimate_ms = commit.latency_s * 1e3;
             let motion = PlannedMotion {
-                start_m: self.step.controller.home_m(),
-                end_m: self.step.controller.motion_target_m(),
+                start_m: self.step.step.controller.home_m(),
+                end_m: self.step.step.controller.motion_target_m(),
                 profile: ProfileKind::Hopf,
                 duration_s: commit.duration_s,
                 commanded_start_s: commit.motion_start_s,
@@ -333,9 +412,25 @@ impl VirtualLab {
             }
         }
         let t = self.t_s();
-        let _ = self.step.controller.reset(t);
+        let _ = self.step.step.controller.reset(t);
         rec.decide(&self.scenario.success);
         rec
+    }
+
+    /// The FRI side's limit violations (commands the client's guard had to
+    /// change, commands the simulated controller refused with an abort) and the
+    /// controller's commanding aborts of any kind.
+    fn fri_counts(&self) -> FriCounts {
+        use std::sync::atomic::Ordering::Relaxed;
+        let c = self.client.stats();
+        let r = self.robot.stats();
+        FriCounts {
+            violations: c.guard_position.load(Relaxed)
+                + c.guard_step.load(Relaxed)
+                + c.guard_non_finite.load(Relaxed)
+                + r.violations.load(Relaxed),
+            aborts: r.aborts.load(Relaxed),
+        }
     }
 
     fn simulate(&mut self, draw: &TrialDraw, plan: &crate::control::ArmPlan) -> Result<(), String> {
@@ -361,7 +456,7 @@ impl VirtualLab {
         }
         self.in_flight.clear();
         self.step
-            .controller
+            .controller_mut()
             .arm(t0, plan)
             .map_err(|e| e.to_string())?;
         let mut released_at: Option<f64> = None;
@@ -396,26 +491,30 @@ impl VirtualLab {
                 }
             }
             ball.advance_to(t_next).map_err(|e| e.to_string())?;
-            camera.deliver(t_next, &mut self.step.inbox);
+            camera.deliver(t_next, &mut self.step.step.inbox);
             while let Some(&(avail, m)) = self.in_flight.front() {
                 if avail > t_next {
                     break;
                 }
-                self.step.inbox.push(m);
+                self.step.step.inbox.push(m);
                 self.in_flight.pop_front();
             }
             self.tick();
             let t = self.t_s();
-            let q = *self.robot.joints();
-            let tool = self.step.controller.tool_point(&q);
+            let q = *self.robot.joint_rad();
+            let tool = self.step.step.controller.tool_point(&q);
             self.trace.push(t, tool, ball.ball_position_m());
-            let state = self.step.controller.state();
+            let state = self.step.step.controller.state();
             match state {
                 TrialState::Armed => {
                     let since = *armed_at.get_or_insert(t);
                     if released_at.is_none() && t - since >= draw.release_wait_s {
                         ball.release(t).map_err(|e| e.to_string())?;
-                        self.step.controller.release(t).map_err(|e| e.to_string())?;
+                        self.step
+                            .step
+                            .controller
+                            .release(t)
+                            .map_err(|e| e.to_string())?;
                         released_at = Some(t);
                     }
                 }
@@ -435,7 +534,78 @@ impl VirtualLab {
     }
 }
 
+#[derive(Debug, Clone, Copy)]
+struct FriCounts {
+    violations: u64,
+    aborts: u64,
+}
+
 /// Tool point helper for tests: where the tool is for joint vector `q`.
 pub fn tool_point(controller: &Controller, q: &[f64; JOINTS]) -> Vector3<f64> {
     controller.tool_point(q)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::Ordering::Relaxed;
+
+    fn model_lab() -> Scenario {
+        let mut s = Scenario::default();
+        s.camera.vision = VisionMode::Model;
+        s
+    }
+
+    #[test]
+    fn trials_run_through_the_fri_session_and_the_simulated_controller() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 3).unwrap();
+        assert_eq!(lab.client().state(), LinkState::CommandingActive);
+        let applied_before = lab.robot().stats().commands_applied.load(Relaxed);
+        let r = lab.run_trial(0);
+        assert!(r.success, "{r:?}");
+        let sim = lab.robot().stats().report();
+        let cli = lab.client().stats().snapshot();
+        // Every command the controller moved with came through the client.
+        assert!(sim.commands_applied > applied_before + 300, "{sim:?}");
+        assert_eq!(sim.commands_accepted, cli.commands);
+        assert_eq!(sim.violations + sim.aborts, 0, "{sim:?}");
+        assert_eq!(sim.client_sequence_errors, 0, "{sim:?}");
+        assert_eq!(cli.late_replies + cli.missed_cycles + cli.silences, 0);
+        assert_eq!(sim.quality, "EXCELLENT");
+        // The latency estimate sees the robot's latency plus its servo lag.
+        assert!(r.latency_estimate_ms > 8.0, "{r:?}");
+    }
+
+    #[test]
+    fn a_controller_abort_ends_the_trial_as_an_abort_and_counts_a_violation() {
+        let s = model_lab();
+        // A controller that trips at half the joints' speed limits: the
+        // interception motion is faster than that.
+        let mut robot = robot_params(&s, 1);
+        robot.velocity_tolerance = 0.5;
+        let mut lab = VirtualLab::with_robot(&s, 1, robot).unwrap();
+        let r = lab.run_trial(0);
+        assert!(!r.success);
+        assert_eq!(r.final_state, "abort");
+        let why = r.abort_reason.as_deref().unwrap();
+        assert!(why.starts_with("fri_lost"), "{why}");
+        assert!(why.contains("left commanding"), "{why}");
+        assert!(why.contains("velocity limit"), "{why}");
+        assert!(r.limit_violations >= 1, "{r:?}");
+        assert!(r.failure.as_deref().unwrap().contains("abort"), "{r:?}");
+        // The next trial brings the session back to commanding first.
+        let r2 = lab.run_trial(1);
+        assert_ne!(r2.final_state, "idle", "{r2:?}");
+        assert!(lab.robot().stats().commanding_entered.load(Relaxed) >= 2);
+    }
+
+    #[test]
+    fn a_bad_robot_is_refused_with_the_field() {
+        let s = model_lab();
+        let mut robot = robot_params(&s, 1);
+        robot.latency_ms = 500.0;
+        let e = VirtualLab::with_robot(&s, 1, robot).unwrap_err();
+        assert!(e.to_string().contains("fri_sim.latency_ms"), "{e}");
+    }
 }

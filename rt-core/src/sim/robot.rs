@@ -1,3 +1,9 @@
+//! **Deprecated**: superseded by the simulated KUKA controller
+//! [`crate::fri::SimController`], which the virtual-time lab
+//! ([`super::VirtualLab`]) runs through the FRI client session. Kept only
+//! while `server/src/simlab.rs` and [`super::realtime`] still use it; do not
+//! use it in new code.
+//!
 //! The simulated robot driven in virtual time: a KUKA controller's joint
 //! servo behind FRI. Monitoring datagrams are encoded and command datagrams
 //! decoded with the real FRI codec; a command reaches the joints after the
