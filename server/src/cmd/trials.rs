@@ -129,7 +129,11 @@ mod tests {
     use super::*;
 
     fn args(n: usize, per_trial: Option<PathBuf>) -> TrialsArgs {
-        let dir = std::env::temp_dir().join(format!("isochron-trials-{}", std::process::id()));
+        // One directory per call: the tests run in parallel and must not read
+        // each other's half-written scenario.
+        static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let k = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("isochron-trials-{}-{k}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let scenario = dir.join("model.toml");
         std::fs::write(
