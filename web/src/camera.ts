@@ -1,87 +1,240 @@
 import { Link, wsUrl } from "./connection";
-import { num, type StateMessage } from "./types";
+import { num, type CameraInfo, type StateMessage } from "./types";
 
-/** Overlay data the server may add to state messages for the camera view. */
-interface CameraOverlay {
-  width_px?: number;
-  height_px?: number;
-  found?: boolean;
-  x_px?: number;
-  y_px?: number;
-  r_px?: number;
-  predicted_px?: number[][];
-  intercept_px?: number[];
+/**
+ * Pixel (in the full camera image) of the ball centre at lateral position
+ * `x_m` = l sin(phi) of a pendulum of length `length_m`: the point
+ * `rest + x lateral + l (1 - cos phi) up` in the camera frame through the
+ * pinhole with radial distortion (rt_core::bridge::CameraView::project_lateral).
+ * `null` without a calibration, beyond the string, or behind the camera.
+ */
+export function projectLateral(c: CameraInfo, x_m: number, length_m: number): [number, number] | null {
+  if (!c.width_px || !(length_m > 0) || !(Math.abs(x_m) <= length_m)) return null;
+  const lift = length_m - Math.sqrt(length_m * length_m - x_m * x_m);
+  const p = [0, 1, 2].map((i) => num(c.rest_c_m[i]) + x_m * num(c.lateral_c[i]) + lift * num(c.up_c[i]));
+  if (!(p[2] > 1e-6)) return null;
+  const x = p[0] / p[2], y = p[1] / p[2];
+  const r2 = x * x + y * y;
+  const d = 1 + c.k1 * r2 + c.k2 * r2 * r2;
+  const u = c.fx_px * x * d + c.cx_px, v = c.fy_px * y * d + c.cy_px;
+  return Number.isFinite(u) && Number.isFinite(v) ? [u, v] : null;
+}
+
+/** Frames per second over the arrivals of the last `windowMs`. */
+export class RateMeter {
+  private readonly times: Float64Array;
+  private head = 0;
+  private count = 0;
+
+  constructor(capacity = 128, private readonly windowMs = 2000) {
+    this.times = new Float64Array(capacity);
+  }
+
+  tick(nowMs: number): void {
+    this.times[this.head] = nowMs;
+    this.head = (this.head + 1) % this.times.length;
+    this.count = Math.min(this.count + 1, this.times.length);
+  }
+
+  rate(nowMs: number): number {
+    let n = 0, oldest = nowMs;
+    for (let i = 0; i < this.count; i++) {
+      const t = this.times[(this.head - 1 - i + this.times.length) % this.times.length];
+      if (nowMs - t > this.windowMs) break;
+      n += 1;
+      oldest = t;
+    }
+    if (n < 2) return 0;
+    // n arrivals span n - 1 intervals; an idle stream decays through nowMs.
+    return (n - 1) / (Math.max(nowMs - oldest, 1) / 1000);
+  }
+}
+
+/** What the overlay drew last, in the frame's pixels (the browser test reads it). */
+export interface OverlayDrawn {
+  ball: [number, number, number] | null;
+  predicted: number;
+  intercept: [number, number] | null;
 }
 
 /**
- * The camera view: JPEG frames from `/ws/camera` with overlays (detected ball,
- * predicted positions, intercept point) drawn on a canvas above the image.
+ * The camera view: JPEG frames from `/ws/camera`, decoded off the main thread
+ * (`createImageBitmap`; while one decodes only the newest waiting frame is
+ * kept), drawn on a canvas; above it an overlay canvas with the detected ball,
+ * the predicted positions and the intercept point, placed with the camera
+ * calibration the state messages carry.
  */
 export class CameraView {
-  private readonly img: HTMLImageElement;
+  private readonly image: HTMLCanvasElement;
   private readonly overlay: HTMLCanvasElement;
-  private url: string | null = null;
-  private link: Link;
-  frames = 0;
+  private readonly info: HTMLElement | null;
+  private readonly host: HTMLElement;
+  private readonly link: Link;
+  private bitmap: ImageBitmap | null = null;
+  private pending: Blob | null = null;
+  private decoding = false;
+  private imageDirty = false;
+  private overlayDirty = true;
   private latest: StateMessage | null = null;
+  /** The detection as of the shown frame (the state that was newest when it arrived). */
+  private detection: CameraInfo | null = null;
+  private readonly meter = new RateMeter();
+  private lastFrameAt = Number.NaN;
+  private infoAt = 0;
+  /** Pendulum length, metres (from the parameters), for the projection. */
+  lengthM = Number.NaN;
+  /** Frames received, shown, and refused by the decoder. */
+  received = 0;
+  frames = 0;
+  decodeErrors = 0;
+  drawn: OverlayDrawn = { ball: null, predicted: 0, intercept: null };
 
   constructor(host: HTMLElement) {
-    this.img = host.querySelector("img") as HTMLImageElement;
-    this.overlay = host.querySelector("canvas") as HTMLCanvasElement;
-    this.link = new Link(wsUrl("/ws/camera"), () => {}, (s) => host.classList.toggle("offline", s !== "open"), (blob) => this.frame(blob));
+    this.host = host;
+    this.image = host.querySelector("canvas.frame") as HTMLCanvasElement;
+    this.overlay = host.querySelector("canvas.overlay") as HTMLCanvasElement;
+    this.info = document.getElementById("camera-info");
+    host.classList.add("waiting");
+    this.link = new Link(
+      wsUrl("/ws/camera"),
+      () => {},
+      (s) => host.classList.toggle("offline", s !== "open"),
+      (blob) => this.receive(blob),
+    );
     this.link.start();
   }
 
-  private frame(blob: Blob): void {
-    const next = URL.createObjectURL(blob);
-    this.img.onload = () => {
-      if (this.url && this.url !== next) URL.revokeObjectURL(this.url);
-      this.url = next;
-    };
-    this.img.src = next;
-    this.img.hidden = false;
-    this.frames += 1;
+  /** Frames per second shown, over the last two seconds. */
+  fps(now = performance.now()): number {
+    return this.meter.rate(now);
+  }
+
+  private receive(blob: Blob): void {
+    this.received += 1;
+    if (this.decoding) {
+      this.pending = blob; // an older waiting frame is dropped
+      return;
+    }
+    this.decode(blob);
+  }
+
+  private decode(blob: Blob): void {
+    this.decoding = true;
+    const detection = this.latest?.camera ?? null;
+    createImageBitmap(blob.type ? blob : new Blob([blob], { type: "image/jpeg" }))
+      .then((bmp) => {
+        this.bitmap?.close();
+        this.bitmap = bmp;
+        this.detection = detection;
+        this.imageDirty = true;
+        this.overlayDirty = true;
+        this.frames += 1;
+        const now = performance.now();
+        this.meter.tick(now);
+        this.lastFrameAt = now;
+      })
+      .catch(() => {
+        this.decodeErrors += 1;
+      })
+      .finally(() => {
+        this.decoding = false;
+        const next = this.pending;
+        this.pending = null;
+        if (next) this.decode(next);
+      });
   }
 
   update(s: StateMessage): void {
     this.latest = s;
+    this.overlayDirty = true;
   }
 
-  draw(): void {
-    const cam = (this.latest as unknown as { camera?: CameraOverlay } | null)?.camera;
-    const c = this.overlay;
-    const w = this.img.naturalWidth || cam?.width_px || 1280;
-    const h = this.img.naturalHeight || cam?.height_px || 720;
-    if (c.width !== w || c.height !== h) {
-      c.width = w;
-      c.height = h;
+  /** Repaints what changed (called once per animation frame). */
+  draw(now = performance.now()): void {
+    const bmp = this.bitmap;
+    if (bmp && this.imageDirty) {
+      this.imageDirty = false;
+      for (const c of [this.image, this.overlay]) {
+        if (c.width !== bmp.width || c.height !== bmp.height) {
+          c.width = bmp.width;
+          c.height = bmp.height;
+        }
+      }
+      this.image.getContext("2d")?.drawImage(bmp, 0, 0);
+      this.host.classList.remove("waiting");
     }
-    const ctx = c.getContext("2d");
+    if (this.overlayDirty && bmp) {
+      this.overlayDirty = false;
+      this.drawOverlay(bmp.width, bmp.height);
+    }
+    if (this.info && now - this.infoAt > 250) {
+      this.infoAt = now;
+      const age = now - this.lastFrameAt;
+      this.info.textContent = Number.isFinite(age)
+        ? `${this.fps(now).toFixed(1)} fps · frame ${this.frames} · ${age < 10_000 ? `${Math.round(age)} ms ago` : "stalled"}`
+        : "no frames yet";
+    }
+  }
+
+  private drawOverlay(w: number, h: number): void {
+    const ctx = this.overlay.getContext("2d");
     if (!ctx) return;
     ctx.clearRect(0, 0, w, h);
-    if (!cam) return;
-    ctx.lineWidth = Math.max(2, w / 400);
-    if (cam.found && Number.isFinite(num(cam.x_px))) {
-      ctx.strokeStyle = "#D55E00";
+    this.drawn = { ball: null, predicted: 0, intercept: null };
+    const s = this.latest;
+    const cal = s?.camera;
+    if (!s || !cal || !cal.width_px) return;
+    const k = w / cal.width_px; // the stream may be downscaled
+    const L = this.lengthM;
+    ctx.lineWidth = Math.max(2, w / 320);
+    // Predicted positions (the filter's horizon), a dashed path with dots.
+    const pts: [number, number][] = [];
+    for (const p of s.pendulum.horizon) {
+      const q = projectLateral(cal, p.x_m, L);
+      if (q) pts.push([q[0] * k, q[1] * k]);
+    }
+    if (pts.length > 0) {
+      ctx.strokeStyle = "rgba(86,180,233,0.9)";
+      ctx.setLineDash([4, 4]);
       ctx.beginPath();
-      ctx.arc(num(cam.x_px), num(cam.y_px), Math.max(4, num(cam.r_px)), 0, 2 * Math.PI);
+      pts.forEach(([x, y], i) => (i === 0 ? ctx.moveTo(x, y) : ctx.lineTo(x, y)));
       ctx.stroke();
+      ctx.setLineDash([]);
+      ctx.fillStyle = "#56B4E9";
+      for (const [x, y] of pts) {
+        ctx.beginPath();
+        ctx.arc(x, y, Math.max(2.5, w / 256), 0, 2 * Math.PI);
+        ctx.fill();
+      }
     }
-    ctx.fillStyle = "rgba(0,114,178,0.8)";
-    for (const p of cam.predicted_px ?? []) {
-      ctx.beginPath();
-      ctx.arc(p[0], p[1], 3, 0, 2 * Math.PI);
-      ctx.fill();
-    }
-    if (cam.intercept_px && cam.intercept_px.length === 2) {
-      const [x, y] = cam.intercept_px;
+    this.drawn.predicted = pts.length;
+    // The intercept point: the ball's rest position.
+    const ip = projectLateral(cal, 0, L);
+    if (ip) {
+      const [x, y] = [ip[0] * k, ip[1] * k];
+      const r = Math.max(8, w / 60);
       ctx.strokeStyle = "#009E73";
       ctx.beginPath();
-      ctx.moveTo(x - 12, y);
-      ctx.lineTo(x + 12, y);
-      ctx.moveTo(x, y - 12);
-      ctx.lineTo(x, y + 12);
+      ctx.moveTo(x - r, y);
+      ctx.lineTo(x + r, y);
+      ctx.moveTo(x, y - r);
+      ctx.lineTo(x, y + r);
       ctx.stroke();
+      ctx.fillStyle = "#009E73";
+      ctx.font = `${Math.max(11, w / 50)}px system-ui, sans-serif`;
+      ctx.fillText("intercept", x + r + 3, y + r);
+      this.drawn.intercept = [x, y];
+    }
+    // The detected ball, as of the shown frame.
+    const d = this.detection;
+    if (d && d.found && Number.isFinite(num(d.x_px)) && Number.isFinite(num(d.y_px))) {
+      const [x, y] = [num(d.x_px) * k, num(d.y_px) * k];
+      const r = Math.max(5, num(d.r_px) * k + 3);
+      ctx.strokeStyle = "#D55E00";
+      ctx.beginPath();
+      ctx.arc(x, y, r, 0, 2 * Math.PI);
+      ctx.stroke();
+      this.drawn.ball = [x, y, r];
     }
   }
 }

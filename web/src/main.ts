@@ -1,6 +1,6 @@
 import "./style.css";
 import { call } from "./api";
-import { CameraView } from "./camera";
+import { CameraView, type OverlayDrawn } from "./camera";
 import { Link, wsUrl, type LinkStatus } from "./connection";
 import { Controls, ParamsPanel } from "./controls";
 import type { Lead } from "./hopf";
@@ -89,7 +89,7 @@ function frame(now: number): void {
   tick += 1;
   if (tick % 2 === 0) plots.draw();
   else twin.draw();
-  camera.draw();
+  camera.draw(now);
   if (latest) status(latest);
   frames += 1;
   if (now - fpsT0 >= 1000) {
@@ -104,6 +104,7 @@ requestAnimationFrame(frame);
 async function loadGeometry(): Promise<void> {
   await params.load();
   const p = params.params as { pendulum?: Record<string, number>; task?: Record<string, unknown> };
+  camera.lengthM = p.pendulum?.length_m ?? DEFAULT_GEOMETRY.length_m;
   twin.geometry = {
     length_m: p.pendulum?.length_m ?? DEFAULT_GEOMETRY.length_m,
     ball_radius_m: p.pendulum?.ball_radius_m ?? DEFAULT_GEOMETRY.ball_radius_m,
@@ -127,6 +128,7 @@ declare global {
       state: () => string;
       phase: () => ReturnType<Plots["phaseStats"]>;
       neurons: () => Lead[];
+      camera: () => { received: number; frames: number; decodeErrors: number; fps: number; drawn: OverlayDrawn };
     };
   }
 }
@@ -138,4 +140,11 @@ window.__isochron = {
   state: () => latest?.trial_state ?? "",
   phase: () => plots.phaseStats(),
   neurons: () => plots.neuronLeads(),
+  camera: () => ({
+    received: camera.received,
+    frames: camera.frames,
+    decodeErrors: camera.decodeErrors,
+    fps: camera.fps(),
+    drawn: camera.drawn,
+  }),
 };

@@ -59,6 +59,30 @@ export interface LoopTiming {
   deadline_misses: number;
 }
 
+/**
+ * The camera's latest detection in the full camera image's pixels, and the
+ * swing plane's calibration (rt_core::bridge::CameraView). `width_px` 0: no camera.
+ */
+export interface CameraInfo {
+  width_px: number;
+  height_px: number;
+  frame: number;
+  t_s: number | null;
+  found: boolean;
+  x_px: number | null;
+  y_px: number | null;
+  r_px: number | null;
+  fx_px: number;
+  fy_px: number;
+  cx_px: number;
+  cy_px: number;
+  k1: number;
+  k2: number;
+  rest_c_m: (number | null)[];
+  lateral_c: (number | null)[];
+  up_c: (number | null)[];
+}
+
 export interface StateMessage {
   type: "state";
   t_s: number;
@@ -73,6 +97,8 @@ export interface StateMessage {
   magnet: string;
   timing: LoopTiming;
   counters: Record<string, number>;
+  /** Absent from services older than the camera overlays. */
+  camera?: CameraInfo;
 }
 
 export interface EventMessage {

@@ -396,6 +396,103 @@ pub struct Counters {
     pub trials: u64,
 }
 
+/// The camera as the dashboard overlays it on `/ws/camera`'s frames: the latest
+/// processed frame's detection in the pixels of the full camera image, and the
+/// swing plane's calibration, with which predicted positions and the intercept
+/// point are projected into the same image ([`CameraView::project_lateral`]).
+/// The streamed frames may be downscaled: scale by their width / `width_px`.
+/// `width_px == 0`: no camera (nothing to overlay).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct CameraView {
+    /// Width of the camera image the pixel coordinates refer to.
+    pub width_px: u32,
+    /// Height of the camera image the pixel coordinates refer to.
+    pub height_px: u32,
+    /// Number of the latest processed frame.
+    pub frame: u64,
+    /// Its capture time, control clock, seconds.
+    pub t_s: f64,
+    /// Whether the detector found the ball in it.
+    pub found: bool,
+    /// Ball centre, image column, pixels (pixel centres at integers).
+    pub x_px: f64,
+    /// Ball centre, image row, pixels.
+    pub y_px: f64,
+    /// Apparent ball radius, pixels.
+    pub r_px: f64,
+    /// Focal length along columns, pixels.
+    pub fx_px: f64,
+    /// Focal length along rows, pixels.
+    pub fy_px: f64,
+    /// Principal point, column, pixels.
+    pub cx_px: f64,
+    /// Principal point, row, pixels.
+    pub cy_px: f64,
+    /// Radial distortion, r^2 term.
+    pub k1: f64,
+    /// Radial distortion, r^4 term.
+    pub k2: f64,
+    /// The ball's rest position (the intercept point), camera frame, metres.
+    pub rest_c_m: [f64; 3],
+    /// The lateral axis (robot base +y), camera frame, unit.
+    pub lateral_c: [f64; 3],
+    /// Up (robot base +z), camera frame, unit.
+    pub up_c: [f64; 3],
+}
+
+impl CameraView {
+    /// Takes the calibration in use and the size of the image it describes.
+    pub fn set_calibration(
+        &mut self,
+        cal: &crate::vision::SwingPlaneCalibration,
+        width_px: u32,
+        height_px: u32,
+    ) {
+        let k = &cal.intrinsics;
+        let up = cal.normal_c.cross(&cal.lateral_c);
+        self.width_px = width_px;
+        self.height_px = height_px;
+        (self.fx_px, self.fy_px, self.cx_px, self.cy_px) = (k.fx_px, k.fy_px, k.cx_px, k.cy_px);
+        (self.k1, self.k2) = (k.k1, k.k2);
+        self.rest_c_m = [cal.rest_c.x, cal.rest_c.y, cal.rest_c.z];
+        self.lateral_c = [cal.lateral_c.x, cal.lateral_c.y, cal.lateral_c.z];
+        self.up_c = [up.x, up.y, up.z];
+    }
+
+    /// Takes the latest processed frame (found or not).
+    pub fn set_frame(&mut self, m: &crate::vision::Measurement) {
+        self.frame = m.frame;
+        self.t_s = m.t_capture_s;
+        self.found = m.found;
+        (self.x_px, self.y_px, self.r_px) = (m.x_px, m.y_px, m.r_px);
+    }
+
+    /// Pixel of the ball centre at lateral position `x_m` (= l sin phi) of a
+    /// pendulum of length `length_m`: the point `rest + x lateral + l (1 - cos phi) up`
+    /// through the pinhole with radial distortion. `None` without a calibration,
+    /// for |x| > l, or behind the camera. (The dashboard does the same in TypeScript.)
+    pub fn project_lateral(&self, x_m: f64, length_m: f64) -> Option<[f64; 2]> {
+        let usable = length_m > 0.0 && x_m.abs() <= length_m; // false for NaN too
+        if self.width_px == 0 || !usable {
+            return None;
+        }
+        let lift = length_m - (length_m * length_m - x_m * x_m).sqrt();
+        let p: [f64; 3] = std::array::from_fn(|i| {
+            self.rest_c_m[i] + x_m * self.lateral_c[i] + lift * self.up_c[i]
+        });
+        if p[2] <= 1e-6 {
+            return None;
+        }
+        let (x, y) = (p[0] / p[2], p[1] / p[2]);
+        let r2 = x * x + y * y;
+        let d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        Some([
+            self.fx_px * x * d + self.cx_px,
+            self.fy_px * y * d + self.cy_px,
+        ])
+    }
+}
+
 /// Everything the dashboard shows, as of one control step. `Copy`, no heap.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct Snapshot {
@@ -423,6 +520,8 @@ pub struct Snapshot {
     pub timing: LoopTiming,
     /// Counters.
     pub counters: Counters,
+    /// The camera's latest detection and calibration, for the overlays.
+    pub camera: CameraView,
 }
 
 /// Why a trial was aborted.

@@ -286,3 +286,59 @@ fn a_stop_request_is_seen_once_even_with_a_full_command_ring() {
     assert!(!c.take_stop_request());
     assert_eq!(s.stats.read().stop_requests, 1);
 }
+
+#[test]
+fn the_camera_view_projects_the_swinging_ball_where_the_camera_sees_it() {
+    use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
+    use nalgebra::Vector3;
+    let mut k = CameraIntrinsics::from_hfov(1280, 720, 70.0);
+    k.k1 = -0.05; // a little barrel distortion, as a webcam has
+    let pose = CameraPose {
+        yaw_deg: 8.0,
+        pitch_deg: 5.0,
+        ..CameraPose::default()
+    };
+    let rest = Vector3::new(0.62, 0.0, 0.3);
+    let cal = SwingPlaneCalibration::from_pose(k, &pose, &rest, 0.0335);
+    let mut view = CameraView::default();
+    assert_eq!(view.project_lateral(0.1, 1.93), None, "no calibration yet");
+    view.set_calibration(&cal, 1280, 720);
+    let l = 1.93;
+    for x in [-0.9, -0.3, 0.0, 0.25, 0.8] {
+        // The ball centre on its circle, base frame, seen through the camera.
+        let phi = f64::asin(x / l);
+        let ball = rest + Vector3::new(0.0, l * phi.sin(), l * (1.0 - phi.cos()));
+        let want = k.project(&pose.to_camera(&ball)).unwrap();
+        let got = view.project_lateral(x, l).unwrap();
+        assert!(
+            (got[0] - want.x).abs() < 1e-9 && (got[1] - want.y).abs() < 1e-9,
+            "x {x}: {got:?} vs {want:?}"
+        );
+        // And the calibration maps that pixel back to the same lateral position.
+        let back = cal.lateral_m(got[0], got[1]).unwrap();
+        assert!((back - x).abs() < 1e-6, "x {x}: back {back}");
+    }
+    assert_eq!(view.project_lateral(2.0, l), None, "beyond the string");
+    // The latest frame's detection, and the JSON the dashboard reads.
+    let m = crate::vision::Measurement {
+        frame: 42,
+        t_capture_s: 3.5,
+        found: true,
+        x_px: 700.5,
+        y_px: 400.25,
+        r_px: 11.0,
+        ..Default::default()
+    };
+    view.set_frame(&m);
+    let s = Snapshot {
+        camera: view,
+        ..Snapshot::default()
+    };
+    let v: serde_json::Value = serde_json::to_value(s).unwrap();
+    let c = &v["camera"];
+    assert_eq!(c["width_px"], 1280);
+    assert_eq!(c["frame"], 42);
+    assert_eq!(c["found"], true);
+    assert_eq!(c["x_px"], 700.5);
+    assert_eq!(c["up_c"].as_array().unwrap().len(), 3);
+}
