@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
 use super::fri_step::FriLoopStep;
-use crate::control::judge::{PlannedMotion, TrialTrace, judge, pass_times};
+use crate::control::judge::{PlannedMotion, TrialTrace, judge};
 use crate::control::{
     ControlError, Controller, Measurement, StepInput, StepOutput, TrialRecord, TrialState,
 };
@@ -145,7 +145,10 @@ pub struct VirtualLab {
     t_ns: u64,
     seed: u64,
     trace: TrialTrace,
-    passes: Vec<f64>,
+    /// The true ball's passes through the intercept point's `y` in the
+    /// current trial: exact time (root of the ground-truth pendulum) and the
+    /// ball centre then.
+    passes: Vec<(f64, Vector3<f64>)>,
     vision: Option<SimVision>,
     in_flight: std::collections::VecDeque<(f64, Measurement)>,
 }
@@ -393,22 +396,12 @@ impl VirtualLab {
                     }
                 }
             }
-            // The prediction at commit against the truth: the true pass nearest
-            // to the predicted one.
-            pass_times(&self.trace, plan.intercept_m.y, &mut self.passes);
-            if let Some(&tp) = self.passes.iter().min_by(|a, b| {
-                (*a - commit.predicted_pass_s)
-                    .abs()
-                    .total_cmp(&(*b - commit.predicted_pass_s).abs())
-            }) {
-                rec.prediction_crossing_time_error_ms = Some((commit.predicted_pass_s - tp) * 1e3);
-                let i = self
-                    .trace
-                    .t_s
-                    .partition_point(|&x| x < tp)
-                    .min(self.trace.len() - 1);
-                rec.prediction_position_error_m =
-                    Some((commit.predicted_ball_m - self.trace.ball_m[i]).norm());
+            // The prediction at commit against the truth: the true pass t*
+            // nearest to the predicted one, and the true ball centre at t*
+            // exactly (not at a trace sample).
+            if let Some((ep, pp)) = nearest_pass(&self.passes, commit.predicted_pass_s) {
+                rec.prediction_crossing_time_error_ms = Some((commit.predicted_pass_s - ep) * 1e3);
+                rec.prediction_position_error_m = Some((commit.predicted_ball_m - pp).norm());
             }
         }
         let t = self.t_s();
@@ -435,6 +428,7 @@ impl VirtualLab {
 
     fn simulate(&mut self, draw: &TrialDraw, plan: &crate::control::ArmPlan) -> Result<(), String> {
         self.trace.clear();
+        self.passes.clear();
         let model =
             PendulumModel::from_params(&self.scenario.pendulum).map_err(|e| e.to_string())?;
         let geometry = PendulumGeometry::new(
@@ -464,6 +458,13 @@ impl VirtualLab {
         let mut done_at: Option<f64> = None;
         loop {
             let t_next = (self.t_ns + self.period_ns) as f64 * 1e-9;
+            // A true pass before the next message: found on a copy of the
+            // pendulum, which is then taken there to read the ball centre.
+            if let Some(tp) = ball.next_crossing_s(plan.intercept_m.y, t_next - ball.time_s()) {
+                let mut at = ball.clone();
+                at.advance_to(tp).map_err(|e| e.to_string())?;
+                self.passes.push((tp, at.ball_position_m()));
+            }
             // Camera frames captured up to the next message.
             while camera.next_capture_s() <= t_next {
                 let tc = camera.next_capture_s();
@@ -540,6 +541,14 @@ struct FriCounts {
     aborts: u64,
 }
 
+/// The pass in `passes` nearest to `t_s`.
+fn nearest_pass(passes: &[(f64, Vector3<f64>)], t_s: f64) -> Option<(f64, Vector3<f64>)> {
+    passes
+        .iter()
+        .min_by(|a, b| (a.0 - t_s).abs().total_cmp(&(b.0 - t_s).abs()))
+        .copied()
+}
+
 /// Tool point helper for tests: where the tool is for joint vector `q`.
 pub fn tool_point(controller: &Controller, q: &[f64; JOINTS]) -> Vector3<f64> {
     controller.tool_point(q)
@@ -575,6 +584,27 @@ mod tests {
         assert_eq!(sim.quality, "EXCELLENT");
         // The latency estimate sees the robot's latency plus its servo lag.
         assert!(r.latency_estimate_ms > 8.0, "{r:?}");
+    }
+
+    #[test]
+    fn the_prediction_is_compared_with_the_true_ball_at_the_true_pass() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 5).unwrap();
+        for i in 0..4 {
+            let r = lab.run_trial(i);
+            assert!(r.success, "{r:?}");
+            // Exactly at t*, the filter's place error is about a millimetre
+            // (a trace sample up to one period after t* would add up to
+            // 1.5 m/s * 5 ms of ball travel).
+            let e = r.prediction_position_error_m.unwrap();
+            assert!(e < 0.003, "trial {i}: {e} m");
+            let dt = r.prediction_crossing_time_error_ms.unwrap();
+            assert!(dt.abs() < 2.0, "trial {i}: {dt} ms");
+            // t* is a root of the true pendulum: the ball is then at the
+            // intercept point's y.
+            let (tp, p) = lab.passes[0];
+            assert!(tp > 0.0 && p.y.abs() < 1e-9, "{tp} {p}");
+        }
     }
 
     #[test]

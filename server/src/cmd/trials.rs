@@ -82,7 +82,14 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     if let Some(mut w) = per_trial {
         w.flush()?;
     }
-    let mut summary = Summary::of(&scenario.name, &records, started.elapsed().as_secs_f64());
+    let wall_s = started.elapsed().as_secs_f64();
+    // Virtual time simulated (the lab's clock starts at 0), against the wall clock.
+    eprintln!(
+        "isochron trials: {:.0} s of lab time in {wall_s:.1} s of wall time ({:.0}x real time)",
+        lab.t_s(),
+        lab.t_s() / wall_s.max(1e-9)
+    );
+    let mut summary = Summary::of(&scenario.name, &records, wall_s);
     summary.vision = Some(lab.vision_used().to_owned());
     if args.json {
         return Ok(serde_json::to_string(&summary)?);
