@@ -35,6 +35,10 @@ enum Command {
         /// Where trial records and recordings go (default: ./data).
         #[arg(long)]
         data_dir: Option<PathBuf>,
+        /// A parameter file laid over the lab's scenario (a partial scenario, e.g. the
+        /// [ekf] file `isochron tune` writes); repeat to lay several in order.
+        #[arg(long)]
+        params: Vec<PathBuf>,
     },
     /// Estimate the EKF's noise parameters from a recorded trial (writes an [ekf] file and Fig. 4).
     Tune(cmd::tune::TuneArgs),
@@ -95,12 +99,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             token,
             web_dir,
             data_dir,
+            params,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
             token,
             web_dir,
             data_dir,
+            params,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),

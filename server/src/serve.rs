@@ -23,6 +23,8 @@ pub struct ServeArgs {
     pub web_dir: Option<PathBuf>,
     /// `--data-dir DIR`.
     pub data_dir: Option<PathBuf>,
+    /// `--params FILE` (repeatable): parameter files laid over the scenario, in order.
+    pub params: Vec<PathBuf>,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
@@ -45,10 +47,13 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         tracing::warn!(dir = %web_dir.display(), "dashboard not built (run `make web`); serving the API only");
     }
     let data_dir = args.data_dir.unwrap_or_else(|| cfg.server.data_dir.clone());
-    let scenario = match &cfg.lab.scenario {
+    let mut scenario = match &cfg.lab.scenario {
         Some(path) => Scenario::from_file(path)?,
         None => Scenario::default(),
     };
+    for path in &args.params {
+        scenario = rt_core::tuning::overlay_params_file(&scenario, path)?;
+    }
     if cfg.lab.mode == LabMode::Real {
         anyhow::bail!(
             "lab.mode = \"real\": the hardware drivers (FRI client, webcam, magnet) are not wired \

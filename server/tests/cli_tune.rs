@@ -68,12 +68,75 @@ fn tune_writes_parameters_and_the_figure() {
 }
 
 #[test]
-fn tune_refuses_bad_recordings_with_one_line() {
+fn tune_starts_from_the_scenarios_filter_and_keeps_its_other_settings() {
+    let dir = temp_dir("scenario");
+    let rec = dir.join("swing.csv");
+    write_recording(&rec);
+    let scenario = dir.join("lab.toml");
+    std::fs::write(
+        &scenario,
+        "name = \"lab\"\n[ekf]\nprocess_noise_model = \"paper\"\nmeasurement_noise_m = 0.005\n\
+         accel_var_rad2ps4 = 1e-4\ngate_nis = 16.0\nestimate_damping = false\n",
+    )
+    .unwrap();
+    let out = isochron()
+        .args(["tune", "--json", "--scenario"])
+        .arg(&scenario)
+        .arg("--recording")
+        .arg(&rec)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // The search started from the scenario's values, in its noise model.
+    assert_eq!(j["before"]["measurement_noise_m"], 0.005);
+    assert_eq!(j["before"]["process_noise"], 1e-4);
+    assert_eq!(j["estimate"]["process_noise_param"], "accel_var_rad2ps4");
+    let r = j["estimate"]["measurement_noise_m"].as_f64().unwrap();
+    assert!((r / 0.002 - 1.0).abs() < 0.2, "R std {r}");
+    // The file: the scenario's [ekf], the two estimates replaced.
+    let text = std::fs::read_to_string(dir.join("swing.ekf.toml")).unwrap();
+    let file: toml::Table = toml::from_str(&text).unwrap();
+    let ekf = file["ekf"].as_table().unwrap();
+    assert_eq!(ekf["process_noise_model"].as_str(), Some("paper"));
+    assert_eq!(ekf["gate_nis"].as_float(), Some(16.0));
+    assert_eq!(ekf["estimate_damping"].as_bool(), Some(false));
+    assert_eq!(ekf["measurement_noise_m"].as_float(), Some(r));
+    assert_ne!(ekf["accel_var_rad2ps4"].as_float(), Some(1e-4));
+}
+
+#[test]
+fn tune_refuses_bad_recordings_with_one_line_and_writes_nothing() {
     let dir = temp_dir("bad");
+    // 20 s of a ball hanging still, with 2 mm of noise.
+    let mut still = String::from("t_s,x_m\n");
+    for k in 0..600 {
+        let n = ((k * 7919) % 13) as f64 / 13.0 - 0.5;
+        still.push_str(&format!("{},{}\n", f64::from(k) / 30.0, 0.004 * n));
+    }
+    let mut nan = std::fs::read_to_string({
+        let p = dir.join("ok.csv");
+        write_recording(&p);
+        p
+    })
+    .unwrap();
+    nan = nan.replacen("\n0.5,", "\nNaN,", 1);
+    assert!(nan.contains("NaN,"));
     for (name, text, needle) in [
-        ("cols.csv", "a,b\n1,2\n", "measured_x_m"),
-        ("short.csv", "t_s,x_m\n0,0.1\n0.033,0.1\n", "at least"),
-        ("nan.csv", "t_s,x_m\n0,zero\n", "line 2"),
+        ("cols.csv", "a,b\n1,2\n".to_owned(), "measured_x_m"),
+        (
+            "short.csv",
+            "t_s,x_m\n0,0.1\n0.033,0.1\n".to_owned(),
+            "at least",
+        ),
+        ("word.csv", "t_s,x_m\n0,zero\n".to_owned(), "line 2"),
+        ("nan.csv", nan, "not a finite number"),
+        ("still.csv", still, "no swing"),
+        ("empty.csv", String::new(), "empty"),
     ] {
         let rec = dir.join(name);
         std::fs::write(&rec, text).unwrap();
@@ -87,6 +150,15 @@ fn tune_refuses_bad_recordings_with_one_line() {
         let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("isochron:")).collect();
         assert_eq!(lines.len(), 1, "{err}");
         assert!(lines[0].contains(needle), "{name}: {err}");
+        let stem = name.trim_end_matches(".csv");
+        for written in [".ekf.toml", ".fig4.svg"] {
+            let p = dir.join(format!("{stem}{written}"));
+            assert!(
+                !p.exists(),
+                "{} written for a refused recording",
+                p.display()
+            );
+        }
     }
     let out = isochron()
         .args(["tune", "--recording", "/nonexistent/rec.csv"])

@@ -3,9 +3,10 @@
 pub mod figure;
 
 use crate::ekf::{Ekf, EkfError, EkfParams, MeasureOutcome, Prediction, ProcessNoiseModel};
-use crate::params::ParamError;
+use crate::params::{ParamError, Scenario};
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 use serde::Serialize;
+use std::path::Path;
 
 /// Why a recording cannot be tuned on.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -17,6 +18,20 @@ pub enum TuneError {
     /// Too few measurements to estimate two noise parameters.
     #[error("recording has {0} measurements; at least {MIN_MEASUREMENTS} are needed")]
     TooShort(usize),
+    /// The ball does not swing in the recording: nothing to tell the process from
+    /// the measurement noise.
+    #[error(
+        "recording shows no swing: the lateral position spans {:.1} mm, less than {:.1} mm \
+         (a hanging or held ball cannot be tuned on; record a released swing)",
+        1e3 * span_m,
+        1e3 * needed_m
+    )]
+    NoMotion {
+        /// Largest minus smallest lateral position, metres.
+        span_m: f64,
+        /// The span a swing must exceed, metres.
+        needed_m: f64,
+    },
     /// Bad parameters.
     #[error(transparent)]
     Params(#[from] ParamError),
@@ -27,6 +42,19 @@ pub enum TuneError {
 
 /// Fewest measurements `tune` works on (about 10 s at 30 fps).
 pub const MIN_MEASUREMENTS: usize = 300;
+
+/// Smallest lateral span (max - min) of a recording `tune` accepts as a swing, metres.
+pub const MIN_SWING_SPAN_M: f64 = 0.01;
+
+/// Trial states after the release (`trial_state` in a service recording).
+const RELEASED_STATES: [&str; 6] = [
+    "released",
+    "tracking",
+    "intercepting",
+    "holding",
+    "returning",
+    "done",
+];
 
 /// Lateral measurements of the swinging ball: capture times and positions.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -39,10 +67,15 @@ pub struct Series {
 
 impl Series {
     /// Reads a CSV recording: either the service's trial recording (columns
-    /// `measured_t_s`, `measured_x_m` and optionally `measured_valid`, one row per
-    /// control step, each measurement repeated until the next) or a plain file with
-    /// columns `t_s` and `x_m` (one row per measurement). Rows held while the magnet
-    /// held the ball are kept: the caller trims with [`Series::after`].
+    /// `measured_t_s`, `measured_x_m` and optionally `measured_valid` and
+    /// `trial_state`, one row per control step, each measurement repeated until the
+    /// next) or a plain file with columns `t_s` and `x_m` (one row per measurement).
+    ///
+    /// From a trial recording only the measurements captured after the ball was
+    /// released are kept (the first row in a state after `armed` gives the release
+    /// time): while the magnet holds it the ball does not follow the pendulum's
+    /// dynamics. Rows without a measurement (`measured_valid` 0) are skipped; a
+    /// measurement that is not a finite number is an error naming the line.
     pub fn from_csv(text: &str) -> Result<Self, TuneError> {
         let mut lines = text
             .lines()
@@ -53,10 +86,10 @@ impl Series {
             .ok_or_else(|| TuneError::Format("empty file".into()))?;
         let names: Vec<&str> = header.split(',').map(str::trim).collect();
         let find = |n: &str| names.iter().position(|h| *h == n);
-        let (ti, zi, vi) = match (find("measured_t_s"), find("measured_x_m")) {
-            (Some(t), Some(z)) => (t, z, find("measured_valid")),
+        let (ti, zi, vi, si) = match (find("measured_t_s"), find("measured_x_m")) {
+            (Some(t), Some(z)) => (t, z, find("measured_valid"), find("trial_state")),
             _ => match (find("t_s"), find("x_m")) {
-                (Some(t), Some(z)) => (t, z, None),
+                (Some(t), Some(z)) => (t, z, None, None),
                 _ => {
                     return Err(TuneError::Format(
                         "needs columns measured_t_s and measured_x_m (a trial recording) \
@@ -66,21 +99,46 @@ impl Series {
                 }
             },
         };
+        let step_t = find("t_s").filter(|_| si.is_some());
         let mut s = Series::default();
+        // Trial recordings: the release time, once a row is past `armed`.
+        let mut released_at: Option<f64> = None;
+        let mut saw_state = false;
         for (no, line) in lines {
             let cells: Vec<&str> = line.split(',').map(str::trim).collect();
             let cell = |i: usize| -> Result<f64, TuneError> {
                 let raw = cells.get(i).ok_or_else(|| {
                     TuneError::Format(format!("line {}: too few columns", no + 1))
                 })?;
-                raw.parse::<f64>().map_err(|_| {
+                let v = raw.parse::<f64>().map_err(|_| {
                     TuneError::Format(format!(
                         "line {}: column {:?} = {raw:?} is not a number",
                         no + 1,
                         names.get(i).copied().unwrap_or("?")
                     ))
-                })
+                })?;
+                if v.is_finite() {
+                    Ok(v)
+                } else {
+                    Err(TuneError::Format(format!(
+                        "line {}: column {:?} = {raw:?} is not a finite number",
+                        no + 1,
+                        names.get(i).copied().unwrap_or("?")
+                    )))
+                }
             };
+            if let Some(si) = si {
+                saw_state = true;
+                let state = cells.get(si).copied().unwrap_or("");
+                if released_at.is_none() && RELEASED_STATES.contains(&state) {
+                    // The first row after the release: its step time, or failing
+                    // that the measurement it carries.
+                    released_at = Some(match step_t {
+                        Some(i) => cell(i)?,
+                        None => f64::NEG_INFINITY,
+                    });
+                }
+            }
             if let Some(v) = vi {
                 let valid = cells.get(v).copied().unwrap_or("");
                 if matches!(valid, "0" | "false" | "") {
@@ -88,8 +146,12 @@ impl Series {
                 }
             }
             let (t, z) = (cell(ti)?, cell(zi)?);
-            if !t.is_finite() || !z.is_finite() {
-                continue; // no measurement at this row
+            if saw_state {
+                match released_at {
+                    // Captured while the magnet still held the ball.
+                    Some(r) if t >= r => {}
+                    _ => continue,
+                }
             }
             match s.t_s.last() {
                 Some(&last) if t == last => continue, // repeated until the next frame
@@ -104,7 +166,50 @@ impl Series {
             s.t_s.push(t);
             s.z_m.push(z);
         }
+        if saw_state && released_at.is_none() {
+            return Err(TuneError::Format(
+                "the trial recording never leaves the states before the release \
+                 (idle, arming, armed): the ball was not released"
+                    .into(),
+            ));
+        }
         Ok(s)
+    }
+
+    /// Refuses a series `tune` cannot work on: too few measurements, or a ball
+    /// that does not swing (the lateral span must exceed [`MIN_SWING_SPAN_M`] and
+    /// twenty times the noise seen in the second differences).
+    pub fn check_tunable(&self) -> Result<(), TuneError> {
+        if self.len() < MIN_MEASUREMENTS {
+            return Err(TuneError::TooShort(self.len()));
+        }
+        let (lo, hi) = self
+            .z_m
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &z| {
+                (a.min(z), b.max(z))
+            });
+        // White noise of std r gives second differences of std r sqrt(6); the
+        // swing's own curvature adds little at camera rates.
+        let mut d2: Vec<f64> = self
+            .z_m
+            .windows(3)
+            .map(|w| (w[2] - 2.0 * w[1] + w[0]).abs())
+            .collect();
+        d2.sort_by(f64::total_cmp);
+        let median = d2.get(d2.len() / 2).copied().unwrap_or(0.0);
+        // Median of |N(0, 6 r^2)| is 0.674 sqrt(6) r.
+        let noise = median / (0.674 * 6f64.sqrt());
+        let needed = MIN_SWING_SPAN_M.max(20.0 * noise);
+        let span = hi - lo;
+        if span > needed {
+            Ok(())
+        } else {
+            Err(TuneError::NoMotion {
+                span_m: span,
+                needed_m: needed,
+            })
+        }
     }
 
     /// Number of measurements.
@@ -161,6 +266,8 @@ pub struct Consistency {
 /// What [`tune`] found.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TuneReport {
+    /// Recordings used.
+    pub recordings: usize,
     /// Measurements used.
     pub measurements: usize,
     /// Mean capture interval, seconds.
@@ -190,23 +297,52 @@ pub fn nis_bounds_95(n: usize) -> [f64; 2] {
     [at(-z), at(z)]
 }
 
-/// One pass of the filter over the series with the given parameters.
-///
-/// Calls `each(i, prediction_before, outcome, innovation, innovation_variance)` per
-/// measurement after the filter is running, for figures.
-pub fn run_filter(
+/// Sums over the innovations of one or more filter passes.
+#[derive(Debug, Default)]
+struct Innovations {
+    fused: usize,
+    rejected: usize,
+    nis_sum: f64,
+    nll: f64,
+    /// Normalised innovations, per recording (the autocorrelation is taken within each).
+    normalised: Vec<Vec<f64>>,
+}
+
+impl Innovations {
+    fn consistency(&self, gate_nis: f64) -> Consistency {
+        let nis_mean = if self.fused > 0 {
+            self.nis_sum / self.fused as f64
+        } else {
+            f64::NAN
+        };
+        let bounds = nis_bounds_95(self.fused);
+        Consistency {
+            fused: self.fused,
+            rejected: self.rejected,
+            nis_mean,
+            nis_bounds_95: bounds,
+            nis_consistent: nis_mean >= bounds[0] && nis_mean <= bounds[1],
+            innovation_autocorr_lag1: autocorr_lag1(&self.normalised),
+            // Rejected measurements carry the gate's worth of surprise, so a filter
+            // that rejects much cannot look likely.
+            nll_per_measurement: (self.nll + self.rejected as f64 * 0.5 * gate_nis)
+                / (self.fused + self.rejected).max(1) as f64,
+        }
+    }
+}
+
+/// One pass of a fresh filter over one series, adding to `acc`.
+fn pass(
     series: &Series,
     params: &EkfParams,
     model: PendulumModel,
     geometry: PendulumGeometry,
+    acc: &mut Innovations,
     mut each: impl FnMut(usize, &Prediction, MeasureOutcome, f64, f64, &Ekf),
-) -> Result<Consistency, TuneError> {
-    params.validate()?;
+) -> Result<(), TuneError> {
     let mut ekf = Ekf::new(params.clone(), model, geometry)?;
     let r = params.measurement_noise_m.powi(2);
     let mut pred = Prediction::default();
-    let (mut fused, mut rejected) = (0usize, 0usize);
-    let (mut nis_sum, mut nll) = (0.0, 0.0);
     let mut nus: Vec<f64> = Vec::with_capacity(series.len());
     for (i, (&t, &z)) in series.t_s.iter().zip(&series.z_m).enumerate() {
         let running = ekf.is_initialised() && ekf.predict_at(t, &mut pred).is_ok();
@@ -218,45 +354,75 @@ pub fn run_filter(
         let outcome = ekf.measure(t, z)?;
         match outcome {
             MeasureOutcome::Fused { nis } if running && s > 0.0 => {
-                fused += 1;
-                nis_sum += nis;
-                nll += 0.5 * (s.ln() + nu * nu / s + std::f64::consts::TAU.ln());
+                acc.fused += 1;
+                acc.nis_sum += nis;
+                acc.nll += 0.5 * (s.ln() + nu * nu / s + std::f64::consts::TAU.ln());
                 nus.push(nu / s.sqrt());
             }
-            MeasureOutcome::Rejected { .. } => rejected += 1,
+            MeasureOutcome::Rejected { .. } => acc.rejected += 1,
             _ => {}
         }
         if running {
             each(i, &pred, outcome, nu, s, &ekf);
         }
     }
-    let nis_mean = if fused > 0 {
-        nis_sum / fused as f64
-    } else {
-        f64::NAN
-    };
-    let bounds = nis_bounds_95(fused);
-    Ok(Consistency {
-        fused,
-        rejected,
-        nis_mean,
-        nis_bounds_95: bounds,
-        nis_consistent: nis_mean >= bounds[0] && nis_mean <= bounds[1],
-        innovation_autocorr_lag1: autocorr_lag1(&nus),
-        // Rejected measurements carry the gate's worth of surprise, so a filter that
-        // rejects much cannot look likely.
-        nll_per_measurement: (nll + rejected as f64 * 0.5 * params.gate_nis)
-            / (fused + rejected).max(1) as f64,
-    })
+    acc.normalised.push(nus);
+    Ok(())
 }
 
-fn autocorr_lag1(x: &[f64]) -> f64 {
-    if x.len() < 3 {
+/// One pass of the filter over the series with the given parameters.
+///
+/// Calls `each(i, prediction_before, outcome, innovation, innovation_variance)` per
+/// measurement after the filter is running, for figures.
+pub fn run_filter(
+    series: &Series,
+    params: &EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+    each: impl FnMut(usize, &Prediction, MeasureOutcome, f64, f64, &Ekf),
+) -> Result<Consistency, TuneError> {
+    params.validate()?;
+    let mut acc = Innovations::default();
+    pass(series, params, model, geometry, &mut acc, each)?;
+    Ok(acc.consistency(params.gate_nis))
+}
+
+/// The filter over several recordings (a fresh filter for each, as each trial
+/// starts one), their innovations pooled.
+pub fn run_filters(
+    recordings: &[Series],
+    params: &EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+) -> Result<Consistency, TuneError> {
+    params.validate()?;
+    let mut acc = Innovations::default();
+    for series in recordings {
+        pass(
+            series,
+            params,
+            model,
+            geometry,
+            &mut acc,
+            |_, _, _, _, _, _| {},
+        )?;
+    }
+    Ok(acc.consistency(params.gate_nis))
+}
+
+/// Lag-one autocorrelation of the pooled sequences, pairs taken within each.
+fn autocorr_lag1(seqs: &[Vec<f64>]) -> f64 {
+    let n: usize = seqs.iter().map(Vec::len).sum();
+    if n < 3 {
         return f64::NAN;
     }
-    let m = x.iter().sum::<f64>() / x.len() as f64;
-    let var: f64 = x.iter().map(|v| (v - m).powi(2)).sum();
-    let cov: f64 = x.windows(2).map(|w| (w[0] - m) * (w[1] - m)).sum();
+    let m = seqs.iter().flatten().sum::<f64>() / n as f64;
+    let var: f64 = seqs.iter().flatten().map(|v| (v - m).powi(2)).sum();
+    let cov: f64 = seqs
+        .iter()
+        .flat_map(|x| x.windows(2))
+        .map(|w| (w[0] - m) * (w[1] - m))
+        .sum();
     if var > 0.0 { cov / var } else { f64::NAN }
 }
 
@@ -281,21 +447,42 @@ pub fn with_noise(params: &EkfParams, r_std_m: f64, q: f64) -> EkfParams {
 /// Estimates the measurement noise and the process noise of `params`' noise model by
 /// maximising the likelihood of the filter's innovations over the recording
 /// (Nelder-Mead on the logarithms of both), then reports the consistency of the
-/// result. `params` supplies everything else (model, gate, damping estimation).
+/// result. `params` supplies everything else (model, gate, damping estimation) and
+/// the starting point of the search.
 pub fn tune(
     series: &Series,
     params: &EkfParams,
     model: PendulumModel,
     geometry: PendulumGeometry,
 ) -> Result<TuneReport, TuneError> {
-    if series.len() < MIN_MEASUREMENTS {
-        return Err(TuneError::TooShort(series.len()));
+    tune_recordings(std::slice::from_ref(series), params, model, geometry)
+}
+
+/// [`tune`] over several recordings of the same lab (e.g. one per trial, as the
+/// service records them): each is run by a fresh filter and the likelihoods of
+/// all their innovations are maximised together. Every recording must show a
+/// swing, and together they must hold at least [`MIN_MEASUREMENTS`].
+pub fn tune_recordings(
+    recordings: &[Series],
+    params: &EkfParams,
+    model: PendulumModel,
+    geometry: PendulumGeometry,
+) -> Result<TuneReport, TuneError> {
+    let measurements: usize = recordings.iter().map(Series::len).sum();
+    if measurements < MIN_MEASUREMENTS {
+        return Err(TuneError::TooShort(measurements));
+    }
+    for series in recordings {
+        match series.check_tunable() {
+            Ok(()) | Err(TuneError::TooShort(_)) => {}
+            Err(e) => return Err(e),
+        }
     }
     params.validate()?;
     // Wide gate while searching: a too-small R must not hide its misfit by rejecting.
     let mut search = params.clone();
     search.gate_nis = 1e6;
-    let before_consistency = run_filter(series, params, model, geometry, |_, _, _, _, _, _| {})?;
+    let before_consistency = run_filters(recordings, params, model, geometry)?;
     let (q0, q_name) = process_noise(params);
     let mut evaluations = 0usize;
     let mut cost = |x: [f64; 2]| -> f64 {
@@ -304,8 +491,13 @@ pub fn tune(
         if p.validate().is_err() {
             return f64::INFINITY;
         }
-        run_filter(series, &p, model, geometry, |_, _, _, _, _, _| {})
-            .map_or(f64::INFINITY, |c| c.nll_per_measurement)
+        run_filters(recordings, &p, model, geometry).map_or(f64::INFINITY, |c| {
+            if c.nll_per_measurement.is_finite() {
+                c.nll_per_measurement
+            } else {
+                f64::INFINITY
+            }
+        })
     };
     // Start from the given values, and from a coarse grid if they are far off.
     let mut best = [params.measurement_noise_m.ln(), q0.max(1e-12).ln()];
@@ -322,16 +514,29 @@ pub fn tune(
     }
     let found = nelder_mead(&mut cost, best, [0.5, 1.0], 1e-7, 200);
     let estimate_params = with_noise(params, found[0].exp(), found[1].exp());
-    let consistency = run_filter(
-        series,
-        &estimate_params,
-        model,
-        geometry,
-        |_, _, _, _, _, _| {},
-    )?;
+    estimate_params.validate()?;
+    let consistency = run_filters(recordings, &estimate_params, model, geometry)?;
+    let mean_interval_s = {
+        let (span, gaps) =
+            recordings
+                .iter()
+                .filter(|s| s.len() > 1)
+                .fold((0.0, 0usize), |(sp, g), s| {
+                    (
+                        sp + s.mean_interval_s() * (s.len() - 1) as f64,
+                        g + s.len() - 1,
+                    )
+                });
+        if gaps > 0 {
+            span / gaps as f64
+        } else {
+            f64::NAN
+        }
+    };
     Ok(TuneReport {
-        measurements: series.len(),
-        mean_interval_s: series.mean_interval_s(),
+        recordings: recordings.len(),
+        measurements,
+        mean_interval_s,
         before: NoiseEstimate {
             measurement_noise_m: params.measurement_noise_m,
             process_noise: q0,
@@ -416,6 +621,48 @@ pub fn params_toml(params: &EkfParams, report: &TuneReport) -> String {
         report.consistency.nis_bounds_95[0],
         report.consistency.nis_bounds_95[1],
     )
+}
+
+/// Lays a parameter file (a partial scenario in TOML, e.g. the `[ekf]` file
+/// [`params_toml`] writes) over `scenario`: the keys it sets replace the scenario's,
+/// section by section; every other key keeps the scenario's value. The file is
+/// checked like a scenario file (unknown keys, types and ranges refused, naming
+/// the line and field) and so is the result; on error nothing is returned.
+pub fn overlay_params(scenario: &Scenario, text: &str) -> Result<Scenario, ParamError> {
+    // Alone first: its errors then name the file's line and field.
+    Scenario::from_toml_str(text)?;
+    let patch: toml::Table = toml::from_str(text).map_err(|e| ParamError::Parse(e.to_string()))?;
+    let mut merged =
+        toml::Table::try_from(scenario).map_err(|e| ParamError::Parse(e.to_string()))?;
+    merge_tables(&mut merged, patch);
+    let out: Scenario = merged
+        .try_into()
+        .map_err(|e: toml::de::Error| ParamError::Parse(e.to_string()))?;
+    out.validate()?;
+    Ok(out)
+}
+
+/// [`overlay_params`] with a file; errors name the file.
+pub fn overlay_params_file(scenario: &Scenario, path: &Path) -> Result<Scenario, ParamError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
+        path: path.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    overlay_params(scenario, &text).map_err(|e| match e {
+        ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
+        other => other,
+    })
+}
+
+fn merge_tables(into: &mut toml::Table, patch: toml::Table) {
+    for (k, v) in patch {
+        match (into.get_mut(&k), v) {
+            (Some(toml::Value::Table(a)), toml::Value::Table(b)) => merge_tables(a, b),
+            (_, v) => {
+                into.insert(k, v);
+            }
+        }
+    }
 }
 
 #[cfg(test)]

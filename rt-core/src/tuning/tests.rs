@@ -114,16 +114,124 @@ fn too_short_a_recording_is_refused() {
 fn reads_both_csv_shapes() {
     let plain = Series::from_csv("t_s,x_m\n0.0,0.1\n0.033,0.09\n").unwrap();
     assert_eq!(plain.t_s, vec![0.0, 0.033]);
+    // A service recording: the held ball (captured before the release) is left
+    // out, rows without a measurement are skipped, repeats are folded.
     let rec = Series::from_csv(
-        "trial_state,t_s,measured_valid,measured_t_s,measured_x_m\n\
-         held,0.000,0,0,0\n\
-         tracking,0.005,1,0.001,0.2\n\
-         tracking,0.010,1,0.001,0.2\n\
-         tracking,0.040,1,0.034,0.19\n",
+        "trial_state,t_s,seq,measured_valid,measured_t_s,measured_x_m\n\
+         arming,0.000,0,0,NaN,NaN\n\
+         armed,0.005,1,1,0.001,0.3\n\
+         released,0.010,2,1,0.001,0.3\n\
+         released,0.015,3,1,0.012,0.2999\n\
+         tracking,0.020,4,1,0.012,0.2999\n\
+         tracking,0.045,5,1,0.034,0.29\n",
     )
     .unwrap();
-    assert_eq!(rec.t_s, vec![0.001, 0.034]);
-    assert_eq!(rec.z_m, vec![0.2, 0.19]);
+    assert_eq!(rec.t_s, vec![0.012, 0.034]);
+    assert_eq!(rec.z_m, vec![0.2999, 0.29]);
+    let e = Series::from_csv(
+        "trial_state,t_s,measured_valid,measured_t_s,measured_x_m\n\
+         arming,0.000,0,NaN,NaN\n\
+         armed,0.005,1,0.001,0.3\n",
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("not released"), "{e}");
+}
+
+#[test]
+fn a_measurement_that_is_not_finite_is_refused_naming_the_line() {
+    for text in [
+        "t_s,x_m\n0.0,0.1\n0.033,NaN\n",
+        "t_s,x_m\n0.0,0.1\n0.033,inf\n",
+        "t_s,x_m\n0.0,0.1\nNaN,0.1\n",
+        "trial_state,t_s,measured_valid,measured_t_s,measured_x_m\n\
+         released,0.000,1,0.001,0.3\n\
+         tracking,0.005,1,0.003,NaN\n",
+    ] {
+        let e = Series::from_csv(text).unwrap_err().to_string();
+        assert!(
+            e.contains("line 3") && e.contains("not a finite number"),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn a_recording_without_a_swing_is_refused() {
+    // The ball hanging still, seen with 2 mm of noise for 20 s.
+    let (model, geometry) = lab();
+    let mut still = recording(2, 30.0, 20.0, 0.002, 0.0);
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    for z in &mut still.z_m {
+        *z = 0.002 * gauss(&mut rng);
+    }
+    let e = tune(&still, &paper_filter(), model, geometry).unwrap_err();
+    assert!(matches!(e, TuneError::NoMotion { .. }), "{e}");
+    assert!(e.to_string().contains("no swing"), "{e}");
+    // A swing of the same length passes the same check.
+    recording(2, 30.0, 20.0, 0.002, 0.0)
+        .check_tunable()
+        .unwrap();
+}
+
+#[test]
+fn several_short_recordings_are_tuned_together() {
+    // Four trials of 4 s each: too short alone, enough together.
+    let (r_true, sigma_true) = (0.002, 0.01);
+    let recs: Vec<Series> = (0..4)
+        .map(|k| recording(20 + k, 30.0, 4.0, r_true, sigma_true))
+        .collect();
+    let (model, geometry) = lab();
+    assert!(matches!(
+        tune(&recs[0], &paper_filter(), model, geometry),
+        Err(TuneError::TooShort(120))
+    ));
+    let report = tune_recordings(&recs, &paper_filter(), model, geometry).unwrap();
+    assert_eq!(report.recordings, 4);
+    assert_eq!(report.measurements, 480);
+    let r_err = report.estimate.measurement_noise_m / r_true - 1.0;
+    assert!(r_err.abs() < 0.2, "measurement noise off by {r_err}");
+    assert!(
+        report.consistency.nis_consistent,
+        "{:?}",
+        report.consistency
+    );
+}
+
+#[test]
+fn a_params_file_overlays_only_the_keys_it_sets() {
+    let mut base = Scenario {
+        name: "lab".into(),
+        ..Scenario::default()
+    };
+    base.pendulum.length_m = 2.5;
+    base.ekf.gate_nis = 16.0;
+    let text = "[ekf]\nmeasurement_noise_m = 0.003\naccel_psd_rad2ps3 = 2e-7\n";
+    let s = overlay_params(&base, text).unwrap();
+    assert_eq!(s.ekf.measurement_noise_m, 0.003);
+    assert_eq!(s.ekf.accel_psd_rad2ps3, 2e-7);
+    assert_eq!(s.ekf.gate_nis, 16.0);
+    assert_eq!(s.pendulum.length_m, 2.5);
+    assert_eq!(s.name, "lab");
+    // Bad files change nothing and say why.
+    let e = overlay_params(&base, "[ekf]\nmeasurement_noise = 0.003\n").unwrap_err();
+    assert!(e.to_string().contains("measurement_noise"), "{e}");
+    let e = overlay_params(&base, "[ekf]\nmeasurement_noise_m = -1.0\n").unwrap_err();
+    assert_eq!(e.field(), Some("ekf.measurement_noise_m"));
+    let e = overlay_params_file(&base, Path::new("/nonexistent/p.toml")).unwrap_err();
+    assert!(e.to_string().contains("/nonexistent/p.toml"), "{e}");
+    // The tuned file round-trips through the overlay.
+    let series = recording(3, 30.0, 20.0, 0.002, 0.01);
+    let (model, geometry) = lab();
+    let report = tune(&series, &paper_filter(), model, geometry).unwrap();
+    let s = overlay_params(&base, &params_toml(&paper_filter(), &report)).unwrap();
+    assert_eq!(
+        s.ekf.measurement_noise_m,
+        report.estimate.measurement_noise_m
+    );
+    assert_eq!(s.ekf.accel_var_rad2ps4, report.estimate.process_noise);
+    assert_eq!(s.ekf.process_noise_model, ProcessNoiseModel::Paper);
+    assert_eq!(s.pendulum.length_m, 2.5);
 }
 
 #[test]

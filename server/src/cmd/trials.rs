@@ -33,6 +33,10 @@ pub struct TrialsArgs {
     /// Write one JSON line per trial (numbers and failure reason) to this file.
     #[arg(long)]
     pub per_trial: Option<PathBuf>,
+    /// A parameter file laid over the scenario (a partial scenario, e.g. the [ekf] file
+    /// `isochron tune` writes); repeat to lay several in order.
+    #[arg(long)]
+    pub params: Vec<PathBuf>,
 }
 
 /// Runs the trials; returns the text for stdout.
@@ -40,7 +44,10 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     if args.n == 0 || args.n > MAX_TRIALS {
         anyhow::bail!("--n = {} is out of range: must be 1..={MAX_TRIALS}", args.n);
     }
-    let scenario = Scenario::from_file(&args.scenario)?;
+    let mut scenario = Scenario::from_file(&args.scenario)?;
+    for p in &args.params {
+        scenario = rt_core::tuning::overlay_params_file(&scenario, p)?;
+    }
     let mut per_trial = match &args.per_trial {
         Some(p) => Some(BufWriter::new(
             File::create(p).with_context(|| format!("cannot create {}", p.display()))?,
@@ -67,9 +74,15 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     );
     let mut records: Vec<TrialRecord> = Vec::with_capacity(args.n);
     let mut successes = 0usize;
+    let mut ekf_counters = rt_core::ekf::EkfCounters::default();
     for i in 0..args.n {
         let r = lab.run_trial(i);
         successes += usize::from(r.success);
+        if let Some(c) = lab.controller().ekf().map(rt_core::ekf::Ekf::counters) {
+            ekf_counters.fused += c.fused;
+            ekf_counters.rejected += c.rejected;
+            ekf_counters.reinitialisations += c.reinitialisations;
+        }
         if let Some(w) = per_trial.as_mut() {
             serde_json::to_writer(&mut *w, &r)?;
             w.write_all(b"\n")?;
@@ -92,7 +105,17 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     let mut summary = Summary::of(&scenario.name, &records, wall_s);
     summary.vision = Some(lab.vision_used().to_owned());
     if args.json {
-        return Ok(serde_json::to_string(&summary)?);
+        let mut v = serde_json::to_value(&summary)?;
+        // The filter the trials ran with (read back from the controller) and what it did.
+        if let Some(ekf) = lab.controller().ekf() {
+            v["ekf"] = serde_json::to_value(ekf.params())?;
+            v["ekf_counters"] = serde_json::json!({
+                "fused": ekf_counters.fused,
+                "rejected": ekf_counters.rejected,
+                "reinitialisations": ekf_counters.reinitialisations,
+            });
+        }
+        return Ok(serde_json::to_string(&v)?);
     }
     Ok(human(&summary))
 }
@@ -154,6 +177,7 @@ mod tests {
             seed: 1,
             json: true,
             per_trial,
+            params: Vec::new(),
         }
     }
 

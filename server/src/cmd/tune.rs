@@ -1,10 +1,10 @@
-//! `isochron tune --recording FILE [--json]`: EKF noise from a recorded trial.
+//! `isochron tune --recording FILE [--recording FILE ...] [--scenario FILE] [--json]`:
+//! EKF noise from recorded trials.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use rt_core::{
-    ekf::EkfParams,
     params::Scenario,
     pendulum::{PendulumGeometry, PendulumModel},
     tuning::{self, Series, figure},
@@ -13,16 +13,22 @@ use rt_core::{
 /// Arguments of `isochron tune`.
 #[derive(Debug, clap::Args)]
 pub struct TuneArgs {
-    /// The recording: a trial's recording.csv from the service, or a CSV with columns t_s,x_m.
-    #[arg(long)]
-    pub recording: PathBuf,
-    /// The lab the recording comes from (pendulum length); default: the paper's lab.
+    /// The recording: a trial's recording.csv from the service (only the measurements
+    /// after the release are used), or a CSV with columns t_s,x_m. Repeat the option to
+    /// tune on several trials of the same lab together (each is run by a fresh filter).
+    #[arg(long, required = true, num_args = 1)]
+    pub recording: Vec<PathBuf>,
+    /// The lab the recordings come from (default: the paper's lab): its pendulum, and its
+    /// [ekf] section, which is the starting point of the search and whose settings other
+    /// than the two estimated noise values are written out unchanged.
     #[arg(long)]
     pub scenario: Option<PathBuf>,
-    /// Where to write the tuned `[ekf]` parameters (default: next to the recording, .ekf.toml).
+    /// Where to write the tuned `[ekf]` parameters (default: next to the first recording,
+    /// .ekf.toml). Load it with `isochron trials --params FILE` or `isochron serve --params FILE`.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Where to write the paper's Fig. 4 for the recording (default: next to it, .fig4.svg).
+    /// Where to write the paper's Fig. 4 for the longest recording (default: next to the
+    /// first recording, .fig4.svg).
     #[arg(long)]
     pub figure: Option<PathBuf>,
     /// Print one JSON object instead of a summary.
@@ -37,60 +43,71 @@ fn beside(recording: &Path, suffix: &str) -> PathBuf {
     recording.with_file_name(format!("{stem}{suffix}"))
 }
 
-/// Runs `isochron tune`.
+/// Runs `isochron tune`. Nothing is written unless the recordings were read, the
+/// estimate found and the figure drawn.
 pub fn run(args: TuneArgs) -> anyhow::Result<String> {
     let scenario = match &args.scenario {
         Some(p) => Scenario::from_file(p)?,
         None => Scenario::default(),
     };
-    let text = std::fs::read_to_string(&args.recording)
-        .with_context(|| format!("cannot read {}", args.recording.display()))?;
-    let series = Series::from_csv(&text)?;
+    let Some(first) = args.recording.first().cloned() else {
+        anyhow::bail!("--recording: at least one recording is needed");
+    };
+    let mut recordings = Vec::with_capacity(args.recording.len());
+    for path in &args.recording {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let series = Series::from_csv(&text).with_context(|| path.display().to_string())?;
+        recordings.push(series);
+    }
     let model = PendulumModel::from_params(&scenario.pendulum)?;
     let geometry = PendulumGeometry::new(
         scenario.pendulum.length_m,
         scenario.task.distance_m.lo,
         scenario.task.intercept_height_m,
     )?;
-    let base = EkfParams::default();
-    let report = tuning::tune(&series, &base, model, geometry)?;
-    let out = args
-        .out
-        .unwrap_or_else(|| beside(&args.recording, ".ekf.toml"));
-    std::fs::write(&out, tuning::params_toml(&base, &report))
-        .with_context(|| format!("cannot write {}", out.display()))?;
+    // The scenario's filter: tune replaces its two noise values, nothing else.
+    let base = scenario.ekf.clone();
+    let report = tuning::tune_recordings(&recordings, &base, model, geometry)?;
     let tuned = tuning::with_noise(
         &base,
         report.estimate.measurement_noise_m,
         report.estimate.process_noise,
     );
-    let fig_path = args
-        .figure
-        .unwrap_or_else(|| beside(&args.recording, ".fig4.svg"));
-    let data = figure::fig4_data(&series, &tuned, model, geometry)?;
+    let Some(longest) = recordings.iter().max_by_key(|s| s.len()) else {
+        anyhow::bail!("--recording: at least one recording is needed");
+    };
+    let data = figure::fig4_data(longest, &tuned, model, geometry)?;
     let title = format!(
         "{}: EKF with measurement noise {:.2} mm, {} = {:.3e}",
-        args.recording.display(),
+        first.display(),
         1e3 * report.estimate.measurement_noise_m,
         report.estimate.process_noise_param,
         report.estimate.process_noise
     );
-    std::fs::write(&fig_path, figure::fig4_svg(&data, &title))
+    let params_text = tuning::params_toml(&base, &report);
+    let svg = figure::fig4_svg(&data, &title);
+    let out = args.out.unwrap_or_else(|| beside(&first, ".ekf.toml"));
+    let fig_path = args.figure.unwrap_or_else(|| beside(&first, ".fig4.svg"));
+    std::fs::write(&out, params_text).with_context(|| format!("cannot write {}", out.display()))?;
+    std::fs::write(&fig_path, svg)
         .with_context(|| format!("cannot write {}", fig_path.display()))?;
     if args.json {
         let mut v = serde_json::to_value(&report)?;
         v["params_file"] = out.display().to_string().into();
         v["figure_file"] = fig_path.display().to_string().into();
+        v["ekf"] = serde_json::to_value(&tuned)?;
         return Ok(serde_json::to_string(&v)?);
     }
     let c = &report.consistency;
     Ok(format!(
-        "{} measurements, mean interval {:.1} ms\n\
+        "{} measurements from {} recording(s), mean interval {:.1} ms\n\
          measurement noise: {:.3} mm (was {:.3} mm)\n\
          {}: {:.4e} (was {:.4e})\n\
          NIS mean {:.3} (95% bounds {:.3}..{:.3}: {}), innovation lag-1 autocorrelation {:.3}, {} rejected\n\
          parameters: {}\nfigure: {}",
         report.measurements,
+        report.recordings,
         1e3 * report.mean_interval_s,
         1e3 * report.estimate.measurement_noise_m,
         1e3 * report.before.measurement_noise_m,

@@ -1,0 +1,389 @@
+//! The tuning round trip a lab does, end to end with the `isochron` binary:
+//! trials recorded by the service (`isochron serve`, POST /api/trials, the
+//! recording.csv of each), `isochron tune` on those recordings, and the written
+//! parameter file loaded back by `isochron trials --params` and
+//! `isochron serve --params` on the same scenario and seeds. The tuned file must
+//! do at least as well as the lab's parameters before tuning, and a deliberately
+//! bad file must do worse (so the file is shown to be honoured).
+
+use std::{
+    net::SocketAddr,
+    path::{Path, PathBuf},
+    process::{Child, Command, Stdio},
+    time::{Duration, Instant},
+};
+
+use isochron_tests::http;
+use rt_core::{
+    ekf::EkfParams,
+    params::Scenario,
+    pendulum::{PendulumGeometry, PendulumModel},
+    sim::camera::MODEL_NOISE_M,
+    tuning::{self, Series},
+};
+use serde_json::Value;
+
+/// The `isochron` binary built next to this test (by `cargo test --workspace`), or
+/// `ISOCHRON_BIN`. Engineers share one target folder, so a binary from another
+/// branch may sit there: without the options under test it is a skip, except
+/// under CI.
+fn isochron() -> Option<PathBuf> {
+    let bin = match std::env::var_os("ISOCHRON_BIN") {
+        Some(b) => PathBuf::from(b),
+        None => {
+            let exe = std::env::current_exe().unwrap();
+            exe.parent()?.parent()?.join("isochron")
+        }
+    };
+    let knows = |args: &[&str], needle: &str| {
+        Command::new(&bin).args(args).output().is_ok_and(|o| {
+            o.status.success() && String::from_utf8_lossy(&o.stdout).contains(needle)
+        })
+    };
+    if knows(&["serve", "--help"], "--params") && knows(&["trials", "--help"], "--params") {
+        return Some(bin);
+    }
+    let msg = format!(
+        "{} missing or without `--params` (run `cargo build -p server`)",
+        bin.display()
+    );
+    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
+    eprintln!("SKIPPED: {msg}");
+    None
+}
+
+fn scenario_path() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/tune_roundtrip.toml")
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("isochron-roundtrip-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A running `isochron serve`, stopped when dropped.
+struct Serve {
+    child: Child,
+    addr: SocketAddr,
+}
+
+impl Drop for Serve {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn free_addr() -> SocketAddr {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap()
+}
+
+/// Starts `isochron serve` on the round-trip lab and waits until it answers.
+async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
+    let config = dir.join("serve.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[lab]\nscenario = {:?}\n",
+            scenario_path().display().to_string()
+        ),
+    )
+    .unwrap();
+    let addr = free_addr();
+    let mut cmd = Command::new(bin);
+    cmd.arg("serve")
+        .arg("--config")
+        .arg(&config)
+        .args(["--bind", &addr.to_string()])
+        .arg("--data-dir")
+        .arg(dir.join("data"))
+        .arg("--web-dir")
+        .arg(dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    for p in params {
+        cmd.arg("--params").arg(p);
+    }
+    let mut s = Serve {
+        child: cmd.spawn().unwrap(),
+        addr,
+    };
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Ok(r) = http(addr, "GET", "/api/health", &[], b"").await {
+            if r.status == 200 {
+                return s;
+            }
+        }
+        assert!(
+            s.child.try_wait().unwrap().is_none(),
+            "isochron serve exited early"
+        );
+        assert!(Instant::now() < deadline, "isochron serve did not answer");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// One whole trial through the service; returns its recording.
+async fn record_trial(addr: SocketAddr) -> String {
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let t = http(addr, "GET", &format!("/api/trials/{id}"), &[], b"")
+            .await
+            .unwrap()
+            .json()
+            .unwrap();
+        if t["status"] != "running" {
+            assert_eq!(t["status"], "done", "{t}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "trial {id} did not end");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let r = http(
+        addr,
+        "GET",
+        &format!("/api/trials/{id}/recording.csv"),
+        &[],
+        b"",
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200);
+    String::from_utf8(r.body).unwrap()
+}
+
+fn run(bin: &Path, args: &[&str]) -> Value {
+    let out = Command::new(bin).args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "isochron {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// `isochron trials --json` on the round-trip lab with the given parameter files.
+fn trials(bin: &Path, params: &[&Path]) -> Value {
+    let scenario = scenario_path().display().to_string();
+    let mut args = vec![
+        "trials",
+        "--scenario",
+        &scenario,
+        "--n",
+        "30",
+        "--seed",
+        "3",
+        "--json",
+    ];
+    let params: Vec<String> = params.iter().map(|p| p.display().to_string()).collect();
+    for p in &params {
+        args.extend(["--params", p]);
+    }
+    run(bin, &args)
+}
+
+fn f(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+
+#[tokio::test]
+async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
+    let Some(bin) = isochron() else { return };
+    let dir = temp_dir("lab");
+    let lab = Scenario::from_file(&scenario_path()).unwrap();
+    assert_eq!(lab.ekf.gate_nis, 20.0);
+
+    // 1. Two trials recorded by the service.
+    let mut recordings = Vec::new();
+    {
+        let s = serve(&bin, &dir, &[]).await;
+        for i in 0..2 {
+            let csv = record_trial(s.addr).await;
+            let path = dir.join(format!("trial{i}.csv"));
+            std::fs::write(&path, csv).unwrap();
+            recordings.push(path);
+        }
+    }
+
+    // 2. `isochron tune` on them, from the lab's own [ekf].
+    let tuned_path = dir.join("tuned.ekf.toml");
+    let rec: Vec<String> = recordings.iter().map(|p| p.display().to_string()).collect();
+    let scenario = scenario_path().display().to_string();
+    let out = tuned_path.display().to_string();
+    let fig = dir.join("fig4.svg").display().to_string();
+    let report = run(
+        &bin,
+        &[
+            "tune",
+            "--json",
+            "--scenario",
+            &scenario,
+            "--recording",
+            &rec[0],
+            "--recording",
+            &rec[1],
+            "--out",
+            &out,
+            "--figure",
+            &fig,
+        ],
+    );
+    let r = f(&report["estimate"]["measurement_noise_m"]);
+    let q = f(&report["estimate"]["process_noise"]);
+    let nis = f(&report["consistency"]["nis_mean"]);
+    eprintln!(
+        "tune: {} measurements from {} recordings; R std {:.3} mm (truth {:.3} mm), \
+         accel_psd {q:.3e} (truth 0), NIS {nis:.3} in {}",
+        report["measurements"],
+        report["recordings"],
+        1e3 * r,
+        1e3 * MODEL_NOISE_M,
+        report["consistency"]["nis_bounds_95"]
+    );
+    assert_eq!(report["recordings"], 2);
+    assert!((r / MODEL_NOISE_M - 1.0).abs() < 0.2, "R std {r}");
+    assert_eq!(report["consistency"]["nis_consistent"], true, "{report}");
+    assert_eq!(
+        f(&report["before"]["measurement_noise_m"]),
+        lab.ekf.measurement_noise_m
+    );
+    // The written file: the lab's [ekf] with the two estimates replaced.
+    let file = std::fs::read_to_string(&tuned_path).unwrap();
+    let tuned = tuning::overlay_params(&lab, &file).unwrap().ekf;
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs();
+    assert!(close(tuned.measurement_noise_m, r), "{file}");
+    assert!(close(tuned.accel_psd_rad2ps3, q), "{file}");
+    let expected = tuning::with_noise(&lab.ekf, tuned.measurement_noise_m, tuned.accel_psd_rad2ps3);
+    assert_eq!(tuned, expected);
+    assert_eq!(tuned.gate_nis, 20.0);
+
+    // A deliberately bad file: a measurement noise a hundred times too small.
+    let bad_path = dir.join("bad.ekf.toml");
+    std::fs::write(
+        &bad_path,
+        "[ekf]\nmeasurement_noise_m = 0.00002\naccel_psd_rad2ps3 = 1e-12\n",
+    )
+    .unwrap();
+
+    // 3. Consistency of each on the recordings (what the filter makes of the data).
+    let series: Vec<Series> = recordings
+        .iter()
+        .map(|p| Series::from_csv(&std::fs::read_to_string(p).unwrap()).unwrap())
+        .collect();
+    let model = PendulumModel::from_params(&lab.pendulum).unwrap();
+    let geometry = PendulumGeometry::new(
+        lab.pendulum.length_m,
+        lab.task.distance_m.lo,
+        lab.task.intercept_height_m,
+    )
+    .unwrap();
+    let bad = tuning::overlay_params_file(&lab, &bad_path).unwrap().ekf;
+    let nis_of = |p: &EkfParams| tuning::run_filters(&series, p, model, geometry).unwrap();
+    let (c_lab, c_tuned, c_bad) = (nis_of(&lab.ekf), nis_of(&tuned), nis_of(&bad));
+    eprintln!(
+        "NIS on the recordings: lab {:.3}, tuned {:.3} (bounds {:.3}..{:.3}, {} fused), \
+         bad {:.1} ({} fused)",
+        c_lab.nis_mean,
+        c_tuned.nis_mean,
+        c_tuned.nis_bounds_95[0],
+        c_tuned.nis_bounds_95[1],
+        c_tuned.fused,
+        c_bad.nis_mean,
+        c_bad.fused
+    );
+    assert!(c_tuned.nis_consistent, "{c_tuned:?}");
+    // Overconfident: innovations far larger than it predicts, and it keeps restarting
+    // (few measurements fused).
+    assert!(
+        !c_bad.nis_consistent && c_bad.nis_mean > c_bad.nis_bounds_95[1],
+        "{c_bad:?}"
+    );
+    assert!(c_bad.fused * 4 < c_tuned.fused, "{c_bad:?}");
+
+    // 4. Loaded back by `isochron trials` on the same scenario and seeds.
+    let before = trials(&bin, &[]);
+    let after = trials(&bin, &[&tuned_path]);
+    let worse = trials(&bin, &[&bad_path]);
+    let n = |v: &Value| v["successes"].as_u64().unwrap();
+    eprintln!(
+        "trials (n = 30, seed 3): lab's parameters {}/30, tuned {}/30, bad file {}/30; \
+         EKF rejections {} / {} / {}",
+        n(&before),
+        n(&after),
+        n(&worse),
+        before["ekf_counters"]["rejected"],
+        after["ekf_counters"]["rejected"],
+        worse["ekf_counters"]["rejected"]
+    );
+    // The filter the trials ran with is the file's.
+    let in_effect = |v: &Value| -> EkfParams { serde_json::from_value(v["ekf"].clone()).unwrap() };
+    assert_eq!(in_effect(&before), lab.ekf);
+    assert_eq!(in_effect(&after), tuned);
+    assert_eq!(in_effect(&worse), bad);
+    assert_eq!(
+        before["distance_m"], after["distance_m"],
+        "not the same draws"
+    );
+    assert!(n(&after) >= n(&before), "tuned {after}\nbefore {before}");
+    assert!(n(&before) >= 27, "{before}");
+    assert!(
+        n(&worse) < n(&before),
+        "the bad file was not honoured: {worse}"
+    );
+
+    // 5. Loaded back by `isochron serve --params`.
+    let s = serve(&bin, &dir, &[&tuned_path]).await;
+    let p = http(s.addr, "GET", "/api/params", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    let served: EkfParams = serde_json::from_value(p["ekf"].clone()).unwrap();
+    assert_eq!(served, tuned);
+    assert_eq!(p["name"], "tune_roundtrip");
+    assert_eq!(p["camera"]["fps"], 60.0);
+    drop(s);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_bad_params_file_is_refused_by_trials_and_serve_with_one_line() {
+    let Some(bin) = isochron() else { return };
+    let dir = temp_dir("bad");
+    let file = dir.join("typo.ekf.toml");
+    std::fs::write(&file, "[ekf]\nmeasurement_noise = 0.002\n").unwrap();
+    let scenario = scenario_path().display().to_string();
+    let params = file.display().to_string();
+    for args in [
+        vec![
+            "trials",
+            "--scenario",
+            &scenario,
+            "--n",
+            "1",
+            "--params",
+            &params,
+        ],
+        vec!["serve", "--bind", "127.0.0.1:0", "--params", &params],
+    ] {
+        let out = Command::new(&bin).args(&args).output().unwrap();
+        assert!(!out.status.success(), "{args:?} accepted a typo");
+        let err = String::from_utf8_lossy(&out.stderr);
+        let line = err
+            .lines()
+            .find(|l| l.starts_with("isochron:"))
+            .unwrap_or_else(|| panic!("{err}"));
+        assert!(
+            line.contains("typo.ekf.toml") && line.contains("ekf.measurement_noise"),
+            "{line}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
