@@ -168,6 +168,8 @@ try {
     };
     await page.waitForTimeout(10_000);
     const h10 = await heap();
+    const c10 = await page.evaluate(() => window.__isochron.cost());
+    const t10 = Date.now();
     const fps = [];
     const end = Date.now() + (SOAK_S - 10) * 1000;
     while (Date.now() < end) {
@@ -175,6 +177,12 @@ try {
       fps.push(await page.evaluate(() => window.__isochron.fps()));
     }
     const hEnd = await heap();
+    const cEnd = await page.evaluate(() => window.__isochron.cost());
+    const wall = (Date.now() - t10) / 1000;
+    // Main-thread time the views take, ms per second of wall time.
+    measured.view_ms_per_s = Object.fromEntries(
+      ["plots", "twin", "camera", "status"].map((k) => [k, +((cEnd[k] - c10[k]) / wall).toFixed(1)]),
+    );
     measured.heap_mb_10s = +(h10 / 1e6).toFixed(2);
     measured.heap_mb_end = +(hEnd / 1e6).toFixed(2);
     measured.heap_growth = +((hEnd - h10) / h10).toFixed(3);

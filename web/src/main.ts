@@ -62,17 +62,24 @@ function onStatus(s: LinkStatus): void {
   document.body.classList.toggle("disconnected", s !== "open");
 }
 
+/** Sets an element's text only when it changes (no layout work for the same text). */
+function set(id: string, text: string): void {
+  const el = $(id);
+  if (el.textContent !== text) el.textContent = text;
+}
+
 function status(s: StateMessage): void {
-  $("st-trial").textContent = s.trial_state;
-  $("st-trial").dataset.state = s.trial_state;
-  $("st-fri").textContent = `${s.fri.session} · ${s.fri.quality}`;
-  $("st-rtt").textContent = fmt(s.fri.reply_latency_us, 0, "µs");
-  $("st-magnet").textContent = s.magnet;
-  $("st-latency").textContent = fmt(s.robot.actuation_latency_ms, 1, "ms");
-  $("st-step").textContent = `${fmt(s.timing.step_us, 1)} / ${fmt(s.timing.step_max_us, 1)} µs`;
-  $("st-misses").textContent = String(s.timing.deadline_misses + s.fri.missed_cycles);
+  set("st-trial", s.trial_state);
+  const st = $("st-trial");
+  if (st.dataset.state !== s.trial_state) st.dataset.state = s.trial_state;
+  set("st-fri", `${s.fri.session} · ${s.fri.quality}`);
+  set("st-rtt", fmt(s.fri.reply_latency_us, 0, "µs"));
+  set("st-magnet", s.magnet);
+  set("st-latency", fmt(s.robot.actuation_latency_ms, 1, "ms"));
+  set("st-step", `${fmt(s.timing.step_us, 1)} / ${fmt(s.timing.step_max_us, 1)} µs`);
+  set("st-misses", String(s.timing.deadline_misses + s.fri.missed_cycles));
   const ahead = (s.pendulum.crossing_t_s ?? Number.NaN) - s.t_s;
-  $("st-pass").textContent = ahead >= 0 ? `in ${fmt(ahead, 2, "s")} ± ${fmt((s.pendulum.crossing_sigma_s ?? NaN) * 1000, 1, "ms")}` : "–";
+  set("st-pass", ahead >= 0 ? `in ${fmt(ahead, 2, "s")} ± ${fmt((s.pendulum.crossing_sigma_s ?? NaN) * 1000, 1, "ms")}` : "–");
 }
 
 const link = new Link(wsUrl("/ws"), onMessage, onStatus);
@@ -85,12 +92,23 @@ let frames = 0;
 let tick = 0;
 let fps = 0;
 let fpsT0 = performance.now();
+/** Main-thread milliseconds spent per view since the page loaded (the soak test reports them). */
+const cost = { plots: 0, twin: 0, camera: 0, status: 0, frames: 0 };
 function frame(now: number): void {
   tick += 1;
+  const t0 = performance.now();
   if (tick % 2 === 0) plots.draw();
-  else twin.draw();
+  else twin.draw(now);
+  const t1 = performance.now();
   camera.draw(now);
+  const t2 = performance.now();
   if (latest) status(latest);
+  const t3 = performance.now();
+  if (tick % 2 === 0) cost.plots += t1 - t0;
+  else cost.twin += t1 - t0;
+  cost.camera += t2 - t1;
+  cost.status += t3 - t2;
+  cost.frames += 1;
   frames += 1;
   if (now - fpsT0 >= 1000) {
     fps = (frames * 1000) / (now - fpsT0);
@@ -129,6 +147,7 @@ declare global {
       phase: () => ReturnType<Plots["phaseStats"]>;
       neurons: () => Lead[];
       camera: () => { received: number; frames: number; decodeErrors: number; fps: number; drawn: OverlayDrawn };
+      cost: () => typeof cost;
     };
   }
 }
@@ -147,4 +166,5 @@ window.__isochron = {
     fps: camera.fps(),
     drawn: camera.drawn,
   }),
+  cost: () => ({ ...cost }),
 };

@@ -50,6 +50,8 @@ export class Twin {
   private readonly toolPath: THREE.Line;
   private latest: StateMessage | null = null;
   private dirty = true;
+  private renderedAt = Number.NEGATIVE_INFINITY;
+  private readonly shown: Shown = new Float64Array(SHOWN_LEN).fill(Number.NaN);
   geometry: TwinGeometry = DEFAULT_GEOMETRY;
   /** Frames rendered (the browser test checks the view renders). */
   frames = 0;
@@ -145,13 +147,16 @@ export class Twin {
 
   update(s: StateMessage): void {
     this.latest = s;
-    this.dirty = true;
+    // Software-rendered WebGL is the page's dearest paint: render only when
+    // something visible moved (a still arm and a ball at rest cost nothing).
+    if (!this.dirty && changed(this.shown, s)) this.dirty = true;
   }
 
-  /** Renders if anything changed; call once per animation frame. */
-  draw(): void {
-    if (!this.renderer || !this.dirty) return;
+  /** Renders if anything changed (at least once a second); call once per animation frame. */
+  draw(now = performance.now()): void {
+    if (!this.renderer || (!this.dirty && now - this.renderedAt < 1000)) return;
     this.dirty = false;
+    this.renderedAt = now;
     const s = this.latest;
     const g = this.geometry;
     if (s) {
@@ -198,5 +203,37 @@ export class Twin {
     }
     this.renderer.render(this.scene, this.camera);
     this.frames += 1;
+    if (s) remember(this.shown, s);
   }
+}
+
+/** What the twin last drew, to tell whether a new state would look different. */
+type Shown = Float64Array;
+const SHOWN_LEN = 7 + 9 + 4;
+
+function visible(s: StateMessage, out: Float64Array): void {
+  let k = 0;
+  for (let i = 0; i < 7; i++) out[k++] = s.robot.q_rad[i];
+  for (const v of [s.pendulum.ball_m, s.pendulum.truth_ball_m, s.path.intercept_m]) for (let i = 0; i < 3; i++) out[k++] = num(v[i]);
+  const h = s.pendulum.horizon;
+  out[k++] = h.length;
+  out[k++] = h.length > 0 ? h[h.length - 1].x_m : 0;
+  out[k++] = h.length > 0 ? h[0].x_m : 0;
+  out[k++] = h.length > 0 ? h[h.length >> 1].x_m : 0;
+}
+
+const scratch = new Float64Array(SHOWN_LEN);
+
+/** True when `s` differs visibly from what was drawn (0.1 mrad, 0.1 mm; NaN flips count). */
+function changed(shown: Shown, s: StateMessage): boolean {
+  visible(s, scratch);
+  for (let i = 0; i < SHOWN_LEN; i++) {
+    const a = shown[i], b = scratch[i];
+    if (Number.isNaN(a) !== Number.isNaN(b) || Math.abs(a - b) > 1e-4) return true;
+  }
+  return false;
+}
+
+function remember(shown: Shown, s: StateMessage): void {
+  visible(s, shown);
 }
