@@ -449,6 +449,7 @@ impl Runtime {
             latency_estimate_ms: self.step.controller.latency().latency_s() * 1e3,
             limit_violations: self.step.controller.counters().limit_violations(),
             deadline_misses: self.step.deadline_misses,
+            preempted_steps: self.step.preempted_steps,
         };
         let mut result = TrialResult {
             success: false,

@@ -1,13 +1,16 @@
 #![doc = include_str!("README.md")]
 
+pub mod cost;
 pub mod judge;
 pub mod latency;
 pub mod posture;
 pub mod report;
+pub mod rig;
 pub mod state;
 pub mod stats;
 pub mod step;
 
+pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
 pub use judge::{Judgement, PlannedMotion, TrialTrace, judge};
 pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};

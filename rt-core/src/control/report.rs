@@ -38,8 +38,12 @@ pub struct TrialRecord {
     pub latency_estimate_ms: f64,
     /// Commands the guard had to refuse or clamp, plus measured joints beyond a limit.
     pub limit_violations: u64,
-    /// FRI cycles the controller answered late (or not at all).
+    /// Control steps whose own computation (thread CPU time) took longer
+    /// than the FRI period.
     pub deadline_misses: u64,
+    /// Control steps longer than the FRI period by wall clock only: the
+    /// thread was preempted (the machine's load, not the step's work).
+    pub preempted_steps: u64,
 }
 
 impl TrialRecord {
@@ -127,8 +131,12 @@ pub struct Summary {
     pub aborted: usize,
     /// Limit violations over all trials.
     pub limit_violations: u64,
-    /// Deadline misses over all trials.
+    /// Deadline misses over all trials: control steps whose own computation
+    /// (thread CPU time) exceeded the FRI period.
     pub deadline_misses: u64,
+    /// Control steps over all trials that exceeded the period by wall clock
+    /// only (preempted by other work on the machine).
+    pub preempted_steps: u64,
     /// Wall-clock time of the whole run, seconds.
     pub wall_s: f64,
     /// How the camera measurements were produced (`"model"` or `"full"`), when known.
@@ -187,6 +195,7 @@ impl Summary {
             aborted: records.iter().filter(|r| r.abort_reason.is_some()).count(),
             limit_violations: records.iter().map(|r| r.limit_violations).sum(),
             deadline_misses: records.iter().map(|r| r.deadline_misses).sum(),
+            preempted_steps: records.iter().map(|r| r.preempted_steps).sum(),
             wall_s,
             vision: None,
         }
@@ -222,6 +231,7 @@ mod tests {
             latency_estimate_ms: 8.0,
             limit_violations: 0,
             deadline_misses: 0,
+            preempted_steps: 0,
         }
     }
 
@@ -290,6 +300,7 @@ mod tests {
             "aborted",
             "limit_violations",
             "deadline_misses",
+            "preempted_steps",
             "wall_s",
         ] {
             assert!(v.get(key).is_some(), "missing {key}");

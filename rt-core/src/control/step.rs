@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::latency::LatencyEstimator;
 use super::posture::{Posture, PostureError, flange_pose, plan_posture};
 use super::state::{AbortReason, TrialMachine, TrialState};
-use crate::ekf::{Ekf, EkfParams, MotionRequest, PassDirection};
+use crate::ekf::{Ekf, EkfCounters, EkfParams, MotionRequest, PassDirection, StateVec};
 use crate::kinematics::analytic::ArmGeometry;
 use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
@@ -207,6 +207,9 @@ pub struct ControlCounters {
     pub rejected: u64,
     /// Predictions asked of the filter that it could not give.
     pub prediction_errors: u64,
+    /// Interception checks answered from the last prediction (the filter had
+    /// not changed since and its motion start lay beyond this cycle).
+    pub predictions_reused: u64,
     /// Motion re-timings to a refined pass prediction.
     pub retimes: u64,
     /// Calls the timed motion refused.
@@ -260,6 +263,21 @@ pub struct Commit {
     pub direction_positive: bool,
 }
 
+/// The last interception prediction and the filter state it came from: while
+/// the filter does not change (no measurement processed) the predicted pass,
+/// and so the motion's start, stay the same, and no commit can happen before
+/// that start. The crossing search then runs once per camera measurement
+/// instead of once per FRI cycle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PredictionCache {
+    filter: EkfCounters,
+    posterior_t_s: f64,
+    posterior_x: StateVec,
+    duration_s: f64,
+    latency_s: f64,
+    start_s: f64,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct JointMove {
     q0: Joints,
@@ -305,6 +323,7 @@ pub struct Controller {
     t_release: f64,
     t_last_measurement: f64,
     commit: Option<Commit>,
+    prediction: Option<PredictionCache>,
     counters: ControlCounters,
     abort_reason: Option<AbortReason>,
 }
@@ -348,6 +367,7 @@ impl Controller {
             t_release: 0.0,
             t_last_measurement: f64::NEG_INFINITY,
             commit: None,
+            prediction: None,
             counters: ControlCounters::default(),
             abort_reason: None,
         })
@@ -527,6 +547,7 @@ impl Controller {
         self.ekf = Some(ekf);
         self.plan = Some(*plan);
         self.commit = None;
+        self.prediction = None;
         self.abort_reason = None;
         self.jmove = Some(JointMove {
             q0,
@@ -736,9 +757,23 @@ impl Controller {
             return;
         };
         let latency_s = self.latency.latency_s();
+        let duration_s = (plan.duration_s + plan.arrival_offset_s).max(0.0);
+        let filter = ekf.counters();
+        let posterior = ekf.posterior();
+        if let (Some(c), Some((pt, px, _))) = (self.prediction.as_ref(), posterior.as_ref()) {
+            let same = c.filter == filter
+                && c.posterior_t_s == *pt
+                && c.posterior_x == *px
+                && c.duration_s == duration_s
+                && c.latency_s == latency_s;
+            if same && c.start_s >= t + dt {
+                self.counters.predictions_reused += 1;
+                return;
+            }
+        }
         let req = MotionRequest {
             lateral_m: 0.0,
-            duration_s: (plan.duration_s + plan.arrival_offset_s).max(0.0),
+            duration_s,
             latency_s,
             pass_index: 0,
             direction: PassDirection::Any,
@@ -746,12 +781,24 @@ impl Controller {
         let offset = plan.arrival_offset_s;
         let mp = match ekf.plan_motion(t, &req) {
             Ok(Some(mp)) => mp,
-            Ok(None) => return,
+            Ok(None) => {
+                self.prediction = None;
+                return;
+            }
             Err(_) => {
+                self.prediction = None;
                 self.counters.prediction_errors += 1;
                 return;
             }
         };
+        self.prediction = posterior.map(|(pt, px, _)| PredictionCache {
+            filter,
+            posterior_t_s: pt,
+            posterior_x: px,
+            duration_s,
+            latency_s,
+            start_s: mp.start_s,
+        });
         if !mp.confident || mp.start_s >= t + dt {
             return;
         }

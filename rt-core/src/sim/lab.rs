@@ -3,8 +3,6 @@
 //! and the real client ([`FriClient`]); every camera frame through the camera
 //! model; the controller's step is the same one the real-time runtime runs.
 
-use std::time::Instant;
-
 use nalgebra::Vector3;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -13,7 +11,8 @@ use super::camera::ModelCamera;
 use super::fri_step::FriLoopStep;
 use crate::control::judge::{PlannedMotion, TrialTrace, judge};
 use crate::control::{
-    ControlError, Controller, Measurement, StepInput, StepOutput, TrialRecord, TrialState,
+    ControlError, Controller, Lateness, Measurement, StepClock, StepInput, StepOutput, StepRecord,
+    StepTimings, TrialRecord, TrialState,
 };
 use crate::fri::client::{FriClient, FriClientParams, LinkState};
 use crate::fri::codec::Monitoring;
@@ -28,6 +27,10 @@ use crate::vision::{BallState, DetectorParams, SimCamera, SimCameraParams, SimVi
 
 /// The control step as the FRI cycle calls it: the controller, the camera
 /// measurements delivered since the last message, and the cycle's timing.
+///
+/// Each step is timed by wall clock and by the thread's CPU time
+/// ([`StepClock`]): a step whose own computation exceeded the period is a
+/// deadline miss; one that only took longer by wall clock was preempted.
 #[derive(Debug)]
 pub struct LoopStep {
     /// The controller.
@@ -36,12 +39,18 @@ pub struct LoopStep {
     pub inbox: Vec<Measurement>,
     /// The last step's output.
     pub out: StepOutput,
-    /// Steps whose computation took longer than the FRI period.
+    /// Steps whose own computation (thread CPU time) took longer than the FRI period.
     pub deadline_misses: u64,
-    /// Longest step, nanoseconds.
+    /// Steps longer than the FRI period by wall clock whose computation fitted
+    /// in it (the thread was preempted while the step ran).
+    pub preempted_steps: u64,
+    /// Longest step, wall clock, nanoseconds.
     pub max_step_ns: u64,
-    /// When `Some`, every step's duration is appended, nanoseconds (for benches).
-    pub step_ns: Option<Vec<u64>>,
+    /// Longest step, thread CPU time, nanoseconds.
+    pub max_step_cpu_ns: u64,
+    /// When `Some`, every step's cost and states are recorded (benches; the
+    /// buffer is preallocated and never grows).
+    pub timings: Option<StepTimings>,
 }
 
 impl LoopStep {
@@ -52,15 +61,18 @@ impl LoopStep {
             inbox: Vec::with_capacity(64),
             out: StepOutput::default(),
             deadline_misses: 0,
+            preempted_steps: 0,
             max_step_ns: 0,
-            step_ns: None,
+            max_step_cpu_ns: 0,
+            timings: None,
         }
     }
 
     /// One step for the monitoring message `m` received at `t_s`; returns the
     /// command to send.
     pub fn run(&mut self, t_s: f64, period_s: f64, m: &Monitoring) -> [f64; JOINTS] {
-        let started = Instant::now();
+        let before = self.controller.state();
+        let clock = StepClock::start();
         let q = m
             .measured_joint_position_rad
             .unwrap_or(self.out.q_command_rad);
@@ -71,13 +83,21 @@ impl LoopStep {
         };
         self.controller
             .step(&si, self.inbox.drain(..), &mut self.out);
-        let ns = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);
-        self.max_step_ns = self.max_step_ns.max(ns);
-        if let Some(v) = self.step_ns.as_mut() {
-            v.push(ns);
+        let cost = clock.stop();
+        self.max_step_ns = self.max_step_ns.max(cost.wall_ns);
+        self.max_step_cpu_ns = self.max_step_cpu_ns.max(cost.cpu_ns);
+        // The period is positive and far below u64::MAX nanoseconds.
+        match cost.lateness((period_s * 1e9) as u64) {
+            Lateness::OnTime => {}
+            Lateness::Preempted => self.preempted_steps += 1,
+            Lateness::Overrun => self.deadline_misses += 1,
         }
-        if ns as f64 * 1e-9 > period_s {
-            self.deadline_misses += 1;
+        if let Some(t) = self.timings.as_mut() {
+            t.record(StepRecord {
+                cost,
+                before,
+                after: self.out.state,
+            });
         }
         self.out.q_command_rad
     }
@@ -335,6 +355,7 @@ impl VirtualLab {
             latency_estimate_ms: self.step.step.controller.latency().latency_s() * 1e3,
             limit_violations: 0,
             deadline_misses: 0,
+            preempted_steps: 0,
         };
         let plan = match Controller::plan(&self.scenario, draw.distance_m) {
             Ok(p) => p,
@@ -356,12 +377,14 @@ impl VirtualLab {
         let before = *self.step.step.controller.counters();
         let fri_before = self.fri_counts();
         let misses_before = self.step.step.deadline_misses;
+        let preempted_before = self.step.step.preempted_steps;
         let outcome = self.simulate(&draw, &plan);
         let c = self.step.controller().counters();
         let fri = self.fri_counts();
         rec.limit_violations = c.limit_violations() - before.limit_violations()
             + (fri.violations - fri_before.violations);
         rec.deadline_misses = self.step.step.deadline_misses - misses_before;
+        rec.preempted_steps = self.step.step.preempted_steps - preempted_before;
         let state = self.step.controller().state();
         rec.final_state = state.name().to_owned();
         if let TrialState::Abort(r) = state {

@@ -3,9 +3,9 @@
 use std::time::{Duration, Instant};
 
 use nalgebra::UnitQuaternion;
-use rt_core::control::Controller;
 use rt_core::control::posture::flange_pose;
 use rt_core::control::stats::quantile_sorted;
+use rt_core::control::{Controller, StepTimings, TrialState};
 use rt_core::ekf::Ekf;
 use rt_core::kinematics::analytic::ArmGeometry;
 use rt_core::kinematics::{Joints, Tool};
@@ -25,6 +25,10 @@ pub struct BenchArgs {
     /// Seconds the real-time loop runs.
     #[arg(long, default_value_t = 10.0)]
     pub loop_s: f64,
+    /// Virtual-time trials (1 ms FRI period, model camera) whose control steps
+    /// are timed: about 8,000 steps each.
+    #[arg(long, default_value_t = 20)]
+    pub control_trials: usize,
 }
 
 #[derive(Debug, Serialize)]
@@ -53,7 +57,12 @@ struct Bench {
     ekf_step_ns: P2,
     hopf_step_ns: P2,
     ik_solve_us: P3,
+    /// Wall clock per control step (includes preemptions by other processes).
     control_step_us: P4,
+    /// The step's own cost: the thread's CPU time per control step.
+    control_step_cpu_us: P4,
+    /// How the control steps were measured, and their cost per phase.
+    control_step: ControlBench,
     /// Not measured here until the vision module is in the build.
     vision_frame_ms: Option<P2>,
     #[serde(rename = "loop")]
@@ -125,17 +134,119 @@ fn ik_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
     Ok(sorted(out))
 }
 
-fn control_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
+/// One phase of the trial (which branch of the step ran) and its cost.
+#[derive(Debug, Serialize)]
+struct PhaseCost {
+    phase: &'static str,
+    steps: usize,
+    cpu_us: P4,
+    wall_us: P4,
+}
+
+/// The control step's measurement.
+#[derive(Debug, Serialize)]
+struct ControlBench {
+    trials: usize,
+    steps: usize,
+    period_ms: u32,
+    /// Steps whose CPU time exceeded the period.
+    deadline_misses: u64,
+    /// Steps over the period by wall clock only (preempted).
+    preempted_steps: u64,
+    /// The 1, 5 and 15 minute load averages when the measurement started.
+    load_average: Option<[f64; 3]>,
+    phases: Vec<PhaseCost>,
+}
+
+fn p4(v: &[f64]) -> P4 {
+    let q = quantile_sorted;
+    P4 {
+        p50: q(v, 0.5),
+        p99: q(v, 0.99),
+        p999: q(v, 0.999),
+        max: q(v, 1.0),
+    }
+}
+
+fn load_average() -> Option<[f64; 3]> {
+    let text = std::fs::read_to_string("/proc/loadavg").ok()?;
+    let mut it = text.split_whitespace().map(str::parse::<f64>);
+    Some([it.next()?.ok()?, it.next()?.ok()?, it.next()?.ok()?])
+}
+
+/// Which branch of the step ran, from the states before and after it.
+fn phase(before: TrialState, after: TrialState) -> &'static str {
+    match (before, after) {
+        (TrialState::Tracking, TrialState::Intercepting) => "commit",
+        (TrialState::Tracking, _) => "tracking",
+        (TrialState::Intercepting, _) => "intercepting",
+        (TrialState::Holding, _) => "holding",
+        (TrialState::Arming, _) => "arming",
+        (TrialState::Released, _) => "released",
+        _ => "idle",
+    }
+}
+
+/// Times every control step of `trials` virtual-time trials at a 1 ms period
+/// into a preallocated buffer (nothing is allocated in the timed region):
+/// returns sorted wall and CPU microseconds and the details.
+fn control_us(s: &Scenario, trials: usize) -> anyhow::Result<(Vec<f64>, Vec<f64>, ControlBench)> {
     let mut s = s.clone();
     s.camera.vision = VisionMode::Model;
     s.robot.fri_period_ms = 1;
+    let load = load_average();
     let mut lab = VirtualLab::new(&s, 1)?;
-    lab.loop_step().step_ns = Some(Vec::with_capacity(100_000));
-    for i in 0..3 {
+    lab.loop_step().timings = Some(StepTimings::with_capacity(trials * 12_000 + 1_000));
+    let (misses0, preempted0) = (
+        lab.loop_step().deadline_misses,
+        lab.loop_step().preempted_steps,
+    );
+    for i in 0..trials {
         let _ = lab.run_trial(i);
     }
-    let v = lab.loop_step().step_ns.take().unwrap_or_default();
-    Ok(sorted(v.into_iter().map(|ns| ns as f64 * 1e-3).collect()))
+    let ls = lab.loop_step();
+    let t = ls
+        .timings
+        .take()
+        .unwrap_or_else(|| StepTimings::with_capacity(0));
+    let recs = t.records();
+    let us = |ns: u64| ns as f64 * 1e-3;
+    let wall = sorted(recs.iter().map(|r| us(r.cost.wall_ns)).collect());
+    let cpu = sorted(recs.iter().map(|r| us(r.cost.cpu_ns)).collect());
+    let mut phases = Vec::new();
+    for name in [
+        "arming",
+        "released",
+        "tracking",
+        "commit",
+        "intercepting",
+        "holding",
+        "idle",
+    ] {
+        let mine: Vec<_> = recs
+            .iter()
+            .filter(|r| phase(r.before, r.after) == name)
+            .collect();
+        if mine.is_empty() {
+            continue;
+        }
+        phases.push(PhaseCost {
+            phase: name,
+            steps: mine.len(),
+            cpu_us: p4(&sorted(mine.iter().map(|r| us(r.cost.cpu_ns)).collect())),
+            wall_us: p4(&sorted(mine.iter().map(|r| us(r.cost.wall_ns)).collect())),
+        });
+    }
+    let details = ControlBench {
+        trials,
+        steps: recs.len(),
+        period_ms: s.robot.fri_period_ms,
+        deadline_misses: ls.deadline_misses - misses0,
+        preempted_steps: ls.preempted_steps - preempted0,
+        load_average: load,
+        phases,
+    };
+    Ok((wall, cpu, details))
 }
 
 /// Runs the benches; returns the text for stdout.
@@ -150,7 +261,13 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     let e = ekf_ns(&s)?;
     let h = hopf_ns(&s)?;
     let ik = ik_us(&s)?;
-    let c = control_us(&s)?;
+    if !(1..=1000).contains(&args.control_trials) {
+        anyhow::bail!(
+            "--control-trials = {} is out of range: must be in 1..=1000",
+            args.control_trials
+        );
+    }
+    let (c, c_cpu, control) = control_us(&s, args.control_trials)?;
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
     let lp = run_loop(&rt, Duration::from_secs_f64(args.loop_s))?;
@@ -169,12 +286,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
             p99: q(&ik, 0.99),
             max: q(&ik, 1.0),
         },
-        control_step_us: P4 {
-            p50: q(&c, 0.5),
-            p99: q(&c, 0.99),
-            p999: q(&c, 0.999),
-            max: q(&c, 1.0),
-        },
+        control_step_us: p4(&c),
+        control_step_cpu_us: p4(&c_cpu),
+        control_step: control,
         vision_frame_ms: None,
         loop_: lp,
     };
@@ -185,7 +299,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         "ekf step        p50 {:.0} ns, p99 {:.0} ns\n\
          hopf step       p50 {:.0} ns, p99 {:.0} ns\n\
          ik solve        p50 {:.2} us, p99 {:.2} us, max {:.2} us\n\
-         control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us\n\
+         control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (wall clock)\n\
+         control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (thread CPU time)\n\
+         control steps   {} over {} trials at {} ms: {} deadline misses (CPU time > period), {} preempted (wall clock only); load average {}\n\
          loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99.9 {:.0} us, max {:.0} us",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
@@ -198,6 +314,19 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         b.control_step_us.p99,
         b.control_step_us.p999,
         b.control_step_us.max,
+        b.control_step_cpu_us.p50,
+        b.control_step_cpu_us.p99,
+        b.control_step_cpu_us.p999,
+        b.control_step_cpu_us.max,
+        b.control_step.steps,
+        b.control_step.trials,
+        b.control_step.period_ms,
+        b.control_step.deadline_misses,
+        b.control_step.preempted_steps,
+        b.control_step.load_average.map_or_else(
+            || "unknown".to_owned(),
+            |l| format!("{:.2} {:.2} {:.2}", l[0], l[1], l[2])
+        ),
         lp.period_ms,
         lp.cycles,
         lp.late_replies,
