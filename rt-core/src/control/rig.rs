@@ -257,7 +257,8 @@ mod tests {
         assert_eq!(c.aborts, 0, "{c:?}");
         assert_eq!(c.limit_violations(), 0, "{c:?}");
         assert!(c.fused > 30, "{c:?}");
-        // Between camera frames (30 fps, 1 ms cycles) the prediction is reused.
-        assert!(c.predictions_reused > 10 * c.fused, "{c:?}");
+        // Between camera frames (30 fps, 1 ms cycles) the prediction is
+        // reused: tracking took about 0.5 s here.
+        assert!(c.predictions_reused > 300, "{c:?}");
     }
 }
