@@ -3,6 +3,7 @@
 pub mod camera;
 pub mod fri_step;
 pub mod lab;
+pub mod magnet;
 pub mod realtime;
 pub mod robot;
 
