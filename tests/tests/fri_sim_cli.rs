@@ -1,6 +1,7 @@
 //! `isochron fri-sim` as a user runs it: the built binary sends to a real FRI
 //! client session over loopback UDP, and its JSON summary (CONTRACT.md) agrees
 //! with what the client counted. Bad input gives a one-line error and sends nothing.
+//! A client that behaves as KUKA's client SDK application does completes sessions.
 
 use std::io::Read;
 use std::net::{SocketAddr, UdpSocket};
@@ -11,7 +12,8 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use rt_core::fri::{
-    ControlStep, FriClientParams, FriSession, FriSessionParams, Joints, LinkState, StepInput,
+    CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams, FriSimParams,
+    Joints, LinkState, MonitoringDecoder, SessionState, SimRunOptions, SimServer, StepInput,
     StopReason,
 };
 
@@ -299,4 +301,173 @@ fn fri_sim_refuses_bad_input_with_one_line_and_sends_nothing() {
     let mut buf = [0u8; 2048];
     let e = listener.recv_from(&mut buf).unwrap_err();
     assert_eq!(e.kind(), std::io::ErrorKind::WouldBlock);
+}
+
+/// What [`kuka_like_client`] saw.
+#[derive(Debug, Default)]
+struct KukaRun {
+    received: u64,
+    replies: u64,
+    idle_seen: bool,
+    states: Vec<SessionState>,
+    overlay_max_rad: f64,
+}
+
+/// A client that behaves as KUKA's FRI client SDK application does with its
+/// default `LBRClient` and a joint sine overlay (as its LBRJointSineOverlay
+/// example): bound to the wildcard address, no host configured (answers the
+/// address the last datagram came from), `lastSendCounter >= receiveMultiplier`
+/// (counted from the first message it gets), `sequenceCounter` from 0,
+/// `reflectedSequenceCounter` = the answered message's; MONITORING_*: echoes
+/// the commanded positions; COMMANDING_WAIT: the ipo positions; ACTIVE: ipo +
+/// a 0.04 rad, 1 Hz sine on A4; IDLE: sends nothing and exits.
+fn kuka_like_client(sock: &UdpSocket, timeout: Duration) -> KukaRun {
+    sock.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    let mut dec = MonitoringDecoder::new();
+    let mut enc = CommandEncoder::new();
+    let mut buf = [0u8; 2048];
+    let (mut seq, mut last_send_counter, mut phase) = (0u32, 0u32, 0.0f64);
+    let mut run = KukaRun::default();
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        let Ok((n, from)) = sock.recv_from(&mut buf) else {
+            continue;
+        };
+        let m = dec
+            .decode(&buf[..n])
+            .expect("the controller's datagram decodes");
+        run.received += 1;
+        if run.states.last() != Some(&m.session_state) {
+            run.states.push(m.session_state);
+        }
+        let joints = match m.session_state {
+            SessionState::Idle => {
+                run.idle_seen = true;
+                break;
+            }
+            SessionState::MonitoringWait | SessionState::MonitoringReady => {
+                m.commanded_joint_position_rad
+            }
+            SessionState::CommandingWait => m.ipo_joint_position_rad,
+            SessionState::CommandingActive => m.ipo_joint_position_rad.map(|mut q| {
+                phase += f64::from(m.send_period_ms) * 1e-3;
+                let off = 0.04 * (std::f64::consts::TAU * phase).sin();
+                q[3] += off;
+                run.overlay_max_rad = run.overlay_max_rad.max(off.abs());
+                q
+            }),
+        };
+        last_send_counter += 1;
+        if last_send_counter >= m.receive_multiplier {
+            last_send_counter = 0;
+            let reply = enc
+                .encode(seq, m.sequence_counter, joints.as_ref())
+                .unwrap();
+            sock.send_to(reply, from).unwrap();
+            seq += 1;
+            run.replies += 1;
+        }
+    }
+    run
+}
+
+/// A KUKA-style client application started after `isochron fri-sim` (whose
+/// first messages meet a closed port) completes a session against it.
+#[test]
+fn a_kuka_style_client_started_late_completes_a_session_against_fri_sim() {
+    let Some(bin) = isochron() else { return };
+    let port = free_port();
+    let controller = SocketAddr::from(([127, 0, 0, 1], free_port()));
+    let mut child = Command::new(&bin)
+        .args(["fri-sim", "--bind", &controller.to_string()])
+        .args(["--client", &format!("127.0.0.1:{port}")])
+        .args(["--period-ms", "2", "--duration-s", "1.5", "--json"])
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The controller sends to a closed port for a while (ICMP port unreachable
+    // comes back to it); this delay creates that case, nothing waits on it.
+    std::thread::sleep(Duration::from_millis(200));
+    let sock = UdpSocket::bind(SocketAddr::from(([0, 0, 0, 0], port))).unwrap();
+    let run = kuka_like_client(&sock, Duration::from_secs(10));
+    let status = wait_exit(&mut child, Duration::from_secs(10));
+    let mut out = String::new();
+    child
+        .stdout
+        .take()
+        .unwrap()
+        .read_to_string(&mut out)
+        .unwrap();
+    assert!(status.success());
+    eprintln!("KUKA-style client: {run:?}\n{out}");
+    let j: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert!(run.idle_seen, "{run:?}");
+    assert_eq!(
+        run.states,
+        [
+            SessionState::MonitoringWait,
+            SessionState::MonitoringReady,
+            SessionState::CommandingWait,
+            SessionState::CommandingActive,
+            SessionState::Idle
+        ]
+    );
+    assert!(run.overlay_max_rad > 0.03);
+    // Messages sent before the client listened were never answered; all
+    // later ones were, and the controller counted every answer.
+    assert_eq!(j["replies"], run.replies);
+    assert_eq!(j["decode_errors"], 0);
+    assert_eq!(j["client_sequence_errors"], 0);
+    assert_eq!(j["mirror_mismatches"], 0);
+    assert_eq!(j["stale_replies"], 0);
+    assert_eq!(j["violations"], 0);
+    assert_eq!(j["aborts"], 0, "{out}");
+    assert!(j["commands_accepted"].as_u64().unwrap() > 100, "{out}");
+}
+
+/// The same client with receiveMultiplier 2 against the controller that
+/// expects every other answer; it starts late, so it counts from another
+/// message than the controller does.
+#[test]
+fn a_kuka_style_client_with_receive_multiplier_2_started_late() {
+    let sock = UdpSocket::bind(SocketAddr::from(([0, 0, 0, 0], 0))).unwrap();
+    let client = SocketAddr::from(([127, 0, 0, 1], sock.local_addr().unwrap().port()));
+    let params = FriSimParams {
+        fri_period_ms: 2,
+        receive_multiplier: 2,
+        ..FriSimParams::default()
+    };
+    let opts = SimRunOptions {
+        auto_command: true,
+        duration: Some(Duration::from_millis(1500)),
+    };
+    let server = SimServer::spawn(params, "127.0.0.1:0".parse().unwrap(), client, opts).unwrap();
+    let sim = Arc::clone(server.stats());
+    // Let one message (seq 0) pass unread: the client counts from seq 1.
+    let mut buf = [0u8; 2048];
+    sock.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+    let (n, _) = sock.recv_from(&mut buf).unwrap();
+    assert_eq!(
+        MonitoringDecoder::new()
+            .decode(&buf[..n])
+            .unwrap()
+            .sequence_counter,
+        0
+    );
+    let run = kuka_like_client(&sock, Duration::from_secs(10));
+    let report = server.wait(Duration::from_secs(5)).unwrap();
+    eprintln!("receiveMultiplier 2: {run:?}\n{report:?}");
+    assert!(run.idle_seen);
+    assert!(
+        run.states.contains(&SessionState::CommandingActive),
+        "{run:?}"
+    );
+    assert_eq!(report.replies, run.replies);
+    assert!(run.replies * 2 + 2 >= run.received, "{run:?}");
+    assert_eq!(report.stale_replies, 0, "{report:?}");
+    assert_eq!(report.aborts, 0, "{report:?}");
+    assert!(sim.commands_accepted.load(Relaxed) > 100, "{report:?}");
 }

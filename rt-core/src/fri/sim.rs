@@ -570,6 +570,8 @@ pub struct SimController {
     reflected: u32,
     last_client_seq: Option<u32>,
     slots: [Slot; SLOTS],
+    /// Send time of every message, by `seq % SLOTS` (the round trip of an answer).
+    sent: [(u32, u64); SLOTS],
     window: [bool; MAX_QUALITY_WINDOW],
     window_len: usize,
     window_at: usize,
@@ -611,6 +613,7 @@ impl SimController {
             reflected: 0,
             last_client_seq: None,
             slots: [Slot::default(); SLOTS],
+            sent: [(0, 0); SLOTS],
             window: [false; MAX_QUALITY_WINDOW],
             window_len: 0,
             window_at: 0,
@@ -842,6 +845,7 @@ impl SimController {
         self.seq = self.seq.wrapping_add(1);
         self.produced += 1;
         let r = u64::from(self.p.receive_multiplier);
+        self.sent[seq as usize % SLOTS] = (seq, now_ns);
         if self.state != SessionState::Idle && self.produced % r == 0 {
             self.slots[seq as usize % SLOTS] = Slot {
                 seq,
@@ -924,26 +928,34 @@ impl SimController {
         self.last_client_seq = Some(c.sequence_counter);
         self.reflected = c.sequence_counter;
 
-        // Grade the answer: it closes its slot and covers older open ones.
+        // Grade the answer. A client counts its receiveMultiplier from the first
+        // message it got and skips lost ones, so its answers need not fall on the
+        // messages expected here: an answer to `r` covers the expected (open)
+        // ones among the `receiveMultiplier` messages up to `r`.
         let r = c.reflected_sequence_counter;
-        let slot = self.slots[r as usize % SLOTS];
-        if slot.open && slot.seq == r {
-            let rtt = arrival.saturating_sub(slot.sent_ns);
-            self.stats.rtt.record_ns(rtt);
-            let late = rtt as f64 > self.p.late_after_periods * self.p.period_ns() as f64;
-            if late {
-                self.stats.late_replies.fetch_add(1, Relaxed);
+        let covered = self.p.receive_multiplier;
+        let mut first_sent_ns = None;
+        for s in &mut self.slots {
+            if s.open && r.wrapping_sub(s.seq) < covered {
+                s.open = false;
+                first_sent_ns = Some(first_sent_ns.map_or(s.sent_ns, |t: u64| t.min(s.sent_ns)));
             }
-            self.grade(late);
-            // With receiveMultiplier > 1 one answer covers the messages since the last.
-            let covered = self.p.receive_multiplier;
-            for s in &mut self.slots {
-                if s.open && r.wrapping_sub(s.seq) < covered {
-                    s.open = false;
+        }
+        match first_sent_ns {
+            Some(slot_sent_ns) => {
+                let (seq, sent_ns) = self.sent[r as usize % SLOTS];
+                let sent_ns = if seq == r { sent_ns } else { slot_sent_ns };
+                let rtt = arrival.saturating_sub(sent_ns);
+                self.stats.rtt.record_ns(rtt);
+                let late = rtt as f64 > self.p.late_after_periods * self.p.period_ns() as f64;
+                if late {
+                    self.stats.late_replies.fetch_add(1, Relaxed);
                 }
+                self.grade(late);
             }
-        } else {
-            self.stats.stale_replies.fetch_add(1, Relaxed);
+            None => {
+                self.stats.stale_replies.fetch_add(1, Relaxed);
+            }
         }
 
         match self.state {

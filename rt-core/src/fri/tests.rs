@@ -740,6 +740,177 @@ fn receive_multiplier_two_answers_every_other_message() {
     assert_eq!(st.violations.load(Relaxed), 0);
 }
 
+/// One protobuf field as it is on the wire: (tag, wire type, payload or varint).
+fn wire_fields(mut b: &[u8]) -> Vec<(u64, u8, &[u8], u64)> {
+    fn varint(b: &mut &[u8]) -> u64 {
+        let mut v = 0u64;
+        for shift in (0..64).step_by(7) {
+            let (x, rest) = b.split_first().expect("truncated varint");
+            *b = rest;
+            v |= u64::from(x & 0x7f) << shift;
+            if x & 0x80 == 0 {
+                break;
+            }
+        }
+        v
+    }
+    let mut out = Vec::new();
+    while !b.is_empty() {
+        let key = varint(&mut b);
+        let (tag, wt) = (key >> 3, (key & 7) as u8);
+        match wt {
+            0 => out.push((tag, wt, &b[..0], varint(&mut b))),
+            1 => {
+                out.push((tag, wt, &b[..8], 0));
+                b = &b[8..];
+            }
+            2 => {
+                let n = varint(&mut b) as usize;
+                out.push((tag, wt, &b[..n], 0));
+                b = &b[n..];
+            }
+            5 => {
+                out.push((tag, wt, &b[..4], 0));
+                b = &b[4..];
+            }
+            _ => panic!("wire type {wt}"),
+        }
+    }
+    out
+}
+
+fn field<'a>(fs: &[(u64, u8, &'a [u8], u64)], tag: u64) -> Vec<(u8, &'a [u8], u64)> {
+    fs.iter()
+        .filter(|f| f.0 == tag)
+        .map(|f| (f.1, f.2, f.3))
+        .collect()
+}
+
+/// A JointValues message as KUKA's client writes and reads it: exactly 7
+/// unpacked doubles (tag 1, wire type 1 each).
+fn assert_unpacked_joints(what: &str, jv: &[u8]) {
+    let fs = wire_fields(jv);
+    assert_eq!(fs.len(), 7, "{what}: {} fields", fs.len());
+    assert!(fs.iter().all(|f| f.0 == 1 && f.1 == 1), "{what}: {fs:?}");
+}
+
+/// Every datagram the simulated controller sends, in every state, is what a
+/// real client application decodes: the monitoring identifier, all proto2
+/// required fields, sendPeriod and receiveMultiplier, seven drive states as
+/// unpacked varints, every joint array as 7 unpacked doubles, a timestamp with
+/// both fields, ipoData only in COMMANDING_*, at most 1500 bytes.
+#[test]
+fn the_controllers_datagrams_are_what_a_kuka_client_reads() {
+    let p = FriSimParams {
+        receive_multiplier: 2,
+        fri_period_ms: 2,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.1,
+        ..Mover::default()
+    };
+    let mut seen = std::collections::BTreeSet::new();
+    let mut check = |bytes: &[u8]| {
+        assert!(bytes.len() <= MAX_DATAGRAM_BYTES);
+        let top = wire_fields(bytes);
+        let header = field(&top, 1);
+        assert_eq!(header.len(), 1);
+        let h = wire_fields(header[0].1);
+        assert_eq!(field(&h, 1)[0].2, u64::from(MONITORING_MESSAGE_ID));
+        assert_eq!(field(&h, 2).len(), 1, "sequenceCounter");
+        assert_eq!(field(&h, 3).len(), 1, "reflectedSequenceCounter");
+        let ci = wire_fields(field(&top, 4)[0].1);
+        let state = field(&ci, 1)[0].2;
+        assert_eq!(field(&ci, 2).len(), 1, "quality");
+        assert_eq!(field(&ci, 3)[0].2, 2, "sendPeriod");
+        assert_eq!(field(&ci, 4)[0].2, 2, "receiveMultiplier");
+        let ri = wire_fields(field(&top, 2)[0].1);
+        assert_eq!(field(&ri, 1)[0].2, 7, "numberOfJoints");
+        let drives = field(&ri, 5);
+        assert_eq!(drives.len(), 7, "driveState");
+        assert!(drives.iter().all(|d| d.0 == 0), "driveState unpacked");
+        let md = wire_fields(field(&top, 3)[0].1);
+        for tag in 1..=5 {
+            let jv = field(&md, tag);
+            assert_eq!(jv.len(), 1, "monitorData field {tag}");
+            assert_unpacked_joints("monitorData", jv[0].1);
+        }
+        let ts = wire_fields(field(&md, 15)[0].1);
+        assert_eq!((field(&ts, 1).len(), field(&ts, 2).len()), (1, 1));
+        let ipo = field(&top, 5);
+        let commanding = state == 3 || state == 4;
+        assert_eq!(
+            ipo.len(),
+            usize::from(commanding),
+            "ipoData in state {state}"
+        );
+        if commanding {
+            let ipo = wire_fields(ipo[0].1);
+            assert_unpacked_joints("ipoData", field(&ipo, 1)[0].1);
+        }
+        seen.insert(state);
+    };
+    loop {
+        let t = rig.t_ns;
+        let Some(m) = rig.sim.tick(t).map(<[u8]>::to_vec) else {
+            break;
+        };
+        check(&m);
+        if let Some(r) = rig.client.on_datagram(&m, t + rig.hop_ns, &mut ctl) {
+            rig.sim.on_reply(r, t + 2 * rig.hop_ns);
+        }
+        rig.t_ns += rig.period_ns();
+        if ctl.steps == 50 {
+            rig.sim.request_close();
+        }
+        assert!(rig.t_ns < 10_000 * MS, "no commanding");
+    }
+    assert_eq!(seen.into_iter().collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+}
+
+/// A client counts receiveMultiplier from the first message it receives (KUKA's
+/// SDK does), so one that starts late, or loses a message, answers other
+/// messages than those the controller expects first: still on time, still GOOD.
+#[test]
+fn receive_multiplier_answers_in_any_phase_are_on_time() {
+    for (late_start, loss) in [(1, 0.0), (0, 0.05), (3, 0.05)] {
+        let p = FriSimParams {
+            receive_multiplier: 2,
+            fri_period_ms: 2,
+            packet_loss: loss,
+            seed: 5,
+            ..FriSimParams::default()
+        };
+        let mut rig = Rig::new(p, FriClientParams::default());
+        for _ in 0..late_start {
+            // Sent before the client listened.
+            let _ = rig.sim.tick(rig.t_ns);
+            rig.t_ns += rig.period_ns();
+        }
+        let mut ctl = Mover {
+            speed_radps: 0.1,
+            ..Mover::default()
+        };
+        rig.run_until(400, &mut ctl, active);
+        rig.run(500, &mut ctl);
+        let st = rig.sim.stats();
+        let r = st.report();
+        assert_eq!(r.stale_replies, 0, "start {late_start}, loss {loss}: {r:?}");
+        assert_eq!(r.late_replies, 0, "{r:?}");
+        assert_eq!(r.aborts, 0, "{r:?}");
+        assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+        // Only answers a lost message made impossible are missing.
+        assert!(r.missing_replies <= r.messages_dropped, "{r:?}");
+        if loss == 0.0 {
+            assert_eq!(r.missing_replies, 0, "{r:?}");
+        }
+        // The round trip is measured from the answered message: two hops.
+        assert!(r.rtt_us.max <= 2.0 * rig.hop_ns as f64 / 1e3 + 1.0, "{r:?}");
+    }
+}
+
 #[test]
 fn garbage_to_either_side_is_counted_and_ignored() {
     let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
