@@ -51,7 +51,7 @@ fn the_control_step_never_allocates_after_arming() {
     s.robot.fri_period_ms = 1;
     for (d, angle) in [(0.35, 15.0), (0.8, -25.0)] {
         let (steps, total, worst, seen) = count(&s, d, angle, 2);
-        assert!(steps > 10_000, "{steps} steps");
+        assert!(steps > 8_000, "{steps} steps");
         // Every phase of a trial ran: arming, tracking, the commit, the motion.
         assert!(seen.iter().all(|&n| n > 0), "{seen:?}");
         assert_eq!(seen[2], 2, "{seen:?}");

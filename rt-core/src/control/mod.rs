@@ -3,7 +3,6 @@
 pub mod cost;
 pub mod judge;
 pub mod latency;
-pub mod posture;
 pub mod report;
 pub mod rig;
 pub mod state;

@@ -8,10 +8,8 @@ use nalgebra::{UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::latency::LatencyEstimator;
-use super::posture::{Posture, PostureError, flange_pose, plan_posture};
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::ekf::{Ekf, EkfCounters, EkfParams, MotionRequest, PassDirection, StateVec};
-use crate::kinematics::analytic::ArmGeometry;
 use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
 };
@@ -20,6 +18,7 @@ use crate::params::{ParamError, Scenario, check};
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;
+use crate::trajectory::{MotionRequest as PathRequest, PlanError, Posture, TrajectoryParams};
 
 /// The closed loop's settings: `[control]` in a scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -122,9 +121,9 @@ pub enum ControlError {
     /// A parameter was refused.
     #[error(transparent)]
     Params(#[from] ParamError),
-    /// The motion's posture could not be planned.
+    /// The motion cannot be planned within the limits (`trajectory::plan`'s reason).
     #[error("infeasible motion: {0}")]
-    Infeasible(#[from] PostureError),
+    Infeasible(String),
     /// A part refused its set-up.
     #[error("{0}")]
     Setup(String),
@@ -146,7 +145,8 @@ pub struct ArmPlan {
     pub distance_m: f64,
     /// The intercept point (the ball at rest), base frame, metres.
     pub intercept_m: Vector3<f64>,
-    /// The posture of the motion.
+    /// The posture of the motion (`trajectory::plan`'s choice) and the
+    /// per-cycle IK in it.
     pub posture: Posture,
     /// The motion's duration (the asked one, or the shortest feasible), seconds.
     pub duration_s: f64,
@@ -382,34 +382,34 @@ impl Controller {
         let task = &scenario.task;
         let home = Vector3::from(task.home_m);
         let intercept = Vector3::new(distance_m, 0.0, task.intercept_height_m);
-        let tool = Tool::along_z(task.tool_length_m);
-        let margin = params.posture_margin_deg.to_radians();
-        let profile = ProfileKind::Hopf;
-        let mut duration = task.movement_time_s;
-        let posture = match plan_posture(
-            &tool,
-            &home,
-            &intercept,
-            profile,
-            duration,
-            margin,
-            params.max_speed_ratio,
-        ) {
-            Ok(p) => p,
-            Err(PostureError::TooFast { shortest_s, .. }) if params.allow_shortest_feasible => {
-                duration = shortest_s * 1.01;
-                plan_posture(
-                    &tool,
-                    &home,
-                    &intercept,
-                    profile,
-                    duration,
-                    margin,
-                    params.max_speed_ratio,
-                )?
-            }
-            Err(e) => return Err(e.into()),
+        // The posture planner of `trajectory` (the same one `isochron kin plan`
+        // reports), with this section's speed ratio and position margin.
+        let traj = TrajectoryParams {
+            velocity_fraction: params.max_speed_ratio,
+            position_margin_deg: params.posture_margin_deg,
+            ..TrajectoryParams::default()
         };
+        let mut req = PathRequest::interception(task, distance_m);
+        let infeasible = |e: PlanError| match e {
+            PlanError::Unreachable { .. } => ControlError::Infeasible(e.to_string()),
+            _ => ControlError::Setup(e.to_string()),
+        };
+        let mut mp = crate::trajectory::plan(&req, &traj).map_err(infeasible)?;
+        if !mp.feasible && mp.shortest_feasible_s.is_finite() && params.allow_shortest_feasible {
+            // Too fast: the same posture at its shortest feasible duration
+            // (speeds scale with 1/T, accelerations with 1/T^2).
+            req.movement_time_s = mp.shortest_feasible_s;
+            mp = crate::trajectory::evaluate(&req, &traj, mp.tilt_rad, mp.arm_angle_rad)
+                .map_err(infeasible)?;
+        }
+        if !mp.feasible {
+            return Err(ControlError::Infeasible(
+                mp.reason
+                    .unwrap_or_else(|| "outside the joint limits".to_owned()),
+            ));
+        }
+        let posture = mp.posture();
+        let duration = req.movement_time_s;
         let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
         let arrival_offset_s =
             generator_arrival_offset(timing, &home, &intercept, &posture, duration, period_s)?;
@@ -869,16 +869,15 @@ impl Controller {
         if self.motion.step(h, None, &mut self.sample).is_err() {
             self.counters.motion_errors += 1;
         }
-        let r = plan.posture.orientation;
-        let pose = flange_pose(&self.tool, &self.sample.position_m, &r);
-        let mut q = Joints::zeros();
-        match ArmGeometry::new(&pose) {
-            Ok(geo) => geo.solve(plan.posture.arm_angle_rad, plan.posture.flags, &mut q),
-            Err(_) => {
-                self.counters.ik_failures += 1;
-                self.abort(t, AbortReason::IkFailed);
-                return None;
-            }
+        let mut q = self.q_cmd;
+        if plan
+            .posture
+            .joints_for_point(&self.sample.position_m, &self.q_cmd, &mut q)
+            .is_err()
+        {
+            self.counters.ik_failures += 1;
+            self.abort(t, AbortReason::IkFailed);
+            return None;
         }
         match self.machine.state() {
             TrialState::Intercepting if self.sample.phase == MotionPhase::Arrived => {

@@ -9,6 +9,6 @@ mod tests;
 
 pub use path::{MotionRequest, tool_rotation};
 pub use plan::{
-    Binding, ElbowPolicy, LimitKind, MotionPlan, PlanError, PlanSummary, TrajectoryParams,
+    Binding, ElbowPolicy, LimitKind, MotionPlan, PlanError, PlanSummary, Posture, TrajectoryParams,
     evaluate, plan,
 };

@@ -491,32 +491,111 @@ impl MotionPlan {
         Pose::from_parts(self.request.point_at(s).into(), self.tool_rotation)
     }
 
-    /// The per-cycle IK: the joints that put the tool point at `p_m` with the plan's
-    /// held orientation, arm angle and q4 sign, in the q2/q6 configuration nearest to
-    /// `prev` (the previous cycle's joints; [`Self::home_q`] at the start), so the
-    /// arm follows the planned joint path through a shoulder or wrist singularity.
-    /// Exact (analytic), allocation-free, under a microsecond; refuses (and leaves
-    /// `out` unchanged) a point the arm cannot reach or a solution outside the
-    /// joint limits.
+    /// The per-cycle IK ([`Posture::joints_for_point`] in this plan's posture).
     pub fn joints_for_point(
         &self,
         p_m: &Vector3<f64>,
         prev: &Joints,
         out: &mut Joints,
     ) -> Result<(), IkError> {
-        let geo = ArmGeometry::new(&self.request.flange_pose_for(p_m, &self.tool_rotation))?;
-        let mut q = Joints::zeros();
-        geo.solve(self.arm_angle_rad, self.flags, &mut q);
-        let q = nearest_variant(&q, prev);
-        check_limits(&q, 0.0)?;
-        *out = q;
-        Ok(())
+        ik_in_posture(
+            &self.request,
+            &self.tool_rotation,
+            self.arm_angle_rad,
+            self.flags,
+            p_m,
+            prev,
+            out,
+        )
+    }
+
+    /// The posture this plan holds, as a small copyable value for the control
+    /// step (the per-cycle IK without the plan's report).
+    pub fn posture(&self) -> Posture {
+        Posture {
+            request: self.request,
+            tilt_rad: self.tilt_rad,
+            orientation: self.tool_rotation,
+            arm_angle_rad: self.arm_angle_rad,
+            flags: self.flags,
+            q_home: self.home_q,
+            peak_speed_ratio: self.worst_speed_ratio(),
+            min_margin_rad: self.min_margin_rad,
+        }
     }
 
     /// [`Self::joints_for_point`] at path fraction `s` of the planned line.
     pub fn joints_at(&self, s: f64, prev: &Joints, out: &mut Joints) -> Result<(), IkError> {
         self.joints_for_point(&self.request.point_at(s), prev, out)
     }
+}
+
+/// The posture of a planned motion (tilt, arm angle, configuration at home),
+/// held for the whole motion, and the per-cycle IK in it. `Copy` and
+/// allocation-free: what the control step keeps of a [`MotionPlan`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Posture {
+    /// The motion it was planned for.
+    pub request: MotionRequest,
+    /// The tool's tilt about the base y axis, radians.
+    pub tilt_rad: f64,
+    /// The held tool orientation, `Ry(pi + tilt)` (base from tool).
+    pub orientation: Rotation3<f64>,
+    /// The held arm angle, radians.
+    pub arm_angle_rad: f64,
+    /// The configuration at home.
+    pub flags: ArmFlags,
+    /// The joint vector at the start of the path (home in this posture).
+    pub q_home: Joints,
+    /// The largest joint speed over its limit along the motion (at the planned duration).
+    pub peak_speed_ratio: f64,
+    /// The smallest distance of any joint to its position limit along the path, radians.
+    pub min_margin_rad: f64,
+}
+
+impl Posture {
+    /// The per-cycle IK: the joints that put the tool point at `p_m` with the
+    /// held orientation, arm angle and q4 sign, in the q2/q6 configuration
+    /// nearest to `prev` (the previous cycle's joints; [`Self::q_home`] at the
+    /// start), so the arm follows the planned joint path through a shoulder or
+    /// wrist singularity. Exact (analytic), allocation-free, under a
+    /// microsecond; refuses (and leaves `out` unchanged) a point the arm cannot
+    /// reach or a solution outside the joint limits.
+    pub fn joints_for_point(
+        &self,
+        p_m: &Vector3<f64>,
+        prev: &Joints,
+        out: &mut Joints,
+    ) -> Result<(), IkError> {
+        ik_in_posture(
+            &self.request,
+            &self.orientation,
+            self.arm_angle_rad,
+            self.flags,
+            p_m,
+            prev,
+            out,
+        )
+    }
+}
+
+/// The one per-cycle IK of a held posture (see [`Posture::joints_for_point`]).
+fn ik_in_posture(
+    req: &MotionRequest,
+    r: &Rotation3<f64>,
+    psi: f64,
+    flags: ArmFlags,
+    p_m: &Vector3<f64>,
+    prev: &Joints,
+    out: &mut Joints,
+) -> Result<(), IkError> {
+    let geo = ArmGeometry::new(&req.flange_pose_for(p_m, r))?;
+    let mut q = Joints::zeros();
+    geo.solve(psi, flags, &mut q);
+    let q = nearest_variant(&q, prev);
+    check_limits(&q, 0.0)?;
+    *out = q;
+    Ok(())
 }
 
 fn validate_request(req: &MotionRequest) -> Result<(), PlanError> {

@@ -3,12 +3,9 @@
 use std::time::{Duration, Instant};
 
 use nalgebra::UnitQuaternion;
-use rt_core::control::posture::flange_pose;
 use rt_core::control::stats::quantile_sorted;
 use rt_core::control::{Controller, StepTimings, TrialState};
 use rt_core::ekf::Ekf;
-use rt_core::kinematics::analytic::ArmGeometry;
-use rt_core::kinematics::{Joints, Tool};
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use rt_core::sim::VirtualLab;
@@ -117,18 +114,15 @@ fn hopf_ns(s: &Scenario) -> anyhow::Result<Vec<f64>> {
 
 fn ik_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
     let plan = Controller::plan(s, 0.7)?;
-    let tool = Tool::along_z(s.task.tool_length_m);
     let a = nalgebra::Vector3::from(s.task.home_m);
     let mut out = Vec::with_capacity(10_000);
-    let mut q = Joints::zeros();
+    let mut q = plan.posture.q_home;
     for k in 0..10_000 {
         let u = f64::from(k % 1000) / 1000.0;
         let p = a + (plan.intercept_m - a) * u;
+        let prev = q;
         let started = Instant::now();
-        let pose = flange_pose(&tool, &p, &plan.posture.orientation);
-        if let Ok(g) = ArmGeometry::new(&pose) {
-            g.solve(plan.posture.arm_angle_rad, plan.posture.flags, &mut q);
-        }
+        let _ = plan.posture.joints_for_point(&p, &prev, &mut q);
         out.push(ns_since(started) * 1e-3);
     }
     Ok(sorted(out))
