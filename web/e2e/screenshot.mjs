@@ -14,7 +14,7 @@ const browser = await chromium.launch({
   args: ["--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-sync"],
 });
 try {
-  const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
+  const page = await browser.newPage({ viewport: { width: 1400, height: 1050 } });
   await page.goto(base, { waitUntil: "load" });
   await page.waitForFunction(() => window.__isochron !== undefined, null, { timeout: 10_000 });
   await page.fill("#token", token);

@@ -50,6 +50,9 @@ export class RateMeter {
   }
 }
 
+/** How much later than its frame a detection may arrive and still be matched to it, ms. */
+const MATCH_MS = 20;
+
 /** What the overlay drew last, in the frame's pixels (the browser test reads it). */
 export interface OverlayDrawn {
   ball: [number, number, number] | null;
@@ -71,13 +74,15 @@ export class CameraView {
   private readonly host: HTMLElement;
   private readonly link: Link;
   private bitmap: ImageBitmap | null = null;
-  private pending: Blob | null = null;
+  private pending: { blob: Blob; at: number } | null = null;
   private decoding = false;
   private imageDirty = false;
   private overlayDirty = true;
   private latest: StateMessage | null = null;
-  /** The detection as of the shown frame (the state that was newest when it arrived). */
-  private detection: CameraInfo | null = null;
+  /** Recent detections (one per processed camera frame) and when their state arrived. */
+  private readonly detections: { at: number; cam: CameraInfo }[] = [];
+  /** When the shown frame arrived. */
+  private shownAt = Number.NaN;
   private readonly meter = new RateMeter();
   private lastFrameAt = Number.NaN;
   private infoAt = 0;
@@ -111,21 +116,21 @@ export class CameraView {
 
   private receive(blob: Blob): void {
     this.received += 1;
+    const at = performance.now();
     if (this.decoding) {
-      this.pending = blob; // an older waiting frame is dropped
+      this.pending = { blob, at }; // an older waiting frame is dropped
       return;
     }
-    this.decode(blob);
+    this.decode(blob, at);
   }
 
-  private decode(blob: Blob): void {
+  private decode(blob: Blob, at: number): void {
     this.decoding = true;
-    const detection = this.latest?.camera ?? null;
     createImageBitmap(blob.type ? blob : new Blob([blob], { type: "image/jpeg" }))
       .then((bmp) => {
         this.bitmap?.close();
         this.bitmap = bmp;
-        this.detection = detection;
+        this.shownAt = at;
         this.imageDirty = true;
         this.overlayDirty = true;
         this.frames += 1;
@@ -140,13 +145,32 @@ export class CameraView {
         this.decoding = false;
         const next = this.pending;
         this.pending = null;
-        if (next) this.decode(next);
+        if (next) this.decode(next.blob, next.at);
       });
   }
 
   update(s: StateMessage): void {
     this.latest = s;
     this.overlayDirty = true;
+    const c = s.camera;
+    const last = this.detections[this.detections.length - 1];
+    if (c && c.width_px && (!last || last.cam.frame !== c.frame)) {
+      if (this.detections.length === 32) this.detections.shift();
+      this.detections.push({ at: performance.now(), cam: c });
+    }
+  }
+
+  /**
+   * The detection of the shown frame: a frame and its detection leave the lab in
+   * the same tick but on two sockets, so take the newest detection that arrived
+   * no later than shortly after the frame.
+   */
+  private detectionOfShown(): CameraInfo | null {
+    for (let i = this.detections.length - 1; i >= 0; i--) {
+      if (this.detections[i].at <= this.shownAt + MATCH_MS) return this.detections[i].cam;
+    }
+    // Every kept detection is newer than the frame: the oldest is the nearest.
+    return this.detections[0]?.cam ?? null;
   }
 
   /** Repaints what changed (called once per animation frame). */
@@ -226,7 +250,7 @@ export class CameraView {
       this.drawn.intercept = [x, y];
     }
     // The detected ball, as of the shown frame.
-    const d = this.detection;
+    const d = this.detectionOfShown();
     if (d && d.found && Number.isFinite(num(d.x_px)) && Number.isFinite(num(d.y_px))) {
       const [x, y] = [num(d.x_px) * k, num(d.y_px) * k];
       const r = Math.max(5, num(d.r_px) * k + 3);

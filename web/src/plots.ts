@@ -262,10 +262,11 @@ export class Plots {
     const ta = num(this.latest?.path.arrival_t_s);
     const ts = num(this.latest?.path.start_t_s);
     if (Number.isFinite(ts)) this.vline(u, ts, COLORS.grey, "start");
-    if (Number.isFinite(ta)) this.vline(u, ta, COLORS.green, "arrival");
+    // One line lower, so the two labels never overlap on a short motion.
+    if (Number.isFinite(ta)) this.vline(u, ta, COLORS.green, "arrival", 1);
   }
 
-  private vline(u: uPlot, t: number, color: string, label: string): void {
+  private vline(u: uPlot, t: number, color: string, label: string, row = 0): void {
     const x = u.valToPos(t, "x", true);
     if (x < u.bbox.left || x > u.bbox.left + u.bbox.width) return;
     const ctx = u.ctx;
@@ -279,7 +280,7 @@ export class Plots {
     ctx.stroke();
     ctx.fillStyle = color;
     ctx.font = `${12 * devicePixelRatio}px system-ui, sans-serif`;
-    ctx.fillText(label, x + 4, u.bbox.top + 14 * devicePixelRatio);
+    ctx.fillText(label, x + 4, u.bbox.top + (14 + 15 * row) * devicePixelRatio);
     ctx.restore();
   }
 
