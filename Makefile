@@ -100,6 +100,7 @@ bench: deps
 	$(CARGO) bench --workspace
 
 ## eval: the evaluation report beside the paper's results (reports/eval/report.md).
-EVAL_N ?= 30
+## The binary is where cargo put it (CARGO_TARGET_DIR, default ./target).
+EVAL_N ?= 20
 eval: release
-	./target/release/isochron eval --out reports/eval --n $(EVAL_N) --seed 1
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --out reports/eval --n $(EVAL_N) --seed 1

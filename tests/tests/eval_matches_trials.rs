@@ -1,0 +1,187 @@
+//! `isochron eval`'s report says exactly what `isochron trials` says for the same
+//! scenario and seed: a small evaluation (model camera, 2 movement times x 2
+//! distance bands x 4 trials) is run with the binary, then every command line the
+//! report lists under "Reproduce" is run again on its own and its numbers are
+//! compared with the report's rows.
+
+use std::{
+    path::{Path, PathBuf},
+    process::Command,
+};
+
+use serde_json::Value;
+
+/// The `isochron` binary built next to this test (by `cargo test --workspace`), or
+/// `ISOCHRON_BIN`. Engineers share one target folder, so a binary from another
+/// branch may sit there: without `eval` it is a skip, except under CI.
+fn isochron() -> Option<PathBuf> {
+    let bin = match std::env::var_os("ISOCHRON_BIN") {
+        Some(b) => PathBuf::from(b),
+        None => {
+            let exe = std::env::current_exe().unwrap();
+            exe.parent()?.parent()?.join("isochron")
+        }
+    };
+    let knows = Command::new(&bin)
+        .args(["eval", "--help"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if knows {
+        return Some(bin);
+    }
+    let msg = format!(
+        "{} missing or without `eval` (run `cargo build -p server`)",
+        bin.display()
+    );
+    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
+    eprintln!("SKIPPED: {msg}");
+    None
+}
+
+fn run_json(bin: &Path, dir: &Path, args: &[&str]) -> Value {
+    let out = Command::new(bin)
+        .current_dir(dir)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "isochron {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// The cells of a Markdown table row.
+fn cells(row: &str) -> Vec<String> {
+    row.trim()
+        .trim_matches('|')
+        .split('|')
+        .map(|c| c.trim().to_owned())
+        .collect()
+}
+
+fn per_trial(text: &str) -> Vec<Value> {
+    text.lines()
+        .map(|l| {
+            let mut v: Value = serde_json::from_str(l).unwrap();
+            // Wall-clock dependent: a control step preempted by the machine.
+            v["deadline_misses"] = Value::Null;
+            v
+        })
+        .collect()
+}
+
+#[test]
+fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
+    let Some(bin) = isochron() else { return };
+    let dir = std::env::temp_dir().join(format!("isochron-evalcheck-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let lab = dir.join("lab.toml");
+    std::fs::write(&lab, "name = \"evalcheck\"\n[camera]\nvision = \"model\"\n").unwrap();
+    let out = Command::new(&bin)
+        .arg("eval")
+        .arg("--scenario")
+        .arg(&lab)
+        .arg("--out")
+        .arg(&dir)
+        .args([
+            "--n",
+            "4",
+            "--seed",
+            "5",
+            "--movement-times-s",
+            "1.2,1.5",
+            "--distance-edges-m",
+            "0.35,0.6,0.8",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let md = std::fs::read_to_string(dir.join("report.md")).unwrap();
+    let reproduce: Vec<&str> = md
+        .split("## Reproduce")
+        .nth(1)
+        .unwrap()
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("isochron trials"))
+        .collect();
+    assert_eq!(reproduce.len(), 4, "{md}");
+    let mut headline: Vec<(String, u64, u64)> = Vec::new();
+    for line in reproduce {
+        // e.g. isochron trials --scenario cells/evalcheck-T1.50-d0.35-0.60.toml --n 4 --seed 5 --json
+        let mut args: Vec<&str> = line.split_whitespace().skip(1).collect();
+        let cell = args[2]
+            .trim_start_matches("cells/")
+            .trim_end_matches(".toml");
+        let again = dir.join(format!("{cell}.again.jsonl"));
+        let again_s = again.display().to_string();
+        args.extend(["--per-trial", &again_s]);
+        let summary = run_json(&bin, &dir, &args);
+        // The report's row for this cell.
+        let t: f64 = cell.split("-T").nth(1).unwrap()[..4].parse().unwrap();
+        let band = cell.rsplit("-d").next().unwrap().replace('-', "..");
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| {t} s | {band} m |")))
+            .unwrap_or_else(|| panic!("no row for {cell} in\n{md}"));
+        let c = cells(row);
+        let n = summary["trials"].as_u64().unwrap();
+        let ok = summary["successes"].as_u64().unwrap();
+        assert_eq!(c[2], n.to_string(), "{row}");
+        assert_eq!(c[3], ok.to_string(), "{row}");
+        assert_eq!(
+            c[4],
+            format!("{:.1}%", 100.0 * summary["success_rate"].as_f64().unwrap()),
+            "{row}"
+        );
+        assert_eq!(
+            c[6],
+            format!("{:.1}", summary["timing_error_ms"]["p95"].as_f64().unwrap()),
+            "{row}"
+        );
+        assert_eq!(
+            c[7],
+            format!(
+                "{:.1}",
+                1e3 * summary["position_error_m"]["p95"].as_f64().unwrap()
+            ),
+            "{row}"
+        );
+        // Trial by trial, the raw results behind the report are the rerun's.
+        let raw = std::fs::read_to_string(dir.join("cells").join(format!("{cell}.jsonl"))).unwrap();
+        assert_eq!(
+            per_trial(&raw),
+            per_trial(&std::fs::read_to_string(&again).unwrap()),
+            "{cell}"
+        );
+        match headline.iter_mut().find(|h| h.0 == format!("{t} s")) {
+            Some(h) => {
+                h.1 += n;
+                h.2 += ok;
+            }
+            None => headline.push((format!("{t} s"), n, ok)),
+        }
+    }
+    // The headline rows pool the cells of each movement time.
+    for (t, n, ok) in &headline {
+        let row = md
+            .lines()
+            .find(|l| l.starts_with(&format!("| isochron (simulated) | {t} |")))
+            .unwrap_or_else(|| panic!("no headline row for {t} in\n{md}"));
+        let c = cells(row);
+        assert_eq!(c[3], n.to_string(), "{row}");
+        assert_eq!(
+            c[4],
+            format!("{:.1}%", 100.0 * *ok as f64 / *n as f64),
+            "{row}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
