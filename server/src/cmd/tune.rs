@@ -128,3 +128,59 @@ pub fn run(args: TuneArgs) -> anyhow::Result<String> {
         fig_path.display()
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::trials::{TrialsArgs, run as trials};
+
+    /// `isochron trials --params FILE` in process: the filter the trials ran with
+    /// is the file's, and a bad file costs hits (the file is honoured).
+    #[test]
+    fn trials_run_with_the_params_file() {
+        let dir = std::env::temp_dir().join(format!("isochron-tune-params-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scenario = dir.join("lab.toml");
+        std::fs::write(
+            &scenario,
+            "name = \"lab\"\n[camera]\nvision = \"model\"\n[ekf]\ngate_nis = 20.0\n",
+        )
+        .unwrap();
+        let good = dir.join("good.ekf.toml");
+        std::fs::write(
+            &good,
+            "[ekf]\nmeasurement_noise_m = 0.0021\naccel_psd_rad2ps3 = 1e-8\n",
+        )
+        .unwrap();
+        let bad = dir.join("bad.ekf.toml");
+        std::fs::write(&bad, "[ekf]\nmeasurement_noise_m = 0.00002\n").unwrap();
+        let run = |params: Vec<std::path::PathBuf>| -> serde_json::Value {
+            let out = trials(&TrialsArgs {
+                scenario: scenario.clone(),
+                n: 6,
+                seed: 2,
+                json: true,
+                per_trial: None,
+                params,
+            })
+            .unwrap();
+            serde_json::from_str(&out).unwrap()
+        };
+        let (before, after, worse) = (run(vec![]), run(vec![good]), run(vec![bad]));
+        assert_eq!(before["ekf"]["measurement_noise_m"], 0.002);
+        assert_eq!(after["ekf"]["measurement_noise_m"], 0.0021);
+        assert_eq!(after["ekf"]["accel_psd_rad2ps3"], 1e-8);
+        assert_eq!(
+            after["ekf"]["gate_nis"], 20.0,
+            "the scenario's other settings stay"
+        );
+        assert_eq!(worse["ekf"]["measurement_noise_m"], 0.00002);
+        let hits = |v: &serde_json::Value| v["successes"].as_u64().unwrap();
+        assert!(hits(&before) >= 5, "{before}");
+        assert!(hits(&after) >= hits(&before), "{after}");
+        assert!(hits(&worse) < hits(&before), "{worse}");
+        assert!(
+            worse["ekf_counters"]["rejected"].as_u64().unwrap() > 100,
+            "{worse}"
+        );
+    }
+}
