@@ -14,17 +14,18 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: test-browser eval help deps apt-deps web-deps web run test test-rust test-web lint bench build release firmware
+.PHONY: test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
 	@echo "make test   install what is missing, then formatting, lints and every test"
 	@echo "make bench  criterion benches and 'isochron bench'"
 	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
-	@echo "make deps   install missing system and npm packages (idempotent)"
+	@echo "make fuzz   each FRI fuzz target for FUZZ_SECONDS (default 60; fuzz/README.md)"
+	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
 
 ## deps: install only what is missing.
-deps: apt-deps web-deps
+deps: apt-deps web-deps fuzz-deps
 
 apt-deps:
 	@missing=""; \
@@ -42,6 +43,45 @@ web-deps: web/node_modules/.package-lock.json
 web/node_modules/.package-lock.json: web/package.json web/package-lock.json
 	cd web && npm ci --no-audit --no-fund
 	@touch $@
+
+## fuzz: the FRI fuzz targets (fuzz/README.md). Stable Rust: no sanitizer, debug assertions on.
+CARGO_FUZZ_VERSION := 0.13.2
+FUZZ_TARGETS := monitoring_decode command_decode client_on_datagram sim_on_reply
+FUZZ_SECONDS ?= 60
+FUZZ_SMOKE_SECONDS ?= 10
+
+fuzz-deps:
+	@if ! $(CARGO) fuzz --version 2>/dev/null | grep -qx "cargo-fuzz $(CARGO_FUZZ_VERSION)"; then \
+	  echo "make deps: installing cargo-fuzz $(CARGO_FUZZ_VERSION)"; \
+	  $(CARGO) install --locked cargo-fuzz --version $(CARGO_FUZZ_VERSION); \
+	fi
+
+# $(call fuzz_run,SECONDS): each target for SECONDS on fuzz/corpus/T (new inputs) and
+# fuzz/seeds/T (the committed seeds); a crash fails with the log's tail and the input
+# saved under fuzz/artifacts/T/.
+define fuzz_run
+	$(CARGO) fuzz build --sanitizer none
+	@mkdir -p target
+	@for t in $(FUZZ_TARGETS); do \
+	  mkdir -p fuzz/corpus/$$t; \
+	  log=target/fuzz-$$t.log; \
+	  if ! $(CARGO) fuzz run --sanitizer none $$t fuzz/corpus/$$t fuzz/seeds/$$t -- \
+	      -max_total_time=$(1) -print_final_stats=1 >$$log 2>&1; then \
+	    tail -n 40 $$log; echo "fuzz $$t: FAILED (input in fuzz/artifacts/$$t/, log $$log)"; exit 1; \
+	  fi; \
+	  echo "fuzz $$t: $$(sed -n 's/^stat::number_of_executed_units: *//p' $$log) runs in $(1) s, no crash"; \
+	done
+endef
+
+fuzz: fuzz-deps
+	$(call fuzz_run,$(FUZZ_SECONDS))
+
+fuzz-smoke: fuzz-deps
+	$(call fuzz_run,$(FUZZ_SMOKE_SECONDS))
+
+## fuzz-seeds: regenerate the committed seed corpus from real sessions.
+fuzz-seeds:
+	$(CARGO) run --manifest-path fuzz/Cargo.toml --example seeds -- fuzz/seeds
 
 ## firmware: the magnet firmware (.elf/.hex for the Uno) and its simavr host for the tests.
 FW_DIR := firmware/magnet
@@ -94,7 +134,7 @@ test-browser: web
 	$(CARGO) build --bin isochron
 	web/e2e/run.sh ./target/debug/isochron
 
-test: lint test-web test-browser test-rust
+test: lint test-web test-browser fuzz-smoke test-rust
 
 bench: deps
 	$(CARGO) bench --workspace
