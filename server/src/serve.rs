@@ -73,7 +73,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let (lab, sim) =
         crate::simlab::start_simulated(scenario, Some(Arc::clone(&records)), options, seed)?;
     tracing::info!(
-        "simulated lab running (simulated pendulum, camera model, robot over the FRI codec)"
+        fri = ?sim.runtime().fri_local_addr(),
+        "simulated lab running (simulated pendulum, rendered camera through the detector, \
+         robot over loopback UDP FRI, magnet on its fake board)"
     );
 
     let runtime = tokio::runtime::Builder::new_multi_thread()

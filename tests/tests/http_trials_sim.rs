@@ -34,10 +34,15 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
         let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
     });
     let deadline = Instant::now() + Duration::from_secs(10);
-    while lab.latest().is_none() {
+    // The FRI session over loopback UDP reaches COMMANDING_ACTIVE.
+    while lab
+        .latest()
+        .is_none_or(|(s, _)| s.fri.session != rt_core::bridge::FriSessionState::CommandingActive)
+    {
         assert!(
             Instant::now() < deadline,
-            "the simulated lab published nothing"
+            "the simulated lab's FRI session is not commanding: {:?}",
+            lab.latest().map(|(s, _)| s.fri)
         );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }

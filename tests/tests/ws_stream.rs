@@ -1,5 +1,8 @@
 //! The WebSocket streams on a real port over the real bridge: rate and fields of
-//! state messages, many clients plus a stalled one, events, camera frames.
+//! state messages, many clients plus a stalled one, events, camera frames. The
+//! rate, load and camera tests run the real-time lab of `isochron serve`
+//! (FRI client session over loopback UDP to the simulated controller, the
+//! simulated camera through the OpenCV detector, the magnet on its fake board).
 
 #[path = "http_support/mod.rs"]
 mod http_support;
@@ -10,11 +13,12 @@ use std::{
 };
 
 use futures_util::StreamExt;
-use http_support::{PERIOD, start_service, wait_for};
+use http_support::{start_service, temp_dir, wait_for};
 use isochron_tests::http;
-use rt_core::bridge::Frame;
+use rt_core::bridge::{Frame, FriSessionState};
+use rt_core::params::Scenario;
 use serde_json::Value;
-use server::LabOptions;
+use server::{AppState, Lab, LabOptions, app, simlab::SimLab};
 use tokio_tungstenite::tungstenite::Message;
 
 type Ws =
@@ -40,6 +44,76 @@ async fn read_for(ws: &mut Ws, window: Duration) -> Vec<Value> {
             Ok(other) => panic!("stream ended: {other:?}"),
         }
     }
+}
+
+/// The service over the real-time simulated lab, as `isochron serve` runs it.
+struct SimService {
+    addr: std::net::SocketAddr,
+    lab: std::sync::Arc<Lab>,
+    sim: Option<SimLab>,
+    server: tokio::task::JoinHandle<()>,
+}
+
+impl SimService {
+    fn runtime(&self) -> &rt_core::sim::realtime::RealtimeLab {
+        self.sim.as_ref().unwrap().runtime()
+    }
+}
+
+impl Drop for SimService {
+    fn drop(&mut self) {
+        self.server.abort();
+        self.lab.shutdown();
+        drop(self.sim.take());
+    }
+}
+
+async fn start_sim_service(options: LabOptions) -> SimService {
+    let (lab, sim) =
+        server::simlab::start_simulated(Scenario::default(), None, options, 3).unwrap();
+    let state = AppState::new(temp_dir("web")).with_lab(std::sync::Arc::clone(&lab));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let router = app(std::sync::Arc::new(state));
+    let server = tokio::spawn(async move {
+        let _ = axum::serve(server::tuned_listener(listener), router).await;
+    });
+    let svc = SimService {
+        addr,
+        lab,
+        sim: Some(sim),
+        server,
+    };
+    // Ready when the FRI session over loopback UDP commands the arm.
+    let l = std::sync::Arc::clone(&svc.lab);
+    wait_for(Duration::from_secs(10), move || {
+        l.latest()
+            .is_some_and(|(s, _)| s.fri.session == FriSessionState::CommandingActive)
+    })
+    .await;
+    svc
+}
+
+/// The FRI loop's timing counters: (controller messages, late replies and
+/// missing replies as the controller saw them, late replies and missed
+/// cycles as the client saw them, commanding lost).
+fn loop_counters(svc: &SimService) -> [u64; 6] {
+    let rt = svc.runtime();
+    let c = rt.session_stats();
+    let s = rt.sim_stats().unwrap();
+    let l = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    [
+        l(&s.messages_sent),
+        l(&s.late_replies),
+        l(&s.missing_replies),
+        l(&c.late_replies),
+        l(&c.missed_cycles),
+        l(&c.commanding_lost),
+    ]
+}
+
+fn delta(a: [u64; 6], b: [u64; 6]) -> [u64; 6] {
+    std::array::from_fn(|i| b[i] - a[i])
 }
 
 fn states(msgs: &[Value]) -> Vec<&Value> {
@@ -94,23 +168,54 @@ async fn a_client_gets_at_least_50_state_messages_per_second_with_the_documented
 }
 
 #[tokio::test]
+async fn the_real_time_lab_streams_at_least_50_state_messages_per_second_with_the_documented_fields()
+ {
+    let svc = start_sim_service(LabOptions::default()).await;
+    let mut ws = connect(svc.addr, "/ws").await;
+    let window = Duration::from_secs(2);
+    let msgs = read_for(&mut ws, window).await;
+    let st = states(&msgs);
+    let rate = st.len() as f64 / window.as_secs_f64();
+    println!("real-time lab: {rate:.1} state messages per second");
+    assert!(rate >= 50.0, "{rate} state messages per second");
+    for m in &st {
+        assert!(m["t_s"].is_number() && m["trial_state"].is_string(), "{m}");
+        assert!(m["pendulum"]["measured"]["x_m"].is_number());
+        assert!(m["pendulum"]["horizon"].is_array());
+        for k in ["a", "b", "u_init", "u_hopf", "u_final"] {
+            assert!(m["hopf"][k].is_number(), "hopf.{k}: {}", m["hopf"]);
+        }
+        assert!(m["path"]["speed_planned_mps"].is_number());
+        assert_eq!(m["robot"]["q_rad"].as_array().unwrap().len(), 7);
+        assert_eq!(m["fri"]["session"], "commanding_active");
+        assert!(m["fri"]["late_replies"].is_number() && m["fri"]["missed_cycles"].is_number());
+        assert!(m["magnet"].is_string());
+        assert_eq!(m["fri"]["period_ms"], 5.0);
+    }
+    // The camera runs: measurements of the hanging ball reach the filter's inbox.
+    let last = st.last().unwrap();
+    assert!(
+        last["counters"]["measurements"].as_u64().unwrap() > 10,
+        "{last}"
+    );
+    assert_eq!(last["pendulum"]["measured"]["valid"], true);
+    let t: Vec<f64> = st.iter().map(|m| m["t_s"].as_f64().unwrap()).collect();
+    assert!(t.windows(2).all(|w| w[1] > w[0]));
+}
+
+#[tokio::test]
 async fn twenty_clients_and_one_that_never_reads_do_not_slow_the_others_or_the_loop() {
     let options = LabOptions {
         ws_send_timeout: Duration::from_millis(500),
         ..LabOptions::default()
     };
-    let svc = start_service(None, options).await;
-    let stats = &svc.test_lab.stats;
+    let svc = start_sim_service(options).await;
 
-    // Baseline of the control loop without clients.
+    // The FRI loop without clients.
     let window = Duration::from_secs(2);
-    let (s0, l0) = (
-        stats.steps.load(Ordering::Relaxed),
-        stats.late_periods.load(Ordering::Relaxed),
-    );
+    let c0 = loop_counters(&svc);
     tokio::time::sleep(window).await;
-    let base_steps = stats.steps.load(Ordering::Relaxed) - s0;
-    let base_late = stats.late_periods.load(Ordering::Relaxed) - l0;
+    let base = delta(c0, loop_counters(&svc));
 
     // A client that never reads, with a tiny receive buffer so the server's
     // writes to it stall quickly.
@@ -125,10 +230,7 @@ async fn twenty_clients_and_one_that_never_reads_do_not_slow_the_others_or_the_l
     for _ in 0..20 {
         clients.push(connect(svc.addr, "/ws").await);
     }
-    let (s1, l1) = (
-        stats.steps.load(Ordering::Relaxed),
-        stats.late_periods.load(Ordering::Relaxed),
-    );
+    let c1 = loop_counters(&svc);
     let tasks: Vec<_> = clients
         .into_iter()
         .map(|mut ws| {
@@ -142,24 +244,38 @@ async fn twenty_clients_and_one_that_never_reads_do_not_slow_the_others_or_the_l
     for t in tasks {
         rates.push(t.await.unwrap() as f64 / window.as_secs_f64());
     }
-    let load_steps = stats.steps.load(Ordering::Relaxed) - s1;
-    let load_late = stats.late_periods.load(Ordering::Relaxed) - l1;
+    let load = delta(c1, loop_counters(&svc));
     let min = rates.iter().copied().fold(f64::INFINITY, f64::min);
     println!(
-        "20 clients + 1 stalled: min rate {min:.1}/s; control steps {load_steps} (baseline {base_steps}), \
-         late periods {load_late} (baseline {base_late}), publish max {} us",
-        stats.publish_max_ns.load(Ordering::Relaxed) / 1000
+        "20 clients + 1 stalled: min rate {min:.1}/s; FRI loop [messages, late, missing (controller), \
+         late, missed (client), commanding lost]: with clients {load:?}, without {base:?}"
     );
     assert!(
         min >= 50.0,
         "slowest client got {min} state messages per second: {rates:?}"
     );
-    // The control loop kept its pace: steps within 10% of the nominal count.
-    let nominal = window.as_secs_f64() / PERIOD.as_secs_f64();
+    // The control loop kept its pace over UDP: the controller's messages went
+    // out on time, were answered in time, and the session kept commanding.
+    let nominal = window.as_secs_f64() / 0.005;
+    assert!(load[0] as f64 >= 0.95 * nominal, "{load:?} of {nominal}");
+    let allowed = |b: u64| b.max(1) * 2 + (0.002 * nominal) as u64;
     assert!(
-        load_steps as f64 >= 0.9 * nominal,
-        "{load_steps} steps of {nominal}"
+        load[1] <= allowed(base[1]),
+        "late replies {load:?} vs {base:?}"
     );
+    assert!(
+        load[2] <= allowed(base[2]),
+        "missing replies {load:?} vs {base:?}"
+    );
+    assert!(
+        load[3] <= allowed(base[3]),
+        "client late {load:?} vs {base:?}"
+    );
+    assert!(
+        load[4] <= allowed(base[4]),
+        "client missed {load:?} vs {base:?}"
+    );
+    assert_eq!(load[5], 0, "the session left commanding: {load:?}");
 
     // The stalled client is skipped, then dropped, and both are counted.
     let lab = std::sync::Arc::clone(&svc.lab);
@@ -183,6 +299,51 @@ async fn twenty_clients_and_one_that_never_reads_do_not_slow_the_others_or_the_l
         .unwrap();
     assert!(state["stream"]["dropped_clients"].as_u64().unwrap() >= 1);
     assert_eq!(state["bridge"]["telemetry_overflows"], 0);
+}
+
+#[tokio::test]
+async fn the_camera_stream_carries_jpeg_frames_of_the_simulated_camera_showing_the_ball() {
+    use opencv::{core::Vector, imgcodecs, prelude::MatTraitConst};
+    let svc = start_sim_service(LabOptions::default()).await;
+    let mut cam = connect(svc.addr, "/ws/camera").await;
+    let mut ws = connect(svc.addr, "/ws").await;
+    let window = Duration::from_secs(3);
+    let cam_task = tokio::spawn(async move {
+        let end = tokio::time::Instant::now() + window;
+        let mut frames = Vec::new();
+        while let Ok(Some(Ok(m))) = tokio::time::timeout_at(end, cam.next()).await {
+            if let Message::Binary(b) = m {
+                frames.push(b.to_vec());
+            }
+        }
+        frames
+    });
+    let msgs = read_for(&mut ws, window).await;
+    let frames = cam_task.await.unwrap();
+    let rate = states(&msgs).len() as f64 / window.as_secs_f64();
+    let fps = frames.len() as f64 / window.as_secs_f64();
+    let mean_kb =
+        frames.iter().map(Vec::len).sum::<usize>() as f64 / frames.len().max(1) as f64 / 1e3;
+    println!("camera: {fps:.1} frames/s of {mean_kb:.1} kB; state rate meanwhile {rate:.1}/s");
+    assert!(fps >= 8.0, "{fps} frames per second");
+    assert!(rate >= 50.0, "{rate}");
+    // A frame decodes as a JPEG image and the detector finds the ball in it.
+    let jpeg = frames.last().unwrap();
+    assert_eq!(&jpeg[..2], &[0xff, 0xd8]);
+    let img =
+        imgcodecs::imdecode(&Vector::<u8>::from_slice(jpeg), imgcodecs::IMREAD_COLOR).unwrap();
+    assert_eq!((img.cols(), img.rows()), (640, 360));
+    let mut det = rt_core::vision::Detector::new(rt_core::vision::DetectorParams {
+        coarse_scale: 1,
+        ..Default::default()
+    })
+    .unwrap();
+    let ball = det.detect(&img, 0.0).unwrap();
+    println!("ball in the streamed frame: {ball:?}");
+    let ball = ball.expect("the ball is in the streamed frame");
+    assert!(ball.r_px > 5.0 && ball.r_px < 45.0, "{ball:?}");
+    let vs = svc.runtime().video_stats().unwrap();
+    assert!(vs.frames.load(Ordering::Relaxed) >= frames.len() as u64);
 }
 
 #[tokio::test]

@@ -334,6 +334,10 @@ pub struct FriView {
     pub late_replies: u64,
     /// Controller messages not answered, since start.
     pub missed_cycles: u64,
+    /// Times the controller went silent (the client's safe reaction ran), since start.
+    pub silences: u64,
+    /// Times the controller left commanding (abort, quality drop), since start.
+    pub commanding_lost: u64,
 }
 
 impl Default for FriView {
@@ -345,6 +349,8 @@ impl Default for FriView {
             reply_latency_us: f64::NAN,
             late_replies: 0,
             missed_cycles: 0,
+            silences: 0,
+            commanding_lost: 0,
         }
     }
 }

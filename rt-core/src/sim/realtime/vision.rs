@@ -1,0 +1,321 @@
+//! The vision thread of the real-time lab (`isochron-vision`): frames from a
+//! [`FrameSource`] -> the OpenCV detector and the swing-plane conversion
+//! ([`VisionPipeline`]) -> measurements into a bounded wait-free ring for the
+//! control thread; every few frames a downscaled JPEG into the bridge's frame
+//! channel for `/ws/camera` (a full channel drops the frame, counted; video
+//! never waits and never touches the measurement path).
+//!
+//! The simulated camera ([`SimCameraSource`]) renders the ground-truth pendulum
+//! that the control thread hands over through a ring of [`TruthUpdate`]s.
+
+use std::sync::{
+    Arc,
+    atomic::{AtomicBool, AtomicU64, Ordering},
+};
+use std::thread::JoinHandle;
+
+use opencv::{
+    core::{Mat, MatTraitConst, Size, Vector},
+    imgcodecs, imgproc,
+};
+use rtrb::{Consumer, Producer};
+
+use crate::bridge::{Frame as VideoFrame, FrameSender};
+use crate::params::check;
+use crate::pendulum::PendulumSim;
+use crate::vision::{
+    BallState, DetectorParams, FrameSource, Measurement, SwingPlaneCalibration, VisionError,
+    VisionPipeline, VisionStats, source::Clock,
+};
+
+/// The camera stream to the dashboard: downscaled JPEG frames.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VideoParams {
+    /// Width of the streamed frames, pixels (height keeps the aspect ratio).
+    pub width_px: u32,
+    /// Frames per second streamed (at most the camera's rate).
+    pub fps: f64,
+    /// JPEG quality, 1..100.
+    pub quality: u8,
+}
+
+impl Default for VideoParams {
+    fn default() -> Self {
+        Self {
+            width_px: 640,
+            fps: 12.0,
+            quality: 70,
+        }
+    }
+}
+
+impl VideoParams {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), crate::params::ParamError> {
+        check::within_u32("video.width_px", self.width_px, 64, 3840)?;
+        check::within("video.fps", self.fps, 0.5, 60.0)?;
+        check::within_u32("video.quality", u32::from(self.quality), 1, 100)
+    }
+}
+
+/// Counters of the camera stream (the measurement side is in [`VisionStats`]).
+#[derive(Debug, Default)]
+pub struct VideoStats {
+    /// JPEG frames handed to the frame channel.
+    pub frames: AtomicU64,
+    /// Frames the channel refused (full: the server is behind).
+    pub dropped: AtomicU64,
+    /// Size of the last JPEG, bytes.
+    pub last_bytes: AtomicU64,
+    /// Encoding time of the last JPEG (resize + encode), microseconds.
+    pub last_encode_us: AtomicU64,
+    /// Frames the detector failed on (skipped; the thread goes on).
+    pub detector_errors: AtomicU64,
+}
+
+/// What the control thread tells the simulated camera about the true pendulum.
+#[derive(Debug, Clone)]
+pub enum TruthUpdate {
+    /// From now on the camera shows this pendulum (held or swinging).
+    Ball(PendulumSim),
+    /// Nothing in view.
+    Nothing,
+}
+
+/// The simulated camera's view of the truth: the latest pendulum the control
+/// thread handed over, advanced to each frame's capture time.
+#[derive(Debug)]
+pub struct TruthView {
+    rx: Consumer<TruthUpdate>,
+    ball: Option<PendulumSim>,
+}
+
+impl TruthView {
+    /// Reads updates from `rx`.
+    pub fn new(rx: Consumer<TruthUpdate>) -> Self {
+        Self { rx, ball: None }
+    }
+
+    /// The ball at `t_s` (control clock), `None` when nothing is in view.
+    pub fn at(&mut self, t_s: f64) -> Option<BallState> {
+        while let Ok(u) = self.rx.pop() {
+            self.ball = match u {
+                TruthUpdate::Ball(b) => Some(b),
+                TruthUpdate::Nothing => None,
+            };
+        }
+        let ball = self.ball.as_mut()?;
+        if t_s > ball.time_s() && ball.advance_to(t_s).is_err() {
+            // Too far ahead (a long idle gap): start over from this state.
+            return None;
+        }
+        Some(BallState {
+            centre_m: ball.ball_position_m(),
+            velocity_mps: ball.ball_velocity_mps(),
+        })
+    }
+}
+
+/// The running vision thread.
+#[derive(Debug)]
+pub struct VisionLoop {
+    stop: Arc<AtomicBool>,
+    stats: Arc<VisionStats>,
+    video: Arc<VideoStats>,
+    handle: Option<JoinHandle<Result<(), VisionError>>>,
+}
+
+/// Everything the vision thread owns.
+pub struct VisionParts {
+    /// Where frames come from.
+    pub source: Box<dyn FrameSource>,
+    /// Detector settings.
+    pub detector: DetectorParams,
+    /// The calibration to start with.
+    pub calibration: SwingPlaneCalibration,
+    /// New calibrations (the simulated lab moves its pendulum per trial).
+    pub calibrations: Option<Consumer<SwingPlaneCalibration>>,
+    /// Measurements to the control thread.
+    pub measurements: Producer<Measurement>,
+    /// JPEG frames to the server, and how.
+    pub video: Option<(FrameSender, VideoParams)>,
+    /// The control clock.
+    pub clock: Clock,
+}
+
+impl std::fmt::Debug for VisionParts {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VisionParts")
+            .field("fps", &self.source.fps())
+            .finish_non_exhaustive()
+    }
+}
+
+impl VisionLoop {
+    /// Starts `isochron-vision`.
+    pub fn spawn(parts: VisionParts) -> Result<Self, VisionError> {
+        if let Some((_, v)) = &parts.video {
+            v.validate()?;
+        }
+        let pipeline = VisionPipeline::new(parts.detector.clone(), parts.calibration)?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let stats = Arc::new(VisionStats::default());
+        let video = Arc::new(VideoStats::default());
+        let (s, st, vs) = (Arc::clone(&stop), Arc::clone(&stats), Arc::clone(&video));
+        let handle = std::thread::Builder::new()
+            .name("isochron-vision".into())
+            .spawn(move || run(parts, pipeline, &s, &st, &vs))
+            .map_err(|e| VisionError::Thread(e.to_string()))?;
+        Ok(Self {
+            stop,
+            stats,
+            video,
+            handle: Some(handle),
+        })
+    }
+
+    /// Detection counters.
+    pub fn stats(&self) -> &Arc<VisionStats> {
+        &self.stats
+    }
+
+    /// Camera stream counters.
+    pub fn video(&self) -> &Arc<VideoStats> {
+        &self.video
+    }
+
+    /// True once the thread ended (end of stream or an error).
+    pub fn is_finished(&self) -> bool {
+        self.handle.as_ref().is_none_or(JoinHandle::is_finished)
+    }
+
+    /// Stops the thread and returns how it ended.
+    pub fn stop(mut self) -> Result<(), VisionError> {
+        self.stop.store(true, Ordering::Relaxed);
+        match self.handle.take() {
+            Some(h) => h
+                .join()
+                .map_err(|_| VisionError::Thread("the vision thread panicked".into()))?,
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for VisionLoop {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(h) = self.handle.take() {
+            let _ = h.join();
+        }
+    }
+}
+
+fn run(
+    mut parts: VisionParts,
+    mut pipeline: VisionPipeline,
+    stop: &AtomicBool,
+    stats: &VisionStats,
+    video: &VideoStats,
+) -> Result<(), VisionError> {
+    crate::vision::limit_opencv_threads()?;
+    let clock = parts.clock;
+    let mut next_video_s = 0.0;
+    let mut small = Mat::default();
+    let mut jpeg = Vector::<u8>::new();
+    while !stop.load(Ordering::Relaxed) {
+        if let Some(rx) = parts.calibrations.as_mut() {
+            let mut newest = None;
+            while let Ok(c) = rx.pop() {
+                newest = Some(c);
+            }
+            if let Some(c) = newest {
+                // A new pendulum position: a fresh detector (no stale track).
+                pipeline = VisionPipeline::new(parts.detector.clone(), c)?;
+            }
+        }
+        let Some(frame) = parts.source.next_frame()? else {
+            break;
+        };
+        let t0 = clock.now_s();
+        let m = match pipeline.process(&frame, t0) {
+            Ok(m) => m,
+            Err(_) => {
+                video.detector_errors.fetch_add(1, Ordering::Relaxed);
+                continue;
+            }
+        };
+        let t1 = clock.now_s();
+        let m = Measurement {
+            t_available_s: t1,
+            ..m
+        };
+        let us = ((t1 - t0) * 1e6).max(0.0) as u64;
+        stats.last_frame_us.store(us, Ordering::Relaxed);
+        stats.max_frame_us.fetch_max(us, Ordering::Relaxed);
+        stats.frames.fetch_add(1, Ordering::Relaxed);
+        if m.found {
+            stats.found.fetch_add(1, Ordering::Relaxed);
+        }
+        if parts.measurements.push(m).is_err() {
+            stats.overflows.fetch_add(1, Ordering::Relaxed);
+        }
+        // The dashboard's video, after the measurement is on its way.
+        if let Some((tx, vp)) = parts.video.as_mut()
+            && t1 >= next_video_s
+        {
+            next_video_s = t1.max(next_video_s) + 1.0 / vp.fps;
+            let e0 = clock.now_s();
+            if encode_jpeg(frame.image, vp, &mut small, &mut jpeg).is_ok() {
+                video
+                    .last_encode_us
+                    .store(((clock.now_s() - e0) * 1e6) as u64, Ordering::Relaxed);
+                video.last_bytes.store(jpeg.len() as u64, Ordering::Relaxed);
+                let f = VideoFrame {
+                    t_us: (frame.t_capture_s.max(0.0) * 1e6) as u64,
+                    jpeg: jpeg.as_slice().to_vec(),
+                };
+                if tx.send(f) {
+                    video.frames.fetch_add(1, Ordering::Relaxed);
+                } else {
+                    video.dropped.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Downscales `image` to `p.width_px` wide and encodes it as JPEG into `out`.
+pub fn encode_jpeg(
+    image: &Mat,
+    p: &VideoParams,
+    small: &mut Mat,
+    out: &mut Vector<u8>,
+) -> Result<(), VisionError> {
+    let (w, h) = (image.cols(), image.rows());
+    if w <= 0 || h <= 0 {
+        return Err(VisionError::BadFrame("empty image".into()));
+    }
+    let tw = (p.width_px as i32).min(w);
+    let th = ((f64::from(h) * f64::from(tw) / f64::from(w)).round() as i32).max(1);
+    let src: &Mat = if tw == w {
+        image
+    } else {
+        imgproc::resize(
+            image,
+            small,
+            Size::new(tw, th),
+            0.0,
+            0.0,
+            imgproc::INTER_AREA,
+        )?;
+        small
+    };
+    let params =
+        Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, i32::from(p.quality)]);
+    out.clear();
+    if !imgcodecs::imencode(".jpg", src, out, &params)? {
+        return Err(VisionError::BadFrame("JPEG encoding failed".into()));
+    }
+    Ok(())
+}
