@@ -658,6 +658,7 @@ impl LabStep {
             latency_estimate_ms: c.latency().latency_s() * 1e3,
             limit_violations: c.counters().limit_violations(),
             deadline_misses: self.inner.step.deadline_misses,
+            preempted_steps: self.inner.step.preempted_steps,
         };
         let mut result = TrialResult {
             success: false,
