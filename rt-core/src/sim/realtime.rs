@@ -83,6 +83,10 @@ pub struct LoopReport {
     pub client_late_replies: u64,
     /// Controller messages the client never received.
     pub client_missed_cycles: u64,
+    /// WebSocket clients connected while measuring (set by the service).
+    pub ws_clients: u64,
+    /// State messages the service produced per second while measuring.
+    pub ws_state_messages_per_s: f64,
 }
 
 /// Errors of the real-time runtime.
@@ -596,6 +600,8 @@ impl RealtimeLab {
             deadline_misses: 0,
             client_late_replies: c1.0 - c0.0,
             client_missed_cycles: c1.1 - c0.1,
+            ws_clients: 0,
+            ws_state_messages_per_s: 0.0,
         }
     }
 

@@ -9,7 +9,7 @@ use rt_core::ekf::Ekf;
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use rt_core::sim::VirtualLab;
-use rt_core::sim::realtime::{LoopReport, run_loop};
+use rt_core::sim::realtime::LoopReport;
 use rt_core::timing::{MotionSample, TimedMotion};
 use serde::Serialize;
 
@@ -22,6 +22,9 @@ pub struct BenchArgs {
     /// Seconds the real-time loop runs.
     #[arg(long, default_value_t = 10.0)]
     pub loop_s: f64,
+    /// WebSocket clients reading `/ws` while the real-time loop is measured.
+    #[arg(long, default_value_t = 20)]
+    pub ws_clients: usize,
     /// Virtual-time trials (1 ms FRI period, model camera) whose control steps
     /// are timed: about 8,000 steps each.
     #[arg(long, default_value_t = 20)]
@@ -243,6 +246,84 @@ fn control_us(s: &Scenario, trials: usize) -> anyhow::Result<(Vec<f64>, Vec<f64>
     Ok((wall, cpu, details))
 }
 
+/// A WebSocket client of `/ws` that reads and discards everything (the
+/// handshake by hand: the server crate has no WebSocket client).
+async fn ws_reader(addr: std::net::SocketAddr) -> anyhow::Result<u64> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await?;
+    let req = format!(
+        "GET /ws HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    );
+    s.write_all(req.as_bytes()).await?;
+    let mut buf = vec![0u8; 64 * 1024];
+    let mut total = 0u64;
+    loop {
+        let n = s.read(&mut buf).await?;
+        if n == 0 {
+            return Ok(total);
+        }
+        total += n as u64;
+    }
+}
+
+/// `loop`: the real-time lab of `isochron serve` (FRI client session and
+/// simulated controller over loopback UDP, camera, magnet) at the scenario's
+/// period, behind the service with `clients` WebSocket clients reading the
+/// state stream, measured for `window` once the session commands.
+fn loop_with_clients(
+    scenario: Scenario,
+    window: Duration,
+    clients: usize,
+) -> anyhow::Result<LoopReport> {
+    let (lab, sim) =
+        server::simlab::start_simulated(scenario, None, server::LabOptions::default(), 1)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name("isochron-http")
+        .enable_all()
+        .build()?;
+    let state = std::sync::Arc::new(
+        server::AppState::new(std::env::temp_dir()).with_lab(std::sync::Arc::clone(&lab)),
+    );
+    let listener = runtime.block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))?;
+    let addr = listener.local_addr()?;
+    let server = runtime.spawn(async move {
+        let _ = axum::serve(server::tuned_listener(listener), server::app(state)).await;
+    });
+    let readers: Vec<_> = (0..clients)
+        .map(|_| runtime.spawn(ws_reader(addr)))
+        .collect();
+    let result = (|| {
+        sim.runtime().wait_commanding(Duration::from_secs(10))?;
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while (lab.stream().read().clients as usize) < clients {
+            if Instant::now() > deadline {
+                anyhow::bail!(
+                    "only {} of {clients} WebSocket clients connected",
+                    lab.stream().read().clients
+                );
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let before = lab.stream().read().state_messages;
+        let mut report = sim.runtime().measure(window);
+        report.ws_clients = lab.stream().read().clients;
+        report.ws_state_messages_per_s =
+            (lab.stream().read().state_messages - before) as f64 / window.as_secs_f64();
+        report.deadline_misses = lab.latest().map_or(0, |(s, _)| s.timing.deadline_misses);
+        Ok(report)
+    })();
+    for r in readers {
+        r.abort();
+    }
+    server.abort();
+    lab.shutdown();
+    drop(sim);
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    result
+}
+
 /// Runs the benches; returns the text for stdout.
 pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     if !(args.loop_s.is_finite() && args.loop_s > 0.0 && args.loop_s <= 600.0) {
@@ -262,9 +343,15 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         );
     }
     let (c, c_cpu, control) = control_us(&s, args.control_trials)?;
+    if args.ws_clients > 200 {
+        anyhow::bail!(
+            "--ws-clients = {} is out of range: must be in 0..=200",
+            args.ws_clients
+        );
+    }
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
-    let lp = run_loop(&rt, Duration::from_secs_f64(args.loop_s))?;
+    let lp = loop_with_clients(rt, Duration::from_secs_f64(args.loop_s), args.ws_clients)?;
     let q = quantile_sorted;
     let b = Bench {
         ekf_step_ns: P2 {
@@ -296,7 +383,8 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (wall clock)\n\
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (thread CPU time)\n\
          control steps   {} over {} trials at {} ms: {} deadline misses (CPU time > period), {} preempted (wall clock only); load average {}\n\
-         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99.9 {:.0} us, max {:.0} us",
+         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99.9 {:.0} us, max {:.0} us; \
+         {} WebSocket clients at {:.0} state messages/s",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
         b.hopf_step_ns.p50,
@@ -328,5 +416,7 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         lp.reply_latency_us.p50,
         lp.reply_latency_us.p999,
         lp.reply_latency_us.max,
+        lp.ws_clients,
+        lp.ws_state_messages_per_s,
     ))
 }
