@@ -4,7 +4,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::UnitQuaternion;
 use rt_core::control::stats::quantile_sorted;
-use rt_core::control::{Controller, StepTimings, TrialState};
+use rt_core::control::{Controller, StepClock, StepTimings, TrialState};
 use rt_core::ekf::Ekf;
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
@@ -152,6 +152,9 @@ struct ControlBench {
     preempted_steps: u64,
     /// The 1, 5 and 15 minute load averages when the measurement started.
     load_average: Option<[f64; 3]>,
+    /// What the measurement itself adds to each step (a `StepClock` around
+    /// nothing), median wall clock, microseconds.
+    clock_overhead_us: f64,
     phases: Vec<PhaseCost>,
 }
 
@@ -192,6 +195,11 @@ fn control_us(s: &Scenario, trials: usize) -> anyhow::Result<(Vec<f64>, Vec<f64>
     s.camera.vision = VisionMode::Model;
     s.robot.fri_period_ms = 1;
     let load = load_average();
+    let overhead = sorted(
+        (0..10_000)
+            .map(|_| StepClock::start().stop().wall_ns as f64 * 1e-3)
+            .collect(),
+    );
     let mut lab = VirtualLab::new(&s, 1)?;
     lab.loop_step().timings = Some(StepTimings::with_capacity(trials * 12_000 + 1_000));
     let (misses0, preempted0) = (
@@ -241,6 +249,7 @@ fn control_us(s: &Scenario, trials: usize) -> anyhow::Result<(Vec<f64>, Vec<f64>
         deadline_misses: ls.deadline_misses - misses0,
         preempted_steps: ls.preempted_steps - preempted0,
         load_average: load,
+        clock_overhead_us: quantile_sorted(&overhead, 0.5),
         phases,
     };
     Ok((wall, cpu, details))
