@@ -429,6 +429,7 @@ impl RealtimeLab {
                 magnet: magnet.clone(),
                 session: Arc::clone(&session_cell),
                 truth,
+                calibration,
             },
         );
         let (bind, controller_addr) = match fri {

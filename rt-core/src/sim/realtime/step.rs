@@ -138,6 +138,8 @@ pub(crate) struct LabParts {
     pub magnet: MagnetHandle,
     pub session: Arc<OnceLock<Arc<SessionStats>>>,
     pub truth: Option<Truth>,
+    /// The camera's calibration at the start (the dashboard's overlays).
+    pub calibration: SwingPlaneCalibration,
 }
 
 /// The lab's control step (see the module documentation).
@@ -227,6 +229,10 @@ impl LabStep {
     pub(crate) fn new(controller: Controller, p: LabParts) -> Self {
         let period_s = f64::from(p.scenario.robot.fri_period_ms) * 1e-3;
         let trace_len = (TRIAL_TIMEOUT_S / period_s) as usize + 1000;
+        let mut snap = Snapshot::default();
+        let cam = &p.scenario.camera;
+        snap.camera
+            .set_calibration(&p.calibration, cam.width_px, cam.height_px);
         Self {
             inner: FriLoopStep::new(controller),
             p,
@@ -236,7 +242,7 @@ impl LabStep {
             trial_index: 0,
             trial: None,
             trace: TrialTrace::with_capacity(trace_len),
-            snap: Snapshot::default(),
+            snap,
             horizon: vec![Prediction::default(); bridge::HORIZON_POINTS],
             next_horizon_s: 0.0,
             last_state: TrialState::Idle,
@@ -290,6 +296,7 @@ impl LabStep {
         self.follow_magnet();
         let mut n = 0u64;
         while let Ok(m) = self.p.measurements.pop() {
+            self.snap.camera.set_frame(&m);
             if !m.found {
                 continue;
             }
@@ -541,12 +548,17 @@ impl LabStep {
                 0.0,
                 self.p.scenario.task.intercept_height_m,
             );
-            let _ = truth.calibrations.push(SwingPlaneCalibration::from_pose(
+            let cal = SwingPlaneCalibration::from_pose(
                 cam.intrinsics,
                 &cam.pose,
                 &rest,
                 cam.ball_radius_m,
-            ));
+            );
+            let size = &self.p.scenario.camera;
+            self.snap
+                .camera
+                .set_calibration(&cal, size.width_px, size.height_px);
+            let _ = truth.calibrations.push(cal);
             let _ = truth.to_camera.push(TruthUpdate::Ball(ball.clone()));
         }
         self.inner.clear_stop();
