@@ -104,9 +104,98 @@ try {
     assert(JSON.stringify(before.json) === JSON.stringify(after.json), "parameters changed");
     await page.fill('input[name="pendulum.length_m"]', String(before.json.pendulum.length_m));
   });
-  await check("operator: Run trial completes a trial and the history shows it", async () => {
-    const rowsBefore = await page.locator("#trials tbody tr").count();
+  let rowsBefore = 0;
+  await check("operator: Run trial releases the ball", async () => {
+    rowsBefore = await page.locator("#trials tbody tr").count();
     await page.click("#btn-trial");
+    await page.waitForFunction(() => ["tracking", "intercepting"].includes(window.__isochron.state()), null, { timeout: 60_000 });
+  });
+  await check("operator: the camera view shows changing frames with the ball overlay on the ball", async () => {
+    // The canvas's pixels (subsampled luminance), the yellow ball's pixels near the
+    // overlay's circle, and what the overlay drew, read in one go (consistent).
+    const sample = () =>
+      page.evaluate(() => {
+        const c = document.querySelector("#camera canvas.frame");
+        const cam = window.__isochron.camera();
+        const { width: w, height: h } = c;
+        if (!w || !h) return { w, h, cam };
+        const d = c.getContext("2d").getImageData(0, 0, w, h).data;
+        const luma = [];
+        let sum = 0, sum2 = 0;
+        for (let i = 0; i < w * h; i += 7) {
+          const l = 0.299 * d[4 * i] + 0.587 * d[4 * i + 1] + 0.114 * d[4 * i + 2];
+          luma.push(l);
+          sum += l;
+          sum2 += l * l;
+        }
+        const mean = sum / luma.length;
+        const std = Math.sqrt(Math.max(0, sum2 / luma.length - mean * mean));
+        // Optic-yellow pixels within 4 radii of the drawn ball.
+        let yellow = null;
+        const b = cam.drawn.ball;
+        if (b) {
+          const [bx, by, br] = b;
+          const R = 4 * br;
+          let n = 0, sx = 0, sy = 0;
+          for (let y = Math.max(0, Math.floor(by - R)); y < Math.min(h, by + R); y++) {
+            for (let x = Math.max(0, Math.floor(bx - R)); x < Math.min(w, bx + R); x++) {
+              const k = 4 * (y * w + x);
+              const [r, g, bl] = [d[k], d[k + 1], d[k + 2]];
+              if (g > 140 && r > 100 && g - bl > 70 && r - bl > 40) {
+                n += 1;
+                sx += x;
+                sy += y;
+              }
+            }
+          }
+          yellow = n > 0 ? { n, x: sx / n, y: sy / n } : { n: 0 };
+        }
+        return { w, h, cam, luma, mean, std, yellow };
+      });
+    await page.waitForFunction(() => window.__isochron.camera().frames >= 3, null, { timeout: 5_000 });
+    const first = await sample();
+    const t0 = Date.now();
+    // The frame counter grows at the stream's rate.
+    await page.waitForFunction((n) => window.__isochron.camera().frames >= n + 8, first.cam.frames, { timeout: 4_000 });
+    const samples = [first];
+    for (let i = 0; i < 8; i++) {
+      await page.waitForFunction((n) => window.__isochron.camera().frames > n, samples[samples.length - 1].cam.frames, { timeout: 2_000 });
+      samples.push(await sample());
+    }
+    const last = samples[samples.length - 1];
+    const fps = ((last.cam.frames - first.cam.frames) * 1000) / (Date.now() - t0);
+    assert(last.w >= 160 && last.h >= 90, `canvas ${last.w}x${last.h}`);
+    // Not blank: a textured scene, not one colour.
+    assert(last.std > 8, `the frame is flat (luminance std ${last.std.toFixed(1)})`);
+    // Changes over time: the swinging ball (and the sensor noise) move pixels.
+    let diff = 0;
+    for (let i = 0; i < first.luma.length; i++) diff += Math.abs(first.luma[i] - last.luma[i]);
+    diff /= first.luma.length;
+    assert(diff > 0.5, `frames do not change (mean |difference| ${diff.toFixed(2)})`);
+    // The ball overlay sits on the yellow ball in the frame it was drawn over.
+    const offsets = [];
+    for (const s of samples) {
+      const b = s.cam.drawn.ball;
+      if (!b || !s.yellow || s.yellow.n < 0.25 * Math.PI * (b[2] - 3) ** 2) continue;
+      offsets.push({ d: Math.hypot(s.yellow.x - b[0], s.yellow.y - b[1]), r: b[2] - 3 });
+    }
+    assert(offsets.length >= samples.length / 2, `ball overlay over the ball in ${offsets.length} of ${samples.length} frames`);
+    offsets.sort((a, b) => a.d - b.d);
+    const med = offsets[Math.floor(offsets.length / 2)];
+    measured.camera = {
+      fps: +fps.toFixed(1),
+      frame_px: [last.w, last.h],
+      ball_r_px: +med.r.toFixed(1),
+      overlay_offset_px: { median: +med.d.toFixed(1), max: +offsets[offsets.length - 1].d.toFixed(1) },
+      predicted_points: last.cam.drawn.predicted,
+      decode_errors: last.cam.decodeErrors,
+    };
+    assert(fps >= 5, `camera at ${fps.toFixed(1)} fps`);
+    assert(med.d <= Math.max(med.r, 4), `ball overlay ${med.d.toFixed(1)} px off the ball (radius ${med.r.toFixed(1)} px)`);
+    assert(last.cam.drawn.intercept !== null, "no intercept point drawn");
+    assert(samples.some((x) => x.cam.drawn.predicted > 0), "no predicted positions drawn");
+  });
+  await check("operator: Run trial completes a trial and the history shows it", async () => {
     await page.waitForFunction(
       (n) => document.querySelectorAll("#trials tbody tr.hit, #trials tbody tr.miss").length > n,
       rowsBefore,

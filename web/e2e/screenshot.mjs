@@ -1,6 +1,6 @@
 // The README's screenshot: the dashboard in headless Chromium during a trial
-// in the simulated lab, taken just after the arm arrived (the speed profile,
-// the neurons and the phase portrait then show the whole motion).
+// in the simulated lab, taken late in the arm's motion (the speed profile, the
+// neurons and the phase portrait then show nearly all of it).
 // Usage: node e2e/screenshot.mjs URL TOKEN OUT.png
 import { chromium } from "playwright-core";
 
@@ -24,13 +24,13 @@ try {
   for (let i = 0; i < 2; i++) {
     await page.click("#btn-trial");
     await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });
-    await page.waitForFunction(() => ["holding", "done", "idle", "aborted"].includes(window.__isochron.state()), null, {
-      timeout: 30_000,
-    });
     if (i === 0) await page.waitForFunction(() => window.__isochron.state() === "idle", null, { timeout: 30_000 });
   }
-  // Half a second after the arrival: the pendulum still swings, the plots hold the motion.
-  await page.waitForTimeout(500);
+  // Most of the way through the motion: the speed profile and the phase portrait's
+  // arc nearly complete, the Hopf neuron leading, the ball swinging towards the arm.
+  const T = await page.evaluate(async () => (await (await fetch("/api/params")).json()).task.movement_time_s);
+  await page.waitForTimeout(800 * T);
+  await page.evaluate(() => (document.getElementById("toast").className = "toast hidden"));
   await page.screenshot({ path: out, fullPage: false });
   console.log(`screenshot: ${out}`);
 } finally {

@@ -193,7 +193,7 @@ export class CameraView {
     }
     if (this.info && now - this.infoAt > 250) {
       this.infoAt = now;
-      const age = now - this.lastFrameAt;
+      const age = Math.max(0, now - this.lastFrameAt); // rAF's time is the frame's start
       this.info.textContent = Number.isFinite(age)
         ? `${this.fps(now).toFixed(1)} fps · frame ${this.frames} · ${age < 10_000 ? `${Math.round(age)} ms ago` : "stalled"}`
         : "no frames yet";
@@ -244,9 +244,13 @@ export class CameraView {
       ctx.moveTo(x, y - r);
       ctx.lineTo(x, y + r);
       ctx.stroke();
-      ctx.fillStyle = "#009E73";
-      ctx.font = `${Math.max(11, w / 50)}px system-ui, sans-serif`;
+      ctx.font = `bold ${Math.max(11, w / 45)}px system-ui, sans-serif`;
+      ctx.lineWidth = 3;
+      ctx.strokeStyle = "rgba(0,0,0,0.75)";
+      ctx.strokeText("intercept", x + r + 3, y + r);
+      ctx.fillStyle = "#7fe0c0";
       ctx.fillText("intercept", x + r + 3, y + r);
+      ctx.lineWidth = Math.max(2, w / 320);
       this.drawn.intercept = [x, y];
     }
     // The detected ball, as of the shown frame.
