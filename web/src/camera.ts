@@ -151,7 +151,8 @@ export class CameraView {
 
   update(s: StateMessage): void {
     this.latest = s;
-    this.overlayDirty = true;
+    // The overlay is redrawn with each new frame (not each state): it belongs to the
+    // picture, and repainting a canvas at the state rate costs the page frames.
     const c = s.camera;
     const last = this.detections[this.detections.length - 1];
     if (c && c.width_px && (!last || last.cam.frame !== c.frame)) {
