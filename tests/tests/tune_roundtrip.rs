@@ -80,7 +80,7 @@ fn free_addr() -> SocketAddr {
     l.local_addr().unwrap()
 }
 
-/// Starts `isochron serve` on the round-trip lab and waits until it answers.
+/// Starts `isochron serve` on the round-trip lab and waits until it is ready.
 async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
     let config = dir.join("serve.toml");
     std::fs::write(
@@ -110,10 +110,15 @@ async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
         child: cmd.spawn().unwrap(),
         addr,
     };
+    // Ready: the service answers and the robot's FRI session is commanding.
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
-        if let Ok(r) = http(addr, "GET", "/api/health", &[], b"").await {
-            if r.status == 200 {
+        if let Ok(r) = http(addr, "GET", "/api/state", &[], b"").await {
+            let ready = r.status == 200
+                && r.json().is_ok_and(|st| {
+                    st["fri"]["session"] == "commanding_active" && st["trial_state"] == "idle"
+                });
+            if ready {
                 return s;
             }
         }
