@@ -9,6 +9,14 @@ use crate::{
     AppState, Records, app, check_bind,
     config::{LabMode, ServeConfig},
 };
+use rt_core::{
+    magnet::MagnetParams,
+    sim::realtime::{CameraLink, FriLink, LabSetup, MagnetLink},
+    vision::{
+        CameraIntrinsics, CameraPose, FrameSource, SwingPlaneCalibration, VideoFileSource,
+        WebcamParams, WebcamSource,
+    },
+};
 
 /// The command line of `isochron serve` (each overrides the config file).
 #[derive(Debug, Clone, Default)]
@@ -54,12 +62,6 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     for path in &args.params {
         scenario = rt_core::tuning::overlay_params_file(&scenario, path)?;
     }
-    if cfg.lab.mode == LabMode::Real {
-        anyhow::bail!(
-            "lab.mode = \"real\": the hardware drivers (FRI client, webcam, magnet) are not wired \
-             into `isochron serve` yet; use mode = \"simulated\""
-        );
-    }
     let records = Arc::new(Records::open(&data_dir)?);
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
     let options = crate::LabOptions {
@@ -70,12 +72,15 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let seed = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(1, |d| d.as_secs());
-    let (lab, sim) =
-        crate::simlab::start_simulated(scenario, Some(Arc::clone(&records)), options, seed)?;
+    let setup = match cfg.lab.mode {
+        LabMode::Simulated => LabSetup::simulated(scenario, seed),
+        LabMode::Real => real_lab(&cfg, scenario, seed)?,
+    };
+    let (lab, sim) = crate::simlab::start_lab(setup, Some(Arc::clone(&records)), options)?;
     tracing::info!(
+        mode = ?cfg.lab.mode,
         fri = ?sim.runtime().fri_local_addr(),
-        "simulated lab running (simulated pendulum, rendered camera through the detector, \
-         robot over loopback UDP FRI, magnet on its fake board)"
+        "lab running (FRI client session over UDP, camera through the detector, magnet driver)"
     );
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -108,6 +113,63 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     result?;
     tracing::info!("shut down cleanly");
     Ok(())
+}
+
+/// The real lab of `cfg` (`lab.mode = "real"`): the same runtime as the
+/// simulated lab with the FRI client answering the configured controller, the
+/// webcam (or, when `camera.device` is a regular file, that video looped at
+/// its frame rate), the magnet on the configured serial port, and the
+/// pendulum where `calibration.pivot_m` puts it. The camera is taken to look
+/// along the base's +x at the height of the ball at rest, `plane_distance_m`
+/// before the swing plane.
+pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow::Result<LabSetup> {
+    scenario.robot.fri_period_ms = cfg.fri.period_ms;
+    scenario.camera.width_px = cfg.camera.width_px;
+    scenario.camera.height_px = cfg.camera.height_px;
+    scenario.camera.fps = cfg.camera.fps;
+    scenario.validate()?;
+    let k = &cfg.calibration;
+    let [px, py, pz] = k.pivot_m;
+    let rest = nalgebra::Vector3::new(px, py, pz - scenario.pendulum.length_m);
+    let intrinsics = CameraIntrinsics {
+        fx_px: k.focal_length_px,
+        fy_px: k.focal_length_px,
+        cx_px: k.principal_point_px[0],
+        cy_px: k.principal_point_px[1],
+        k1: 0.0,
+        k2: 0.0,
+    };
+    let pose = CameraPose {
+        position_m: [px - k.plane_distance_m, py, rest.z],
+        ..CameraPose::default()
+    };
+    let calibration =
+        SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, scenario.pendulum.ball_radius_m);
+    let device = cfg.camera.device.clone();
+    let webcam = WebcamParams {
+        device: device.clone(),
+        camera: scenario.camera.clone(),
+    };
+    let open: rt_core::sim::realtime::SourceFactory = Box::new(move |clock| {
+        Ok(if device.is_file() {
+            Box::new(VideoFileSource::open(&device, Some(clock), true)?) as Box<dyn FrameSource>
+        } else {
+            Box::new(WebcamSource::open(&webcam, clock)?)
+        })
+    });
+    let mut setup = LabSetup::simulated(scenario, seed);
+    setup.fri = FriLink::Controller {
+        bind: cfg.fri.local_bind,
+        controller: cfg.fri.controller,
+    };
+    setup.session = rt_core::fri::FriClientParams::default();
+    setup.camera = CameraLink::Source { open, calibration };
+    setup.magnet = MagnetLink::Port(MagnetParams {
+        baud: cfg.magnet.baud,
+        ..MagnetParams::for_port(cfg.magnet.port.display().to_string())
+    });
+    setup.fixed_distance_m = Some(px.hypot(py));
+    Ok(setup)
 }
 
 async fn shutdown_signal() {

@@ -1,0 +1,129 @@
+//! `lab.mode = "real"` of `isochron serve --config`: the same real-time runtime
+//! with the drivers of the real lab, here pointed at stand-ins that speak the
+//! same protocols: a KUKA controller (the simulated one, over UDP at the
+//! configured address), a camera (a rendered MJPG video at the configured
+//! device path) and the magnet board (the fake board behind a pty at the
+//! configured port). The lab starts, the FRI session reaches
+//! COMMANDING_ACTIVE, the snapshot shows the camera's detections and the
+//! magnet answers.
+
+use std::{
+    net::{SocketAddr, UdpSocket},
+    time::{Duration, Instant},
+};
+
+use rt_core::{
+    bridge::{FriSessionState, MagnetState},
+    fri::{FriSimParams, SimRunOptions, SimServer},
+    magnet::FakeDevice,
+    params::Scenario,
+    vision::{BallState, Recorder, SimCamera, SimCameraParams},
+};
+use server::{
+    LabOptions,
+    config::{LabMode, ServeConfig},
+};
+
+fn free_udp_port() -> SocketAddr {
+    UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+}
+
+#[test]
+fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_serial_magnet() {
+    let dir = std::env::temp_dir().join(format!("isochron-real-lab-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let scenario = Scenario::default();
+
+    // The camera: a rendered video of the ball swinging at 0.6 m.
+    let video = dir.join("pendulum.avi");
+    let mut cam = SimCamera::new(
+        &scenario.camera,
+        &SimCameraParams::default(),
+        scenario.pendulum.ball_radius_m,
+        1,
+    )
+    .unwrap();
+    let mut rec = Recorder::create(&video, 1280, 720, 30.0).unwrap();
+    for i in 0..60 {
+        let y = 0.25 * (f64::from(i) * 0.15).sin();
+        let ball = BallState::from_arrays([0.6, y, 0.30], [0.0, 0.0, 0.0]);
+        rec.write(cam.render(Some(&ball)).unwrap()).unwrap();
+    }
+    rec.finish().unwrap();
+
+    // The robot controller and the magnet board at their configured places.
+    let client = free_udp_port();
+    let robot = SimServer::spawn(
+        FriSimParams::default(),
+        SocketAddr::from(([127, 0, 0, 1], 0)),
+        client,
+        SimRunOptions {
+            auto_command: true,
+            duration: None,
+        },
+    )
+    .unwrap();
+    let board = FakeDevice::start(dir.join("ttyMAGNET")).unwrap();
+
+    let toml = format!(
+        "[lab]\nmode = \"real\"\n\
+         [fri]\nlocal_bind = \"{client}\"\ncontroller = \"{}\"\nperiod_ms = 5\n\
+         [camera]\ndevice = \"{}\"\n\
+         [magnet]\nport = \"{}\"\n\
+         [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
+         plane_distance_m = 1.6\npivot_m = [0.6, 0.0, 2.23]\n",
+        robot.local_addr(),
+        video.display(),
+        board.path().display()
+    );
+    let cfg = ServeConfig::from_toml_str(&toml).unwrap();
+    assert_eq!(cfg.lab.mode, LabMode::Real);
+    let setup = server::serve::real_lab(&cfg, scenario, 1).unwrap();
+    let (lab, sim) = server::simlab::start_lab(setup, None, LabOptions::default()).unwrap();
+
+    sim.runtime()
+        .wait_commanding(Duration::from_secs(10))
+        .unwrap();
+    assert!(
+        robot
+            .stats()
+            .reached(rt_core::fri::SessionState::CommandingActive)
+    );
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let snap = loop {
+        if let Some((s, _)) = lab.latest()
+            && s.counters.measurements > 10
+            && s.magnet != MagnetState::Unknown
+        {
+            break s;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no detections or magnet state: {:?}",
+            lab.latest().map(|(s, _)| (s.counters, s.magnet, s.fri))
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    println!(
+        "real lab: fri {:?}, {} measurements, last {:?}, magnet {:?}",
+        snap.fri, snap.counters.measurements, snap.pendulum.measured, snap.magnet
+    );
+    assert_eq!(snap.fri.session, FriSessionState::CommandingActive);
+    assert!(snap.pendulum.measured.valid);
+    assert!(
+        snap.pendulum.measured.x_m.abs() < 0.5,
+        "{:?}",
+        snap.pendulum.measured
+    );
+    assert_eq!(snap.magnet, MagnetState::Off);
+    // The magnet goes through the driver on the configured port.
+    sim.runtime().magnet().set_magnet(true).unwrap();
+    assert!(board.magnet_on());
+    lab.shutdown();
+    drop(sim);
+    let _ = std::fs::remove_dir_all(&dir);
+}
