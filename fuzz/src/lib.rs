@@ -232,12 +232,13 @@ pub fn client_on_datagram(data: &[u8]) {
                 replies += 1;
                 assert_eq!(st.replies.load(Relaxed), replies);
                 if client.state() == LinkState::CommandingActive
-                    && sane
                     && let Some(q) = c.joint_position_rad
                 {
-                    // Whatever the control asked (NaN, 1e300, far jumps), the
-                    // guard sent a finite position inside the limits.
-                    assert!(within_limits(&q), "guarded command {q:?}");
+                    // Whatever the control or the controller sent (NaN, 1e300,
+                    // far jumps), the command is finite and, from a sane
+                    // hand-over, inside the limits.
+                    assert!(q.iter().all(|v| v.is_finite()), "command {q:?}");
+                    assert!(!sane || within_limits(&q), "guarded command {q:?}");
                 }
             }
             Step::Action(a) => control.mode = a,

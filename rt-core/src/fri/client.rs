@@ -480,10 +480,14 @@ impl FriClient {
         let period_s = self.receive_period_ns as f64 * 1e-9;
 
         // The hand-over position: what the controller's interpolator holds.
+        // A non-finite one is not taken: the guard holds the previous command
+        // when asked for NaN, so it must never start from one.
+        let finite = |q: &Joints| q.iter().all(|v| v.is_finite());
         let handover = m
             .ipo_joint_position_rad
-            .or(m.commanded_joint_position_rad)
-            .or(m.measured_joint_position_rad);
+            .filter(finite)
+            .or(m.commanded_joint_position_rad.filter(finite))
+            .or(m.measured_joint_position_rad.filter(finite));
         let entering_active =
             new_state == LinkState::CommandingActive && prev_state != LinkState::CommandingActive;
         if entering_active {

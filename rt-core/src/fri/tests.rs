@@ -610,6 +610,51 @@ fn a_nan_command_is_held() {
     assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0);
 }
 
+/// A controller handing over NaN positions (a corrupt but well-formed
+/// datagram) never makes the client command NaN: the guard's hold needs a
+/// finite previous command, so a non-finite hand-over is not taken.
+#[test]
+fn a_non_finite_hand_over_is_never_commanded() {
+    let mut client = FriClient::new(FriClientParams::default()).unwrap();
+    let mut enc = MonitoringEncoder::new();
+    let mut dec = CommandDecoder::new();
+    let mut ctl = Mover {
+        absolute_a1: Some(f64::NAN),
+        ..Mover::default()
+    };
+    let nan = [f64::NAN; 7];
+    let mut sent = Vec::new();
+    for (k, (state, ipo, commanded)) in [
+        (SessionState::MonitoringReady, None, Some(nan)),
+        (SessionState::CommandingActive, Some(nan), Some(nan)),
+        (SessionState::CommandingActive, Some(nan), None),
+        (SessionState::CommandingActive, Some([0.1; 7]), None),
+        (SessionState::CommandingActive, Some(nan), None),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let m = Monitoring {
+            session_state: state,
+            ipo_joint_position_rad: ipo,
+            commanded_joint_position_rad: commanded,
+            measured_joint_position_rad: Some(nan),
+            ..sample_monitoring(k as u32, false)
+        };
+        let bytes = enc.encode(&m).unwrap().to_vec();
+        let reply = client
+            .on_datagram(&bytes, k as u64 * 5 * MS, &mut ctl)
+            .expect("every message is answered");
+        sent.push(dec.decode(reply).unwrap().joint_position_rad);
+    }
+    // Without a finite hand-over: header-only answers, never NaN; then the
+    // finite one is held (the control asks for NaN) and kept.
+    assert_eq!(sent[..3], [None, None, None]);
+    assert_eq!(sent[3], Some([0.1; 7]));
+    assert_eq!(sent[4], Some([0.1; 7]));
+    assert_eq!(client.stats().snapshot().guard_non_finite, 2);
+}
+
 #[test]
 fn a_silent_controller_stops_the_motion_after_two_periods() {
     let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
