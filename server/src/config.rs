@@ -163,6 +163,11 @@ pub struct Calibration {
     pub plane_distance_m: f64,
     /// Pendulum pivot in the robot base frame, metres.
     pub pivot_m: [f64; 3],
+    /// Where the camera is and where it looks, in the robot base frame. Without
+    /// it the camera is taken to sit on the pivot's line along -x at the height
+    /// of the ball at rest, `plane_distance_m` before the swing plane, looking
+    /// along +x.
+    pub camera_pose: Option<rt_core::vision::CameraPose>,
 }
 
 impl Default for Calibration {
@@ -172,6 +177,7 @@ impl Default for Calibration {
             principal_point_px: [640.0, 360.0],
             plane_distance_m: 1.5,
             pivot_m: [0.6, 0.0, 2.23],
+            camera_pose: None,
         }
     }
 }
@@ -247,6 +253,9 @@ impl ServeConfig {
         for (i, v) in k.pivot_m.iter().enumerate() {
             check::within(&format!("calibration.pivot_m[{i}]"), *v, -10.0, 10.0)?;
         }
+        if let Some(pose) = &k.camera_pose {
+            pose.validate("calibration.camera_pose")?;
+        }
         Ok(())
     }
 }
@@ -261,12 +270,21 @@ mod tests {
         let cfg = ServeConfig::from_file(std::path::Path::new(path)).unwrap();
         assert_eq!(cfg.lab.mode, LabMode::Real);
         assert_eq!(cfg.fri.controller.port(), 30200);
+        let pose = cfg.calibration.camera_pose.unwrap();
+        assert_eq!(pose.position_m, [-0.9, 0.0, 0.30]);
     }
 
     #[test]
     fn unknown_keys_and_bad_values_are_refused() {
         let e = ServeConfig::from_toml_str("[server]\nstate_hz = 0.0\n").unwrap_err();
         assert_eq!(e.field(), Some("server.state_hz"));
+        let e = ServeConfig::from_toml_str(
+            "[calibration.camera_pose]\nposition_m = [0.0, 0.0, 12.0]\n",
+        )
+        .unwrap_err();
+        assert_eq!(e.field(), Some("calibration.camera_pose.position_m[2]"));
+        let e = ServeConfig::from_toml_str("[calibration.camera_pose]\nyaw = 3.0\n").unwrap_err();
+        assert!(e.to_string().contains("yaw"), "{e}");
         let e = ServeConfig::from_toml_str("[fri]\nperiod = 5\n").unwrap_err();
         assert!(e.to_string().contains("period"), "{e}");
         assert_eq!(

@@ -119,9 +119,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
 /// simulated lab with the FRI client answering the configured controller, the
 /// webcam (or, when `camera.device` is a regular file, that video looped at
 /// its frame rate), the magnet on the configured serial port, and the
-/// pendulum where `calibration.pivot_m` puts it. The camera is taken to look
-/// along the base's +x at the height of the ball at rest, `plane_distance_m`
-/// before the swing plane.
+/// pendulum where `calibration.pivot_m` puts it. The camera is where
+/// `calibration.camera_pose` puts it; without one it is taken to look along the
+/// base's +x at the height of the ball at rest, `plane_distance_m` before the
+/// swing plane.
 pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow::Result<LabSetup> {
     scenario.robot.fri_period_ms = cfg.fri.period_ms;
     scenario.camera.width_px = cfg.camera.width_px;
@@ -139,10 +140,10 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         k1: 0.0,
         k2: 0.0,
     };
-    let pose = CameraPose {
+    let pose = k.camera_pose.unwrap_or(CameraPose {
         position_m: [px - k.plane_distance_m, py, rest.z],
         ..CameraPose::default()
-    };
+    });
     let calibration =
         SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, scenario.pendulum.ball_radius_m);
     let device = cfg.camera.device.clone();

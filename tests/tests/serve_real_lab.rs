@@ -40,9 +40,13 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
 
     // The camera: a rendered video of the ball swinging at 0.6 m.
     let video = dir.join("pendulum.avi");
+    // The camera that filmed it is where the config says (beside the
+    // pivot's line and above the ball's rest height, as the simulated camera).
+    let filmed = SimCameraParams::default();
+    let pose = filmed.pose;
     let mut cam = SimCamera::new(
         &scenario.camera,
-        &SimCameraParams::default(),
+        &filmed,
         scenario.pendulum.ball_radius_m,
         1,
     )
@@ -75,10 +79,18 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
          [camera]\ndevice = \"{}\"\n\
          [magnet]\nport = \"{}\"\n\
          [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
-         plane_distance_m = 1.6\npivot_m = [0.6, 0.0, 2.23]\n",
+         plane_distance_m = 1.6\npivot_m = [0.6, 0.0, 2.23]\n\
+         [calibration.camera_pose]\nposition_m = [{}, {}, {}]\n\
+         yaw_deg = {}\npitch_deg = {}\nroll_deg = {}\n",
         robot.local_addr(),
         video.display(),
-        board.path().display()
+        board.path().display(),
+        pose.position_m[0],
+        pose.position_m[1],
+        pose.position_m[2],
+        pose.yaw_deg,
+        pose.pitch_deg,
+        pose.roll_deg,
     );
     let cfg = ServeConfig::from_toml_str(&toml).unwrap();
     assert_eq!(cfg.lab.mode, LabMode::Real);
@@ -120,6 +132,25 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
         snap.pendulum.measured
     );
     assert_eq!(snap.magnet, MagnetState::Off);
+    // The lateral positions follow the filmed ball (y = 0.25 sin(0.15 i) m,
+    // looped): both sides of the swing, never beyond it. A camera pose that
+    // disagrees with the camera shifts or scales them.
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !(lo < -0.2 && hi > 0.2) {
+        assert!(
+            Instant::now() < deadline,
+            "measured lateral positions only span {lo:.3}..{hi:.3} m"
+        );
+        if let Some((s, _)) = lab.latest() {
+            let x = s.pendulum.measured.x_m;
+            assert!(x.abs() < 0.27, "lateral {x:.3} m beyond the filmed swing");
+            lo = lo.min(x);
+            hi = hi.max(x);
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    println!("real lab: measured lateral positions span {lo:.3}..{hi:.3} m");
     // The magnet goes through the driver on the configured port.
     sim.runtime().magnet().set_magnet(true).unwrap();
     assert!(board.magnet_on());
