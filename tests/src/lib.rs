@@ -112,3 +112,39 @@ fn dechunk(mut data: &[u8]) -> anyhow::Result<Vec<u8>> {
         data = &data[size + 2..];
     }
 }
+
+/// The `isochron` binary that `cargo test --workspace` built next to the
+/// running test (or `ISOCHRON_BIN`), if every `(args, needle)` check passes:
+/// `isochron ARGS` exits 0 and its standard output contains `needle`.
+///
+/// Engineers may share one target folder, so a binary there can come from
+/// another branch and lack what the test needs: that is a skip (`None`, said
+/// on stderr), except under `CI=true`, where it fails the test.
+pub fn isochron_bin(checks: &[(&[&str], &str)]) -> Option<std::path::PathBuf> {
+    let bin = match std::env::var_os("ISOCHRON_BIN") {
+        Some(b) => std::path::PathBuf::from(b),
+        None => {
+            let exe = std::env::current_exe().ok()?;
+            exe.parent()?.parent()?.join("isochron")
+        }
+    };
+    let passes = |args: &[&str], needle: &str| {
+        std::process::Command::new(&bin)
+            .args(args)
+            .output()
+            .is_ok_and(|o| {
+                o.status.success() && String::from_utf8_lossy(&o.stdout).contains(needle)
+            })
+    };
+    if let Some((args, needle)) = checks.iter().find(|(a, n)| !passes(a, n)) {
+        let msg = format!(
+            "{} missing, or `isochron {}` does not show `{needle}` (run `cargo build -p server`)",
+            bin.display(),
+            args.join(" ")
+        );
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
+        eprintln!("SKIPPED: {msg}");
+        return None;
+    }
+    Some(bin)
+}

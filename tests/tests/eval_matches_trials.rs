@@ -11,31 +11,9 @@ use std::{
 
 use serde_json::Value;
 
-/// The `isochron` binary built next to this test (by `cargo test --workspace`), or
-/// `ISOCHRON_BIN`. Engineers share one target folder, so a binary from another
-/// branch may sit there: without `eval` it is a skip, except under CI.
+/// The `isochron` binary with `eval`.
 fn isochron() -> Option<PathBuf> {
-    let bin = match std::env::var_os("ISOCHRON_BIN") {
-        Some(b) => PathBuf::from(b),
-        None => {
-            let exe = std::env::current_exe().unwrap();
-            exe.parent()?.parent()?.join("isochron")
-        }
-    };
-    let knows = Command::new(&bin)
-        .args(["eval", "--help"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if knows {
-        return Some(bin);
-    }
-    let msg = format!(
-        "{} missing or without `eval` (run `cargo build -p server`)",
-        bin.display()
-    );
-    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-    eprintln!("SKIPPED: {msg}");
-    None
+    isochron_tests::isochron_bin(&[(&["eval", "--help"], "")])
 }
 
 fn run_json(bin: &Path, dir: &Path, args: &[&str]) -> Value {

@@ -17,26 +17,9 @@ use rt_core::fri::{
     StopReason,
 };
 
-/// The `isochron` binary built next to this test (by `cargo test --workspace`).
+/// The `isochron` binary with `fri-sim`.
 fn isochron() -> Option<PathBuf> {
-    let exe = std::env::current_exe().unwrap();
-    let bin = exe.parent()?.parent()?.join("isochron");
-    // Engineers share one target folder: a binary from another branch may sit
-    // there. Under CI it is always this tree's.
-    let knows = Command::new(&bin)
-        .args(["fri-sim", "--help"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if knows {
-        return Some(bin);
-    }
-    let msg = format!(
-        "{} missing or without `fri-sim` (run `cargo build -p server`)",
-        bin.display()
-    );
-    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-    eprintln!("SKIPPED: {msg}");
-    None
+    isochron_tests::isochron_bin(&[(&["fri-sim", "--help"], "")])
 }
 
 /// Waits for `cond`, polling every millisecond, at most `timeout`.

@@ -615,26 +615,9 @@ fn a_command_burst_from_two_callers_is_serialised_not_lost() {
     assert!(board.wait_coil(u8::from(on), Duration::from_secs(1)));
 }
 
-/// The `isochron` binary that `cargo test --workspace` built next to this test.
+/// The `isochron` binary with `magnet`.
 fn isochron_bin() -> Option<PathBuf> {
-    let exe = std::env::current_exe().ok()?;
-    let bin = exe.parent()?.parent()?.join("isochron");
-    // `cargo test --workspace` builds it from this tree; a binary from another
-    // build of a shared target folder may predate the subcommand.
-    let knows_magnet = Process::new(&bin)
-        .args(["magnet", "--help"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if knows_magnet {
-        return Some(bin);
-    }
-    let msg = format!(
-        "{} missing or without `magnet` (run `cargo build -p server`)",
-        bin.display()
-    );
-    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-    eprintln!("SKIPPED: {msg}");
-    None
+    isochron_tests::isochron_bin(&[(&["magnet", "--help"], "")])
 }
 
 fn isochron_magnet(bin: &Path, args: &[&str]) -> (bool, String, String) {

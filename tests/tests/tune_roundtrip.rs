@@ -22,33 +22,12 @@ use rt_core::{
 };
 use serde_json::Value;
 
-/// The `isochron` binary built next to this test (by `cargo test --workspace`), or
-/// `ISOCHRON_BIN`. Engineers share one target folder, so a binary from another
-/// branch may sit there: without the options under test it is a skip, except
-/// under CI.
+/// The `isochron` binary with the options under test.
 fn isochron() -> Option<PathBuf> {
-    let bin = match std::env::var_os("ISOCHRON_BIN") {
-        Some(b) => PathBuf::from(b),
-        None => {
-            let exe = std::env::current_exe().unwrap();
-            exe.parent()?.parent()?.join("isochron")
-        }
-    };
-    let knows = |args: &[&str], needle: &str| {
-        Command::new(&bin).args(args).output().is_ok_and(|o| {
-            o.status.success() && String::from_utf8_lossy(&o.stdout).contains(needle)
-        })
-    };
-    if knows(&["serve", "--help"], "--params") && knows(&["trials", "--help"], "--params") {
-        return Some(bin);
-    }
-    let msg = format!(
-        "{} missing or without `--params` (run `cargo build -p server`)",
-        bin.display()
-    );
-    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-    eprintln!("SKIPPED: {msg}");
-    None
+    isochron_tests::isochron_bin(&[
+        (&["serve", "--help"], "--params"),
+        (&["trials", "--help"], "--params"),
+    ])
 }
 
 fn scenario_path() -> PathBuf {
