@@ -377,6 +377,10 @@ pub struct Scenario {
     pub timing: crate::timing::TimingParams,
     /// The closed loop (trial states, latency estimate, guard).
     pub control: crate::control::ControlParams,
+    /// The simulated lab as it really is (`[world]`; read only by the
+    /// simulators, never by the controller). `None`: a truthful world.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub world: Option<crate::sim::world::WorldParams>,
 }
 
 impl Default for Scenario {
@@ -391,6 +395,7 @@ impl Default for Scenario {
             ekf: crate::ekf::EkfParams::default(),
             timing: crate::timing::TimingParams::default(),
             control: crate::control::ControlParams::default(),
+            world: None,
         }
     }
 }
@@ -412,7 +417,11 @@ impl Scenario {
         self.success.validate()?;
         self.ekf.validate()?;
         self.timing.validate()?;
-        self.control.validate()
+        self.control.validate()?;
+        if let Some(w) = &self.world {
+            w.validate()?;
+        }
+        Ok(())
     }
 
     /// Parses and validates a scenario from TOML text. Unknown keys are refused.

@@ -5,6 +5,7 @@ pub mod fri_step;
 pub mod lab;
 pub mod magnet;
 pub mod realtime;
+pub mod world;
 
 pub use fri_step::FriLoopStep;
 pub use lab::{LabError, LoopStep, TrialDraw, VirtualLab, draw_trial};

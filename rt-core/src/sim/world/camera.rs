@@ -1,0 +1,199 @@
+//! The true camera: where it really stands, its lens, its shutter and its
+//! clock, against what the lab believes (`[camera]`, the believed pose and
+//! intrinsics the vision pipeline calibrates with).
+//!
+//! - **Timing.** Exposure of a frame starts at `t0` (the frame clock). It is
+//!   delivered at `t0 + L_true + j`, `L_true = camera.latency_ms +
+//!   world.camera.latency_ms`, `j` uniform in `[0, jitter]` per frame. The
+//!   source stamps it as the real webcam source does: delivery time minus the
+//!   *believed* latency, so a wrong belief or jitter shows up as a stamp error.
+//! - **Rolling shutter.** Row `v` is read `v / H * readout` after `t0`; the
+//!   ball is seen where it was when its own row was exposed.
+//! - **Exposure.** The ball is smeared over the exposure; the detected centre
+//!   is the smear's centroid (the mean of the projections over the exposure).
+//! - **Lens.** Brown-Conrady distortion `k1, k2, p1, p2` on normalised coordinates.
+//! - **Pose.** The true camera is rotated (base x, y, z, radians) and shifted
+//!   off the believed pose.
+//!
+//! `equivalent_centre_m` turns the true ball into the point the *believed*
+//! camera would see at the same pixel and depth: handing that to a renderer
+//! built on the believed camera makes rendered frames carry every effect.
+
+use nalgebra::{Rotation3, Vector2, Vector3};
+use rand::RngExt;
+
+use super::params::SessionDraw;
+use crate::vision::{CameraIntrinsics, CameraPose};
+
+/// Samples across the exposure for the smear's centroid.
+const EXPOSURE_SAMPLES: usize = 7;
+
+/// A frame as the true camera makes it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameTiming {
+    /// Start of the exposure (frame clock), s.
+    pub t_start_s: f64,
+    /// When the frame reaches the host, s.
+    pub t_delivered_s: f64,
+    /// The stamp the source gives it: delivery minus the believed latency, s.
+    pub t_stamp_s: f64,
+}
+
+/// Where the true camera sees the ball in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sighting {
+    /// Detected centre (smear centroid), pixels.
+    pub px: Vector2<f64>,
+    /// Time the ball's row was read (start of its exposure), s.
+    pub t_row_s: f64,
+}
+
+/// The true camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorldCamera {
+    /// What the lab believes (pose).
+    pub believed_pose: CameraPose,
+    /// The believed intrinsics (no distortion).
+    pub intrinsics: CameraIntrinsics,
+    /// Image height, pixels.
+    pub height_px: f64,
+    /// True camera centre, base frame, m.
+    pub position_m: Vector3<f64>,
+    /// True `base_from_camera`.
+    pub base_from_camera: Rotation3<f64>,
+    /// `[k1, k2, p1, p2]`.
+    pub distortion: [f64; 4],
+    /// Readout top row -> bottom row, s.
+    pub rolling_shutter_s: f64,
+    /// Exposure, s.
+    pub exposure_s: f64,
+    /// The believed latency, s.
+    pub believed_latency_s: f64,
+    /// True latency minus the believed one, s.
+    pub latency_offset_s: f64,
+    /// Per-frame jitter bound, s.
+    pub jitter_s: f64,
+}
+
+impl WorldCamera {
+    /// A camera that is what the lab believes (no effect).
+    pub fn truthful(
+        believed_pose: CameraPose,
+        intrinsics: CameraIntrinsics,
+        height_px: u32,
+        believed_latency_s: f64,
+    ) -> Self {
+        Self {
+            believed_pose,
+            intrinsics,
+            height_px: f64::from(height_px),
+            position_m: believed_pose.position(),
+            base_from_camera: believed_pose.base_from_camera(),
+            distortion: [0.0; 4],
+            rolling_shutter_s: 0.0,
+            exposure_s: 0.0,
+            believed_latency_s,
+            latency_offset_s: 0.0,
+            jitter_s: 0.0,
+        }
+    }
+
+    /// The session's true camera around the believed one.
+    pub fn from_session(
+        believed_pose: CameraPose,
+        intrinsics: CameraIntrinsics,
+        height_px: u32,
+        believed_latency_s: f64,
+        s: &SessionDraw,
+    ) -> Self {
+        let mut c = Self::truthful(believed_pose, intrinsics, height_px, believed_latency_s);
+        let [rx, ry, rz] = s.camera_rotation_error_rad;
+        let err = Rotation3::from_euler_angles(rx, ry, rz);
+        c.base_from_camera = err * c.base_from_camera;
+        c.position_m += Vector3::from(s.camera_position_error_m);
+        c.distortion = s.distortion;
+        c.rolling_shutter_s = s.rolling_shutter_s;
+        c.exposure_s = s.exposure_s;
+        c.latency_offset_s = s.camera_latency_offset_s;
+        c.jitter_s = s.camera_jitter_s;
+        c
+    }
+
+    /// Delivery and stamp of the frame whose exposure starts at `t_start_s`.
+    pub fn timing(&self, t_start_s: f64, rng: &mut impl rand::Rng) -> FrameTiming {
+        let j = if self.jitter_s > 0.0 {
+            rng.random_range(0.0..=self.jitter_s)
+        } else {
+            0.0
+        };
+        let delivered = t_start_s + (self.believed_latency_s + self.latency_offset_s).max(0.0) + j;
+        FrameTiming {
+            t_start_s,
+            t_delivered_s: delivered,
+            t_stamp_s: delivered - self.believed_latency_s,
+        }
+    }
+
+    /// Projects a base-frame point through the true camera (with distortion);
+    /// `None` behind it.
+    pub fn project(&self, p_b: &Vector3<f64>) -> Option<Vector2<f64>> {
+        let pc = self.base_from_camera.inverse() * (p_b - self.position_m);
+        if pc.z <= 1e-6 {
+            return None;
+        }
+        let (x, y) = (pc.x / pc.z, pc.y / pc.z);
+        let [k1, k2, p1, p2] = self.distortion;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + k1 * r2 + k2 * r2 * r2;
+        let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        let k = &self.intrinsics;
+        Some(Vector2::new(k.fx_px * xd + k.cx_px, k.fy_px * yd + k.cy_px))
+    }
+
+    /// Where the ball (centre at `ball(t)`) is seen in the frame whose exposure
+    /// starts at `t_start_s`: its row's read time (rolling shutter, found by
+    /// fixed-point iteration) and the centroid of its smear over the exposure.
+    pub fn sight(
+        &self,
+        t_start_s: f64,
+        mut ball: impl FnMut(f64) -> Vector3<f64>,
+    ) -> Option<Sighting> {
+        let mut t_row = t_start_s;
+        let mut px = self.smear(t_row, &mut ball)?;
+        if self.rolling_shutter_s > 0.0 {
+            for _ in 0..4 {
+                let row = px.y.clamp(0.0, self.height_px);
+                t_row = t_start_s + row / self.height_px * self.rolling_shutter_s;
+                px = self.smear(t_row, &mut ball)?;
+            }
+        }
+        Some(Sighting { px, t_row_s: t_row })
+    }
+
+    fn smear(&self, t_s: f64, ball: &mut impl FnMut(f64) -> Vector3<f64>) -> Option<Vector2<f64>> {
+        if self.exposure_s <= 0.0 {
+            return self.project(&ball(t_s));
+        }
+        let mut sum = Vector2::zeros();
+        for k in 0..EXPOSURE_SAMPLES {
+            let t = t_s + self.exposure_s * (k as f64) / ((EXPOSURE_SAMPLES - 1) as f64);
+            sum += self.project(&ball(t))?;
+        }
+        Some(sum / EXPOSURE_SAMPLES as f64)
+    }
+
+    /// The point the believed camera sees at pixel `px` at the depth of
+    /// `depth_from_b` (believed camera frame): what a renderer built on the
+    /// believed camera must draw so that it appears at `px`.
+    pub fn equivalent_centre_m(
+        &self,
+        px: &Vector2<f64>,
+        depth_from_b: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        let pc = self.believed_pose.to_camera(depth_from_b);
+        let ray = self.intrinsics.ray(px.x, px.y);
+        let p_c = ray * pc.z.max(1e-3);
+        self.believed_pose.base_from_camera() * p_c + self.believed_pose.position()
+    }
+}
