@@ -9,9 +9,10 @@ use std::path::PathBuf;
 
 use isochron_fuzz::{push_action, push_datagram, push_wait};
 use rt_core::fri::{
-    CommandEncoder, ControlStep, FriClient, FriClientParams, FriSimParams, Joints,
-    MonitoringDecoder, SessionState, SimController, StepInput,
+    CommandEncoder, ControlStep, FriClient, FriClientParams, Joints, MonitoringDecoder,
+    SessionState, StepInput,
 };
+use rt_core::sim::kuka::{FriSimParams, SimController};
 
 /// Moves A1 slowly while commanding.
 struct Creep;

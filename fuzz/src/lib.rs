@@ -13,9 +13,10 @@ use rt_core::fri::codec::{
     command_view, decode_command_message, decode_monitoring_message, monitoring_view,
 };
 use rt_core::fri::{
-    CommandDecoder, CommandEncoder, ControlStep, FriClient, FriClientParams, FriSimParams, Joints,
-    LinkState, MonitoringDecoder, MonitoringEncoder, SessionState, SimController, StepInput,
+    CommandDecoder, CommandEncoder, ControlStep, FriClient, FriClientParams, Joints, LinkState,
+    MonitoringDecoder, MonitoringEncoder, SessionState, StepInput,
 };
+use rt_core::sim::kuka::{FriSimParams, SimController};
 use rt_core::kinematics::iiwa7::{JOINTS, POSITION_LIMIT_RAD};
 
 /// One step of a session script: the first byte says what happens, a payload

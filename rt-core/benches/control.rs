@@ -6,10 +6,10 @@
 //! clock against CPU time) is `isochron bench`'s `control_step`.
 
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
-use rt_core::control::rig::Rig;
 use rt_core::control::{Controller, TrialState};
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::sim::VirtualLab;
+use rt_core::sim::rig::Rig;
 
 /// A rig at 1 ms whose next step is in the phase `until` finds.
 fn rig_in(until: impl Fn(&Rig) -> bool) -> Rig {

@@ -13,7 +13,8 @@ use std::{
 };
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use rt_core::magnet::{Command, FakeDevice, LinkState, MagnetHandle, MagnetParams, MagnetState};
+use rt_core::magnet::{Command, LinkState, MagnetHandle, MagnetParams, MagnetState};
+use rt_core::sim::magnet::FakeDevice;
 
 fn link(tag: &str) -> PathBuf {
     std::env::temp_dir().join(format!("isochron-bench-{tag}-{}", std::process::id()))

@@ -7,7 +7,8 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use nalgebra::Vector3;
 use rt_core::{
     params::CameraParams,
-    vision::{BallState, Detector, DetectorParams, SimCamera, SimCameraParams, SimVision},
+    sim::camera::{BallState, SimCamera, SimCameraParams, SimVision},
+    vision::{Detector, DetectorParams},
 };
 
 const L: f64 = 1.93;

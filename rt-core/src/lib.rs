@@ -26,6 +26,7 @@ pub mod control;
 pub mod ekf;
 pub mod fri;
 pub mod kinematics;
+pub mod lab;
 pub mod magnet;
 pub mod params;
 pub mod pendulum;

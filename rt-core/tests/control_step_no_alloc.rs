@@ -4,8 +4,8 @@
 
 use allocation_counter::measure;
 use rt_core::control::TrialState;
-use rt_core::control::rig::Rig;
 use rt_core::params::Scenario;
+use rt_core::sim::rig::Rig;
 
 /// Runs `trials` whole trials and returns (steps, allocations in steps,
 /// worst allocations in one step, steps per state seen).

@@ -9,8 +9,8 @@ pub mod config;
 pub mod error;
 pub mod lab;
 pub mod records;
+pub mod runtime;
 pub mod serve;
-pub mod simlab;
 pub mod ws;
 
 use std::{

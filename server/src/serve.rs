@@ -10,8 +10,8 @@ use crate::{
     config::{LabMode, ServeConfig},
 };
 use rt_core::{
+    lab::{CameraLink, FriLink, LabSetup, MagnetLink},
     magnet::MagnetParams,
-    sim::realtime::{CameraLink, FriLink, LabSetup, MagnetLink},
     vision::{
         CameraIntrinsics, CameraPose, FrameSource, SwingPlaneCalibration, VideoFileSource,
         WebcamParams, WebcamSource,
@@ -76,10 +76,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         LabMode::Simulated => LabSetup::simulated(scenario, seed),
         LabMode::Real => real_lab(&cfg, scenario, seed)?,
     };
-    let (lab, sim) = crate::simlab::start_lab(setup, Some(Arc::clone(&records)), options)?;
+    let (lab, sim) = crate::runtime::start_lab(setup, Some(Arc::clone(&records)), options)?;
     tracing::info!(
         mode = ?cfg.lab.mode,
-        fri = ?sim.runtime().fri_local_addr(),
+        fri = ?sim.fri_local_addr(),
         "lab running (FRI client session over UDP, camera through the detector, magnet driver)"
     );
 
@@ -151,7 +151,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         device: device.clone(),
         camera: scenario.camera.clone(),
     };
-    let open: rt_core::sim::realtime::SourceFactory = Box::new(move |clock| {
+    let open: rt_core::lab::SourceFactory = Box::new(move |clock| {
         Ok(if device.is_file() {
             Box::new(VideoFileSource::open(&device, Some(clock), true)?) as Box<dyn FrameSource>
         } else {

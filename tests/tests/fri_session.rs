@@ -7,10 +7,10 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use rt_core::fri::{
-    AbortReason, CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams,
-    FriSimParams, Joints, LinkState, MonitoringDecoder, SessionState, SimRunOptions, SimServer,
-    StepInput, StopReason,
+    CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams, Joints, LinkState,
+    MonitoringDecoder, SessionState, StepInput, StopReason,
 };
+use rt_core::sim::kuka::{AbortReason, FriSimParams, SimRunOptions, SimServer};
 
 const LOOPBACK: &str = "127.0.0.1:0";
 

@@ -12,10 +12,10 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use rt_core::fri::{
-    CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams, FriSimParams,
-    Joints, LinkState, MonitoringDecoder, SessionState, SimRunOptions, SimServer, StepInput,
-    StopReason,
+    CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams, Joints, LinkState,
+    MonitoringDecoder, SessionState, StepInput, StopReason,
 };
+use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
 
 /// The `isochron` binary with `fri-sim`.
 fn isochron() -> Option<PathBuf> {

@@ -9,7 +9,7 @@ use std::{
 
 use isochron_tests::http;
 use rt_core::params::Scenario;
-use server::{AppState, LabOptions, Records, app, simlab::start_simulated};
+use server::{AppState, LabOptions, Records, app, runtime::start_simulated};
 
 #[tokio::test]
 async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart() {

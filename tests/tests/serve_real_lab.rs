@@ -14,10 +14,11 @@ use std::{
 
 use rt_core::{
     bridge::{FriSessionState, MagnetState},
-    fri::{FriSimParams, SimRunOptions, SimServer},
-    magnet::FakeDevice,
     params::Scenario,
-    vision::{BallState, Recorder, SimCamera, SimCameraParams},
+    sim::camera::{BallState, SimCamera, SimCameraParams},
+    sim::kuka::{FriSimParams, SimRunOptions, SimServer},
+    sim::magnet::FakeDevice,
+    vision::Recorder,
 };
 use server::{
     LabOptions,
@@ -95,11 +96,9 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
     let cfg = ServeConfig::from_toml_str(&toml).unwrap();
     assert_eq!(cfg.lab.mode, LabMode::Real);
     let setup = server::serve::real_lab(&cfg, scenario, 1).unwrap();
-    let (lab, sim) = server::simlab::start_lab(setup, None, LabOptions::default()).unwrap();
+    let (lab, sim) = server::runtime::start_lab(setup, None, LabOptions::default()).unwrap();
 
-    sim.runtime()
-        .wait_commanding(Duration::from_secs(10))
-        .unwrap();
+    sim.wait_commanding(Duration::from_secs(10)).unwrap();
     assert!(
         robot
             .stats()
@@ -152,7 +151,7 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
     }
     println!("real lab: measured lateral positions span {lo:.3}..{hi:.3} m");
     // The magnet goes through the driver on the configured port.
-    sim.runtime().magnet().set_magnet(true).unwrap();
+    sim.magnet().set_magnet(true).unwrap();
     assert!(board.magnet_on());
     lab.shutdown();
     drop(sim);

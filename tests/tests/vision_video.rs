@@ -5,10 +5,8 @@ use std::{path::PathBuf, process::Command};
 
 use rt_core::{
     params::CameraParams,
-    vision::{
-        BallState, Detector, DetectorParams, FrameSource, Recorder, SimCamera, SimCameraParams,
-        VideoFileSource,
-    },
+    sim::camera::{BallState, SimCamera, SimCameraParams},
+    vision::{Detector, DetectorParams, FrameSource, Recorder, VideoFileSource},
 };
 
 const L: f64 = 1.93;

@@ -18,7 +18,7 @@ use isochron_tests::http;
 use rt_core::bridge::{Frame, FriSessionState};
 use rt_core::params::Scenario;
 use serde_json::Value;
-use server::{AppState, Lab, LabOptions, app, simlab::SimLab};
+use server::{AppState, Lab, LabOptions, app, runtime::LabRuntime};
 use tokio_tungstenite::tungstenite::Message;
 
 type Ws =
@@ -50,13 +50,13 @@ async fn read_for(ws: &mut Ws, window: Duration) -> Vec<Value> {
 struct SimService {
     addr: std::net::SocketAddr,
     lab: std::sync::Arc<Lab>,
-    sim: Option<SimLab>,
+    sim: Option<LabRuntime>,
     server: tokio::task::JoinHandle<()>,
 }
 
 impl SimService {
-    fn runtime(&self) -> &rt_core::sim::realtime::RealtimeLab {
-        self.sim.as_ref().unwrap().runtime()
+    fn runtime(&self) -> &rt_core::lab::LabRuntime {
+        self.sim.as_ref().unwrap()
     }
 }
 
@@ -70,7 +70,7 @@ impl Drop for SimService {
 
 async fn start_sim_service(options: LabOptions) -> SimService {
     let (lab, sim) =
-        server::simlab::start_simulated(Scenario::default(), None, options, 3).unwrap();
+        server::runtime::start_simulated(Scenario::default(), None, options, 3).unwrap();
     let state = AppState::new(temp_dir("web")).with_lab(std::sync::Arc::clone(&lab));
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();

@@ -4,7 +4,6 @@ pub mod cost;
 pub mod judge;
 pub mod latency;
 pub mod report;
-pub mod rig;
 pub mod state;
 pub mod stats;
 pub mod step;

@@ -6,8 +6,6 @@ pub mod guard;
 pub mod net;
 pub mod proto;
 pub mod session;
-pub mod sim;
-pub mod simserver;
 pub mod stats;
 
 #[cfg(test)]
@@ -25,5 +23,3 @@ pub use codec::{
 pub use guard::{CommandGuard, GuardOutcome, GuardParams};
 pub use proto::{ConnectionQuality, SessionState};
 pub use session::{FriSession, FriSessionParams, SessionError};
-pub use sim::{AbortReason, FriSimParams, SimController, SimReport, SimStats};
-pub use simserver::{SimError, SimRunOptions, SimServer};

@@ -308,9 +308,9 @@ proptest! {
 
 use super::client::*;
 use super::guard::*;
-use super::sim::*;
 use super::stats::LatencyHistogram;
 use crate::kinematics::iiwa7::{POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS};
+use crate::sim::kuka::controller::*;
 
 /// A test control: in COMMANDING_ACTIVE moves A1 at `speed_radps` from the
 /// hand-over position, or jumps by `jump_rad` once after `jump_after` steps.

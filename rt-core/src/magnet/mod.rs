@@ -1,8 +1,6 @@
 #![doc = include_str!("README.md")]
 
 pub mod driver;
-pub mod fake;
-pub mod model;
 pub mod protocol;
 pub mod view;
 
@@ -14,8 +12,6 @@ use serde::{Deserialize, Serialize};
 use crate::params::{ParamError, check};
 
 pub use driver::{Answer, EventHook, MagnetEvent, MagnetHandle, Pending};
-pub use fake::FakeDevice;
-pub use model::FirmwareModel;
 pub use protocol::{Command, DeviceEvent, DeviceStatus, OkReply, ResetCause};
 pub use view::{EventKind, LinkState, MagnetState, MagnetView, SwitchCause};
 

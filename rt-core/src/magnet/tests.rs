@@ -12,6 +12,7 @@ use super::{
     view::ViewCell,
     *,
 };
+use crate::sim::magnet::{FakeDevice, FirmwareModel};
 
 fn link_path(tag: &str) -> PathBuf {
     static NEXT: AtomicU64 = AtomicU64::new(0);

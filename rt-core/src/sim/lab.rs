@@ -4,141 +4,24 @@
 //! model; the controller's step is the same one the real-time runtime runs.
 
 use nalgebra::Vector3;
-use rand::{RngExt, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
-use super::fri_step::FriLoopStep;
+use super::camera::{BallState, SimCamera, SimCameraParams, SimVision};
 use super::magnet::{Switch, VirtualMagnet};
 use crate::control::judge::{PlannedMotion, TrialTrace, judge};
-use crate::control::{
-    ControlError, Controller, Lateness, Measurement, StepClock, StepInput, StepOutput, StepRecord,
-    StepTimings, TrialRecord, TrialState,
-};
+use crate::control::{ControlError, Controller, Measurement, TrialRecord, TrialState};
 use crate::fri::client::{FriClient, FriClientParams, LinkState};
-use crate::fri::codec::Monitoring;
 use crate::fri::proto::SessionState;
-use crate::fri::sim::{FriSimParams, SimController};
 use crate::kinematics::iiwa7::JOINTS;
+use crate::lab::{FriLoopStep, LoopStep, TrialDraw, draw_trial};
 use crate::params::Scenario;
 use crate::params::VisionMode;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::sim::kuka::{FriSimParams, SimController};
 use crate::trajectory::profile::ProfileKind;
-use crate::vision::{BallState, DetectorParams, SimCamera, SimCameraParams, SimVision};
-
-/// The control step as the FRI cycle calls it: the controller, the camera
-/// measurements delivered since the last message, and the cycle's timing.
-///
-/// Each step is timed by wall clock and by the thread's CPU time
-/// ([`StepClock`]): a step whose own computation exceeded the period is a
-/// deadline miss; one that only took longer by wall clock was preempted.
-#[derive(Debug)]
-pub struct LoopStep {
-    /// The controller.
-    pub controller: Controller,
-    /// Camera measurements delivered since the last step.
-    pub inbox: Vec<Measurement>,
-    /// The last step's output.
-    pub out: StepOutput,
-    /// Steps whose own computation (thread CPU time) took longer than the FRI period.
-    pub deadline_misses: u64,
-    /// Steps longer than the FRI period by wall clock whose computation fitted
-    /// in it (the thread was preempted while the step ran).
-    pub preempted_steps: u64,
-    /// Longest step, wall clock, nanoseconds.
-    pub max_step_ns: u64,
-    /// Longest step, thread CPU time, nanoseconds.
-    pub max_step_cpu_ns: u64,
-    /// When `Some`, every step's cost and states are recorded (benches; the
-    /// buffer is preallocated and never grows).
-    pub timings: Option<StepTimings>,
-}
-
-impl LoopStep {
-    /// Wraps a controller.
-    pub fn new(controller: Controller) -> Self {
-        Self {
-            controller,
-            inbox: Vec::with_capacity(64),
-            out: StepOutput::default(),
-            deadline_misses: 0,
-            preempted_steps: 0,
-            max_step_ns: 0,
-            max_step_cpu_ns: 0,
-            timings: None,
-        }
-    }
-
-    /// One step for the monitoring message `m` received at `t_s`; returns the
-    /// command to send.
-    pub fn run(&mut self, t_s: f64, period_s: f64, m: &Monitoring) -> [f64; JOINTS] {
-        let before = self.controller.state();
-        let clock = StepClock::start();
-        let q = m
-            .measured_joint_position_rad
-            .unwrap_or(self.out.q_command_rad);
-        let si = StepInput {
-            t_s,
-            q_measured_rad: q,
-            commanding: m.session_state == SessionState::CommandingActive,
-        };
-        self.controller
-            .step(&si, self.inbox.drain(..), &mut self.out);
-        let cost = clock.stop();
-        self.max_step_ns = self.max_step_ns.max(cost.wall_ns);
-        self.max_step_cpu_ns = self.max_step_cpu_ns.max(cost.cpu_ns);
-        // The period is positive and far below u64::MAX nanoseconds.
-        match cost.lateness((period_s * 1e9) as u64) {
-            Lateness::OnTime => {}
-            Lateness::Preempted => self.preempted_steps += 1,
-            Lateness::Overrun => self.deadline_misses += 1,
-        }
-        if let Some(t) = self.timings.as_mut() {
-            t.record(StepRecord {
-                cost,
-                before,
-                after: self.out.state,
-            });
-        }
-        self.out.q_command_rad
-    }
-}
-
-/// What one trial drew from the seed.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TrialDraw {
-    /// Distance to the intercept point, metres.
-    pub distance_m: f64,
-    /// Release angle (signed), degrees.
-    pub release_angle_deg: f64,
-    /// Wait between armed and release, seconds.
-    pub release_wait_s: f64,
-    /// Phase of the camera's first frame, seconds.
-    pub camera_phase_s: f64,
-    /// Seed of the trial's own random draws.
-    pub seed: u64,
-}
-
-/// Draws trial `index` of a run with `seed` (independent of the other trials).
-pub fn draw_trial(scenario: &Scenario, seed: u64, index: usize) -> TrialDraw {
-    let mix = seed
-        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        .wrapping_add((index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
-    let mut rng = ChaCha8Rng::seed_from_u64(mix);
-    let d = scenario.task.distance_m.lerp(rng.random_range(0.0..=1.0));
-    let a = scenario
-        .pendulum
-        .release_angle_deg
-        .lerp(rng.random_range(0.0..=1.0));
-    let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-    TrialDraw {
-        distance_m: d,
-        release_angle_deg: sign * a,
-        release_wait_s: rng.random_range(0.2..0.6),
-        camera_phase_s: rng.random_range(0.0..1.0 / scenario.camera.fps),
-        seed: rng.random(),
-    }
-}
+use crate::vision::DetectorParams;
 
 /// Errors setting up the lab.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -1,11 +1,10 @@
 #![doc = include_str!("README.md")]
 
 pub mod camera;
-pub mod fri_step;
+pub mod kuka;
 pub mod lab;
 pub mod magnet;
-pub mod realtime;
+pub mod rig;
 pub mod world;
 
-pub use fri_step::FriLoopStep;
-pub use lab::{LabError, LoopStep, TrialDraw, VirtualLab, draw_trial};
+pub use lab::{LabError, VirtualLab};

@@ -2,13 +2,11 @@
 
 pub mod calibration;
 pub mod detector;
-pub mod sim;
 pub mod source;
 pub mod thread;
 
 pub use calibration::{CalibrationReport, CameraIntrinsics, CameraPose, SwingPlaneCalibration};
 pub use detector::{Detection, Detector, DetectorParams};
-pub use sim::{BallState, SimCamera, SimCameraParams, SimVision};
 pub use source::{Frame, FrameSource, Recorder, VideoFileSource, WebcamParams, WebcamSource};
 pub use thread::{VisionPipeline, VisionStats, VisionThread, measurement_ring};
 

@@ -14,7 +14,7 @@ use opencv::{
     videoio::{self, VideoCapture, VideoWriter},
 };
 
-use super::{BallState, SimCamera, VisionError};
+use super::VisionError;
 use crate::params::{CameraParams, check};
 
 /// A monotonic clock: seconds since an epoch shared by the threads that compare times.
@@ -273,66 +273,6 @@ impl FrameSource for VideoFileSource {
 
     fn fps(&self) -> f64 {
         self.fps
-    }
-}
-
-/// The simulated camera in real time: frames at the scenario's rate, each
-/// delivered after its latency, showing the ball that `truth` reports for the
-/// capture time (`None`: no ball in view). Lost frames are skipped.
-pub struct SimCameraSource<F> {
-    camera: SimCamera,
-    truth: F,
-    clock: Clock,
-    start_s: f64,
-    index: u64,
-}
-
-impl<F> std::fmt::Debug for SimCameraSource<F> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SimCameraSource")
-            .field("camera", &self.camera)
-            .field("index", &self.index)
-            .finish_non_exhaustive()
-    }
-}
-
-impl<F: FnMut(f64) -> Option<BallState> + Send> SimCameraSource<F> {
-    /// Starts the frame clock now.
-    pub fn new(camera: SimCamera, truth: F, clock: Clock) -> Self {
-        Self {
-            camera,
-            truth,
-            start_s: clock.now_s(),
-            clock,
-            index: 0,
-        }
-    }
-}
-
-impl<F: FnMut(f64) -> Option<BallState> + Send> FrameSource for SimCameraSource<F> {
-    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
-        let period = 1.0 / self.camera.camera_params().fps;
-        loop {
-            let index = self.index;
-            self.index += 1;
-            let t_capture_s = self.start_s + index as f64 * period;
-            if self.camera.next_dropped() {
-                continue;
-            }
-            let latency = self.camera.next_latency_s();
-            let ball = (self.truth)(t_capture_s);
-            self.clock.sleep_until(t_capture_s + latency);
-            let image = self.camera.render(ball.as_ref())?;
-            return Ok(Some(Frame {
-                index,
-                t_capture_s,
-                image,
-            }));
-        }
-    }
-
-    fn fps(&self) -> f64 {
-        self.camera.camera_params().fps
     }
 }
 

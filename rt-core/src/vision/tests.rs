@@ -8,8 +8,9 @@ use opencv::{
     imgproc,
 };
 
-use super::{source::Clock, source::SimCameraSource, *};
+use super::{source::Clock, *};
 use crate::params::{CameraParams, ParamError, VisionMode};
+use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimCameraSource, SimVision};
 
 const L: f64 = 1.93;
 const R_BALL: f64 = 0.0335;

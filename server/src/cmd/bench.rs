@@ -6,10 +6,10 @@ use nalgebra::UnitQuaternion;
 use rt_core::control::stats::quantile_sorted;
 use rt_core::control::{Controller, StepClock, StepTimings, TrialState};
 use rt_core::ekf::Ekf;
+use rt_core::lab::LoopReport;
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use rt_core::sim::VirtualLab;
-use rt_core::sim::realtime::LoopReport;
 use rt_core::timing::{MotionSample, TimedMotion};
 use serde::Serialize;
 
@@ -286,7 +286,7 @@ fn loop_with_clients(
     clients: usize,
 ) -> anyhow::Result<LoopReport> {
     let (lab, sim) =
-        server::simlab::start_simulated(scenario, None, server::LabOptions::default(), 1)?;
+        server::runtime::start_simulated(scenario, None, server::LabOptions::default(), 1)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .thread_name("isochron-http")
@@ -304,7 +304,7 @@ fn loop_with_clients(
         .map(|_| runtime.spawn(ws_reader(addr)))
         .collect();
     let result = (|| {
-        sim.runtime().wait_commanding(Duration::from_secs(10))?;
+        sim.wait_commanding(Duration::from_secs(10))?;
         let deadline = Instant::now() + Duration::from_secs(5);
         while (lab.stream().read().clients as usize) < clients {
             if Instant::now() > deadline {
@@ -316,7 +316,7 @@ fn loop_with_clients(
             std::thread::sleep(Duration::from_millis(10));
         }
         let before = lab.stream().read().state_messages;
-        let mut report = sim.runtime().measure(window);
+        let mut report = sim.measure(window);
         report.ws_clients = lab.stream().read().clients;
         report.ws_state_messages_per_s =
             (lab.stream().read().state_messages - before) as f64 / window.as_secs_f64();

@@ -11,8 +11,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
-use rt_core::fri::{FriSimParams, SimRunOptions, SimServer};
 use rt_core::params::check;
+use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
 
 /// Arguments of `isochron fri-sim`.
 #[derive(Debug, Args)]

@@ -21,9 +21,6 @@
 //!   control thread through a ring: the ground-truth ball is released when the
 //!   magnet reports off.
 
-mod step;
-pub mod vision;
-
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -33,22 +30,21 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-pub use step::LabStep;
-use step::{CameraModel, IoReply, IoRequest, LabParts, MagnetNote, Truth};
-pub use vision::{TruthUpdate, TruthView, VideoParams, VideoStats, VisionLoop, VisionParts};
+pub use super::step::LabStep;
+use super::step::{CameraModel, IoReply, IoRequest, LabParts, MagnetNote, Truth};
+pub use super::vision::{TruthUpdate, TruthView, VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
 use crate::control::Controller;
-use crate::fri::{
-    FriSession, FriSessionParams, FriSimParams, SessionState, SessionStats, SimRunOptions,
-    SimServer, SimStats,
-};
-use crate::magnet::{EventKind, FakeDevice, MagnetHandle, MagnetParams};
+use crate::fri::{FriSession, FriSessionParams, SessionState, SessionStats};
+use crate::magnet::{EventKind, MagnetHandle, MagnetParams};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::sim::camera::{SimCamera, SimCameraParams, SimCameraSource};
+use crate::sim::kuka::{FriSimParams, SimError, SimRunOptions, SimServer, SimStats};
+use crate::sim::magnet::FakeDevice;
 use crate::vision::{
-    DetectorParams, FrameSource, SimCamera, SimCameraParams, SwingPlaneCalibration, VisionError,
-    VisionStats, source::Clock, source::SimCameraSource,
+    DetectorParams, FrameSource, SwingPlaneCalibration, VisionError, VisionStats, source::Clock,
 };
 
 /// Reply latency percentiles, microseconds.
@@ -92,7 +88,7 @@ pub struct LoopReport {
 /// Errors of the real-time runtime.
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
-pub enum RealtimeError {
+pub enum RuntimeError {
     /// A socket or thread could not be set up.
     #[error("real-time lab: {0}")]
     Io(#[from] std::io::Error),
@@ -104,7 +100,7 @@ pub enum RealtimeError {
     Session(#[from] crate::fri::SessionError),
     /// The simulated controller could not start.
     #[error(transparent)]
-    Sim(#[from] crate::fri::SimError),
+    Sim(#[from] SimError),
     /// The camera or the detector could not start.
     #[error(transparent)]
     Vision(#[from] VisionError),
@@ -276,7 +272,7 @@ pub fn raise_fri_priority() -> u64 {
 }
 
 /// The running real-time lab; dropping it stops every thread.
-pub struct RealtimeLab {
+pub struct LabRuntime {
     session: Option<FriSession<LabStep>>,
     session_stats: Arc<SessionStats>,
     sim: Option<Arc<SimServer>>,
@@ -290,9 +286,9 @@ pub struct RealtimeLab {
     period_ms: u32,
 }
 
-impl std::fmt::Debug for RealtimeLab {
+impl std::fmt::Debug for LabRuntime {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("RealtimeLab")
+        f.debug_struct("LabRuntime")
             .field("period_ms", &self.period_ms)
             .field("fri", &self.session_stats.state())
             .finish_non_exhaustive()
@@ -306,14 +302,14 @@ fn fake_port_path() -> PathBuf {
     std::env::temp_dir().join(format!("isochron-magnet-{}-{n}", std::process::id()))
 }
 
-impl RealtimeLab {
+impl LabRuntime {
     /// Starts every thread; the control thread talks to the server only
     /// through `control` (and `frames`, from the vision thread).
     pub fn start(
         setup: LabSetup,
         control: ControlEnd,
         frames: Option<FrameSender>,
-    ) -> Result<Self, RealtimeError> {
+    ) -> Result<Self, RuntimeError> {
         let LabSetup {
             scenario,
             seed,
@@ -381,13 +377,13 @@ impl RealtimeLab {
                 let (mut truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
                 let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
                 let pm = PendulumModel::from_params(&scenario.pendulum)
-                    .map_err(|e| RealtimeError::Timeout(e.to_string()))?;
+                    .map_err(|e| RuntimeError::Timeout(e.to_string()))?;
                 let geo = PendulumGeometry::new(
                     scenario.pendulum.length_m,
                     d,
                     scenario.task.intercept_height_m,
                 )
-                .map_err(|e| RealtimeError::Timeout(e.to_string()))?;
+                .map_err(|e| RuntimeError::Timeout(e.to_string()))?;
                 if let Ok(b) = PendulumSim::held_at(pm, geo, 0.0, 0.0) {
                     let _ = truth_tx.push(TruthUpdate::Ball(b));
                 }
@@ -548,11 +544,11 @@ impl RealtimeLab {
     }
 
     /// Waits until the FRI session is COMMANDING_ACTIVE.
-    pub fn wait_commanding(&self, timeout: Duration) -> Result<(), RealtimeError> {
+    pub fn wait_commanding(&self, timeout: Duration) -> Result<(), RuntimeError> {
         let deadline = Instant::now() + timeout;
         while self.session_stats.state() != crate::fri::LinkState::CommandingActive {
             if Instant::now() > deadline {
-                return Err(RealtimeError::Timeout(format!(
+                return Err(RuntimeError::Timeout(format!(
                     "the FRI session did not reach COMMANDING_ACTIVE within {timeout:?} (it is {:?})",
                     self.session_stats.state()
                 )));
@@ -607,17 +603,15 @@ impl RealtimeLab {
     }
 
     /// Stops every thread; returns the control step (its counters).
-    pub fn stop(mut self) -> Result<LabStep, RealtimeError> {
+    pub fn stop(mut self) -> Result<LabStep, RuntimeError> {
         self.shutdown()
     }
 
-    fn shutdown(&mut self) -> Result<LabStep, RealtimeError> {
+    fn shutdown(&mut self) -> Result<LabStep, RuntimeError> {
         self.stop_io.store(true, Ordering::Relaxed);
         let step = match self.session.take() {
-            Some(s) => s
-                .stop()
-                .map_err(|_| RealtimeError::Thread("isochron-fri"))?,
-            None => return Err(RealtimeError::Thread("isochron-fri")),
+            Some(s) => s.stop().map_err(|_| RuntimeError::Thread("isochron-fri"))?,
+            None => return Err(RuntimeError::Thread("isochron-fri")),
         };
         self.sim = None;
         if let Some(v) = self.vision.take() {
@@ -630,7 +624,7 @@ impl RealtimeLab {
     }
 }
 
-impl Drop for RealtimeLab {
+impl Drop for LabRuntime {
     fn drop(&mut self) {
         if self.session.is_some() {
             let _ = self.shutdown();
@@ -739,9 +733,9 @@ impl Io {
 /// Runs the simulated lab at the scenario's FRI period and measures the loop
 /// for `duration` once the session commands (no server attached: the bridge's
 /// server end is dropped, so every hand-off is counted, never waited on).
-pub fn run_loop(scenario: &Scenario, duration: Duration) -> Result<LoopReport, RealtimeError> {
+pub fn run_loop(scenario: &Scenario, duration: Duration) -> Result<LoopReport, RuntimeError> {
     let (control, _server) = crate::bridge::bridge(crate::bridge::BridgeCapacity::default());
-    let lab = RealtimeLab::start(LabSetup::simulated(scenario.clone(), 1), control, None)?;
+    let lab = LabRuntime::start(LabSetup::simulated(scenario.clone(), 1), control, None)?;
     lab.wait_commanding(Duration::from_secs(5))?;
     let mut report = lab.measure(duration);
     let step = lab.stop()?;
@@ -769,7 +763,7 @@ mod tests {
         use crate::bridge::{Command, Event, FriSessionState, TrialState};
         let (control, mut end) = crate::bridge::bridge(crate::bridge::BridgeCapacity::default());
         let lab =
-            RealtimeLab::start(LabSetup::simulated(Scenario::default(), 5), control, None).unwrap();
+            LabRuntime::start(LabSetup::simulated(Scenario::default(), 5), control, None).unwrap();
         lab.wait_commanding(Duration::from_secs(10)).unwrap();
         // An emergency stop while idle does not spoil the next trial.
         end.stop.request_stop();

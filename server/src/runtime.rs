@@ -1,6 +1,6 @@
-//! The lab behind `isochron serve`: the real-time runtime of `rt_core`
-//! ([`rt_core::sim::realtime::RealtimeLab`]: the FRI client session on
-//! `isochron-fri` calling the closed loop, the simulated KUKA controller on
+//! The lab behind `isochron serve`: the lab runtime of `rt_core`
+//! ([`rt_core::lab::LabRuntime`]: the FRI client session on `isochron-fri`
+//! calling the closed loop, the simulated KUKA controller on
 //! `isochron-fri-sim` over loopback UDP, the camera on `isochron-vision`
 //! through the OpenCV detector, the magnet driver on its fake board) joined to
 //! the server by the bridge and the camera's frame channel.
@@ -10,42 +10,26 @@
 
 use std::sync::Arc;
 
-use rt_core::{
-    bridge,
-    params::Scenario,
-    sim::realtime::{LabSetup, RealtimeLab},
-};
+pub use rt_core::lab::LabRuntime;
+use rt_core::{bridge, lab::LabSetup, params::Scenario};
 
 /// Frames buffered between the vision thread and the server (the newest wins).
 const FRAME_RING: usize = 4;
 
-/// The running lab; dropping it stops its threads.
-#[derive(Debug)]
-pub struct SimLab {
-    runtime: RealtimeLab,
-}
-
-impl SimLab {
-    /// The runtime (its FRI, vision, magnet counters).
-    pub fn runtime(&self) -> &RealtimeLab {
-        &self.runtime
-    }
-}
-
 /// Starts the lab of `setup` and the server side of its bridge. Keep the
-/// [`SimLab`] alive as long as the [`crate::Lab`]; drop it after
-/// [`crate::Lab::shutdown`].
+/// [`LabRuntime`] alive as long as the [`crate::Lab`]; drop it after
+/// [`crate::Lab::shutdown`] (dropping it stops its threads).
 pub fn start_lab(
     setup: LabSetup,
     records: Option<Arc<crate::Records>>,
     options: crate::LabOptions,
-) -> anyhow::Result<(Arc<crate::Lab>, SimLab)> {
+) -> anyhow::Result<(Arc<crate::Lab>, LabRuntime)> {
     let scenario = setup.scenario.clone();
     let (control, end) = bridge::bridge(bridge::BridgeCapacity::default());
     let (frame_tx, frame_rx) = bridge::frame_channel(FRAME_RING, Arc::clone(&end.stats));
-    let runtime = RealtimeLab::start(setup, control, Some(frame_tx))?;
+    let runtime = LabRuntime::start(setup, control, Some(frame_tx))?;
     let lab = crate::Lab::start(end, Some(frame_rx), scenario, records, options)?;
-    Ok((lab, SimLab { runtime }))
+    Ok((lab, runtime))
 }
 
 /// Starts the simulated lab: what `isochron serve` runs without a config.
@@ -54,6 +38,6 @@ pub fn start_simulated(
     records: Option<Arc<crate::Records>>,
     options: crate::LabOptions,
     seed: u64,
-) -> anyhow::Result<(Arc<crate::Lab>, SimLab)> {
+) -> anyhow::Result<(Arc<crate::Lab>, LabRuntime)> {
     start_lab(LabSetup::simulated(scenario, seed), records, options)
 }

@@ -17,7 +17,7 @@
 //! capacity. The control clock is the session's: `t_s = now_ns * 1e-9`, so
 //! camera measurements must carry capture times on the same clock.
 
-use super::lab::LoopStep;
+use super::loop_step::LoopStep;
 use crate::control::{AbortReason, Controller, TrialState};
 use crate::fri::client::{ControlStep, StepInput, StopReason};
 use crate::fri::codec::Joints;
@@ -133,8 +133,8 @@ mod tests {
     use super::*;
     use crate::control::Controller;
     use crate::fri::client::{FriClient, FriClientParams};
-    use crate::fri::sim::{FriSimParams, SimController};
     use crate::params::Scenario;
+    use crate::sim::kuka::{FriSimParams, SimController};
 
     const PERIOD_NS: u64 = 5_000_000;
 

@@ -11,9 +11,9 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use super::net::wait_readable;
-use super::proto::SessionState;
-use super::sim::{FriSimParams, SimController, SimReport, SimStats};
+use super::controller::{FriSimParams, SimController, SimReport, SimStats};
+use crate::fri::net::wait_readable;
+use crate::fri::proto::SessionState;
 use crate::params::ParamError;
 
 /// How the runner drives the session.

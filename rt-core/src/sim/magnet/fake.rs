@@ -17,7 +17,8 @@ use std::{
 
 use serialport::{SerialPort, TTYPort};
 
-use super::{model::FirmwareModel, protocol::ResetCause};
+use super::firmware::FirmwareModel;
+use crate::magnet::protocol::ResetCause;
 
 /// Called on the fake's thread whenever its coil pin changes: `(on, when)`.
 pub type PinHook = Box<dyn FnMut(bool, Instant) + Send>;

@@ -1,5 +1,5 @@
 //! The magnet in the virtual-time lab: the firmware model
-//! ([`crate::magnet::FirmwareModel`]) stepped in virtual time behind a
+//! ([`crate::sim::magnet::firmware::FirmwareModel`]) stepped in virtual time behind a
 //! simulated serial line.
 //!
 //! A command is written by the host (the `isochron-magnet` thread) after a
@@ -13,7 +13,7 @@
 
 use rand::{Rng, RngExt};
 
-use crate::magnet::FirmwareModel;
+use super::firmware::FirmwareModel;
 use crate::magnet::protocol::{Line, OkReply, ResetCause, parse_line};
 
 /// Serial speed of the board, baud.

@@ -12,6 +12,8 @@ use std::time::Instant;
 use nalgebra::Vector3;
 use rtrb::{Consumer, Producer};
 
+use super::fri_step::FriLoopStep;
+use super::trial::{TrialDraw, draw_trial};
 use super::vision::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, Command, ControlEnd, Event, EventRecord, FriQuality,
@@ -28,7 +30,6 @@ use crate::fri::proto::{ConnectionQuality, SessionState};
 use crate::magnet::{MagnetHandle, view};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
-use crate::sim::{FriLoopStep, TrialDraw, draw_trial};
 
 use crate::trajectory::profile::ProfileKind;
 use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};

@@ -15,12 +15,12 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::codec::{CommandDecoder, Joints, Monitoring, MonitoringEncoder, UnixTime};
-use super::proto::{
+use crate::fri::codec::{CommandDecoder, Joints, Monitoring, MonitoringEncoder, UnixTime};
+use crate::fri::proto::{
     ClientCommandMode, ConnectionQuality, ControlMode, DriveState, OperationMode, OverlayType,
     SafetyState, SessionState,
 };
-use super::stats::{AtomicF64, AtomicJoints, LatencyHistogram, LatencySummary};
+use crate::fri::stats::{AtomicF64, AtomicJoints, LatencyHistogram, LatencySummary};
 use crate::kinematics::iiwa7::{JOINTS, POSITION_LIMIT_RAD, TORQUE_LIMIT_NM, VELOCITY_LIMIT_RADPS};
 use crate::params::{ParamError, RobotParams, check};
 

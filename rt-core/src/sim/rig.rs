@@ -13,8 +13,9 @@
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::state::TrialState;
-use super::step::{ArmPlan, ControlError, Controller, Measurement, StepInput, StepOutput};
+use crate::control::{
+    ArmPlan, ControlError, Controller, Measurement, StepInput, StepOutput, TrialState,
+};
 use crate::kinematics::iiwa7::JOINTS;
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};

@@ -23,9 +23,10 @@ use rtrb::{Consumer, Producer};
 use crate::bridge::{Frame as VideoFrame, FrameSender};
 use crate::params::check;
 use crate::pendulum::PendulumSim;
+use crate::sim::camera::BallState;
 use crate::vision::{
-    BallState, DetectorParams, FrameSource, Measurement, SwingPlaneCalibration, VisionError,
-    VisionPipeline, VisionStats, source::Clock,
+    DetectorParams, FrameSource, Measurement, SwingPlaneCalibration, VisionError, VisionPipeline,
+    VisionStats, source::Clock,
 };
 
 /// The camera stream to the dashboard: downscaled JPEG frames.

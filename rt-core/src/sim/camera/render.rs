@@ -16,11 +16,12 @@ use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use super::{
-    CameraIntrinsics, CameraPose, Detector, DetectorParams, Measurement, SwingPlaneCalibration,
-    VisionError,
-};
 use crate::params::{CameraParams, ParamError, VisionMode, check};
+use crate::vision::source::{Clock, Frame};
+use crate::vision::{
+    CameraIntrinsics, CameraPose, Detector, DetectorParams, FrameSource, Measurement,
+    SwingPlaneCalibration, VisionError,
+};
 
 /// The ball's true state in the robot base frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -185,7 +186,7 @@ impl SimCamera {
         camera.validate()?;
         params.validate()?;
         check::within("pendulum.ball_radius_m", ball_radius_m, 0.005, 0.2)?;
-        super::limit_opencv_threads()?;
+        crate::vision::limit_opencv_threads()?;
         let (w, h) = (camera.width_px as i32, camera.height_px as i32);
         let intrinsics =
             CameraIntrinsics::from_hfov(camera.width_px, camera.height_px, params.hfov_deg);
@@ -724,7 +725,7 @@ impl SimVision {
                     frame,
                     t_capture_s,
                     t_available_s,
-                    &super::Detection {
+                    &crate::vision::Detection {
                         x_px: b.x_px,
                         y_px: b.y_px,
                         r_px: b.r_px,
@@ -738,5 +739,65 @@ impl SimVision {
             },
         };
         Ok(Some(m))
+    }
+}
+
+/// The simulated camera in real time: frames at the scenario's rate, each
+/// delivered after its latency, showing the ball that `truth` reports for the
+/// capture time (`None`: no ball in view). Lost frames are skipped.
+pub struct SimCameraSource<F> {
+    camera: SimCamera,
+    truth: F,
+    clock: Clock,
+    start_s: f64,
+    index: u64,
+}
+
+impl<F> std::fmt::Debug for SimCameraSource<F> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimCameraSource")
+            .field("camera", &self.camera)
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<F: FnMut(f64) -> Option<BallState> + Send> SimCameraSource<F> {
+    /// Starts the frame clock now.
+    pub fn new(camera: SimCamera, truth: F, clock: Clock) -> Self {
+        Self {
+            camera,
+            truth,
+            start_s: clock.now_s(),
+            clock,
+            index: 0,
+        }
+    }
+}
+
+impl<F: FnMut(f64) -> Option<BallState> + Send> FrameSource for SimCameraSource<F> {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        let period = 1.0 / self.camera.camera_params().fps;
+        loop {
+            let index = self.index;
+            self.index += 1;
+            let t_capture_s = self.start_s + index as f64 * period;
+            if self.camera.next_dropped() {
+                continue;
+            }
+            let latency = self.camera.next_latency_s();
+            let ball = (self.truth)(t_capture_s);
+            self.clock.sleep_until(t_capture_s + latency);
+            let image = self.camera.render(ball.as_ref())?;
+            return Ok(Some(Frame {
+                index,
+                t_capture_s,
+                image,
+            }));
+        }
+    }
+
+    fn fps(&self) -> f64 {
+        self.camera.camera_params().fps
     }
 }

@@ -5,7 +5,9 @@
 //! and can be stepped directly in virtual time (the simulated lab): feed it bytes
 //! and the time, read the bytes it answers and whether the coil is on.
 
-use super::protocol::{FW_VERSION, HOLD_DEFAULT_S, HOLD_RANGE_S, LINE_MAX, ResetCause, TOKEN_MAX};
+use crate::magnet::protocol::{
+    FW_VERSION, HOLD_DEFAULT_S, HOLD_RANGE_S, LINE_MAX, ResetCause, TOKEN_MAX,
+};
 
 /// The firmware's state machine. Times are milliseconds on the caller's clock.
 #[derive(Debug, Clone)]

@@ -1,0 +1,11 @@
+//! The simulated magnet: the firmware's model ([`FirmwareModel`]), the fake
+//! board behind a pseudo-terminal ([`FakeDevice`], real time: the real driver
+//! talks to it) and the virtual-time serial line ([`VirtualMagnet`]).
+
+pub mod fake;
+pub mod firmware;
+pub mod line;
+
+pub use fake::FakeDevice;
+pub use firmware::FirmwareModel;
+pub use line::{BAUD, BITS_PER_BYTE, HOST_WRITE_DELAY_MAX_S, Switch, VirtualMagnet};
