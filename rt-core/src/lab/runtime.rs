@@ -783,7 +783,9 @@ mod tests {
             while end.telemetry.pop().is_some() {}
             while let Some(e) = end.events.pop() {
                 match e.event {
-                    Event::StateChanged { to, .. } => states.push(to),
+                    // (After the result the driver resets to Idle: not this trial's.)
+                    Event::StateChanged { to, .. } if result.is_none() => states.push(to),
+                    Event::StateChanged { .. } => {}
                     Event::TrialFinished { result: r } => result = Some(r),
                     Event::Aborted { reason } if e.trial_id != 0 => panic!(
                         "aborted: {reason:?} after {states:?}: {:?}",
