@@ -2,13 +2,16 @@
  * isochron magnet firmware: Arduino Uno R3 (ATmega328P, 16 MHz), plain avr-libc C.
  *
  * Holds the pendulum's ball with an electromagnet switched by a logic-level
- * MOSFET on D8 (PB0); the on-board LED on D13 (PB5) mirrors the coil.
+ * MOSFET on D8 (PB0); the on-board LED on D13 (PB5) mirrors the coil. A
+ * calibration LED on D12 (PB4), in the camera's view, is switched on command
+ * (camera latency calibration, `isochron calibrate latency`).
  * Line protocol on UART0 at 115200 8N1 (README.md has the full table):
  *
  *   PING <token>   -> OK PONG <token>
  *   MAGNET ON|OFF  -> OK MAGNET magnet=on|off held_ms=.. hold_max_ms=.. uptime_ms=..
  *   STATUS         -> OK STATUS magnet=.. held_ms=.. hold_max_ms=.. uptime_ms=.. reset=.. fw=..
  *   HOLD <s>       -> OK HOLD hold_max_ms=..      (1..3600 s; coil protection)
+ *   LED ON|OFF     -> OK LED led=on|off uptime_ms=..  (D12; switched before the answer)
  *   TEST HANG      -> OK HANG, then the main loop hangs until the watchdog resets the board
  *   anything else  -> ERR <code>   (unknown-command, bad-argument, line-too-long, bad-byte, overrun)
  *   unsolicited    -> EVT BOOT fw=.. reset=power|external|brownout|watchdog|unknown hold_max_ms=..
@@ -30,6 +33,7 @@
 
 #define MAGNET_BIT PB0 /* D8: MOSFET gate (10k pull-down on the board) */
 #define LED_BIT PB5    /* D13: on-board LED, mirrors the coil */
+#define CAL_LED_BIT PB4 /* D12: calibration LED in the camera's view (330 R to GND) */
 
 #define BAUD_UBRR 16 /* 115200 baud with U2X at 16 MHz (as the Arduino core does) */
 
@@ -136,6 +140,20 @@ static void set_magnet(uint8_t on)
     }
 }
 
+static uint8_t cal_led_on;
+
+/* The calibration LED: switched before the answer is written, so half the
+ * command's round trip bounds when it lit. */
+static void set_cal_led(uint8_t on)
+{
+    cal_led_on = on ? 1 : 0;
+    if (cal_led_on) {
+        PORTB |= _BV(CAL_LED_BIT);
+    } else {
+        PORTB &= (uint8_t)~_BV(CAL_LED_BIT);
+    }
+}
+
 static uint32_t held_ms(void) { return magnet_on ? millis() - on_since_ms : 0; }
 
 static void put_state(void)
@@ -200,6 +218,15 @@ static void handle(char *line)
         put_state();
         end_line();
     } else if (strncmp(line, "MAGNET", 6) == 0 && (line[6] == ' ' || line[6] == 0)) {
+        err("bad-argument");
+    } else if (strcmp(line, "LED ON") == 0 || strcmp(line, "LED OFF") == 0) {
+        set_cal_led(line[5] == 'N');
+        puts_uart("OK LED led=");
+        puts_uart(cal_led_on ? "on" : "off");
+        puts_uart(" uptime_ms=");
+        put_u32(millis());
+        end_line();
+    } else if (strncmp(line, "LED", 3) == 0 && (line[3] == ' ' || line[3] == 0)) {
         err("bad-argument");
     } else if (strncmp(line, "PING ", 5) == 0 && valid_token(line + 5)) {
         puts_uart("OK PONG ");
@@ -304,8 +331,8 @@ int main(void)
     wdt_marker = 0;
 
     /* Coil off first, then outputs. */
-    PORTB &= (uint8_t)~(_BV(MAGNET_BIT) | _BV(LED_BIT));
-    DDRB |= _BV(MAGNET_BIT) | _BV(LED_BIT);
+    PORTB &= (uint8_t)~(_BV(MAGNET_BIT) | _BV(LED_BIT) | _BV(CAL_LED_BIT));
+    DDRB |= _BV(MAGNET_BIT) | _BV(LED_BIT) | _BV(CAL_LED_BIT);
 
     /* UART0: 115200 8N1, receive interrupt. */
     UCSR0A = _BV(U2X0);

@@ -8,7 +8,8 @@
  * opens), and reports on stdout, one line each:
  *
  *   READY <pty> t_us=<sim time>          once the port exists
- *   PIN D8|D13 0|1 t_us=<sim time>       every change of the coil (PB0) or LED (PB5) pin
+ *   PIN D8|D12|D13 0|1 t_us=<sim time>   every change of the coil (PB0), calibration LED
+ *                                        (PB4) or on-board LED (PB5) pin
  *   RESET t_us=<sim time>                after a RESET request
  *
  * Commands on stdin: RESET (an external reset of the board), QUIT. End of stdin
@@ -43,7 +44,8 @@ static void report_pin(int bit, int level)
         return;
     }
     pin_level[bit] = level;
-    printf("PIN %s %d t_us=%llu\n", bit == 0 ? "D8" : "D13", level, sim_us());
+    printf("PIN %s %d t_us=%llu\n", bit == 0 ? "D8" : (bit == 4 ? "D12" : "D13"), level,
+           sim_us());
 }
 
 static void pin_hook(struct avr_irq_t *irq, uint32_t value, void *param)
@@ -58,6 +60,7 @@ static void report_portb(void)
     uint8_t portb = avr->data[0x25];
     uint8_t ddrb = avr->data[0x24];
     report_pin(0, (ddrb & 1) && (portb & 1));
+    report_pin(4, (ddrb & 0x10) && (portb & 0x10));
     report_pin(5, (ddrb & 0x20) && (portb & 0x20));
 }
 
@@ -106,6 +109,8 @@ int main(int argc, char **argv)
 
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 0), pin_hook,
                             (void *)(intptr_t)0);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 4), pin_hook,
+                            (void *)(intptr_t)4);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 5), pin_hook,
                             (void *)(intptr_t)5);
 

@@ -7,6 +7,7 @@
 //!
 //! | Module | Part of the paper |
 //! |---|---|
+//! | [`calibration`] | calibration fits: free swing, camera latency by LED, robot latency and servo; the calibration file |
 //! | [`bridge`] | hand-offs between the control thread and the server; the shared data model |
 //! | [`params`] | typed, validated parameters and scenario files |
 //! | [`pendulum`] | the damped pendulum (eq. 8), its geometry, the ground-truth simulator |
@@ -22,6 +23,7 @@
 //! | [`vision`] | ball detection (OpenCV), camera sources, calibration, the vision thread |
 
 pub mod bridge;
+pub mod calibration;
 pub mod control;
 pub mod ekf;
 pub mod fri;

@@ -450,7 +450,7 @@ pub struct TrialStarted {
         (status = 202, description = "the trial started", body = TrialStarted),
         (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
-        (status = 409, description = "refused (a trial runs, ...)", body = crate::error::ErrorBody),
+        (status = 409, description = "refused (a trial runs, a real lab is not calibrated, ...)", body = crate::error::ErrorBody),
         (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
     security(("bearer" = [])))]
 pub async fn start_trial(
@@ -459,6 +459,13 @@ pub async fn start_trial(
     body: Result<Bytes, BytesRejection>,
 ) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
     empty_body(body)?;
+    if let Some(why) = &state.trials_refused {
+        return Err(AppError::Conflict {
+            message: why.clone(),
+            field: None,
+            reason: Some("uncalibrated"),
+        });
+    }
     let lab = lab(&state)?;
     let records = records(&state)?;
     let id = blocking({

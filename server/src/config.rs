@@ -83,6 +83,12 @@ pub struct LabSection {
     pub mode: LabMode,
     /// Scenario file with the task and tuning (default: the paper's lab).
     pub scenario: Option<PathBuf>,
+    /// The calibration file `isochron calibrate` writes (laid over the scenario's
+    /// beliefs); `serve --calibration` overrides it.
+    pub calibration_file: Option<PathBuf>,
+    /// A real lab refuses trials until the pendulum and camera latency are
+    /// calibrated, unless this is true (an explicit override).
+    pub allow_uncalibrated: bool,
 }
 
 /// `[camera]`: the webcam.

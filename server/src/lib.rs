@@ -72,6 +72,8 @@ pub struct AppState {
     pub body_limit_bytes: usize,
     /// Other web origins allowed to call the API from a browser.
     pub cors_origins: Vec<String>,
+    /// Why trials are refused (a real lab without calibration); none: allowed.
+    pub trials_refused: Option<String>,
 }
 
 impl AppState {
@@ -83,6 +85,7 @@ impl AppState {
             token: None,
             lab: None,
             records: None,
+            trials_refused: None,
             body_limit_bytes: DEFAULT_BODY_LIMIT_BYTES,
             cors_origins: Vec::new(),
         }
@@ -97,6 +100,12 @@ impl AppState {
     /// Attaches the lab.
     pub fn with_lab(mut self, lab: Arc<Lab>) -> Self {
         self.lab = Some(lab);
+        self
+    }
+
+    /// Refuses every trial with `reason` (409, `reason: "uncalibrated"`).
+    pub fn with_trials_refused(mut self, reason: Option<String>) -> Self {
+        self.trials_refused = reason;
         self
     }
 

@@ -39,7 +39,13 @@ enum Command {
         /// [ekf] file `isochron tune` writes); repeat to lay several in order.
         #[arg(long)]
         params: Vec<PathBuf>,
+        /// The calibration file `isochron calibrate` writes (default: the config's
+        /// lab.calibration_file); a real lab refuses trials without one.
+        #[arg(long)]
+        calibration: Option<PathBuf>,
     },
+    /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
+    Calibrate(cmd::calibrate::CalibrateArgs),
     /// Estimate the EKF's noise parameters from a recorded trial (writes an [ekf] file and Fig. 4).
     Tune(cmd::tune::TuneArgs),
     /// Run N closed-loop trials of a scenario in virtual time and judge them on ground truth.
@@ -100,6 +106,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             web_dir,
             data_dir,
             params,
+            calibration,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -107,8 +114,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             web_dir,
             data_dir,
             params,
+            calibration,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
+        Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Kin(args) => cmd::kin::run(args),

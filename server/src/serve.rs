@@ -33,6 +33,8 @@ pub struct ServeArgs {
     pub data_dir: Option<PathBuf>,
     /// `--params FILE` (repeatable): parameter files laid over the scenario, in order.
     pub params: Vec<PathBuf>,
+    /// `--calibration FILE`: the calibration file (default: the config's `lab.calibration_file`).
+    pub calibration: Option<PathBuf>,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
@@ -61,6 +63,18 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     };
     for path in &args.params {
         scenario = rt_core::tuning::overlay_params_file(&scenario, path)?;
+    }
+    // `--calibration` must exist; the configured file may not yet (the lab is
+    // served to be calibrated).
+    let calibration = match (&args.calibration, &cfg.lab.calibration_file) {
+        (Some(p), _) => rt_core::calibration::CalibrationFile::from_file(p)?,
+        (None, Some(p)) => rt_core::calibration::CalibrationFile::load_or_empty(p)?,
+        (None, None) => rt_core::calibration::CalibrationFile::default(),
+    };
+    scenario = calibration.apply(&scenario)?;
+    let trials_refused = uncalibrated_refusal(&cfg, &calibration);
+    if let Some(why) = &trials_refused {
+        tracing::warn!("{why}");
     }
     let records = Arc::new(Records::open(&data_dir)?);
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
@@ -95,7 +109,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_records(records)
             .with_lab(Arc::clone(&lab))
             .with_body_limit(cfg.server.body_limit_bytes)
-            .with_cors_origins(cfg.server.cors_origins.clone()),
+            .with_cors_origins(cfg.server.cors_origins.clone())
+            .with_trials_refused(trials_refused),
     );
     let result = runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind(bind)
@@ -113,6 +128,33 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     result?;
     tracing::info!("shut down cleanly");
     Ok(())
+}
+
+/// Why a real lab refuses trials: it has no calibrated pendulum or camera latency
+/// and the configuration does not override (`lab.allow_uncalibrated`).
+pub fn uncalibrated_refusal(
+    cfg: &ServeConfig,
+    calibration: &rt_core::calibration::CalibrationFile,
+) -> Option<String> {
+    if cfg.lab.mode != LabMode::Real || cfg.lab.allow_uncalibrated {
+        return None;
+    }
+    let mut missing = Vec::new();
+    if calibration.pendulum.is_none() {
+        missing.push("pendulum");
+    }
+    if calibration.latency.is_none() {
+        missing.push("latency");
+    }
+    if missing.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "trials refused: this real lab is not calibrated ({} missing); run `isochron calibrate {}` \
+         and give the file with lab.calibration_file or --calibration, or set lab.allow_uncalibrated = true",
+        missing.join(", "),
+        missing[0]
+    ))
 }
 
 /// The real lab of `cfg` (`lab.mode = "real"`): the same runtime as the
@@ -193,5 +235,44 @@ async fn shutdown_signal() {
     tokio::select! {
         () = ctrl_c => {},
         () = term => {},
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rt_core::calibration::{CalibrationFile, StepRecord};
+
+    use super::*;
+
+    #[test]
+    fn a_real_lab_without_calibration_refuses_trials_unless_overridden() {
+        let mut cfg = ServeConfig::default();
+        let empty = CalibrationFile::default();
+        assert_eq!(
+            uncalibrated_refusal(&cfg, &empty),
+            None,
+            "the simulated lab runs"
+        );
+        cfg.lab.mode = LabMode::Real;
+        let why = uncalibrated_refusal(&cfg, &empty).expect("refused");
+        assert!(
+            why.contains("not calibrated (pendulum, latency missing)"),
+            "{why}"
+        );
+        assert!(why.contains("isochron calibrate pendulum"), "{why}");
+        let text = "[latency]\ndate = \"d\"\nrevision = \"r\"\nsource = \"s\"\n\
+                    [latency.result]\nlatency_ms = 40.0\nbound_ms = 0.5\nspread_ms = 1.0\n\
+                    serial_one_way_ms = 1.0\nframe_period_ms = 33.3\nedges = 40\nedges_seen = 40\n\
+                    edges_consistent = 40\nframes = 300\n";
+        let half = CalibrationFile::from_toml_str(text).unwrap();
+        assert!(matches!(half.latency, Some(StepRecord { .. })));
+        let why = uncalibrated_refusal(&cfg, &half).expect("still refused");
+        assert!(why.contains("(pendulum missing)"), "{why}");
+        cfg.lab.allow_uncalibrated = true;
+        assert_eq!(
+            uncalibrated_refusal(&cfg, &empty),
+            None,
+            "explicit override"
+        );
     }
 }

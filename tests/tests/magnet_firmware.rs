@@ -267,6 +267,91 @@ fn on_off_switches_the_pin_and_status_agrees() {
     assert!(percentile(&rtt_ms, 0.5) < 250.0);
 }
 
+/// The calibration LED (D12): each `LED ON|OFF` moves only D12, once, to the
+/// commanded level; the firmware's reported uptime agrees with the simulator's
+/// pin time (the pin switched when the firmware said, before it answered); a
+/// bad argument is refused and changes nothing.
+#[test]
+fn the_led_command_switches_d12_only_and_reports_when() {
+    let Some((elf, host)) = firmware() else {
+        return;
+    };
+    let link = link_path("led");
+    let board = SimBoard::start(&elf, &host, &link);
+    let h = MagnetHandle::spawn(params(&link)).unwrap();
+    connected(&h);
+    assert!(
+        board.wait(Duration::from_secs(1), |l| SimBoard::level(l, "D12")
+            == Some(0))
+    );
+    h.set_magnet(true).unwrap();
+    assert!(board.wait_coil(1, Duration::from_secs(1)));
+    let mut answers = Vec::new();
+    let mut rtt_ms = Vec::new();
+    for i in 0..10 {
+        let on = i % 2 == 0;
+        let a = h.set_led(on).unwrap();
+        let OkReply::Led { on: got, uptime_ms } = a.reply else {
+            panic!("{:?}", a.reply);
+        };
+        assert_eq!(got, on);
+        answers.push((on, uptime_ms));
+        rtt_ms.push(a.rtt.as_secs_f64() * 1e3);
+        let want = u8::from(on);
+        assert!(
+            board.wait(Duration::from_secs(1), |l| SimBoard::level(l, "D12")
+                == Some(want)),
+            "D12 did not follow LED {on}: {:?}",
+            board.pins()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let d12: Vec<PinReport> = board
+        .pins()
+        .into_iter()
+        .filter(|p| p.pin == "D12")
+        .collect();
+    // The initial low report, then exactly one change per command, alternating.
+    assert_eq!(d12.len(), 11, "{d12:?}");
+    for ((on, uptime_ms), pin) in answers.iter().zip(&d12[1..]) {
+        assert_eq!(pin.level, u8::from(*on));
+        // The answer's uptime is the firmware's millisecond clock just after the switch.
+        let pin_ms = pin.t_us as f64 / 1000.0;
+        let diff = f64::from(*uptime_ms) - pin_ms;
+        assert!(
+            (-1.0..=2.0).contains(&diff),
+            "uptime {uptime_ms} ms vs pin {pin_ms:.3} ms"
+        );
+    }
+    // The coil and its mirror never moved.
+    let coil: Vec<PinReport> = board
+        .pins()
+        .into_iter()
+        .filter(|p| p.pin == "D8" || p.pin == "D13")
+        .collect();
+    assert!(coil.iter().rev().take(2).all(|p| p.level == 1), "{coil:?}");
+    assert!(
+        coil.iter().filter(|p| p.level == 0).count() <= 2,
+        "{coil:?}"
+    );
+    assert!(h.status().unwrap().magnet_on);
+    rtt_ms.sort_by(f64::total_cmp);
+    eprintln!(
+        "LED command round trip (firmware in simavr): p50 {:.2} ms, max {:.2} ms",
+        percentile(&rtt_ms, 0.5),
+        rtt_ms[rtt_ms.len() - 1]
+    );
+    // A bad argument: refused, nothing moves.
+    let err = h.submit(Command::Raw("LED BLINK".into())).unwrap().wait();
+    assert!(
+        matches!(&err, Err(MagnetError::Device { code, .. }) if code == "bad-argument"),
+        "{err:?}"
+    );
+    std::thread::sleep(Duration::from_millis(50));
+    assert_eq!(board.pins().iter().filter(|p| p.pin == "D12").count(), 11);
+    h.set_magnet(false).unwrap();
+}
+
 #[test]
 fn the_hold_limit_switches_the_pin_off_and_the_driver_reports_it() {
     let Some((elf, host)) = firmware() else {

@@ -217,6 +217,17 @@ impl MagnetHandle {
             .ok_or_else(|| MagnetError::Protocol(format!("{:?}", a.reply)))
     }
 
+    /// Switches the calibration LED (blocking). The answer carries the command's
+    /// send time and round trip: the LED switched within them (half the round trip
+    /// is the usual estimate of when).
+    pub fn set_led(&self, on: bool) -> Result<Answer, MagnetError> {
+        let a = self.submit(Command::Led(on))?.wait()?;
+        match a.reply {
+            OkReply::Led { on: got, .. } if got == on => Ok(a),
+            ref other => Err(MagnetError::Protocol(format!("{other:?}"))),
+        }
+    }
+
     /// Asks the device's state (blocking).
     pub fn status(&self) -> Result<DeviceStatus, MagnetError> {
         let a = self.submit(Command::Status)?.wait()?;

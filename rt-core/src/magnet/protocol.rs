@@ -28,6 +28,9 @@ pub enum Command {
     Status,
     /// `HOLD <s>`: the coil's maximum hold time, seconds (1..=3600).
     Hold(u16),
+    /// `LED ON` / `LED OFF`: the calibration LED on D12 (in the camera's view); the
+    /// pin switches before the answer is written.
+    Led(bool),
     /// A raw line sent as is (diagnostics and tests, e.g. `TEST HANG`); any `OK`/`ERR` answers it.
     Raw(String),
 }
@@ -41,6 +44,8 @@ impl Command {
             Self::Magnet(false) => "MAGNET OFF".to_owned(),
             Self::Status => "STATUS".to_owned(),
             Self::Hold(s) => format!("HOLD {s}"),
+            Self::Led(true) => "LED ON".to_owned(),
+            Self::Led(false) => "LED OFF".to_owned(),
             Self::Raw(l) => l.clone(),
         }
     }
@@ -52,6 +57,7 @@ impl Command {
             (Self::Magnet(_), OkReply::Magnet(_))
             | (Self::Status, OkReply::Status(_))
             | (Self::Hold(_), OkReply::Hold { .. })
+            | (Self::Led(_), OkReply::Led { .. })
             | (Self::Raw(_), _) => true,
             _ => false,
         }
@@ -150,6 +156,13 @@ pub enum OkReply {
         /// The new hold limit, ms.
         hold_max_ms: u32,
     },
+    /// `OK LED led=on|off uptime_ms=..`: the calibration LED's state after the switch.
+    Led {
+        /// Whether the LED is lit.
+        on: bool,
+        /// Milliseconds since the board's last reset.
+        uptime_ms: u32,
+    },
     /// Any other `OK` line (e.g. `OK HANG`), its text after `OK `.
     Other(String),
 }
@@ -229,6 +242,17 @@ pub fn parse_line(raw: &str) -> Line {
         }
         ["OK", "HOLD", rest @ ..] => num(rest, "hold_max_ms")
             .map_or_else(other, |hold_max_ms| Line::Ok(OkReply::Hold { hold_max_ms })),
+        ["OK", "LED", rest @ ..] => {
+            let on = match field(rest, "led") {
+                Some("on") => Some(true),
+                Some("off") => Some(false),
+                _ => None,
+            };
+            match (on, num(rest, "uptime_ms")) {
+                (Some(on), Some(uptime_ms)) => Line::Ok(OkReply::Led { on, uptime_ms }),
+                _ => other(),
+            }
+        }
         ["OK", rest @ ..] => Line::Ok(OkReply::Other(rest.join(" "))),
         ["ERR", code, ..] => Line::Err((*code).to_owned()),
         ["ERR"] => Line::Err(String::new()),

@@ -122,6 +122,40 @@ fn model_refuses_bad_lines_without_touching_the_magnet() {
 }
 
 #[test]
+fn the_led_command_is_parsed_and_the_model_answers_it() {
+    assert_eq!(Command::Led(true).line(), "LED ON");
+    assert_eq!(
+        parse_line("OK LED led=on uptime_ms=1234\r"),
+        Line::Ok(OkReply::Led {
+            on: true,
+            uptime_ms: 1234
+        })
+    );
+    assert!(matches!(
+        parse_line("OK LED led=dim uptime_ms=1"),
+        Line::Other(_)
+    ));
+    assert!(Command::Led(false).expects(&OkReply::Led {
+        on: false,
+        uptime_ms: 0
+    }));
+    let mut out = Vec::new();
+    let mut m = FirmwareModel::boot(0, ResetCause::Power, &mut out);
+    assert_eq!(
+        feed_all(&mut m, b"LED ON\n", 5),
+        "OK LED led=on uptime_ms=5\r\n"
+    );
+    assert!(m.led_on() && !m.magnet_on(), "the LED is not the coil");
+    assert_eq!(feed_all(&mut m, b"LED BLINK\n", 6), "ERR bad-argument\r\n");
+    assert!(m.led_on());
+    assert_eq!(
+        feed_all(&mut m, b"LED OFF\n", 7),
+        "OK LED led=off uptime_ms=7\r\n"
+    );
+    assert!(!m.led_on());
+}
+
+#[test]
 fn model_hold_limit_switches_off_and_reports() {
     let mut out = Vec::new();
     let mut m = FirmwareModel::boot(0, ResetCause::Power, &mut out);

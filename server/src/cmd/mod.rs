@@ -1,6 +1,7 @@
 //! The `isochron` subcommands, one file each.
 
 pub mod bench;
+pub mod calibrate;
 pub mod detect;
 pub mod eval;
 pub mod fri_sim;

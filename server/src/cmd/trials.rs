@@ -37,6 +37,11 @@ pub struct TrialsArgs {
     /// `isochron tune` writes); repeat to lay several in order.
     #[arg(long)]
     pub params: Vec<PathBuf>,
+    /// A calibration file (`isochron calibrate` writes it) laid over the scenario's
+    /// beliefs after the parameter files: pendulum length and damping, camera latency,
+    /// the robot latency prior.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
 }
 
 /// Runs the trials; returns the text for stdout.
@@ -47,6 +52,9 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     let mut scenario = Scenario::from_file(&args.scenario)?;
     for p in &args.params {
         scenario = rt_core::tuning::overlay_params_file(&scenario, p)?;
+    }
+    if let Some(c) = &args.calibration {
+        scenario = rt_core::calibration::CalibrationFile::from_file(c)?.apply(&scenario)?;
     }
     let mut per_trial = match &args.per_trial {
         Some(p) => Some(BufWriter::new(
@@ -178,6 +186,7 @@ mod tests {
             json: true,
             per_trial,
             params: Vec::new(),
+            calibration: None,
         }
     }
 

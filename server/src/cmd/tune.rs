@@ -161,6 +161,7 @@ mod tests {
                 json: true,
                 per_trial: None,
                 params,
+                calibration: None,
             })
             .unwrap();
             serde_json::from_str(&out).unwrap()

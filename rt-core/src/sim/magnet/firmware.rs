@@ -13,6 +13,7 @@ use crate::magnet::protocol::{
 #[derive(Debug, Clone)]
 pub struct FirmwareModel {
     magnet_on: bool,
+    led_on: bool,
     on_since_ms: u64,
     hold_max_ms: u32,
     boot_ms: u64,
@@ -30,6 +31,7 @@ impl FirmwareModel {
     pub fn boot(now_ms: u64, reset: ResetCause, out: &mut Vec<u8>) -> Self {
         let m = Self {
             magnet_on: false,
+            led_on: false,
             on_since_ms: 0,
             hold_max_ms: u32::from(HOLD_DEFAULT_S) * 1000,
             boot_ms: now_ms,
@@ -53,6 +55,11 @@ impl FirmwareModel {
     /// Whether the coil is energised (the D8 pin).
     pub fn magnet_on(&self) -> bool {
         self.magnet_on
+    }
+
+    /// Whether the calibration LED is lit (the D12 pin).
+    pub fn led_on(&self) -> bool {
+        self.led_on
     }
 
     /// Complete command lines received (answered with `OK` or `ERR`).
@@ -186,7 +193,15 @@ impl FirmwareModel {
                     _ => "ERR bad-argument".to_owned(),
                 }
             }
-            _ if first == "MAGNET" => "ERR bad-argument".to_owned(),
+            "LED ON" | "LED OFF" => {
+                self.led_on = line == "LED ON";
+                format!(
+                    "OK LED led={} uptime_ms={}",
+                    if self.led_on { "on" } else { "off" },
+                    now_ms.saturating_sub(self.boot_ms)
+                )
+            }
+            _ if first == "MAGNET" || first == "LED" => "ERR bad-argument".to_owned(),
             _ => "ERR unknown-command".to_owned(),
         }
     }

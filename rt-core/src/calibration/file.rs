@@ -1,0 +1,120 @@
+//! The calibration file: each step's result with its residuals, date, software
+//! revision and where it was measured; `serve`, `trials` and `eval` lay it over the
+//! lab's beliefs (`CalibrationFile::apply`).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::{LedLatency, RobotLatency, SwingFit};
+use crate::params::{ParamError, Scenario};
+
+/// When, by which software and on what one step was measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StepRecord<T> {
+    /// UTC date and time, RFC 3339.
+    pub date: String,
+    /// The software revision (`isochron --version` and the git commit).
+    pub revision: String,
+    /// Where it was measured: `"real lab"` or `"simulated world (scenario NAME, seed S)"`.
+    pub source: String,
+    /// The result with its residuals.
+    pub result: T,
+}
+
+/// The pendulum step's result: the free-swing fit and the rest point.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PendulumCalibration {
+    /// The free-swing fit.
+    pub swing: SwingFit,
+    /// The hanging ball's centre in the image, pixels (column, row).
+    pub rest_px: [f64; 2],
+    /// Standard deviation of the rest centre over the frames averaged, pixels.
+    pub rest_std_px: [f64; 2],
+    /// The swing plane's direction in the image: angle of the swing's principal axis
+    /// from the image's x axis, degrees.
+    pub swing_image_angle_deg: f64,
+}
+
+/// A calibration file: every step is optional (a step not yet run is absent).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CalibrationFile {
+    /// `isochron calibrate pendulum`.
+    pub pendulum: Option<StepRecord<PendulumCalibration>>,
+    /// `isochron calibrate latency`.
+    pub latency: Option<StepRecord<LedLatency>>,
+    /// `isochron calibrate robot`.
+    pub robot: Option<StepRecord<RobotLatency>>,
+}
+
+impl CalibrationFile {
+    /// Reads a calibration file; a missing file is an empty calibration.
+    pub fn load_or_empty(path: &Path) -> Result<Self, ParamError> {
+        match std::fs::read_to_string(path) {
+            Ok(text) => Self::from_toml_str(&text).map_err(|e| match e {
+                ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
+                other => other,
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Self::default()),
+            Err(e) => Err(ParamError::Io {
+                path: path.display().to_string(),
+                reason: e.to_string(),
+            }),
+        }
+    }
+
+    /// Reads an existing calibration file (missing: an error).
+    pub fn from_file(path: &Path) -> Result<Self, ParamError> {
+        let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
+            path: path.display().to_string(),
+            reason: e.to_string(),
+        })?;
+        Self::from_toml_str(&text).map_err(|e| match e {
+            ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
+            other => other,
+        })
+    }
+
+    /// Parses a calibration file's text. Unknown keys are refused.
+    pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
+        toml::from_str(text).map_err(|e| ParamError::Parse(e.message().replace('\n', " ")))
+    }
+
+    /// The file's text.
+    pub fn to_toml_string(&self) -> String {
+        toml::to_string_pretty(self).unwrap_or_default()
+    }
+
+    /// Writes the file atomically (a temporary file renamed over the target).
+    pub fn write(&self, path: &Path) -> Result<(), ParamError> {
+        let io = |e: std::io::Error| ParamError::Io {
+            path: path.display().to_string(),
+            reason: e.to_string(),
+        };
+        let tmp = path.with_extension("toml.tmp");
+        std::fs::write(&tmp, self.to_toml_string()).map_err(io)?;
+        std::fs::rename(&tmp, path).map_err(io)
+    }
+
+    /// The lab's beliefs with the calibrated values: pendulum length and damping,
+    /// camera latency, and the robot latency prior of the online estimator (delay
+    /// plus servo lag, which is what the estimator measures). The result is validated.
+    pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, ParamError> {
+        let mut s = scenario.clone();
+        if let Some(p) = &self.pendulum {
+            s.pendulum.length_m = p.result.swing.length_m;
+            s.pendulum.damping_per_s = p.result.swing.damping_per_s.max(0.0);
+        }
+        if let Some(l) = &self.latency {
+            s.camera.latency_ms = l.result.latency_ms;
+        }
+        if let Some(r) = &self.robot {
+            s.control.latency_prior_ms = r.result.latency_ms + r.result.servo_time_constant_ms;
+        }
+        s.validate()?;
+        Ok(s)
+    }
+}

@@ -1,0 +1,236 @@
+//! Camera latency by light: an LED in view is switched at known times; the
+//! first frame that shows each switch bounds the capture -> delivery latency.
+
+use serde::{Deserialize, Serialize};
+
+use super::CalibrationError;
+
+/// One frame's LED reading.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LedFrame {
+    /// When the frame reached the host, seconds (host clock).
+    pub t_delivered_s: f64,
+    /// Mean brightness of the LED's region, any unit (0..255 for 8-bit images).
+    pub brightness: f64,
+}
+
+/// One commanded LED switch.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LedEdge {
+    /// When the host wrote the command, seconds (host clock).
+    pub t_sent_s: f64,
+    /// Command -> firmware echo round trip, seconds (the firmware switches the pin
+    /// before it answers; half the round trip is taken as the command's one-way delay).
+    pub round_trip_s: f64,
+    /// The state commanded.
+    pub on: bool,
+}
+
+/// The estimated camera latency.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LedLatency {
+    /// Mean capture (middle of the exposure) -> delivery latency, milliseconds.
+    pub latency_ms: f64,
+    /// Half the width of the interval every consistent switch allows, milliseconds
+    /// (the estimate's resolution).
+    pub bound_ms: f64,
+    /// Standard deviation of the delivery times around the frame grid, milliseconds
+    /// (the latency's spread from frame to frame).
+    pub spread_ms: f64,
+    /// Mean one-way delay of the serial command (half the echo round trip), milliseconds.
+    pub serial_one_way_ms: f64,
+    /// Frame period measured from the delivery times, milliseconds.
+    pub frame_period_ms: f64,
+    /// Switches commanded.
+    pub edges: usize,
+    /// Switches seen by the camera (a clean old-state frame followed by a new-state frame).
+    pub edges_seen: usize,
+    /// Switches consistent with the estimate.
+    pub edges_consistent: usize,
+    /// Frames read.
+    pub frames: usize,
+}
+
+/// When to send `n` switches: the frame grid is fitted from `deliveries` (delivery
+/// times of frames seen before the first switch, host clock, in order), and switch
+/// `i` is sent at a phase `(p_i + u) / n` of a frame period after a grid point, the
+/// `p_i` a random permutation of `0..n` and `u` uniform: random phases that cover
+/// the period evenly (the latency window then shrinks like `T / n` for certain,
+/// not only on average). Switches are 7 or 8 frames apart (> 0.2 s at 30 fps, more
+/// than any latency to measure). `uniform()` draws from [0, 1).
+pub fn plan_switches(
+    deliveries: &[f64],
+    frame_period_s: f64,
+    n: usize,
+    mut uniform: impl FnMut() -> f64,
+) -> Vec<f64> {
+    let Some(&first) = deliveries.first() else {
+        return Vec::new();
+    };
+    let last = deliveries[deliveries.len() - 1];
+    // Least-squares grid through the deliveries.
+    let ks: Vec<f64> = deliveries
+        .iter()
+        .map(|t| ((t - first) / frame_period_s).round())
+        .collect();
+    let m = deliveries.len() as f64;
+    let (mk, mt) = (
+        ks.iter().sum::<f64>() / m,
+        deliveries.iter().sum::<f64>() / m,
+    );
+    let (mut sxy, mut sxx) = (0.0, 0.0);
+    for (k, t) in ks.iter().zip(deliveries) {
+        sxy += (k - mk) * (t - mt);
+        sxx += (k - mk) * (k - mk);
+    }
+    let period = if sxx > 0.0 { sxy / sxx } else { frame_period_s };
+    let a = mt - period * mk;
+    let mut perm: Vec<usize> = (0..n).collect();
+    for i in (1..n).rev() {
+        let j = ((uniform() * (i + 1) as f64) as usize).min(i);
+        perm.swap(i, j);
+    }
+    let mut k = ((last - a) / period).ceil() + 4.0;
+    perm.iter()
+        .map(|&p| {
+            k += if uniform() < 0.5 { 7.0 } else { 8.0 };
+            a + period * (k + (p as f64 + uniform()) / n as f64)
+        })
+        .collect()
+}
+
+/// Smallest brightness difference between the LED's off and on levels, in the
+/// brightness unit (8-bit: 255).
+pub const MIN_CONTRAST: f64 = 20.0;
+
+/// Estimates the latency. `frame_period_s` is the nominal frame period (the fps the
+/// camera was opened with); frames are in delivery order (lost ones are simply absent).
+pub fn estimate_led_latency(
+    frames: &[LedFrame],
+    edges: &[LedEdge],
+    frame_period_s: f64,
+) -> Result<LedLatency, CalibrationError> {
+    const WHAT: &str = "LED latency";
+    for (index, f) in frames.iter().enumerate() {
+        if !f.t_delivered_s.is_finite() || !f.brightness.is_finite() {
+            return Err(CalibrationError::NotFinite { what: WHAT, index });
+        }
+    }
+    for (index, e) in edges.iter().enumerate() {
+        if !e.t_sent_s.is_finite() || !e.round_trip_s.is_finite() || e.round_trip_s < 0.0 {
+            return Err(CalibrationError::NotFinite { what: WHAT, index });
+        }
+    }
+    if frames.len() < 20 {
+        return Err(CalibrationError::TooFewSamples {
+            what: WHAT,
+            got: frames.len(),
+            need: 20,
+        });
+    }
+    if !(frame_period_s.is_finite() && frame_period_s > 0.0) {
+        return Err(CalibrationError::FitFailed {
+            what: WHAT,
+            reason: format!("bad frame period {frame_period_s}"),
+        });
+    }
+    // On/off levels: the 5th and 95th percentiles; threshold half way (a frame
+    // whose exposure is half lit reads half way: the switch at mid-exposure).
+    let mut b: Vec<f64> = frames.iter().map(|f| f.brightness).collect();
+    b.sort_by(f64::total_cmp);
+    let lo = b[b.len() / 20];
+    let hi = b[b.len() - 1 - b.len() / 20];
+    if hi - lo < MIN_CONTRAST {
+        return Err(CalibrationError::LedNotSeen {
+            edges: edges.len(),
+            seen: 0,
+        });
+    }
+    let threshold = 0.5 * (lo + hi);
+    let lit: Vec<bool> = frames.iter().map(|f| f.brightness > threshold).collect();
+
+    // The frame grid: delivery time = a + k T, k counted from the first frame.
+    let t_first = frames[0].t_delivered_s;
+    let ks: Vec<f64> = frames
+        .iter()
+        .map(|f| ((f.t_delivered_s - t_first) / frame_period_s).round())
+        .collect();
+    let n = frames.len() as f64;
+    let (mk, mt) = (
+        ks.iter().sum::<f64>() / n,
+        frames.iter().map(|f| f.t_delivered_s).sum::<f64>() / n,
+    );
+    let (mut sxy, mut sxx) = (0.0, 0.0);
+    for (k, f) in ks.iter().zip(frames) {
+        sxy += (k - mk) * (f.t_delivered_s - mt);
+        sxx += (k - mk) * (k - mk);
+    }
+    let period = if sxx > 0.0 { sxy / sxx } else { frame_period_s };
+    let a = mt - period * mk;
+    let grid = |k: f64| a + period * k;
+    let spread = (frames
+        .iter()
+        .zip(&ks)
+        .map(|(f, k)| (f.t_delivered_s - grid(*k)).powi(2))
+        .sum::<f64>()
+        / (n - 2.0).max(1.0))
+    .sqrt();
+
+    // Each switch seen: the last frame with the old state and the first with the new
+    // one bound the latency L: grid(k_old) - L < t_switch <= grid(k_new) - L.
+    let mut intervals = Vec::with_capacity(edges.len());
+    let mut one_way_sum = 0.0;
+    for e in edges {
+        let t_switch = e.t_sent_s + 0.5 * e.round_trip_s;
+        one_way_sum += 0.5 * e.round_trip_s;
+        // Frames delivered after the command was sent (only they can show it).
+        let start = frames.partition_point(|f| f.t_delivered_s <= e.t_sent_s);
+        let Some(offset) = lit[start..].iter().position(|&l| l == e.on) else {
+            continue;
+        };
+        let i_new = start + offset;
+        if i_new == 0 || lit[i_new - 1] == e.on {
+            continue;
+        }
+        let lo_l = grid(ks[i_new - 1]) - t_switch;
+        let hi_l = grid(ks[i_new]) - t_switch;
+        if lo_l < hi_l {
+            intervals.push((lo_l, hi_l));
+        }
+    }
+    let seen = intervals.len();
+
+    if seen < 3.max(edges.len() / 2) {
+        return Err(CalibrationError::LedNotSeen {
+            edges: edges.len(),
+            seen,
+        });
+    }
+    // The latency allowed by the most switches: sweep the interval ends.
+    let mut events: Vec<(f64, i32)> = intervals
+        .iter()
+        .flat_map(|&(l, h)| [(l, 1), (h, -1)])
+        .collect();
+    events.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+    let (mut count, mut best, mut best_lo, mut best_hi) = (0, 0, 0.0, 0.0);
+    for (i, &(t, d)) in events.iter().enumerate() {
+        count += d;
+        if count > best {
+            best = count;
+            best_lo = t;
+            best_hi = events.get(i + 1).map_or(t, |e| e.0);
+        }
+    }
+    let latency = 0.5 * (best_lo + best_hi);
+    Ok(LedLatency {
+        latency_ms: latency * 1e3,
+        bound_ms: 0.5 * (best_hi - best_lo) * 1e3,
+        spread_ms: spread * 1e3,
+        serial_one_way_ms: one_way_sum / edges.len().max(1) as f64 * 1e3,
+        frame_period_ms: period * 1e3,
+        edges: edges.len(),
+        edges_seen: seen,
+        edges_consistent: usize::try_from(best).unwrap_or(0),
+        frames: frames.len(),
+    })
+}

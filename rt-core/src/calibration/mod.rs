@@ -1,0 +1,88 @@
+#![doc = include_str!("README.md")]
+
+pub mod file;
+pub mod latency;
+pub mod lsq;
+pub mod robot;
+pub mod simworld;
+pub mod swing;
+
+#[cfg(test)]
+mod tests;
+
+pub use file::{CalibrationFile, StepRecord};
+pub use latency::{LedEdge, LedLatency, estimate_led_latency};
+pub use robot::{RobotLatency, fit_robot_latency};
+pub use swing::{SwingFit, SwingSample, fit_swing};
+
+/// Why a calibration step could not give a result (nothing is written then).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum CalibrationError {
+    /// Too few usable samples.
+    #[error("{what}: {got} usable samples, at least {need} needed")]
+    TooFewSamples {
+        /// What was being measured.
+        what: &'static str,
+        /// Samples there were.
+        got: usize,
+        /// Samples needed.
+        need: usize,
+    },
+    /// The swing is too small to fit its period and decay.
+    #[error(
+        "swing too small: amplitude {amplitude_m:.4} m, at least {min_m:.3} m needed (release the ball from a larger angle)"
+    )]
+    SwingTooSmall {
+        /// Measured half peak-to-peak amplitude, metres.
+        amplitude_m: f64,
+        /// Smallest accepted amplitude, metres.
+        min_m: f64,
+    },
+    /// The recording is too short.
+    #[error("{what}: {got_s:.2} s recorded, at least {need_s:.2} s needed")]
+    TooShort {
+        /// What was being measured.
+        what: &'static str,
+        /// Duration recorded, seconds.
+        got_s: f64,
+        /// Duration needed, seconds.
+        need_s: f64,
+    },
+    /// A sample is NaN or infinite.
+    #[error("{what}: sample {index} is not finite")]
+    NotFinite {
+        /// What was being measured.
+        what: &'static str,
+        /// Index of the bad sample.
+        index: usize,
+    },
+    /// The LED was never seen switching.
+    #[error(
+        "LED never seen: {edges} switchings commanded, {seen} seen by the camera (is the LED in view and the magnet board connected?)"
+    )]
+    LedNotSeen {
+        /// Switchings commanded.
+        edges: usize,
+        /// Switchings seen.
+        seen: usize,
+    },
+    /// The least-squares fit did not converge or gave a non-physical result.
+    #[error("{what}: fit failed: {reason}")]
+    FitFailed {
+        /// What was being fitted.
+        what: &'static str,
+        /// Why.
+        reason: String,
+    },
+    /// The excitation did not move the joint enough to fit.
+    #[error(
+        "robot excitation not seen: the measured joint moved {moved_rad:.5} rad, at least {min_rad:.5} rad needed"
+    )]
+    NoResponse {
+        /// Peak-to-peak measured motion, radians.
+        moved_rad: f64,
+        /// Needed, radians.
+        min_rad: f64,
+    },
+}

@@ -1,0 +1,615 @@
+//! The calibration procedures run on a simulated world: the hidden truth
+//! ([`HiddenWorld`]) goes to the simulators only (the pendulum, the rendered
+//! camera, the simulated KUKA controller); the procedures see what a real lab's
+//! would see (frames, detections, FRI messages, the firmware's answers) and hand it
+//! to the pure fits. Each run returns the truth beside the estimate so the caller
+//! can report the error.
+//!
+//! Until the scenario's `[world]` (CONTRACT.md) is available, the truth is drawn
+//! here from a seed, around the scenario's beliefs (`HiddenWorld::draw`).
+
+use nalgebra::Vector3;
+use opencv::{
+    core::{self, Mat, MatTraitConst, Point, Rect, Scalar},
+    imgproc,
+};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::file::PendulumCalibration;
+use super::latency::{LedEdge, LedFrame};
+use super::robot::JointSample;
+use super::{
+    CalibrationError, LedLatency, RobotLatency, SwingSample, estimate_led_latency,
+    fit_robot_latency, fit_swing,
+};
+use crate::fri::{
+    ControlStep, FriClient, FriClientParams, FriSimParams, Joints, LinkState, SessionState,
+    SimController, StepInput,
+};
+use crate::params::{ParamError, Scenario};
+use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::vision::{
+    BallState, DetectorParams, SimCamera, SimCameraParams, SimVision, SwingPlaneCalibration,
+    VisionError,
+};
+
+/// Why a procedure could not run or give a result.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ProcedureError {
+    /// The fit refused the data.
+    #[error(transparent)]
+    Calibration(#[from] CalibrationError),
+    /// The scenario is not valid.
+    #[error(transparent)]
+    Params(#[from] ParamError),
+    /// The camera or detector failed.
+    #[error("camera: {0}")]
+    Vision(#[from] VisionError),
+    /// The ball was not where the step needs it.
+    #[error("{0}")]
+    NotSeen(String),
+    /// The simulated robot or its FRI session.
+    #[error("robot: {0}")]
+    Robot(String),
+}
+
+impl From<opencv::Error> for ProcedureError {
+    fn from(e: opencv::Error) -> Self {
+        Self::Vision(VisionError::OpenCv(e.to_string()))
+    }
+}
+
+/// The simulated lab as it is (the simulators' side only).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HiddenWorld {
+    /// True pendulum length minus the believed one, metres (the pivot is where the
+    /// lab believes; a longer string hangs the ball lower).
+    pub length_error_m: f64,
+    /// True viscous damping, 1/s.
+    pub damping_per_s: f64,
+    /// True mean capture -> delivery latency of the camera, ms.
+    pub camera_latency_ms: f64,
+    /// True command -> setpoint delay of the robot, ms.
+    pub robot_latency_ms: f64,
+    /// Uniform jitter of that delay, +- ms.
+    pub robot_latency_jitter_ms: f64,
+    /// True first-order servo lag of the joints, ms.
+    pub servo_time_constant_ms: f64,
+}
+
+impl HiddenWorld {
+    /// A session's truth drawn from `seed` around the scenario's beliefs: length
+    /// +-6 cm, damping 0.01..0.06 /s, camera latency belief -10..+30 ms (at least
+    /// 5 ms), robot latency 3..30 ms with the scenario's jitter, servo lag 3..12 ms.
+    pub fn draw(scenario: &Scenario, seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5ca1_1b0a);
+        Self {
+            length_error_m: rng.random_range(-0.06..=0.06),
+            damping_per_s: rng.random_range(0.01..=0.06),
+            camera_latency_ms: (scenario.camera.latency_ms + rng.random_range(-10.0..=30.0))
+                .max(5.0),
+            robot_latency_ms: rng.random_range(3.0..=30.0),
+            robot_latency_jitter_ms: scenario
+                .robot
+                .latency_jitter_ms
+                .min(rng.random_range(3.0..=30.0)),
+            servo_time_constant_ms: rng.random_range(3.0..=12.0),
+        }
+    }
+
+    /// The truthful world: everything as the scenario believes.
+    pub fn truthful(scenario: &Scenario) -> Self {
+        Self {
+            length_error_m: 0.0,
+            damping_per_s: scenario.pendulum.damping_per_s,
+            camera_latency_ms: scenario.camera.latency_ms,
+            robot_latency_ms: scenario.robot.latency_ms,
+            robot_latency_jitter_ms: scenario.robot.latency_jitter_ms,
+            servo_time_constant_ms: 5.0,
+        }
+    }
+}
+
+/// The believed rest point (the intercept point at the near end of the distances).
+fn believed_rest(s: &Scenario) -> Vector3<f64> {
+    Vector3::new(s.task.distance_m.lo, 0.0, s.task.intercept_height_m)
+}
+
+/// The camera as it really is (the truth's latency), with the lab's pose.
+fn true_camera(s: &Scenario, w: &HiddenWorld, seed: u64) -> Result<SimCamera, ProcedureError> {
+    let mut camera = s.camera.clone();
+    camera.latency_ms = w.camera_latency_ms;
+    Ok(SimCamera::new(
+        &camera,
+        &SimCameraParams::default(),
+        s.pendulum.ball_radius_m,
+        seed,
+    )?)
+}
+
+/// The pendulum step on the simulated world, with the truth beside the result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PendulumRun {
+    /// What the step measured.
+    pub calibration: PendulumCalibration,
+    /// The true length, metres.
+    pub true_length_m: f64,
+    /// The true damping, 1/s.
+    pub true_damping_per_s: f64,
+    /// The true rest point (intercept point), base frame, metres.
+    pub true_rest_m: [f64; 3],
+    /// Where the procedure puts the rest point in the base frame: the rest
+    /// detection's ray met with the swing plane (`x` = the believed distance), metres.
+    pub rest_m: [f64; 3],
+}
+
+/// Frames averaged for the rest point.
+const REST_FRAMES: usize = 30;
+
+/// The pendulum step: the hanging ball's rest point (30 frames), then a free swing
+/// released from `release_deg` recorded for `duration_s` and fitted.
+pub fn run_pendulum(
+    scenario: &Scenario,
+    world: &HiddenWorld,
+    seed: u64,
+    release_deg: f64,
+    duration_s: f64,
+) -> Result<PendulumRun, ProcedureError> {
+    scenario.validate()?;
+    let p = &scenario.pendulum;
+    let rest_b = believed_rest(scenario);
+    let true_length = p.length_m + world.length_error_m;
+    let model = PendulumModel {
+        length_m: true_length,
+        gravity_mps2: p.gravity_mps2,
+        damping_per_s: world.damping_per_s,
+    };
+    // The pivot stays where the lab believes it; the ball hangs at the true length.
+    let geometry =
+        PendulumGeometry::new(true_length, rest_b.x, rest_b.z + p.length_m - true_length)?;
+    let cam = true_camera(scenario, world, seed)?;
+    // What the lab believes: the camera's mounting and the believed rest point.
+    let calibration = SwingPlaneCalibration::from_pose(
+        *cam.intrinsics(),
+        &SimCameraParams::default().pose,
+        &rest_b,
+        p.ball_radius_m,
+    );
+    let mut vision = SimVision::new(cam, DetectorParams::default(), calibration)?;
+    let period = vision.frame_period_s();
+
+    // 1. The hanging ball.
+    let rest_true = geometry.rest_position_m();
+    let at_rest = BallState {
+        centre_m: rest_true,
+        velocity_mps: Vector3::zeros(),
+    };
+    let mut rest = Vec::with_capacity(REST_FRAMES);
+    for k in 0..REST_FRAMES * 2 {
+        if rest.len() >= REST_FRAMES {
+            break;
+        }
+        if let Some(m) = vision.capture(period * k as f64, Some(&at_rest))?
+            && m.found
+        {
+            rest.push((m.x_px, m.y_px));
+        }
+    }
+    if rest.len() < REST_FRAMES / 2 {
+        return Err(ProcedureError::NotSeen(format!(
+            "the hanging ball was found in {} of {} frames (is it in view?)",
+            rest.len(),
+            REST_FRAMES * 2
+        )));
+    }
+    let (mu, mv, su, sv) = mean_std(&rest);
+    let rest_c = calibration.point_on_plane_c(mu, mv).ok_or_else(|| {
+        ProcedureError::NotSeen("the rest point's ray misses the swing plane".into())
+    })?;
+    let pose = SimCameraParams::default().pose;
+    let rest_m_b = pose.base_from_camera() * rest_c + pose.position();
+
+    // 2. The free swing.
+    let t_release = 2.0 * REST_FRAMES as f64 * period + 0.5;
+    let mut sim = PendulumSim::held_at(model, geometry, release_deg.to_radians(), t_release)
+        .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
+    sim.release(t_release)
+        .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
+    vision.set_calibration(calibration);
+    let mut samples = Vec::new();
+    let mut track = Vec::new();
+    let start = t_release + 0.2;
+    let frames = (duration_s / period).floor() as usize;
+    for k in 0..frames {
+        let t = start + period * k as f64;
+        sim.advance_to(t)
+            .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
+        let ball = BallState {
+            centre_m: sim.ball_position_m(),
+            velocity_mps: sim.ball_velocity_mps(),
+        };
+        if let Some(m) = vision.capture(t, Some(&ball))?
+            && m.found
+        {
+            samples.push(SwingSample {
+                t_s: m.t_capture_s,
+                lateral_m: m.lateral_m,
+            });
+            track.push((m.x_px, m.y_px));
+        }
+    }
+    let swing = fit_swing(&samples, p.gravity_mps2, p.length_m)?;
+    Ok(PendulumRun {
+        calibration: PendulumCalibration {
+            swing,
+            rest_px: [mu, mv],
+            rest_std_px: [su, sv],
+            swing_image_angle_deg: principal_angle_deg(&track),
+        },
+        true_length_m: true_length,
+        true_damping_per_s: world.damping_per_s,
+        true_rest_m: rest_true.into(),
+        rest_m: rest_m_b.into(),
+    })
+}
+
+fn mean_std(points: &[(f64, f64)]) -> (f64, f64, f64, f64) {
+    let n = points.len().max(1) as f64;
+    let mu = points.iter().map(|p| p.0).sum::<f64>() / n;
+    let mv = points.iter().map(|p| p.1).sum::<f64>() / n;
+    let su = (points.iter().map(|p| (p.0 - mu).powi(2)).sum::<f64>() / n).sqrt();
+    let sv = (points.iter().map(|p| (p.1 - mv).powi(2)).sum::<f64>() / n).sqrt();
+    (mu, mv, su, sv)
+}
+
+/// Angle of the track's principal axis from the image x axis, degrees (-90..90).
+fn principal_angle_deg(points: &[(f64, f64)]) -> f64 {
+    let (mu, mv, _, _) = mean_std(points);
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for (u, v) in points {
+        sxx += (u - mu).powi(2);
+        syy += (v - mv).powi(2);
+        sxy += (u - mu) * (v - mv);
+    }
+    0.5 * (2.0 * sxy).atan2(sxx - syy).to_degrees()
+}
+
+/// The camera latency step on the simulated world.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LatencyRun {
+    /// What the step measured.
+    pub result: LedLatency,
+    /// The true mean latency, ms.
+    pub true_latency_ms: f64,
+    /// Where the LED was found in the image, pixels.
+    pub led_px: [f64; 2],
+}
+
+/// The LED's radius in the image, pixels, and its housing's half size.
+const LED_RADIUS_PX: i32 = 4;
+const LED_HOUSING_PX: i32 = 9;
+/// The serial link: 115200 baud, 10 bits a byte.
+const SERIAL_BYTE_S: f64 = 10.0 / 115_200.0;
+
+/// The camera latency step: the LED (beside the pendulum, in view) switched
+/// `switches` times at random phases; each frame rendered with the LED lit for the
+/// part of its exposure it was on; the LED found by an on/off difference image; the
+/// brightness of its region read from every frame. `led_in_view = false` covers
+/// the LED (the step must then refuse).
+pub fn run_led_latency(
+    scenario: &Scenario,
+    world: &HiddenWorld,
+    seed: u64,
+    switches: usize,
+    led_in_view: bool,
+) -> Result<LatencyRun, ProcedureError> {
+    scenario.validate()?;
+    let mut cam = true_camera(scenario, world, seed)?;
+    let exposure_s = SimCameraParams::default().exposure_ms * 1e-3;
+    let period = 1.0 / scenario.camera.fps;
+    // The LED sits on the magnet's stand beside the swing, 0.35 m to the robot's right.
+    let led_b = believed_rest(scenario) + Vector3::new(0.0, -0.35, 0.05);
+    let led_true_px = cam.project(&led_b);
+    let led_at = match (led_in_view, led_true_px) {
+        (true, Some(b)) => Some(Point::new(b.x_px.round() as i32, b.y_px.round() as i32)),
+        _ => None,
+    };
+    let draw = |img: &Mat, lit: f64, at: Option<Point>| -> Result<Mat, ProcedureError> {
+        let mut m = img.try_clone()?;
+        if let Some(c) = at {
+            let h = LED_HOUSING_PX;
+            imgproc::rectangle(
+                &mut m,
+                Rect::new(c.x - h, c.y - h, 2 * h + 1, 2 * h + 1),
+                Scalar::all(25.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )?;
+            let v = 25.0 + 225.0 * lit.clamp(0.0, 1.0);
+            imgproc::circle(
+                &mut m,
+                c,
+                LED_RADIUS_PX,
+                Scalar::new(v * 0.9, v * 0.9, v, 0.0),
+                -1,
+                imgproc::LINE_AA,
+                0,
+            )?;
+        }
+        Ok(m)
+    };
+    // 1. Find the LED: three frames with it on and three with it off (the host
+    //    waits half a second after each switch), the difference of their means,
+    //    high-passed (lighting changes between frames are smooth, the LED is a
+    //    spot), its brightest point.
+    let mut sum_on = Mat::default();
+    let mut sum_off = Mat::default();
+    for (lit, sum) in [(1.0, &mut sum_on), (0.0, &mut sum_off)] {
+        for _ in 0..3 {
+            let img = draw(cam.render(None)?, lit, led_at)?;
+            let mut gray = Mat::default();
+            imgproc::cvt_color_def(&img, &mut gray, imgproc::COLOR_BGR2GRAY)?;
+            let mut f = Mat::default();
+            gray.convert_to_def(&mut f, core::CV_32F)?;
+            if sum.empty() {
+                *sum = f;
+            } else {
+                let mut acc = Mat::default();
+                core::add_def(&*sum, &f, &mut acc)?;
+                *sum = acc;
+            }
+        }
+    }
+    let mut diff = Mat::default();
+    core::subtract_def(&sum_on, &sum_off, &mut diff)?;
+    let mut smooth = Mat::default();
+    imgproc::blur_def(&diff, &mut smooth, core::Size::new(41, 41))?;
+    let mut spot = Mat::default();
+    core::subtract_def(&diff, &smooth, &mut spot)?;
+    let mut blurred = Mat::default();
+    imgproc::gaussian_blur_def(&spot, &mut blurred, core::Size::new(5, 5), 0.0)?;
+    let (mut max_v, mut max_at) = (0.0, Point::default());
+    core::min_max_loc(
+        &blurred,
+        None,
+        Some(&mut max_v),
+        None,
+        Some(&mut max_at),
+        &core::no_array(),
+    )?;
+    // Sums of three frames: a spot at least MIN_CONTRAST grey levels brighter.
+    if max_v < 3.0 * super::latency::MIN_CONTRAST {
+        return Err(CalibrationError::LedNotSeen { edges: 2, seen: 0 }.into());
+    }
+    let roi = Rect::new((max_at.x - 2).max(0), (max_at.y - 2).max(0), 5, 5);
+
+    // 2. The frame grid: capture times and delivery (true latency) drawn up front;
+    //    the host sees the first second of deliveries before it plans the switches.
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1ed);
+    let phase = rng.random_range(0.0..period);
+    let span_s = 1.0 + (switches as f64 + 2.0) * 8.0 * period + 1.0;
+    let mut grid = Vec::new();
+    let mut k = 0u64;
+    loop {
+        let t_c = phase + period * k as f64;
+        k += 1;
+        if t_c > span_s {
+            break;
+        }
+        if cam.next_dropped() {
+            continue;
+        }
+        grid.push((t_c, t_c + cam.next_latency_s()));
+    }
+    let early: Vec<f64> = grid.iter().map(|g| g.1).take_while(|&t| t < 1.0).collect();
+    // 3. The switches at stratified random phases; the serial command's delay in
+    //    and the answer's delay out (bytes at 115200 baud plus the firmware's reaction).
+    let sends =
+        super::latency::plan_switches(&early, period, switches, || rng.random_range(0.0..1.0));
+    let mut edges = Vec::with_capacity(switches);
+    let mut switch_at = Vec::with_capacity(switches);
+    for (i, &t) in sends.iter().enumerate() {
+        let d_in = 7.0 * SERIAL_BYTE_S + rng.random_range(0.0002..0.0015);
+        let d_out = 30.0 * SERIAL_BYTE_S + rng.random_range(0.0002..0.0015);
+        edges.push(LedEdge {
+            t_sent_s: t,
+            round_trip_s: d_in + d_out,
+            on: i % 2 == 0,
+        });
+        switch_at.push((t + d_in, i % 2 == 0));
+    }
+    let lit_fraction = |t_mid: f64| -> f64 {
+        let (a, b) = (t_mid - 0.5 * exposure_s, t_mid + 0.5 * exposure_s);
+        let mut state = false;
+        let mut last = a;
+        let mut lit = 0.0;
+        for &(ts, on) in &switch_at {
+            if ts <= a {
+                state = on;
+                continue;
+            }
+            if ts >= b {
+                break;
+            }
+            if state {
+                lit += ts - last;
+            }
+            last = ts;
+            state = on;
+        }
+        if state {
+            lit += b - last;
+        }
+        lit / exposure_s
+    };
+
+    // 4. The frames, each rendered with the LED as lit over its exposure.
+    let mut frames = Vec::with_capacity(grid.len());
+    for &(t_c, t_d) in &grid {
+        let img = draw(cam.render(None)?, lit_fraction(t_c), led_at)?;
+        let mut sub = Mat::default();
+        imgproc::cvt_color_def(&Mat::roi(&img, roi)?, &mut sub, imgproc::COLOR_BGR2GRAY)?;
+        let brightness = core::mean(&sub, &core::no_array())?[0];
+        frames.push(LedFrame {
+            t_delivered_s: t_d,
+            brightness,
+        });
+    }
+    frames.sort_by(|a, b| a.t_delivered_s.total_cmp(&b.t_delivered_s));
+    let result = estimate_led_latency(&frames, &edges, period)?;
+    Ok(LatencyRun {
+        result,
+        true_latency_ms: world.camera_latency_ms,
+        led_px: [f64::from(max_at.x), f64::from(max_at.y)],
+    })
+}
+
+/// The robot step on the simulated world.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RobotRun {
+    /// What the step measured.
+    pub result: RobotLatency,
+    /// The true mean delay, ms.
+    pub true_latency_ms: f64,
+    /// The true servo lag, ms.
+    pub true_servo_time_constant_ms: f64,
+    /// The joint excited (0-based: 6 is A7).
+    pub joint: usize,
+    /// Peak excitation, radians.
+    pub amplitude_rad: f64,
+}
+
+/// Seconds between the excitation's steps.
+const STEP_EVERY_S: f64 = 0.3;
+
+/// Small steps on one joint from the held position, and a record of the commands
+/// and measurements.
+struct Excite {
+    joint: usize,
+    amplitude_rad: f64,
+    duration_s: f64,
+    start: Option<(u64, Joints)>,
+    commands: Vec<JointSample>,
+    measured: Vec<JointSample>,
+}
+
+impl ControlStep for Excite {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        let t = input.now_ns as f64 * 1e-9;
+        if let Some(q) = input.monitoring.measured_joint_position_rad
+            && self.start.is_some()
+        {
+            self.measured.push(JointSample {
+                t_s: t,
+                q_rad: q[self.joint],
+            });
+        }
+        if !input.commanding {
+            return;
+        }
+        let (t0_ns, hold) = *self.start.get_or_insert((input.now_ns, *command_rad));
+        let s = (input.now_ns - t0_ns) as f64 * 1e-9;
+        // Small steps every 0.3 s between the held position and `amplitude_rad` away,
+        // each a ramp over two periods (the command never jumps by more than half
+        // the amplitude); a step's sharp corners show the dead time, its settling
+        // the servo lag (a slow chirp cannot tell the two apart).
+        let up = (s / STEP_EVERY_S) as u64 % 2 == 1 && s < self.duration_s - STEP_EVERY_S;
+        let target = hold[self.joint] + if up { self.amplitude_rad } else { 0.0 };
+        let mut q = *command_rad;
+        let max_step = 0.5 * self.amplitude_rad;
+        q[self.joint] += (target - q[self.joint]).clamp(-max_step, max_step);
+        for (i, v) in q.iter_mut().enumerate() {
+            if i != self.joint {
+                *v = hold[i];
+            }
+        }
+        *command_rad = q;
+        self.commands.push(JointSample {
+            t_s: t,
+            q_rad: q[self.joint],
+        });
+    }
+}
+
+/// The robot step: the FRI session to COMMANDING_ACTIVE against the simulated KUKA
+/// controller (the truth's delay, jitter and servo lag), then `duration_s` of
+/// small steps of `amplitude_rad` on A7 (the wrist: the smallest moving mass, far from its
+/// limits at the home pose), commands and measured positions fitted.
+pub fn run_robot(
+    scenario: &Scenario,
+    world: &HiddenWorld,
+    seed: u64,
+    amplitude_rad: f64,
+    duration_s: f64,
+) -> Result<RobotRun, ProcedureError> {
+    scenario.validate()?;
+    if !(amplitude_rad.is_finite() && amplitude_rad > 0.0 && amplitude_rad <= 0.05) {
+        return Err(ProcedureError::Robot(format!(
+            "excitation amplitude {amplitude_rad} rad out of range: must be in (0, 0.05]"
+        )));
+    }
+    let params = FriSimParams {
+        latency_ms: world.robot_latency_ms,
+        latency_jitter_ms: world.robot_latency_jitter_ms.min(world.robot_latency_ms),
+        servo_time_constant_ms: world.servo_time_constant_ms,
+        seed,
+        ..FriSimParams::from_robot(&scenario.robot)
+    };
+    let period_ns = params.period_ns();
+    let mut robot = SimController::new(params, 1_700_000_000_000_000_000)
+        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+    let mut client = FriClient::new(FriClientParams::default())
+        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+    let joint = 6;
+    let mut step = Excite {
+        joint,
+        amplitude_rad,
+        duration_s,
+        start: None,
+        commands: Vec::with_capacity(4096),
+        measured: Vec::with_capacity(4096),
+    };
+    let mut t_ns = 0u64;
+    let total_ns = ((duration_s + 5.0) * 1e9) as u64;
+    while t_ns < total_ns {
+        t_ns += period_ns;
+        if robot.state() != SessionState::CommandingActive && step.start.is_none() {
+            robot.request_commanding();
+        }
+        client.poll(t_ns, &mut step);
+        if let Some(bytes) = robot.tick(t_ns)
+            && let Some(reply) = client.on_datagram(bytes, t_ns, &mut step)
+        {
+            robot.on_reply(reply, t_ns + 20_000);
+        }
+        if let Some((t0, _)) = step.start
+            && (t_ns - t0) as f64 * 1e-9 > duration_s + 0.2
+        {
+            break;
+        }
+    }
+    if step.start.is_none() || client.state() != LinkState::CommandingActive {
+        return Err(ProcedureError::Robot(format!(
+            "the FRI session did not stay in COMMANDING_ACTIVE (client {:?}, controller {})",
+            client.state(),
+            robot.state().name()
+        )));
+    }
+    if let Some(a) = robot.stats().last_abort() {
+        return Err(ProcedureError::Robot(format!(
+            "the controller aborted: {a:?}"
+        )));
+    }
+    let result = fit_robot_latency(&step.commands, &step.measured)?;
+    Ok(RobotRun {
+        result,
+        true_latency_ms: world.robot_latency_ms,
+        true_servo_time_constant_ms: world.servo_time_constant_ms,
+        joint,
+        amplitude_rad,
+    })
+}

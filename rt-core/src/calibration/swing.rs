@@ -1,0 +1,248 @@
+//! The free-swing fit: a released pendulum's lateral track -> effective length
+//! (large-angle corrected), damping, rest offset.
+
+use serde::{Deserialize, Serialize};
+
+use super::{CalibrationError, lsq};
+use crate::pendulum::{PendulumModel, PendulumState};
+
+/// One measurement of the swinging ball.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SwingSample {
+    /// Capture time (middle of the exposure), seconds.
+    pub t_s: f64,
+    /// Lateral position on the swing plane, metres (base +y, zero at the believed rest point).
+    pub lateral_m: f64,
+}
+
+/// Smallest swing amplitude the fit accepts, metres (about 1.5 deg on a 1.9 m pendulum).
+pub const MIN_AMPLITUDE_M: f64 = 0.05;
+/// Shortest recording the fit accepts, in small-angle periods.
+pub const MIN_PERIODS: f64 = 3.0;
+/// Fewest samples the fit accepts.
+pub const MIN_SAMPLES: usize = 60;
+/// Largest RK4 sub-step of the model inside the fit, seconds.
+const FIT_STEP_S: f64 = 2e-3;
+
+/// The fitted swing.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SwingFit {
+    /// Effective length (pivot to ball centre) of the model `phi'' = -(g/l) sin phi -
+    /// alpha phi'` that best explains the track: the large-angle period is built in.
+    pub length_m: f64,
+    /// One standard deviation of `length_m`.
+    pub length_std_m: f64,
+    /// Viscous damping alpha, 1/s.
+    pub damping_per_s: f64,
+    /// One standard deviation of `damping_per_s`.
+    pub damping_std_per_s: f64,
+    /// The angle at the first sample, radians.
+    pub start_angle_rad: f64,
+    /// Where the ball hangs at rest relative to the believed rest point, metres (lateral).
+    pub rest_offset_m: f64,
+    /// Small-angle period `2 pi sqrt(l/g)` of the fitted length, seconds.
+    pub small_angle_period_s: f64,
+    /// Period at the first sample's amplitude (large-angle), seconds.
+    pub period_at_start_s: f64,
+    /// Root mean square of the lateral residuals, metres.
+    pub residual_rms_m: f64,
+    /// Samples fitted.
+    pub samples: usize,
+    /// Seconds of swing fitted.
+    pub duration_s: f64,
+}
+
+/// Fits the damped pendulum to a free swing's samples (any order; sorted here).
+/// `gravity_mps2` is the local gravity; `length_guess_m` a starting length (the
+/// tape measure). Refuses too few samples, too short a recording and too small a swing.
+pub fn fit_swing(
+    samples: &[SwingSample],
+    gravity_mps2: f64,
+    length_guess_m: f64,
+) -> Result<SwingFit, CalibrationError> {
+    const WHAT: &str = "pendulum swing";
+    for (index, s) in samples.iter().enumerate() {
+        if !s.t_s.is_finite() || !s.lateral_m.is_finite() {
+            return Err(CalibrationError::NotFinite { what: WHAT, index });
+        }
+    }
+    if samples.len() < MIN_SAMPLES {
+        return Err(CalibrationError::TooFewSamples {
+            what: WHAT,
+            got: samples.len(),
+            need: MIN_SAMPLES,
+        });
+    }
+    if !(gravity_mps2.is_finite() && gravity_mps2 > 0.0 && length_guess_m > 0.05) {
+        return Err(CalibrationError::FitFailed {
+            what: WHAT,
+            reason: format!("bad gravity {gravity_mps2} or length guess {length_guess_m}"),
+        });
+    }
+    let mut s = samples.to_vec();
+    s.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+    let t0 = s[0].t_s;
+    let duration_s = s[s.len() - 1].t_s - t0;
+    let need_s = MIN_PERIODS * std::f64::consts::TAU * (length_guess_m / gravity_mps2).sqrt();
+    if duration_s < need_s {
+        return Err(CalibrationError::TooShort {
+            what: WHAT,
+            got_s: duration_s,
+            need_s,
+        });
+    }
+    let (lo, hi) = s
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
+            (lo.min(x.lateral_m), hi.max(x.lateral_m))
+        });
+    let amplitude_m = 0.5 * (hi - lo);
+    if amplitude_m < MIN_AMPLITUDE_M {
+        return Err(CalibrationError::SwingTooSmall {
+            amplitude_m,
+            min_m: MIN_AMPLITUDE_M,
+        });
+    }
+    // Starting point: offset = mid-range, period from upward zero crossings, decay
+    // from the first and last peaks, state from the first samples.
+    let b0 = 0.5 * (hi + lo);
+    let crossings: Vec<f64> = s
+        .windows(2)
+        .filter(|w| w[0].lateral_m - b0 < 0.0 && w[1].lateral_m - b0 >= 0.0)
+        .map(|w| {
+            let (a, c) = (w[0].lateral_m - b0, w[1].lateral_m - b0);
+            w[0].t_s + (w[1].t_s - w[0].t_s) * (-a / (c - a))
+        })
+        .collect();
+    let mut length0 = length_guess_m;
+    if crossings.len() >= 2 {
+        let period = (crossings[crossings.len() - 1] - crossings[0]) / (crossings.len() - 1) as f64;
+        let amp0 = (amplitude_m / length_guess_m).clamp(0.0, 1.0).asin();
+        // Period grows by ~ (1 + a^2/16) at amplitude a.
+        let t_small = period / (1.0 + amp0 * amp0 / 16.0);
+        let l = gravity_mps2 * (t_small / std::f64::consts::TAU).powi(2);
+        if l.is_finite() && l > 0.1 && l < 20.0 {
+            length0 = l;
+        }
+    }
+    let period0 = std::f64::consts::TAU * (length0 / gravity_mps2).sqrt();
+    let peak = |from: f64, to: f64| {
+        s.iter()
+            .filter(|x| x.t_s >= from && x.t_s < to)
+            .map(|x| (x.lateral_m - b0).abs())
+            .fold(0.0, f64::max)
+    };
+    let first = peak(t0, t0 + period0);
+    let last = peak(t0 + duration_s - period0, t0 + duration_s + 1.0);
+    let span = (duration_s - period0).max(period0);
+    let alpha0 = if first > 0.0 && last > 0.0 {
+        (2.0 * (first / last).ln() / span).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    // Initial angle and rate from a quadratic through the first few samples.
+    let k = 3.min(s.len() - 1);
+    let y0 = (s[0].lateral_m - b0) / length0;
+    let rate = (s[k].lateral_m - s[0].lateral_m) / (s[k].t_s - s[0].t_s).max(1e-6) / length0;
+    let phi0 = y0.clamp(-0.99, 0.99).asin();
+    let start = [length0, alpha0, phi0, rate / phi0.cos().max(0.1), b0];
+    let scale = [1e-5, 1e-6, 1e-6, 1e-6, 1e-6];
+
+    // Fit over a growing window: two periods, five, then everything (keeps the
+    // phase from slipping by a whole cycle).
+    let mut p = start.to_vec();
+    let mut result = None;
+    for periods in [2.0, 5.0, f64::INFINITY] {
+        let end = t0 + periods * period0;
+        let window: Vec<SwingSample> = s.iter().copied().filter(|x| x.t_s <= end).collect();
+        if window.len() <= p.len() + 2 {
+            continue;
+        }
+        let r = lsq::levenberg_marquardt(&p, &scale, window.len(), 60, |q, r| {
+            residuals(q, &window, t0, gravity_mps2, r)
+        });
+        match r {
+            Some(fit) => {
+                p.clone_from(&fit.params);
+                result = Some(fit);
+            }
+            None => {
+                return Err(CalibrationError::FitFailed {
+                    what: WHAT,
+                    reason: "the least-squares fit did not converge".into(),
+                });
+            }
+        }
+        if end >= t0 + duration_s {
+            break;
+        }
+    }
+    let Some(fit) = result else {
+        return Err(CalibrationError::FitFailed {
+            what: WHAT,
+            reason: "no window to fit".into(),
+        });
+    };
+    let [length_m, damping_per_s, start_angle_rad, _, rest_offset_m] = [
+        fit.params[0],
+        fit.params[1],
+        fit.params[2],
+        fit.params[3],
+        fit.params[4],
+    ];
+    if !(length_m > 0.05 && length_m < 20.0 && damping_per_s.is_finite()) {
+        return Err(CalibrationError::FitFailed {
+            what: WHAT,
+            reason: format!("non-physical length {length_m:.4} m"),
+        });
+    }
+    let small = std::f64::consts::TAU * (length_m / gravity_mps2).sqrt();
+    let amp =
+        (fit.params[2].powi(2) + (fit.params[3] * small / std::f64::consts::TAU).powi(2)).sqrt();
+    Ok(SwingFit {
+        length_m,
+        length_std_m: fit.std[0],
+        damping_per_s,
+        damping_std_per_s: fit.std[1],
+        start_angle_rad,
+        rest_offset_m,
+        small_angle_period_s: small,
+        period_at_start_s: large_angle_period_s(small, amp),
+        residual_rms_m: fit.rms,
+        samples: s.len(),
+        duration_s,
+    })
+}
+
+/// The exact period of an undamped pendulum at amplitude `amplitude_rad`:
+/// `T0 * 2 K(sin(a/2)) / pi`, with `K` by the arithmetic-geometric mean.
+pub fn large_angle_period_s(small_angle_period_s: f64, amplitude_rad: f64) -> f64 {
+    let k = (0.5 * amplitude_rad).sin();
+    let (mut a, mut g) = (1.0, (1.0 - k * k).max(0.0).sqrt());
+    for _ in 0..30 {
+        let (an, gn) = (0.5 * (a + g), (a * g).sqrt());
+        a = an;
+        g = gn;
+    }
+    small_angle_period_s / a
+}
+
+fn residuals(p: &[f64], s: &[SwingSample], t0: f64, g: f64, r: &mut [f64]) -> bool {
+    let (l, alpha, phi0, w0, b) = (p[0], p[1], p[2], p[3], p[4]);
+    if !(l > 0.05 && l < 50.0 && alpha.abs() < 5.0 && phi0.abs() < 3.0 && w0.abs() < 50.0) {
+        return false;
+    }
+    let model = PendulumModel {
+        length_m: l,
+        gravity_mps2: g,
+        damping_per_s: alpha,
+    };
+    let mut state = PendulumState::new(phi0, w0);
+    let mut t = t0;
+    for (ri, x) in r.iter_mut().zip(s) {
+        state = model.integrate(state, x.t_s - t, FIT_STEP_S, 0.0);
+        t = x.t_s;
+        *ri = l * state[0].sin() + b - x.lateral_m;
+    }
+    true
+}

@@ -1,0 +1,379 @@
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::latency::LedFrame;
+use super::robot::JointSample;
+use super::*;
+use crate::pendulum::{PendulumModel, PendulumState};
+
+fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+}
+
+/// A free swing from `release_deg`, sampled at 30 Hz with `noise_m` lateral noise.
+fn swing(length_m: f64, alpha: f64, release_deg: f64, secs: f64, noise_m: f64) -> Vec<SwingSample> {
+    let model = PendulumModel {
+        length_m,
+        gravity_mps2: 9.81,
+        damping_per_s: alpha,
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut s = PendulumState::new(release_deg.to_radians(), 0.0);
+    let mut out = Vec::new();
+    let dt = 1.0 / 30.0;
+    let mut t = 0.0;
+    while t < secs {
+        // Start sampling a little after the release (frames are not synchronised).
+        s = model.integrate(s, dt, 1e-3, 0.0);
+        t += dt;
+        if rng.random_range(0.0..1.0) < 0.05 {
+            continue; // dropped frame
+        }
+        out.push(SwingSample {
+            t_s: t + 0.2,
+            lateral_m: length_m * s[0].sin() + 0.004 + noise_m * gauss(&mut rng),
+        });
+    }
+    out
+}
+
+#[test]
+fn swing_fit_recovers_length_and_damping_at_large_angles() {
+    for (l, release) in [(1.93, 35.0), (1.96, 15.0), (1.2, 25.0)] {
+        let samples = swing(l, 0.03, release, 20.0, 0.0005);
+        let fit = fit_swing(&samples, 9.81, 1.93).expect("fit");
+        assert!(
+            (fit.length_m - l).abs() < 1e-3,
+            "length {} vs {l} (release {release})",
+            fit.length_m
+        );
+        assert!(
+            (fit.damping_per_s - 0.03).abs() < 2e-3,
+            "damping {}",
+            fit.damping_per_s
+        );
+        assert!(
+            (fit.rest_offset_m - 0.004).abs() < 5e-4,
+            "offset {}",
+            fit.rest_offset_m
+        );
+        assert!(fit.residual_rms_m < 0.001);
+        // The large-angle correction matters: a small-angle reading of the period
+        // would be this far off at 35 deg.
+        let naive = 9.81 * (fit.period_at_start_s / std::f64::consts::TAU).powi(2);
+        if release > 30.0 {
+            assert!(naive - l > 0.03, "naive {naive}");
+        }
+    }
+}
+
+#[test]
+fn swing_fit_refuses_bad_input() {
+    let small = swing(1.93, 0.03, 1.0, 20.0, 0.0005);
+    assert!(matches!(
+        fit_swing(&small, 9.81, 1.93),
+        Err(CalibrationError::SwingTooSmall { .. })
+    ));
+    let short = swing(1.93, 0.03, 20.0, 3.0, 0.0005);
+    assert!(matches!(
+        fit_swing(&short, 9.81, 1.93),
+        Err(CalibrationError::TooShort { .. })
+    ));
+    assert!(matches!(
+        fit_swing(&short[..10], 9.81, 1.93),
+        Err(CalibrationError::TooFewSamples { .. })
+    ));
+    let mut nan = swing(1.93, 0.03, 20.0, 20.0, 0.0005);
+    nan[7].lateral_m = f64::NAN;
+    assert!(matches!(
+        fit_swing(&nan, 9.81, 1.93),
+        Err(CalibrationError::NotFinite { index: 7, .. })
+    ));
+}
+
+/// Frames of a camera with `latency_s` (+- 1 ms Gaussian jitter) looking at an LED
+/// switched by `edges` (each taking effect half its round trip after it is sent).
+fn led_frames(latency_s: f64, edges: &[LedEdge], visible: bool, seed: u64) -> Vec<LedFrame> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let period = 1.0 / 30.0;
+    let exposure = 0.006;
+    let phase = rng.random_range(0.0..period);
+    let lit_fraction = |t_mid: f64| {
+        // Fraction of [t_mid - e/2, t_mid + e/2] with the LED on.
+        let n = 60;
+        let mut on = 0;
+        for i in 0..n {
+            let t = t_mid - 0.5 * exposure + exposure * (f64::from(i) + 0.5) / f64::from(n);
+            let state = edges
+                .iter()
+                .rev()
+                .find(|e| e.t_sent_s + 0.5 * e.round_trip_s <= t)
+                .is_some_and(|e| e.on);
+            on += i32::from(state);
+        }
+        f64::from(on) / f64::from(n)
+    };
+    (0..600)
+        .filter_map(|k| {
+            let t_c = phase + f64::from(k) * period;
+            if rng.random_range(0.0..1.0) < 0.02 {
+                return None;
+            }
+            let f = if visible { lit_fraction(t_c) } else { 0.0 };
+            Some(LedFrame {
+                t_delivered_s: t_c + latency_s + 0.001 * gauss(&mut rng),
+                brightness: 40.0 + 180.0 * f + 3.0 * gauss(&mut rng),
+            })
+        })
+        .collect()
+}
+
+fn led_edges(seed: u64) -> Vec<LedEdge> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // The frames of `led_frames` are delivered on this grid (phase drawn first
+    // from the same seed, latency added); the host sees the first second of them.
+    let phase = ChaCha8Rng::seed_from_u64(seed).random_range(0.0..1.0 / 30.0);
+    let early: Vec<f64> = (0..25)
+        .map(|k| phase + 0.035 + f64::from(k) / 30.0)
+        .collect();
+    let sends = latency::plan_switches(&early, 1.0 / 30.0, 40, || rng.random_range(0.0..1.0));
+    assert_eq!(sends.len(), 40);
+    assert!(sends.windows(2).all(|w| w[1] - w[0] > 0.2));
+    sends
+        .iter()
+        .enumerate()
+        .map(|(i, &t)| LedEdge {
+            t_sent_s: t,
+            round_trip_s: rng.random_range(0.0015..0.0035),
+            on: i % 2 == 0,
+        })
+        .collect()
+}
+
+#[test]
+fn led_latency_within_2_ms() {
+    for (seed, latency) in [(1, 0.035), (2, 0.062), (3, 0.021)] {
+        let edges = led_edges(seed);
+        let frames = led_frames(latency, &edges, true, seed);
+        let est = estimate_led_latency(&frames, &edges, 1.0 / 30.0).expect("estimate");
+
+        assert!(
+            (est.latency_ms - latency * 1e3).abs() < 2.0,
+            "{} vs {}",
+            est.latency_ms,
+            latency * 1e3
+        );
+        assert!(est.edges_seen >= 35, "{est:?}");
+        assert!(
+            (est.spread_ms - 1.0).abs() < 0.3,
+            "spread {}",
+            est.spread_ms
+        );
+        assert!((est.frame_period_ms - 33.333).abs() < 0.05);
+    }
+}
+
+#[test]
+fn led_never_seen_is_refused() {
+    let edges = led_edges(1);
+    let frames = led_frames(0.035, &edges, false, 1);
+    let e = estimate_led_latency(&frames, &edges, 1.0 / 30.0).unwrap_err();
+    assert!(
+        matches!(e, CalibrationError::LedNotSeen { seen: 0, .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("LED never seen"));
+}
+
+/// Commands every 5 ms (a small chirp); the joint follows after `latency` with a
+/// first-order lag `tau`; measured every 5 ms with a little noise.
+fn excitation(latency: f64, tau: f64) -> (Vec<JointSample>, Vec<JointSample>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let dt = 0.005;
+    let commands: Vec<JointSample> = (0..600)
+        .map(|k| {
+            let t = f64::from(k) * dt;
+            let f = 0.5 + 2.0 * t / 3.0;
+            JointSample {
+                t_s: t,
+                q_rad: 0.02 * (std::f64::consts::TAU * f * t).sin(),
+            }
+        })
+        .collect();
+    // Fine simulation of the truth at 0.1 ms, with +-2 ms uniform jitter per command.
+    let due: Vec<f64> = commands
+        .iter()
+        .map(|c| c.t_s + latency + rng.random_range(-0.002..0.002))
+        .collect();
+    let mut q = 0.0;
+    let mut sp = 0.0;
+    let mut measured = Vec::new();
+    let h = 1e-4;
+    let mut k = 0;
+    for i in 0..=30_000 {
+        let t = f64::from(i) * h;
+        while k < commands.len() && due[k] <= t {
+            sp = commands[k].q_rad;
+            k += 1;
+        }
+        q += (sp - q) * (1.0 - (-h / tau).exp());
+        if i % 50 == 25 {
+            measured.push(JointSample {
+                t_s: t,
+                q_rad: q + 1e-5 * gauss(&mut rng),
+            });
+        }
+    }
+    (commands, measured)
+}
+
+#[test]
+fn robot_latency_within_1_ms() {
+    for (latency, tau) in [(0.008, 0.005), (0.025, 0.005), (0.003, 0.012)] {
+        let (c, m) = excitation(latency, tau);
+        let fit = fit_robot_latency(&c, &m).expect("fit");
+        assert!(
+            (fit.latency_ms - latency * 1e3).abs() < 1.0,
+            "latency {} vs {}",
+            fit.latency_ms,
+            latency * 1e3
+        );
+        assert!(
+            (fit.servo_time_constant_ms - tau * 1e3).abs() < 1.5,
+            "tau {}",
+            fit.servo_time_constant_ms
+        );
+    }
+    let (c, m) = excitation(0.008, 0.005);
+    let still: Vec<JointSample> = m.iter().map(|s| JointSample { q_rad: 0.1, ..*s }).collect();
+    assert!(matches!(
+        fit_robot_latency(&c, &still),
+        Err(CalibrationError::NoResponse { .. })
+    ));
+}
+
+#[test]
+fn calibration_file_round_trip_and_apply() {
+    let samples = swing(1.95, 0.03, 25.0, 20.0, 0.0005);
+    let fit = fit_swing(&samples, 9.81, 1.93).expect("fit");
+    let file = CalibrationFile {
+        pendulum: Some(StepRecord {
+            date: "2026-12-01T17:00:00Z".into(),
+            revision: "test".into(),
+            source: "test".into(),
+            result: file::PendulumCalibration {
+                swing: fit,
+                rest_px: [640.0, 360.0],
+                rest_std_px: [0.1, 0.1],
+                swing_image_angle_deg: 0.5,
+            },
+        }),
+        latency: None,
+        robot: None,
+    };
+    let text = file.to_toml_string();
+    let back = CalibrationFile::from_toml_str(&text).expect("parse");
+    assert_eq!(back, file);
+    let s = back
+        .apply(&crate::params::Scenario::default())
+        .expect("apply");
+    assert!((s.pendulum.length_m - 1.95).abs() < 1e-3);
+    assert!(CalibrationFile::from_toml_str("[pendulum]\nbogus = 1\n").is_err());
+}
+
+mod on_the_simulated_world {
+    use super::super::CalibrationError;
+    use super::super::simworld::{
+        HiddenWorld, ProcedureError, run_led_latency, run_pendulum, run_robot,
+    };
+    use crate::params::{Scenario, VisionMode};
+
+    fn model_scenario() -> Scenario {
+        let mut s = Scenario::default();
+        s.camera.vision = VisionMode::Model;
+        s
+    }
+
+    #[test]
+    fn pendulum_length_within_3_mm_and_rest_point_found() {
+        let s = model_scenario();
+        for seed in [1, 2] {
+            let w = HiddenWorld::draw(&s, seed);
+            let run = run_pendulum(&s, &w, seed, 25.0, 20.0).expect("pendulum step");
+            let fit = &run.calibration.swing;
+            assert!(
+                (fit.length_m - run.true_length_m).abs() < 0.003,
+                "seed {seed}: length {} vs true {} (belief {})",
+                fit.length_m,
+                run.true_length_m,
+                s.pendulum.length_m
+            );
+            assert!((fit.damping_per_s - run.true_damping_per_s).abs() < 0.005);
+            // The hidden error is big enough that the belief would fail the target.
+            assert!((s.pendulum.length_m - run.true_length_m).abs() > 0.003 || seed != 1);
+            assert!(
+                (run.rest_m[2] - run.true_rest_m[2]).abs() < 0.003,
+                "rest height {:?} vs {:?}",
+                run.rest_m,
+                run.true_rest_m
+            );
+        }
+    }
+
+    #[test]
+    fn a_swing_too_small_is_refused() {
+        let s = model_scenario();
+        let w = HiddenWorld::draw(&s, 1);
+        let e = run_pendulum(&s, &w, 1, 1.0, 20.0).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ProcedureError::Calibration(CalibrationError::SwingTooSmall { .. })
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("swing too small"));
+    }
+
+    #[test]
+    fn camera_latency_by_led_within_2_ms() {
+        let s = Scenario::default();
+        for seed in [1, 2] {
+            let w = HiddenWorld::draw(&s, seed);
+            let run = run_led_latency(&s, &w, seed, 40, true).expect("latency step");
+            assert!(
+                (run.result.latency_ms - run.true_latency_ms).abs() < 2.0,
+                "seed {seed}: {} vs true {} (belief {})",
+                run.result.latency_ms,
+                run.true_latency_ms,
+                s.camera.latency_ms
+            );
+        }
+        let w = HiddenWorld::draw(&s, 1);
+        let e = run_led_latency(&s, &w, 1, 40, false).unwrap_err();
+        assert!(e.to_string().contains("LED never seen"), "{e}");
+    }
+
+    #[test]
+    fn robot_latency_within_1_ms_through_fri() {
+        let s = Scenario::default();
+        for seed in [1, 2] {
+            let w = HiddenWorld::draw(&s, seed);
+            let run = run_robot(&s, &w, seed, 0.02, 4.0).expect("robot step");
+            assert!(
+                (run.result.latency_ms - run.true_latency_ms).abs() < 1.0,
+                "seed {seed}: {} vs true {}",
+                run.result.latency_ms,
+                run.true_latency_ms
+            );
+            assert!(
+                (run.result.servo_time_constant_ms - run.true_servo_time_constant_ms).abs() < 1.5,
+                "tau {} vs {}",
+                run.result.servo_time_constant_ms,
+                run.true_servo_time_constant_ms
+            );
+        }
+    }
+}
