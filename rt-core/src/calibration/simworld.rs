@@ -25,15 +25,13 @@ use super::{
     fit_robot_latency, fit_swing,
 };
 use crate::fri::{
-    ControlStep, FriClient, FriClientParams, FriSimParams, Joints, LinkState, SessionState,
-    SimController, StepInput,
+    ControlStep, FriClient, FriClientParams, Joints, LinkState, SessionState, StepInput,
 };
 use crate::params::{ParamError, Scenario};
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
-use crate::vision::{
-    BallState, DetectorParams, SimCamera, SimCameraParams, SimVision, SwingPlaneCalibration,
-    VisionError,
-};
+use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimVision};
+use crate::sim::kuka::{FriSimParams, SimController};
+use crate::vision::{DetectorParams, SwingPlaneCalibration, VisionError};
 
 /// Why a procedure could not run or give a result.
 #[derive(Debug, thiserror::Error)]
