@@ -30,6 +30,10 @@ pub struct TrialRecord {
     /// The ground-truth verdict, when there was a motion to judge.
     #[serde(flatten)]
     pub judgement: Option<Judgement>,
+    /// The physical judge's verdict on the true world (reality lab only:
+    /// scenarios with `[world]`); then it decides success.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub physical: Option<crate::sim::world::PhysicalJudgement>,
     /// At the motion's start: predicted pass time minus the true one, milliseconds.
     pub prediction_crossing_time_error_ms: Option<f64>,
     /// At the motion's start: predicted ball position at the pass to the true one, metres.
@@ -54,6 +58,20 @@ impl TrialRecord {
             Some(format!("abort: {r}"))
         } else if self.limit_violations > 0 {
             Some(format!("{} limit violations", self.limit_violations))
+        } else if let Some(p) = &self.physical {
+            if p.contact_s.is_none() {
+                Some(format!(
+                    "no contact in the committed pass (closest gap {:.4} m)",
+                    p.min_gap_m
+                ))
+            } else if p.timing_error_ms.abs() > tol.timing_tolerance_ms {
+                Some(format!(
+                    "timing_error {:+.1} ms beyond {} ms",
+                    p.timing_error_ms, tol.timing_tolerance_ms
+                ))
+            } else {
+                None
+            }
         } else if let Some(j) = &self.judgement {
             if j.timing_error_ms > tol.timing_tolerance_ms {
                 Some(format!(
@@ -226,6 +244,7 @@ mod tests {
                 movement_time_s: 1.5,
                 fit_rms_m: 0.0,
             }),
+            physical: None,
             prediction_crossing_time_error_ms: Some(-2.0),
             prediction_position_error_m: Some(0.001),
             latency_estimate_ms: 8.0,

@@ -666,6 +666,7 @@ impl LabStep {
             abort_reason: None,
             planned_movement_time_s: trial.plan.duration_s,
             judgement: None,
+            physical: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: c.latency().latency_s() * 1e3,

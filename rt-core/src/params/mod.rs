@@ -424,6 +424,15 @@ impl Scenario {
         Ok(())
     }
 
+    /// What the lab believes: this scenario without `[world]` (the only view
+    /// the controller is given).
+    pub fn beliefs(&self) -> Self {
+        Self {
+            world: None,
+            ..self.clone()
+        }
+    }
+
     /// Parses and validates a scenario from TOML text. Unknown keys are refused.
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         let scenario: Self = toml::from_str(text).map_err(|e| toml_error(text, &e))?;

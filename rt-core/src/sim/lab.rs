@@ -4,12 +4,15 @@
 //! model; the controller's step is the same one the real-time runtime runs.
 
 use nalgebra::Vector3;
-use rand::SeedableRng;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::camera::ModelCamera;
 use super::camera::{BallState, SimCamera, SimCameraParams, SimVision};
 use super::magnet::{Switch, VirtualMagnet};
+use super::world::{
+    Disc, LatencyModel, TruePendulum, World, WorldCamera, WorldJoints, WorldSample, judge_physical,
+};
 use crate::control::judge::{PlannedMotion, TrialTrace, judge};
 use crate::control::{ControlError, Controller, Measurement, TrialRecord, TrialState};
 use crate::fri::client::{FriClient, FriClientParams, LinkState};
@@ -19,9 +22,10 @@ use crate::lab::{FriLoopStep, LoopStep, TrialDraw, draw_trial};
 use crate::params::Scenario;
 use crate::params::VisionMode;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::sim::kuka::controller::WorldRobot;
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::trajectory::profile::ProfileKind;
-use crate::vision::DetectorParams;
+use crate::vision::{CameraIntrinsics, DetectorParams, SwingPlaneCalibration};
 
 /// Errors setting up the lab.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -60,6 +64,14 @@ pub struct VirtualLab {
     magnet: VirtualMagnet,
     last_release: Option<Switch>,
     in_flight: std::collections::VecDeque<(f64, Measurement)>,
+    /// The reality lab (`[world]`): the true world sampled once per period
+    /// for the physical judge, and the session the simulated robot is in.
+    world_trace: Vec<WorldSample>,
+    world_session: Option<u64>,
+    /// When `Some`, every byte the controller reads (FRI messages, then the
+    /// measurements handed to it) is appended (tests: the controller cannot
+    /// read the world).
+    pub input_log: Option<Vec<u8>>,
 }
 
 /// Joint angles of the simulated robot at power-on, degrees.
@@ -71,6 +83,8 @@ pub const LOOPBACK_NS: u64 = 20_000;
 const EPOCH_UNIX_NS: u64 = 1_700_000_000_000_000_000;
 /// Mixed into a trial's seed for the magnet's own random stream.
 const MAGNET_STREAM: u64 = 0x6d61_676e_6574;
+/// Mixed into a trial's world seed for the true camera's own random stream.
+const CAMERA_STREAM: u64 = 0x6361_6d65_7261;
 /// Longest wait for the session to reach COMMANDING_ACTIVE, seconds.
 const COMMANDING_TIMEOUT_S: f64 = 5.0;
 
@@ -108,7 +122,8 @@ impl VirtualLab {
     ) -> Result<Self, LabError> {
         let period_ms = robot.fri_period_ms * robot.receive_multiplier;
         let period_s = f64::from(period_ms) * 1e-3;
-        let controller = Controller::new(scenario, period_s)?;
+        // The controller is built from the beliefs only: it never holds `[world]`.
+        let controller = Controller::new(&scenario.beliefs(), period_s)?;
         let robot_period_ns = robot.period_ns();
         let robot =
             SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
@@ -151,6 +166,9 @@ impl VirtualLab {
             magnet: VirtualMagnet::new(0.0),
             last_release: None,
             in_flight: std::collections::VecDeque::with_capacity(64),
+            world_trace: Vec::new(),
+            world_session: None,
+            input_log: None,
         };
         lab.ensure_commanding()?;
         Ok(lab)
@@ -230,6 +248,13 @@ impl VirtualLab {
         let Some(bytes) = self.robot.tick(now) else {
             return;
         };
+        if let Some(log) = self.input_log.as_mut() {
+            // What the controller reads: the FRI message and the measurements.
+            log.extend_from_slice(bytes);
+            for m in &self.step.step.inbox {
+                log.extend_from_slice(format!("{m:?}").as_bytes());
+            }
+        }
         if let Some(reply) = self.client.on_datagram(bytes, now, &mut self.step) {
             self.robot.on_reply(reply, now + LOOPBACK_NS);
         }
@@ -249,6 +274,7 @@ impl VirtualLab {
             abort_reason: None,
             planned_movement_time_s: self.scenario.task.movement_time_s,
             judgement: None,
+            physical: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: self.step.step.controller.latency().latency_s() * 1e3,
@@ -256,7 +282,7 @@ impl VirtualLab {
             deadline_misses: 0,
             preempted_steps: 0,
         };
-        let plan = match Controller::plan(&self.scenario, draw.distance_m) {
+        let plan = match Controller::plan(&self.scenario.beliefs(), draw.distance_m) {
             Ok(p) => p,
             Err(e) => {
                 rec.failure = Some(e.to_string());
@@ -265,6 +291,11 @@ impl VirtualLab {
             }
         };
         rec.planned_movement_time_s = plan.duration_s;
+        // The reality lab: this trial's true world (None: a truthful world).
+        let world = World::for_trial(&self.scenario, self.seed, index, &plan.intercept_m);
+        if let Some(w) = &world {
+            self.enter_session(w);
+        }
         // A controller abort in an earlier trial left the session out of
         // commanding: the robot program starts the overlay again.
         if let Err(e) = self.ensure_commanding() {
@@ -277,7 +308,10 @@ impl VirtualLab {
         let fri_before = self.fri_counts();
         let misses_before = self.step.step.deadline_misses;
         let preempted_before = self.step.step.preempted_steps;
-        let outcome = self.simulate(&draw, &plan);
+        let outcome = match &world {
+            Some(w) => self.simulate_world(&draw, &plan, w),
+            None => self.simulate(&draw, &plan),
+        };
         let c = self.step.controller().counters();
         let fri = self.fri_counts();
         rec.limit_violations = c.limit_violations() - before.limit_violations()
@@ -310,7 +344,8 @@ impl VirtualLab {
                 duration_s: commit.duration_s,
                 commanded_start_s: commit.motion_start_s,
             };
-            match judge(&self.trace, &motion, &plan.intercept_m) {
+            let intercept = world.as_ref().map_or(plan.intercept_m, |w| w.intercept_m);
+            match judge(&self.trace, &motion, &intercept) {
                 Ok(j) => rec.judgement = Some(j),
                 Err(e) => {
                     if rec.failure.is_none() {
@@ -334,10 +369,275 @@ impl VirtualLab {
                 rec.prediction_position_error_m = Some((commit.predicted_ball_m - truth).norm());
             }
         }
+        if let (Some(w), Some(commit)) = (&world, self.step.step.controller.commit().copied()) {
+            self.judge_world(w, commit.predicted_pass_s, &mut rec);
+        }
         let t = self.t_s();
         let _ = self.step.step.controller.reset(t);
         rec.decide(&self.scenario.success);
         rec
+    }
+
+    /// Enters the session of `world` when the simulated robot is not in it yet
+    /// (a "reboot": a new latency, servos and inertias).
+    fn enter_session(&mut self, world: &World) {
+        if self.world_session == Some(world.session.session) {
+            return;
+        }
+        self.world_session = Some(world.session.session);
+        let Some(w) = self.scenario.world.as_ref() else {
+            return;
+        };
+        let r = &w.robot;
+        let mut joints = WorldJoints::new(
+            *self.robot.joint_rad(),
+            &world.session,
+            self.robot.params().servo_time_constant_ms * 1e-3,
+            r.torque_limit_scale,
+            r.torque_trip,
+            r.position_noise_rad,
+            self.seed ^ world.session.session.wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        joints.set_interpolation_s(self.period_ns as f64 * 1e-9);
+        self.robot.set_world(Some(WorldRobot {
+            latency: LatencyModel::from_session(&world.session, self.t_s()),
+            joints,
+        }));
+    }
+
+    /// The physical judge on the true world: fills `rec.physical` and puts
+    /// its figures (t*, arrival, |timing error|, tool-ball distance at t*)
+    /// into the reported judgement; the fitted movement time stays.
+    fn judge_world(&self, world: &World, committed_pass_s: f64, rec: &mut TrialRecord) {
+        let passes: Vec<f64> = self.passes.iter().map(|p| p.0).collect();
+        match judge_physical(
+            &self.world_trace,
+            &passes,
+            committed_pass_s,
+            world.pendulum.ball_radius_m,
+            self.scenario.success.timing_tolerance_ms,
+        ) {
+            Ok(p) => {
+                let at = self
+                    .world_trace
+                    .iter()
+                    .min_by(|a, b| {
+                        (a.t_s - p.t_star_s)
+                            .abs()
+                            .total_cmp(&(b.t_s - p.t_star_s).abs())
+                    })
+                    .map_or(f64::NAN, |s| (s.disc.centre_m - s.ball_m).norm());
+                if let Some(j) = rec.judgement.as_mut() {
+                    j.t_star_s = p.t_star_s;
+                    j.arrival_s = p.arrival_s;
+                    j.timing_error_ms = p.timing_error_ms.abs();
+                    j.position_error_m = at;
+                }
+                rec.physical = Some(p);
+            }
+            Err(e) => {
+                if rec.failure.is_none() {
+                    rec.failure = Some(format!("not judged: {e}"));
+                }
+            }
+        }
+    }
+
+    /// [`simulate`](Self::simulate) in the reality lab: the true pendulum,
+    /// the true camera and the true geometry of `world` (the simulated robot
+    /// already carries the session's robot, [`enter_session`](Self::enter_session)).
+    /// The controller sees only what it saw before: measurements and FRI
+    /// messages.
+    fn simulate_world(
+        &mut self,
+        draw: &TrialDraw,
+        plan: &crate::control::ArmPlan,
+        world: &World,
+    ) -> Result<(), String> {
+        self.trace.clear();
+        self.passes.clear();
+        self.at_predicted.clear();
+        self.world_trace.clear();
+        self.last_release = None;
+        let t0 = self.t_s();
+        let mut ball = TruePendulum::held_at(
+            world.pendulum,
+            draw.release_angle_deg.to_radians(),
+            world.trial.out_of_plane_rad,
+            t0,
+            world.trial.seed,
+        );
+        // The same ball without the tool in its way: t* (when the ball would
+        // pass the intercept point) and contact are judged on it; the real
+        // ball stops against the tool.
+        let mut ghost = ball.clone();
+        let mut ghost_drop: Option<f64> = None;
+        let mut rng = ChaCha8Rng::seed_from_u64(draw.seed);
+        let mut cam_rng = ChaCha8Rng::seed_from_u64(world.trial.seed ^ CAMERA_STREAM);
+        let cam = self.scenario.camera.clone();
+        let sim_cam = SimCameraParams::default();
+        let intrinsics = CameraIntrinsics::from_hfov(cam.width_px, cam.height_px, sim_cam.hfov_deg);
+        let wcam = WorldCamera::from_session(
+            sim_cam.pose,
+            intrinsics,
+            cam.height_px,
+            cam.latency_ms * 1e-3,
+            &world.session,
+        );
+        // What the lab believes: the believed camera, the believed rest point.
+        let believed = SwingPlaneCalibration::from_pose(
+            intrinsics,
+            &sim_cam.pose,
+            &plan.intercept_m,
+            self.scenario.pendulum.ball_radius_m,
+        );
+        let period = 1.0 / cam.fps;
+        let mut next_frame = t0 + draw.camera_phase_s;
+        if let Some(v) = self.vision.as_mut() {
+            v.set_calibration(believed);
+            v.reset(draw.seed);
+        }
+        self.in_flight.clear();
+        self.step
+            .controller_mut()
+            .arm(t0, plan)
+            .map_err(|e| e.to_string())?;
+        let mut magnet_rng = ChaCha8Rng::seed_from_u64(draw.seed ^ MAGNET_STREAM);
+        self.magnet.switch(t0, true, &mut magnet_rng)?;
+        let mut release: Option<(f64, f64)> = None;
+        let mut drop_at: Option<f64> = None;
+        let mut told = false;
+        let mut armed_at: Option<f64> = None;
+        let mut done_at: Option<f64> = None;
+        let mut last_disc: Option<Disc> = None;
+        let true_y = world.intercept_m.y;
+        loop {
+            let t_next = (self.t_ns + self.period_ns) as f64 * 1e-9;
+            if let Some(tp) = ghost.next_crossing_s(true_y, t_next - ghost.time_s()) {
+                let mut at = ghost.clone();
+                at.advance_to(tp);
+                self.passes.push((tp, at.ball_position_m()));
+            }
+            if let Some(c) = self.step.controller().commit()
+                && c.predicted_pass_s >= ghost.time_s()
+                && c.predicted_pass_s < t_next
+                && !ghost.is_held()
+            {
+                let mut at = ghost.clone();
+                at.advance_to(c.predicted_pass_s);
+                self.at_predicted
+                    .push((c.predicted_pass_s, at.ball_position_m()));
+            }
+            // Frames whose exposure starts before the next message.
+            while next_frame <= t_next {
+                let tc = next_frame;
+                next_frame += period;
+                advance_true_ball(&mut ball, &mut drop_at, tc);
+                let timing = wcam.timing(tc, &mut cam_rng);
+                let dropped = cam.drop_rate > 0.0 && cam_rng.random_bool(cam.drop_rate.min(1.0));
+                let Some(sight) = wcam.sight(tc, |t| {
+                    let mut b = ball.clone();
+                    b.advance_to(t);
+                    b.ball_position_m()
+                }) else {
+                    continue;
+                };
+                if let Some(v) = self.vision.as_mut() {
+                    // The renderer draws, through the believed camera, the
+                    // point the true camera sees.
+                    let state = BallState {
+                        centre_m: wcam.equivalent_centre_m(&sight.px, &ball.ball_position_m()),
+                        velocity_mps: ball.ball_velocity_mps(),
+                    };
+                    match v.capture(tc, Some(&state)) {
+                        Ok(Some(m)) if m.found => self.in_flight.push_back((
+                            timing.t_delivered_s,
+                            Measurement {
+                                t_capture_s: timing.t_stamp_s,
+                                lateral_m: m.lateral_m,
+                            },
+                        )),
+                        Ok(_) => {}
+                        Err(e) => return Err(format!("vision: {e}")),
+                    }
+                } else if !dropped && let Some(lat) = believed.lateral_m(sight.px.x, sight.px.y) {
+                    let z = lat
+                        + super::camera::model::MODEL_NOISE_M * super::camera::gaussian(&mut rng);
+                    self.in_flight.push_back((
+                        timing.t_delivered_s,
+                        Measurement {
+                            t_capture_s: timing.t_stamp_s,
+                            lateral_m: z,
+                        },
+                    ));
+                }
+            }
+            advance_true_ball(&mut ball, &mut drop_at, t_next);
+            advance_true_ball(&mut ghost, &mut ghost_drop, t_next);
+            // Delivered in order of delivery (jitter may reorder frames).
+            self.in_flight
+                .make_contiguous()
+                .sort_by(|a, b| a.0.total_cmp(&b.0));
+            while let Some(&(avail, m)) = self.in_flight.front() {
+                if avail > t_next {
+                    break;
+                }
+                self.step.step.inbox.push(m);
+                self.in_flight.pop_front();
+            }
+            self.tick();
+            let t = self.t_s();
+            let q = *self.robot.joint_rad();
+            let tool = self.step.step.controller.tool_point(&q);
+            // The true tool (world kinematics); the ball stops against its disc.
+            let disc = world.arm.disc(&q);
+            let v_disc = last_disc.map_or(Vector3::zeros(), |d| {
+                (disc.centre_m - d.centre_m) / (self.period_ns as f64 * 1e-9)
+            });
+            last_disc = Some(disc);
+            ball.collide(&disc, &v_disc, 0.0);
+            self.trace.push(t, tool, ball.ball_position_m());
+            self.world_trace.push(WorldSample {
+                t_s: t,
+                ball_m: ghost.ball_position_m(),
+                disc,
+            });
+            let state = self.step.step.controller.state();
+            match state {
+                TrialState::Armed => {
+                    let since = *armed_at.get_or_insert(t);
+                    if release.is_none() && t - since >= draw.release_wait_s {
+                        let sw = self.magnet.switch(t, false, &mut magnet_rng)?;
+                        self.last_release = Some(sw);
+                        release = Some((t, sw.t_pin_s));
+                        // Residual magnetism holds the ball a little longer.
+                        drop_at = Some(sw.t_pin_s + world.trial.release_delay_s);
+                        ghost_drop = drop_at;
+                    }
+                    if let Some((_, pin)) = release
+                        && !told
+                        && t >= pin
+                    {
+                        self.step
+                            .controller_mut()
+                            .release(pin)
+                            .map_err(|e| e.to_string())?;
+                        told = true;
+                    }
+                }
+                TrialState::Done => {
+                    let since = *done_at.get_or_insert(t);
+                    if t - since >= AFTER_DONE_S {
+                        return Ok(());
+                    }
+                }
+                TrialState::Abort(_) => return Ok(()),
+                _ => {}
+            }
+            if t - t0 > TRIAL_TIMEOUT_S {
+                return Err(format!("timeout in state {}", state.name()));
+            }
+        }
     }
 
     /// The FRI side's limit violations (commands the client's guard had to
@@ -509,6 +809,17 @@ fn advance_ball(ball: &mut PendulumSim, drop_at: &mut Option<f64>, t_s: f64) -> 
         .map_err(|e| e.to_string())
 }
 
+/// Advances the true pendulum to `t_s`, dropping the ball at `drop_at`.
+fn advance_true_ball(ball: &mut TruePendulum, drop_at: &mut Option<f64>, t_s: f64) {
+    if let Some(tr) = *drop_at
+        && tr <= t_s
+    {
+        ball.release(tr.max(ball.time_s()));
+        *drop_at = None;
+    }
+    ball.advance_to(t_s);
+}
+
 #[derive(Debug, Clone, Copy)]
 struct FriCounts {
     violations: u64,
@@ -638,6 +949,41 @@ mod tests {
         let r2 = lab.run_trial(1);
         assert_ne!(r2.final_state, "idle", "{r2:?}");
         assert!(lab.robot().stats().commanding_entered.load(Relaxed) >= 2);
+    }
+
+    #[test]
+    fn the_controller_cannot_read_the_world() {
+        // Two labs that differ only in `[world]` (the pendulum's true length
+        // and the camera's true latency): the controller's inputs are
+        // byte-identical until the first measurement, and the outcomes differ.
+        let run = |world: &str| {
+            let mut s =
+                Scenario::from_toml_str(&format!("[camera]\nvision = \"model\"\n{world}")).unwrap();
+            s.name = "x".into();
+            let mut lab = VirtualLab::new(&s, 4).unwrap();
+            lab.input_log = Some(Vec::new());
+            let r = lab.run_trial(0);
+            (lab.input_log.take().unwrap(), r)
+        };
+        let (a, ra) = run("[world.pendulum]\nlength_error_m = 0.0\n");
+        let (b, rb) =
+            run("[world.pendulum]\nlength_error_m = 0.02\n[world.camera]\nlatency_ms = 12.0\n");
+        let first = |log: &[u8]| {
+            let key = b"Measurement";
+            log.windows(key.len()).position(|w| w == key).unwrap()
+        };
+        let (fa, fb) = (first(&a), first(&b));
+        assert!(fa > 1000, "{fa}");
+        let n = fa.min(fb);
+        assert_eq!(
+            a[..n],
+            b[..n],
+            "the inputs differ before the first measurement"
+        );
+        assert_ne!(a, b);
+        let (pa, pb) = (ra.physical.unwrap(), rb.physical.unwrap());
+        assert_ne!(pa.t_star_s, pb.t_star_s);
+        assert_ne!(pa.timing_error_ms, pb.timing_error_ms);
     }
 
     #[test]

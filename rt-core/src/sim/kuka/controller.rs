@@ -283,6 +283,9 @@ pub enum AbortReason {
         /// The quality it fell to.
         quality: ConnectionQuality,
     },
+    /// A joint needed more torque than its limit (the reality lab's rigid-body
+    /// dynamics, `sim::world`): the over-current trip.
+    TorqueLimit(crate::sim::world::TorqueTrip),
 }
 
 impl AbortReason {
@@ -317,6 +320,7 @@ impl fmt::Display for AbortReason {
             Self::QualityDropped { quality } => {
                 write!(f, "connection quality fell to {}", quality.name())
             }
+            Self::TorqueLimit(trip) => write!(f, "{trip}"),
         }
     }
 }
@@ -445,6 +449,15 @@ impl SimStats {
             4 => Some(AbortReason::QualityDropped {
                 quality: ConnectionQuality::try_from(a as i32).unwrap_or(ConnectionQuality::Poor),
             }),
+            5 => Some(AbortReason::TorqueLimit(crate::sim::world::TorqueTrip {
+                joint,
+                name: crate::kinematics::iiwa7::JOINT_NAMES
+                    .get(joint)
+                    .copied()
+                    .unwrap_or("A?"),
+                torque_nm: a,
+                limit_nm: b,
+            })),
             _ => None,
         }
     }
@@ -463,6 +476,7 @@ impl SimStats {
             } => (2, joint, position_rad, limit_rad),
             AbortReason::NotFinite { joint } => (3, joint, f64::NAN, f64::NAN),
             AbortReason::QualityDropped { quality } => (4, 0, f64::from(quality as i32), 0.0),
+            AbortReason::TorqueLimit(t) => (5, t.joint, t.torque_nm, t.limit_nm),
         };
         self.abort_joint.store(joint as u8, Relaxed);
         self.abort_a.store(a);
@@ -588,6 +602,19 @@ pub struct SimController {
     commanding_requested: bool,
     close_requested: bool,
     closed: bool,
+    world: Option<WorldRobot>,
+}
+
+/// The reality lab's robot plugged into the simulated controller
+/// (`sim::world`): the session's latency model replaces `latency_ms` and its
+/// jitter, the world's joints (second-order servos, dynamics and torque trip,
+/// measurement noise) replace the first-order lag.
+#[derive(Debug, Clone)]
+pub struct WorldRobot {
+    /// Command-to-motion latency over time.
+    pub latency: crate::sim::world::LatencyModel,
+    /// The true joints.
+    pub joints: crate::sim::world::WorldJoints,
 }
 
 impl SimController {
@@ -630,6 +657,7 @@ impl SimController {
             commanding_requested: false,
             close_requested: false,
             closed: false,
+            world: None,
         };
         s.set_state(SessionState::MonitoringWait);
         s.set_quality(ConnectionQuality::Fair);
@@ -670,6 +698,9 @@ impl SimController {
     /// taken up once the session is MONITORING_READY.
     pub fn request_commanding(&mut self) {
         self.commanding_requested = true;
+        if let Some(w) = self.world.as_mut() {
+            w.joints.clear_trip();
+        }
     }
 
     /// Closes the session: the next [`tick`](Self::tick) sends IDLE, then nothing.
@@ -747,7 +778,28 @@ impl SimController {
         }
     }
 
+    /// Plugs the reality lab's robot in (`None`: the truthful robot of
+    /// `FriSimParams`). The world's joints take over from the current ones.
+    pub fn set_world(&mut self, world: Option<WorldRobot>) {
+        self.world = world;
+    }
+
+    /// The reality lab's robot, when plugged in.
+    pub fn world(&self) -> Option<&WorldRobot> {
+        self.world.as_ref()
+    }
+
     fn integrate(&mut self, dt_ns: u64) {
+        if let Some(w) = self.world.as_mut() {
+            let trip = w.joints.integrate(&self.setpoint, dt_ns as f64 * 1e-9);
+            self.q = *w.joints.q();
+            if let Some(trip) = trip
+                && self.state.is_commanding()
+            {
+                self.abort(AbortReason::TorqueLimit(trip));
+            }
+            return;
+        }
         let tau = self.p.servo_time_constant_ms * 1e-3;
         let a = if tau <= 0.0 {
             1.0
@@ -858,7 +910,10 @@ impl SimController {
             && self.p.packet_loss > 0.0
             && self.rng.random_bool(self.p.packet_loss);
         let noise = self.p.measurement_noise_rad;
-        let mut measured = self.q;
+        let mut measured = match self.world.as_mut() {
+            Some(w) => w.joints.measured(),
+            None => self.q,
+        };
         if noise > 0.0 {
             for v in &mut measured {
                 *v += self.rng.random_range(-noise..=noise);
@@ -1013,7 +1068,9 @@ impl SimController {
         self.last_cmd = q;
         self.stats.commands_accepted.fetch_add(1, Relaxed);
         let mut delay_ms = self.p.latency_ms;
-        if self.p.latency_jitter_ms > 0.0 {
+        if let Some(w) = &self.world {
+            delay_ms = w.latency.latency_s(arrival_ns as f64 * 1e-9) * 1e3;
+        } else if self.p.latency_jitter_ms > 0.0 {
             delay_ms += self
                 .rng
                 .random_range(-self.p.latency_jitter_ms..=self.p.latency_jitter_ms);

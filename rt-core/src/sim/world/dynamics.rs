@@ -187,7 +187,7 @@ impl ArmDynamics {
 }
 
 /// A joint that needed more torque than its limit.
-#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, thiserror::Error)]
 #[error("torque limit: {name} needs {torque_nm:.1} N m, limit {limit_nm:.1} N m")]
 pub struct TorqueTrip {
     /// Joint index 0..7.
