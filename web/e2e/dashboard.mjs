@@ -209,6 +209,29 @@ try {
     );
     measured.history_summary = await page.textContent("#trials .summary");
   });
+  await check("operator: when the trial ended the speed axis fit the planned peak and the pendulum axis read distinct mm labels", async () => {
+    await page.waitForFunction(() => window.__isochron.trialEndAxes() !== null, null, { timeout: 5_000 });
+    const a = await page.evaluate(() => window.__isochron.trialEndAxes());
+    measured.axes_at_trial_end = a;
+    const p = a.speed.planned_peak;
+    assert(p > 0.05, `no planned motion in the speed plot's window (peak ${p})`);
+    assert(a.speed.min === 0, `speed axis starts at ${a.speed.min}`);
+    assert(a.speed.max >= p && a.speed.max <= 1.5 * p * 1.1 + 1e-9,
+      `speed axis 0..${a.speed.max} m/s for a planned peak of ${p} m/s (executed peak ${a.speed.executed_peak})`);
+    const t = a.pendulum.ticks;
+    assert(t.length >= 3 && new Set(t).size === t.length, `pendulum tick labels: ${t.join(", ")}`);
+    assert(!t.some((x) => /^-0(\.0*)?$/.test(x)), `a tick reads -0: ${t.join(", ")}`);
+    assert(/\(mm\)$/.test(a.pendulum.title), `pendulum title ${a.pendulum.title}`);
+  });
+  await check("operator: the estimate and its 2σ band continue after the trial", async () => {
+    await page.waitForTimeout(1_500);
+    const a = await page.evaluate(() => window.__isochron.axes());
+    assert(a.estimate_finite_last_s > 0.9, `${(a.estimate_finite_last_s * 100).toFixed(0)}% of the last second has an estimate`);
+  });
+  await check("operator: the page keeps the operator heartbeat", async () => {
+    const n0 = await page.evaluate(() => window.__isochron.heartbeats());
+    await page.waitForFunction((n) => window.__isochron.heartbeats() >= n + 3, n0, { timeout: 3_000 });
+  });
   await check("operator: during the trial the phase portrait traced the Hopf limit cycle from rest and back", async () => {
     const p = await page.evaluate(() => window.__isochron.phase());
     measured.phase = {
@@ -246,6 +269,13 @@ try {
     await page.waitForFunction(() => ["aborted", "idle"].includes(window.__isochron.state()), null, { timeout: 2_000 });
     const st = await api("GET", "/api/state");
     assert(st.json.trial_state !== "intercepting", `still intercepting: ${st.json.trial_state}`);
+  });
+  await check("operator: over both trials (arming, returning home, stopping) the executed path speed never spiked", async () => {
+    const a = await page.evaluate(() => window.__isochron.axes());
+    measured.speed_peaks = a.peaks;
+    // The tool of an iiwa 7 does not reach 3 m/s; a spike from timing jitter did (~100 m/s).
+    assert(a.peaks.executed < 3, `executed path speed peaked at ${a.peaks.executed} m/s (planned ${a.peaks.planned})`);
+    assert(a.peaks.executed <= 1.5 * a.peaks.planned, `executed ${a.peaks.executed} m/s vs planned ${a.peaks.planned}`);
   });
   await check("operator: no console errors (beyond the refusals the checks provoke)", async () => {
     // The invalid parameter and the stop provoke 4xx answers by design; the browser

@@ -2,10 +2,15 @@ import { ApiError, call, getToken, setToken } from "./api";
 
 type Notify = (text: string, kind?: "info" | "error") => void;
 
+/** How often the page sends its operator heartbeat, ms (well inside the dead-man time). */
+const HEARTBEAT_MS = 200;
+
 /** The buttons, the token field and the emergency stop (Space or Escape). */
 export class Controls {
   private readonly buttons: HTMLButtonElement[];
   tokenRequired = true;
+  /** Operator heartbeats the server accepted (the dead-man, `POST /api/heartbeat`). */
+  heartbeats = 0;
 
   constructor(
     private readonly notify: Notify,
@@ -39,6 +44,18 @@ export class Controls {
       }
     });
     this.refresh();
+    // The operator dead-man: while this page can command, it tells the lab an
+    // operator is watching (the lab stops a running motion when no operator's
+    // heartbeat came within its dead-man time, 1 s by default in the real lab).
+    let inFlight = false;
+    window.setInterval(() => {
+      if (!this.canCommand() || inFlight) return;
+      inFlight = true;
+      call("POST", "/api/heartbeat")
+        .then(() => (this.heartbeats += 1))
+        .catch(() => undefined)
+        .finally(() => (inFlight = false));
+    }, HEARTBEAT_MS);
   }
 
   /** True when commands may be sent (a token is set, or the server needs none). */

@@ -30,6 +30,8 @@ const controls = new Controls(notify, () => void trials.refresh());
 
 let latest: StateMessage | null = null;
 let lastTrialState = "";
+/** The axes as they were when the latest trial ended (the browser test reads them). */
+let trialEndAxes: ReturnType<Plots["axes"]> | null = null;
 
 function onMessage(m: ServerMessage): void {
   switch (m.type) {
@@ -46,6 +48,10 @@ function onMessage(m: ServerMessage): void {
       if (m.trial_state !== lastTrialState) {
         lastTrialState = m.trial_state;
         if (m.trial_state === "done" || m.trial_state === "aborted") void trials.refresh();
+        if (m.trial_state === "done") {
+          // After the next repaint, so the axes include the motion's last samples.
+          requestAnimationFrame(() => requestAnimationFrame(() => requestAnimationFrame(() => (trialEndAxes = plots.axes()))));
+        }
       }
       break;
     case "event":
@@ -148,6 +154,9 @@ declare global {
       neurons: () => Lead[];
       camera: () => { received: number; frames: number; decodeErrors: number; fps: number; drawn: OverlayDrawn };
       cost: () => typeof cost;
+      axes: () => ReturnType<Plots["axes"]>;
+      trialEndAxes: () => ReturnType<Plots["axes"]> | null;
+      heartbeats: () => number;
     };
   }
 }
@@ -167,4 +176,7 @@ window.__isochron = {
     drawn: camera.drawn,
   }),
   cost: () => ({ ...cost }),
+  axes: () => plots.axes(),
+  trialEndAxes: () => trialEndAxes,
+  heartbeats: () => controls.heartbeats,
 };

@@ -1,5 +1,6 @@
 import uPlot from "uplot";
 import "uplot/dist/uPlot.min.css";
+import { lengthRange, lengthUnit, speedRange, tickLabels } from "./axes";
 import { leads, PhaseTrail, type Lead } from "./hopf";
 import { SeriesWindow } from "./series";
 import { num, type StateMessage } from "./types";
@@ -45,6 +46,9 @@ export class Plots {
   private phase: CanvasRenderingContext2D | null;
   private phaseTrail = new PhaseTrail();
   private phaseDirty = true;
+  private pendulumTitle: HTMLElement | null = null;
+  /** The largest planned and executed path speeds since the page loaded, m/s. */
+  private peaks = { planned: 0, executed: 0 };
 
   constructor(root: HTMLElement, phaseCanvas: HTMLCanvasElement) {
     this.phase = phaseCanvas.getContext("2d");
@@ -68,13 +72,25 @@ export class Plots {
     const timeScale: uPlot.Scale = { time: false, range: () => xRange() };
 
     // 1. Pendulum: measured vs estimated, uncertainty band, predicted horizon.
+    // Values stay in metres; the axis shows millimetres below 1 m (the title says which).
     {
-      const el = host("plot-pendulum", "Pendulum: lateral position x = l sin φ (m)");
+      const el = host("plot-pendulum", "Pendulum: lateral position x = l sin φ (mm)");
+      this.pendulumTitle = el.querySelector("h3");
       const plot = new uPlot(
         {
           ...size(el),
           legend: LEGEND,
-          scales: { x: timeScale },
+          scales: { x: timeScale, y: { range: (_u, min, max) => lengthRange(min, max) } },
+          axes: [
+            {},
+            {
+              size: 56,
+              values: (u, splits) => {
+                const unit = lengthUnit(u.scales.y.min ?? 0, u.scales.y.max ?? 0);
+                return tickLabels(splits.map((v) => v * unit.scale));
+              },
+            },
+          ],
           series: [
             { label: "t (s)" },
             line("measured", COLORS.orange, { width: 0, points: { show: true, size: 4, fill: COLORS.orange } }),
@@ -99,14 +115,24 @@ export class Plots {
         },
       });
     }
-    // 2. Path speed: planned vs executed, arrival marked.
+    // 2. Path speed: planned vs executed, arrival marked. The axis fits the
+    // planned motion in view (a lone executed sample cannot stretch it).
     {
       const el = host("plot-speed", "Path speed: planned vs executed (m/s)");
+      const win = new SeriesWindow(3, CAPACITY);
       const plot = new uPlot(
         {
           ...size(el),
           legend: LEGEND,
-          scales: { x: { time: false } },
+          scales: {
+            x: { time: false },
+            y: {
+              range: () => {
+                const d = win.data();
+                return speedRange(d[1], d[2]);
+              },
+            },
+          },
           series: [{ label: "t (s)" }, line("planned", COLORS.blue), line("executed", COLORS.red, { dash: [6, 3] })],
           hooks: { draw: [(u) => this.drawArrival(u)] },
         },
@@ -115,7 +141,7 @@ export class Plots {
       );
       this.charts.push({
         plot,
-        win: new SeriesWindow(3, CAPACITY),
+        win,
         row: (s) => [s.t_s, s.path.speed_planned_mps, s.path.speed_executed_mps],
       });
     }
@@ -194,6 +220,8 @@ export class Plots {
     }
     this.latest = s;
     for (const c of this.charts) c.win.push(c.row(s));
+    if (Number.isFinite(s.path.speed_planned_mps)) this.peaks.planned = Math.max(this.peaks.planned, s.path.speed_planned_mps);
+    if (Number.isFinite(s.path.speed_executed_mps)) this.peaks.executed = Math.max(this.peaks.executed, s.path.speed_executed_mps);
     if (this.phaseTrail.push(s.hopf)) this.phaseDirty = true;
     this.dirty = true;
   }
@@ -203,6 +231,10 @@ export class Plots {
     if (!this.dirty) return;
     this.dirty = false;
     for (const c of this.charts) c.plot.setData(c.win.plotData() as uPlot.AlignedData);
+    const y = this.charts[0].plot.scales.y;
+    const unit = lengthUnit(y.min ?? 0, y.max ?? 0).unit;
+    const title = `Pendulum: lateral position x = l sin φ (${unit})`;
+    if (this.pendulumTitle && this.pendulumTitle.textContent !== title) this.pendulumTitle.textContent = title;
     if (this.phaseDirty) {
       this.phaseDirty = false;
       this.drawPhase();
@@ -217,6 +249,44 @@ export class Plots {
   /** The phase portrait's points over the last motion (the browser test reads them). */
   phaseStats(): ReturnType<PhaseTrail["stats"]> & { motions: number } {
     return { ...this.phaseTrail.stats(), motions: this.phaseTrail.motions };
+  }
+
+  /**
+   * What the axes show (the browser test reads them): the pendulum axis' tick
+   * labels as drawn and its title; the speed axis' range and the planned and
+   * executed peaks in view; the share of finite estimates over the last second.
+   */
+  axes(): {
+    pendulum: { title: string; ticks: string[] };
+    speed: { min: number; max: number; planned_peak: number; executed_peak: number };
+    estimate_finite_last_s: number;
+    peaks: { planned: number; executed: number };
+  } {
+    const pend = this.charts[0];
+    const speed = this.charts[1];
+    const ticks = ((pend.plot.axes[1] as unknown as { _values?: (string | number)[] })._values ?? []).map(String);
+    const d = speed.win.data();
+    const peak = (c: Float64Array) => c.reduce((m, v) => (Number.isFinite(v) ? Math.max(m, v) : m), 0);
+    const pd = pend.win.data();
+    const n = pd[0].length;
+    const tEnd = n > 0 ? pd[0][n - 1] : 0;
+    let seen = 0;
+    let finite = 0;
+    for (let i = n - 1; i >= 0 && pd[0][i] > tEnd - 1; i--) {
+      seen += 1;
+      if (Number.isFinite(pd[2][i]) && Number.isFinite(pd[3][i])) finite += 1;
+    }
+    return {
+      pendulum: { title: this.pendulumTitle?.textContent ?? "", ticks },
+      speed: {
+        min: speed.plot.scales.y.min ?? Number.NaN,
+        max: speed.plot.scales.y.max ?? Number.NaN,
+        planned_peak: peak(d[1]),
+        executed_peak: peak(d[2]),
+      },
+      estimate_finite_last_s: seen > 0 ? finite / seen : 0,
+      peaks: { ...this.peaks },
+    };
   }
 
   /** Which neuron led when, over the neuron plot's window. */
