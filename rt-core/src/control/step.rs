@@ -711,13 +711,11 @@ impl Controller {
     }
 
     fn fold_measurements<I: IntoIterator<Item = Measurement>>(&mut self, t: f64, meas: I) {
-        let active = matches!(
-            self.machine.state(),
-            TrialState::Released
-                | TrialState::Tracking
-                | TrialState::Intercepting
-                | TrialState::Holding
-        );
+        // From the release on, the filter follows the ball also after the
+        // trial (done, aborted, back to idle): the ball keeps swinging, and the
+        // dashboard's estimate and its band continue between trials. A new
+        // filter is built when the next trial arms.
+        let active = !matches!(self.machine.state(), TrialState::Arming | TrialState::Armed);
         for m in meas {
             self.counters.measurements += 1;
             if !active {
