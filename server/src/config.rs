@@ -76,7 +76,7 @@ pub enum LabMode {
 }
 
 /// `[lab]`.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LabSection {
     /// `simulated` (default) or `real`.
@@ -89,6 +89,35 @@ pub struct LabSection {
     /// A real lab refuses trials until the pendulum and camera latency are
     /// calibrated, unless this is true (an explicit override).
     pub allow_uncalibrated: bool,
+    /// The operator dead-man: while a trial runs, an operator must send a
+    /// heartbeat (`POST /api/heartbeat`; the dashboard does it) at least every
+    /// `operator_timeout_s`, or the motion stops safely (abort `operator_lost`).
+    /// Default: on in the real lab, off in the simulated one.
+    pub dead_man: Option<bool>,
+    /// The dead-man time, seconds.
+    pub operator_timeout_s: f64,
+}
+
+impl Default for LabSection {
+    fn default() -> Self {
+        Self {
+            mode: LabMode::default(),
+            scenario: None,
+            calibration_file: None,
+            allow_uncalibrated: false,
+            dead_man: None,
+            operator_timeout_s: 1.0,
+        }
+    }
+}
+
+impl LabSection {
+    /// The dead-man time in force (`None`: off).
+    pub fn operator_timeout(&self) -> Option<f64> {
+        self.dead_man
+            .unwrap_or(self.mode == LabMode::Real)
+            .then_some(self.operator_timeout_s)
+    }
 }
 
 /// `[camera]`: the webcam.
@@ -234,6 +263,12 @@ impl ServeConfig {
                 });
             }
         }
+        check::within(
+            "lab.operator_timeout_s",
+            self.lab.operator_timeout_s,
+            0.05,
+            60.0,
+        )?;
         let c = &self.camera;
         check::within_u32("camera.width_px", c.width_px, 64, 7680)?;
         check::within_u32("camera.height_px", c.height_px, 48, 4320)?;

@@ -16,8 +16,8 @@ use std::{
 use axum::{body::Bytes, extract::ws::Utf8Bytes};
 use rt_core::{
     bridge::{
-        BridgeCounters, BridgeStats, Command, Event, EventRecord, FrameReceiver, Refusal,
-        ServerEnd, Snapshot, StopHandle,
+        BridgeCounters, BridgeStats, Command, Event, EventRecord, FrameReceiver, HeartbeatHandle,
+        Refusal, ServerEnd, Snapshot, StopHandle,
     },
     params::Scenario,
 };
@@ -139,6 +139,7 @@ pub struct Lab {
     commands: Mutex<rt_core::bridge::CommandSender>,
     pending: Mutex<Pending>,
     stop: StopHandle,
+    heartbeat: HeartbeatHandle,
     state_tx: broadcast::Sender<Utf8Bytes>,
     event_tx: broadcast::Sender<Utf8Bytes>,
     frame_tx: broadcast::Sender<Bytes>,
@@ -183,6 +184,7 @@ impl Lab {
             commands,
             acks,
             stop,
+            heartbeat,
             stats,
         } = end;
         let (state_tx, _) = broadcast::channel(options.ws_buffer.max(1));
@@ -192,6 +194,7 @@ impl Lab {
             commands: Mutex::new(commands),
             pending: Mutex::new(HashMap::new()),
             stop,
+            heartbeat,
             state_tx,
             event_tx,
             frame_tx,
@@ -282,6 +285,12 @@ impl Lab {
     /// Subscribes to camera frames (JPEG).
     pub fn subscribe_frames(&self) -> broadcast::Receiver<Bytes> {
         self.frame_tx.subscribe()
+    }
+
+    /// Records an operator heartbeat (the dead-man); its time on the control
+    /// clock, seconds (`None` before the control thread started its clock).
+    pub fn heartbeat(&self) -> Option<f64> {
+        self.heartbeat.beat()
     }
 
     /// Emergency stop: the stop flag (independent of the ring) and the command.

@@ -86,10 +86,11 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let seed = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(1, |d| d.as_secs());
-    let setup = match cfg.lab.mode {
+    let mut setup = match cfg.lab.mode {
         LabMode::Simulated => LabSetup::simulated(scenario, seed),
         LabMode::Real => real_lab(&cfg, scenario, seed)?,
     };
+    setup.operator_timeout_s = cfg.lab.operator_timeout();
     let (lab, sim) = crate::runtime::start_lab(setup, Some(Arc::clone(&records)), options)?;
     tracing::info!(
         mode = ?cfg.lab.mode,

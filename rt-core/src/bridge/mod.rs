@@ -5,9 +5,10 @@ mod model;
 mod tests;
 
 use std::sync::{
-    Arc,
+    Arc, OnceLock,
     atomic::{AtomicU64, Ordering},
 };
+use std::time::Instant;
 
 pub use model::*;
 
@@ -53,6 +54,13 @@ pub struct BridgeStats {
     pub frame_overflows: AtomicU64,
     /// Emergency stops requested (see [`StopHandle`]).
     pub stop_requests: AtomicU64,
+    /// Operator heartbeats received (see [`HeartbeatHandle`]).
+    pub heartbeats: AtomicU64,
+    /// The latest operator heartbeat, control clock, microseconds (`fetch_max`:
+    /// any operator's heartbeat keeps the motion alive).
+    pub heartbeat_us: AtomicU64,
+    /// The control clock's epoch, set once by the control side when it starts.
+    pub epoch: OnceLock<Instant>,
 }
 
 impl BridgeStats {
@@ -66,6 +74,7 @@ impl BridgeStats {
             ack_overflows: self.ack_overflows.load(Ordering::Relaxed),
             frame_overflows: self.frame_overflows.load(Ordering::Relaxed),
             stop_requests: self.stop_requests.load(Ordering::Relaxed),
+            heartbeats: self.heartbeats.load(Ordering::Relaxed),
         }
     }
 }
@@ -87,6 +96,8 @@ pub struct BridgeCounters {
     pub frame_overflows: u64,
     /// Emergency stops requested.
     pub stop_requests: u64,
+    /// Operator heartbeats received.
+    pub heartbeats: u64,
 }
 
 fn bump(c: &AtomicU64) {
@@ -122,6 +133,9 @@ pub fn bridge(capacity: BridgeCapacity) -> (ControlEnd, ServerEnd) {
         },
         acks: AckReader { rx: ack_rx },
         stop: StopHandle {
+            stats: Arc::clone(&stats),
+        },
+        heartbeat: HeartbeatHandle {
             stats: Arc::clone(&stats),
         },
         stats,
@@ -211,6 +225,20 @@ impl ControlEnd {
     pub fn stats(&self) -> &Arc<BridgeStats> {
         &self.stats
     }
+
+    /// Sets the control clock's epoch (once, before the first step), so that
+    /// operator heartbeats are stamped on the control clock.
+    pub fn set_epoch(&self, epoch: Instant) {
+        let _ = self.stats.epoch.set(epoch);
+    }
+
+    /// The latest operator heartbeat on the control clock, seconds (none yet: `None`).
+    pub fn last_heartbeat_s(&self) -> Option<f64> {
+        if self.stats.heartbeats.load(Ordering::Acquire) == 0 {
+            return None;
+        }
+        Some(self.stats.heartbeat_us.load(Ordering::Acquire) as f64 * 1e-6)
+    }
 }
 
 /// The server's end, in parts that can live in different places.
@@ -228,6 +256,8 @@ pub struct ServerEnd {
     pub acks: AckReader,
     /// Emergency stop, independent of the command ring.
     pub stop: StopHandle,
+    /// Operator heartbeats (the dead-man), independent of the command ring.
+    pub heartbeat: HeartbeatHandle,
     /// The shared counters.
     pub stats: Arc<BridgeStats>,
 }
@@ -243,6 +273,25 @@ impl StopHandle {
     /// Requests a stop; the control thread sees it at its next step.
     pub fn request_stop(&self) {
         self.stats.stop_requests.fetch_add(1, Ordering::Release);
+    }
+}
+
+/// Records an operator heartbeat for the control thread's dead-man without
+/// going through the command ring: two atomics. Cloneable; any thread.
+#[derive(Debug, Clone)]
+pub struct HeartbeatHandle {
+    stats: Arc<BridgeStats>,
+}
+
+impl HeartbeatHandle {
+    /// Records a heartbeat now; returns its time on the control clock, seconds
+    /// (`None` while the control side has not started its clock).
+    pub fn beat(&self) -> Option<f64> {
+        let epoch = self.stats.epoch.get()?;
+        let us = u64::try_from(epoch.elapsed().as_micros()).unwrap_or(u64::MAX);
+        self.stats.heartbeat_us.fetch_max(us, Ordering::AcqRel);
+        self.stats.heartbeats.fetch_add(1, Ordering::Release);
+        Some(us as f64 * 1e-6)
     }
 }
 

@@ -400,6 +400,8 @@ pub struct Counters {
     pub limit_violations: u64,
     /// Trials finished (with a result or aborted).
     pub trials: u64,
+    /// Trials stopped because no operator heartbeat came within the dead-man time.
+    pub operator_timeouts: u64,
 }
 
 /// The camera as the dashboard overlays it on `/ws/camera`'s frames: the latest

@@ -78,6 +78,8 @@ pub enum AbortReason {
     MagnetFault,
     /// The filter refused its input (non-finite numbers).
     FilterFault,
+    /// No operator heartbeat within the dead-man time while a trial ran.
+    OperatorLost,
 }
 
 impl AbortReason {
@@ -94,6 +96,7 @@ impl AbortReason {
             Self::MissedWindow => "missed_window",
             Self::MagnetFault => "magnet_fault",
             Self::FilterFault => "filter_fault",
+            Self::OperatorLost => "operator_lost",
         }
     }
 }

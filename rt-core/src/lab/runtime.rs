@@ -190,6 +190,10 @@ pub struct LabSetup {
     pub video: VideoParams,
     /// The FRI client's settings (guard, silence, lateness).
     pub session: crate::fri::FriClientParams,
+    /// The operator dead-man: while a trial runs, an operator heartbeat
+    /// ([`crate::bridge::HeartbeatHandle`]) must come at least this often, or
+    /// the motion stops safely (abort `operator_lost`). `None`: off.
+    pub operator_timeout_s: Option<f64>,
 }
 
 impl LabSetup {
@@ -213,6 +217,7 @@ impl LabSetup {
             fixed_distance_m: None,
             video: VideoParams::default(),
             session,
+            operator_timeout_s: None,
         }
     }
 }
@@ -319,10 +324,12 @@ impl LabRuntime {
             fixed_distance_m,
             video,
             session: client_params,
+            operator_timeout_s,
         } = setup;
         scenario.validate()?;
         video.validate()?;
         let epoch = Instant::now();
+        control.set_epoch(epoch);
         let clock = Clock::new(epoch);
         let period_ms = scenario.robot.fri_period_ms;
         let controller = Controller::new(&scenario, f64::from(period_ms) * 1e-3)?;
@@ -426,6 +433,7 @@ impl LabRuntime {
                 session: Arc::clone(&session_cell),
                 truth,
                 calibration,
+                operator_timeout_s,
             },
         );
         let (bind, controller_addr) = match fri {

@@ -141,6 +141,8 @@ pub(crate) struct LabParts {
     pub truth: Option<Truth>,
     /// The camera's calibration at the start (the dashboard's overlays).
     pub calibration: SwingPlaneCalibration,
+    /// The operator dead-man time, seconds (`None`: off).
+    pub operator_timeout_s: Option<f64>,
 }
 
 /// The lab's control step (see the module documentation).
@@ -157,7 +159,11 @@ pub struct LabStep {
     horizon: Vec<Prediction>,
     next_horizon_s: f64,
     last_state: TrialState,
+    /// The previous measured tool point and the robot's sample time of it
+    /// (sequence counter x send period), seconds.
     prev_tool: Option<(f64, Vector3<f64>)>,
+    /// The robot's sample time of the latest measurement, seconds.
+    robot_t_s: f64,
     q: Joints,
     session: SessionState,
     quality: ConnectionQuality,
@@ -169,6 +175,8 @@ pub struct LabStep {
     magnet_failures: u64,
     /// A command waiting for `isochron-lab-io` (its ack id; true: cancelled by a stop).
     pending: Option<(u64, bool)>,
+    /// When the operator last commanded a trial (counts as a heartbeat), control clock, s.
+    operator_since_s: f64,
 }
 
 impl std::fmt::Debug for LabStep {
@@ -203,6 +211,7 @@ fn map_abort(r: AbortReason) -> BridgeAbort {
         AbortReason::FriLost => BridgeAbort::FriLost,
         AbortReason::PredictionTimeout | AbortReason::MissedWindow => BridgeAbort::Timeout,
         AbortReason::MagnetFault => BridgeAbort::MagnetFault,
+        AbortReason::OperatorLost => BridgeAbort::OperatorLost,
         _ => BridgeAbort::Internal,
     }
 }
@@ -248,6 +257,7 @@ impl LabStep {
             next_horizon_s: 0.0,
             last_state: TrialState::Idle,
             prev_tool: None,
+            robot_t_s: 0.0,
             q: [0.0; 7],
             session: SessionState::Idle,
             quality: ConnectionQuality::Poor,
@@ -258,6 +268,7 @@ impl LabStep {
             step_max_us: 0.0,
             magnet_failures: 0,
             pending: None,
+            operator_since_s: f64::NEG_INFINITY,
         }
     }
 
@@ -294,6 +305,7 @@ impl LabStep {
         while let Some(env) = self.p.bridge.next_command() {
             self.handle(t, env.id, env.command);
         }
+        self.dead_man(t);
         self.follow_magnet();
         let mut n = 0u64;
         while let Ok(m) = self.p.measurements.pop() {
@@ -318,6 +330,34 @@ impl LabStep {
             };
         }
         self.snap.counters.measurements += n;
+    }
+
+    /// The operator dead-man: while a trial runs (from arming until it is
+    /// done or aborted), the latest operator heartbeat (or the command that
+    /// started the trial) must be younger than the dead-man time; otherwise
+    /// the motion stops safely (abort `operator_lost`, counted). Two atomic
+    /// loads; nothing allocates.
+    fn dead_man(&mut self, t: f64) {
+        let Some(timeout_s) = self.p.operator_timeout_s else {
+            return;
+        };
+        let state = self.inner.controller().state();
+        if matches!(
+            state,
+            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+        ) {
+            return;
+        }
+        let last = self
+            .p
+            .bridge
+            .last_heartbeat_s()
+            .unwrap_or(f64::NEG_INFINITY)
+            .max(self.operator_since_s);
+        if t - last > timeout_s {
+            self.controller().abort(t, AbortReason::OperatorLost);
+            self.snap.counters.operator_timeouts += 1;
+        }
     }
 
     fn follow_magnet(&mut self) {
@@ -391,8 +431,14 @@ impl LabStep {
             }
             Command::Arm | Command::RunTrial { .. } if busy => (Err(Refusal::Busy), None),
             Command::RunTrial { trial_id: 0 } => (Err(Refusal::Invalid), None),
-            Command::Arm => return self.plan(id, 0, false),
-            Command::RunTrial { trial_id } => return self.plan(id, trial_id, true),
+            Command::Arm => {
+                self.operator_since_s = t;
+                return self.plan(id, 0, false);
+            }
+            Command::RunTrial { trial_id } => {
+                self.operator_since_s = t;
+                return self.plan(id, trial_id, true);
+            }
             Command::Disarm => {
                 if state == TrialState::Armed || state == TrialState::Arming {
                     self.controller().abort(t, AbortReason::StopRequested);
@@ -518,6 +564,8 @@ impl LabStep {
         plan: ArmPlan,
     ) -> Result<(), Refusal> {
         let _ = self.controller().reset(t);
+        // The trial starts now on the operator's command: the dead-man counts from here.
+        self.operator_since_s = t;
         let ball = match &self.p.truth {
             Some(_) => {
                 let s = &self.p.scenario;
@@ -774,11 +822,22 @@ impl LabStep {
         s.hopf.u_final = ms.neurons.u_final;
         s.path.speed_planned_mps = ms.planned_path_speed_mps;
         let tool = c.tool_point(&self.q);
-        s.path.speed_executed_mps = match self.prev_tool {
-            Some((tp, p)) if t > tp => (tool - p).norm() / (t - tp),
-            _ => 0.0,
-        };
-        self.prev_tool = Some((t, tool));
+        // Differentiated on the robot's clock (its sequence counter at its send
+        // period), not on the receive times: a late message followed by a
+        // prompt one is 2 periods of motion over microseconds of receive time,
+        // which read as spikes of tens of m/s while the arm moved home.
+        let tr = self.robot_t_s;
+        match self.prev_tool {
+            Some((tp, p)) if tr > tp => {
+                s.path.speed_executed_mps = (tool - p).norm() / (tr - tp);
+                self.prev_tool = Some((tr, tool));
+            }
+            Some(_) => {}
+            None => {
+                s.path.speed_executed_mps = 0.0;
+                self.prev_tool = Some((tr, tool));
+            }
+        }
         let home = c.home_m();
         let target = c.motion_target_m();
         let len = (target - home).norm();
@@ -870,6 +929,17 @@ impl ControlStep for LabStep {
         if let Some(q) = m.measured_joint_position_rad {
             self.q = q;
         }
+        let send_period_s = if m.send_period_ms > 0 {
+            f64::from(m.send_period_ms) * 1e-3
+        } else {
+            self.period_s
+        };
+        let robot_t_s = f64::from(m.sequence_counter) * send_period_s;
+        if robot_t_s < self.robot_t_s {
+            // The counter wrapped or a new session began: start over.
+            self.prev_tool = None;
+        }
+        self.robot_t_s = robot_t_s;
         self.before(t);
         let lab_input = StepInput { now_ns, ..*input };
         self.inner.step(&lab_input, command_rad);
