@@ -11,10 +11,10 @@ BIND ?= 127.0.0.1:8080
 # System packages the build and the tests need (Debian names).
 APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             gcc-avr avr-libc binutils-avr libsimavr-dev \
-            chromium
+            chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
+.PHONY: py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -25,7 +25,7 @@ help:
 	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
 
 ## deps: install only what is missing.
-deps: apt-deps web-deps fuzz-deps
+deps: apt-deps web-deps fuzz-deps py-deps
 
 apt-deps:
 	@missing=""; \
@@ -42,6 +42,18 @@ web-deps: web/node_modules/.package-lock.json
 
 web/node_modules/.package-lock.json: web/package.json web/package-lock.json
 	cd web && npm ci --no-audit --no-fund
+	@touch $@
+
+## py-deps: schemathesis (the schema-driven API fuzz test) in a project-local venv.
+PY ?= python3
+VENV := .venv
+SCHEMATHESIS_VERSION := 4.32.5
+
+py-deps: $(VENV)/.schemathesis-$(SCHEMATHESIS_VERSION)
+
+$(VENV)/.schemathesis-$(SCHEMATHESIS_VERSION):
+	@[ -x $(VENV)/bin/python ] || $(PY) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --disable-pip-version-check "schemathesis==$(SCHEMATHESIS_VERSION)"
 	@touch $@
 
 ## fuzz: the FRI fuzz targets (fuzz/README.md). Stable Rust: no sanitizer, debug assertions on.
@@ -134,7 +146,14 @@ test-browser: web
 	$(CARGO) build --bin isochron
 	web/e2e/run.sh ./target/debug/isochron
 
-test: lint test-web test-browser fuzz-smoke test-rust
+## test-api-fuzz: schemathesis against `isochron serve`'s own OpenAPI document, for
+## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).
+API_FUZZ_SECONDS ?= 60
+test-api-fuzz: py-deps
+	$(CARGO) build --bin isochron
+	tests/api-fuzz/run.sh ./target/debug/isochron $(API_FUZZ_SECONDS)
+
+test: lint test-web test-browser test-api-fuzz fuzz-smoke test-rust
 
 bench: deps
 	$(CARGO) bench --workspace

@@ -5,8 +5,10 @@ use std::sync::Arc;
 use axum::{
     Json,
     body::Bytes,
-    extract::{FromRequestParts, Path, Query, State, rejection::BytesRejection},
-    http::{HeaderValue, StatusCode, header, request::Parts},
+    extract::{
+        FromRequest, FromRequestParts, Path, Query, Request, State, rejection::BytesRejection,
+    },
+    http::{HeaderMap, HeaderValue, StatusCode, header, request::Parts},
     response::{IntoResponse, Response},
 };
 use rt_core::{
@@ -121,6 +123,41 @@ fn body_bytes(body: Result<Bytes, BytesRejection>) -> Result<Bytes, AppError> {
     })
 }
 
+/// A request body that is JSON or empty: a body sent with a `Content-Type`
+/// other than `application/json` is refused with 415 before it is read as
+/// JSON (a body without `Content-Type` is read as JSON).
+#[derive(Debug)]
+pub struct JsonBody(pub Bytes);
+
+/// True when `Content-Type` says JSON (`application/json`, parameters allowed)
+/// or is absent.
+fn is_json(headers: &HeaderMap) -> bool {
+    headers.get(header::CONTENT_TYPE).is_none_or(|v| {
+        v.to_str().is_ok_and(|v| {
+            v.split(';')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .eq_ignore_ascii_case("application/json")
+        })
+    })
+}
+
+impl<S: Send + Sync> FromRequest<S> for JsonBody {
+    type Rejection = AppError;
+
+    async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
+        let json = is_json(req.headers());
+        let bytes = body_bytes(Bytes::from_request(req, state).await)?;
+        if !bytes.is_empty() && !json {
+            return Err(AppError::UnsupportedMediaType(
+                "the request body must be JSON (Content-Type: application/json)".into(),
+            ));
+        }
+        Ok(Self(bytes))
+    }
+}
+
 /// Parses JSON, naming the field at fault (`task.movement_time_s`, `on`).
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, AppError> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
@@ -166,9 +203,9 @@ fn json_error(e: serde_path_to_error::Error<serde_json::Error>) -> AppError {
 #[serde(deny_unknown_fields)]
 pub struct NoFields {}
 
-fn empty_body(body: Result<Bytes, BytesRejection>) -> Result<(), AppError> {
-    let bytes = body_bytes(body)?;
-    if bytes.iter().all(u8::is_ascii_whitespace) {
+/// An empty body or `{}` (nothing else: no other JSON value, no fields).
+fn empty_body(JsonBody(bytes): JsonBody) -> Result<(), AppError> {
+    if bytes.is_empty() {
         return Ok(());
     }
     let value: serde_json::Value = parse_json(&bytes)?;
@@ -244,20 +281,20 @@ const SAFE_WHILE_BUSY: [&str; 2] = ["name", "success"];
 /// Merges a JSON object into the parameters in force, validates the result and
 /// hands it to the control loop; on any error nothing changes.
 #[utoipa::path(put, path = "/api/params", tag = "lab",
-    request_body(content = Object, description = "a partial scenario, merged into the one in force: {\"task\": {\"movement_time_s\": 1.2}}"),
+    request_body(content = Object, description = "a partial scenario, merged into the one in force: {\"task\": {\"movement_time_s\": 1.2}}. Only the scenario's keys, with its value types; each value's range is checked after merging (400 names the field)"),
     responses(
         (status = 200, description = "the scenario now in force", body = Object),
         (status = 400, description = "malformed, wrong type, unknown key or out of range; names the field", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
         (status = 409, description = "refused while a trial runs; names the field", body = crate::error::ErrorBody),
-        (status = 413, description = "body too large", body = crate::error::ErrorBody)),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody)),
     security(("bearer" = [])))]
 pub async fn put_params(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: Result<Bytes, BytesRejection>,
+    JsonBody(bytes): JsonBody,
 ) -> Result<Json<Scenario>, AppError> {
-    let bytes = body_bytes(body)?;
     let lab = lab(&state)?;
     let patch: serde_json::Value = parse_json(&bytes)?;
     if !patch.is_object() {
@@ -353,7 +390,9 @@ fn changed_fields(a: &serde_json::Value, b: &serde_json::Value) -> Vec<String> {
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
         (status = 200, description = "accepted", body = Accepted),
-        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 400, description = "a body other than empty or {} (fields, another JSON value, malformed)", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
         (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
         (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
@@ -361,7 +400,7 @@ fn changed_fields(a: &serde_json::Value, b: &serde_json::Value) -> Vec<String> {
 pub async fn arm(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: Result<Bytes, BytesRejection>,
+    body: JsonBody,
 ) -> Result<Json<Accepted>, AppError> {
     empty_body(body)?;
     run(&state, Command::Arm).await
@@ -372,7 +411,9 @@ pub async fn arm(
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
         (status = 200, description = "accepted", body = Accepted),
-        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 400, description = "a body other than empty or {} (fields, another JSON value, malformed)", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
         (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
         (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
@@ -380,7 +421,7 @@ pub async fn arm(
 pub async fn disarm(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: Result<Bytes, BytesRejection>,
+    body: JsonBody,
 ) -> Result<Json<Accepted>, AppError> {
     empty_body(body)?;
     run(&state, Command::Disarm).await
@@ -400,6 +441,8 @@ pub struct MagnetRequest {
     responses(
         (status = 200, description = "accepted", body = Accepted),
         (status = 400, description = "malformed; names the field", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
         (status = 409, description = "refused in this state (reason)", body = crate::error::ErrorBody),
         (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
@@ -407,9 +450,9 @@ pub struct MagnetRequest {
 pub async fn magnet(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: Result<Bytes, BytesRejection>,
+    JsonBody(bytes): JsonBody,
 ) -> Result<Json<Accepted>, AppError> {
-    let req: MagnetRequest = parse_json(&body_bytes(body)?)?;
+    let req: MagnetRequest = parse_json(&bytes)?;
     run(&state, Command::Magnet { on: req.on }).await
 }
 
@@ -435,6 +478,40 @@ pub async fn stop(State(state): State<Arc<AppState>>) -> Result<Json<StopAnswer>
     }))
 }
 
+/// `POST /api/heartbeat` answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct HeartbeatAnswer {
+    /// The heartbeat's time on the lab's control clock, seconds.
+    pub t_s: f64,
+}
+
+/// Operator heartbeat (the dead-man): while a trial runs with the dead-man on
+/// (`[lab] dead_man`, on by default in the real lab), some operator must send
+/// one at least every `[lab] operator_timeout_s`, or the motion stops safely
+/// and the trial is recorded as aborted with `operator_lost`. The dashboard
+/// sends them by itself while it can command.
+#[utoipa::path(post, path = "/api/heartbeat", tag = "commands",
+    request_body(content = Option<NoFields>, description = "empty or {}"),
+    responses(
+        (status = 200, description = "recorded", body = HeartbeatAnswer),
+        (status = 400, description = "a body other than empty or {} (fields, another JSON value, malformed)", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn heartbeat(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    body: JsonBody,
+) -> Result<Json<HeartbeatAnswer>, AppError> {
+    empty_body(body)?;
+    let t_s = lab(&state)?
+        .heartbeat()
+        .ok_or_else(|| AppError::Unavailable("the lab's control clock has not started".into()))?;
+    Ok(Json(HeartbeatAnswer { t_s }))
+}
+
 /// `POST /api/trials` answer.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct TrialStarted {
@@ -448,7 +525,9 @@ pub struct TrialStarted {
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
         (status = 202, description = "the trial started", body = TrialStarted),
-        (status = 400, description = "a body with fields", body = crate::error::ErrorBody),
+        (status = 400, description = "a body other than empty or {} (fields, another JSON value, malformed)", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
         (status = 409, description = "refused (a trial runs, a real lab is not calibrated, ...)", body = crate::error::ErrorBody),
         (status = 503, description = "the lab is not running or did not answer", body = crate::error::ErrorBody)),
@@ -456,7 +535,7 @@ pub struct TrialStarted {
 pub async fn start_trial(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: Result<Bytes, BytesRejection>,
+    body: JsonBody,
 ) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
     empty_body(body)?;
     if let Some(why) = &state.trials_refused {
@@ -493,8 +572,10 @@ async fn blocking<T: Send + 'static>(
 /// `GET /api/trials` query.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
 pub struct ListQuery {
     /// At most this many trials, newest first (1..1000, default 100).
+    #[param(value_type = u32, required = false, minimum = 1, maximum = 1000)]
     pub limit: Option<u32>,
 }
 
@@ -540,7 +621,7 @@ async fn existing(state: &AppState, raw: &str) -> Result<(Arc<Records>, TrialRec
 
 /// One trial's result.
 #[utoipa::path(get, path = "/api/trials/{id}", tag = "trials",
-    params(("id" = u64, Path, description = "trial id")),
+    params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
         (status = 200, description = "the trial", body = TrialRecord),
         (status = 400, description = "not a trial id", body = crate::error::ErrorBody),
@@ -554,9 +635,10 @@ pub async fn get_trial(
 
 /// A trial's signals at the control rate, as CSV (header row; NaN when unknown).
 #[utoipa::path(get, path = "/api/trials/{id}/recording.csv", tag = "trials",
-    params(("id" = u64, Path, description = "trial id")),
+    params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
         (status = 200, description = "CSV, one row per control step", content_type = "text/csv", body = String),
+        (status = 400, description = "not a trial id", body = crate::error::ErrorBody),
         (status = 404, description = "no such trial or no recording", body = crate::error::ErrorBody)))]
 pub async fn recording_csv(
     State(state): State<Arc<AppState>>,
@@ -576,9 +658,10 @@ pub async fn recording_csv(
 
 /// A trial's signals as MCAP (topic `/isochron/state`, JSON messages with a JSON schema).
 #[utoipa::path(get, path = "/api/trials/{id}/recording.mcap", tag = "trials",
-    params(("id" = u64, Path, description = "trial id")),
+    params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
         (status = 200, description = "MCAP file", content_type = "application/octet-stream", body = Vec<u8>),
+        (status = 400, description = "not a trial id", body = crate::error::ErrorBody),
         (status = 404, description = "no such trial or no recording", body = crate::error::ErrorBody)))]
 pub async fn recording_mcap(
     State(state): State<Arc<AppState>>,
@@ -628,8 +711,87 @@ fn ws_camera_doc() {}
 /// This document.
 #[utoipa::path(get, path = "/api/openapi.json", tag = "service",
     responses((status = 200, description = "the OpenAPI description of this API", body = Object)))]
-pub async fn openapi_json() -> Json<utoipa::openapi::OpenApi> {
-    Json(ApiDoc::openapi())
+pub async fn openapi_json() -> Json<serde_json::Value> {
+    Json(openapi_document())
+}
+
+/// The OpenAPI document as served. utoipa writes an optional body
+/// (`Option<NoFields>`) as "JSON `null` or the object"; the handlers take no
+/// body or the object, never `null`, so such a body is written as the object
+/// with `required: false` (the document says exactly what is accepted).
+pub fn openapi_document() -> serde_json::Value {
+    let mut doc = serde_json::to_value(ApiDoc::openapi()).unwrap_or_default();
+    if let Some(paths) = doc.get_mut("paths").and_then(|p| p.as_object_mut()) {
+        for item in paths.values_mut() {
+            let Some(ops) = item.as_object_mut() else {
+                continue;
+            };
+            for op in ops.values_mut() {
+                let Some(body) = op.get_mut("requestBody") else {
+                    continue;
+                };
+                let mut optional = false;
+                if let Some(content) = body.get_mut("content").and_then(|c| c.as_object_mut()) {
+                    for media in content.values_mut() {
+                        let Some(schema) = media.get_mut("schema") else {
+                            continue;
+                        };
+                        let inner = schema
+                            .get("oneOf")
+                            .and_then(|o| o.as_array())
+                            .and_then(|o| {
+                                let rest: Vec<_> =
+                                    o.iter().filter(|s| s["type"] != "null").cloned().collect();
+                                (o.len() == 2 && rest.len() == 1).then(|| rest[0].clone())
+                            });
+                        if let Some(inner) = inner {
+                            *schema = inner;
+                            optional = true;
+                        }
+                    }
+                }
+                if optional {
+                    body["required"] = serde_json::Value::Bool(false);
+                }
+            }
+        }
+    }
+    // `PUT /api/params`: the partial scenario's keys and value types, as the
+    // scenario has them (unknown keys and wrong types are refused with 400);
+    // value ranges are checked after merging and named in the 400.
+    if let Ok(scenario) = serde_json::to_value(Scenario::default())
+        && let Some(media) =
+            doc.pointer_mut("/paths/~1api~1params/put/requestBody/content/application~1json")
+    {
+        media["schema"] = patch_schema(&scenario);
+    }
+    doc
+}
+
+/// A JSON schema every partial version of `v` satisfies: objects with only
+/// `v`'s keys (none required), arrays of `v`'s length, numbers, integers
+/// (unsigned where `v`'s is), booleans and strings where `v` has them.
+fn patch_schema(v: &serde_json::Value) -> serde_json::Value {
+    use serde_json::{Value, json};
+    match v {
+        Value::Object(m) => {
+            let props: serde_json::Map<String, Value> = m
+                .iter()
+                .map(|(k, x)| (k.clone(), patch_schema(x)))
+                .collect();
+            json!({"type": "object", "additionalProperties": false, "properties": props})
+        }
+        Value::Array(a) => json!({
+            "type": "array", "minItems": a.len(), "maxItems": a.len(),
+            "items": a.first().map_or(json!({}), patch_schema)
+        }),
+        Value::Number(n) if n.is_u64() => json!({"type": "integer", "minimum": 0}),
+        Value::Number(n) if n.is_i64() => json!({"type": "integer"}),
+        Value::Number(_) => json!({"type": "number"}),
+        Value::Bool(_) => json!({"type": "boolean"}),
+        Value::String(_) => json!({"type": "string"}),
+        Value::Null => json!({}),
+    }
 }
 
 struct BearerAuth;
@@ -648,10 +810,10 @@ impl utoipa::Modify for BearerAuth {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
-    paths(crate::health, get_state, get_params, put_params, arm, disarm, magnet, stop,
+    paths(crate::health, get_state, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
           start_trial, list_trials, get_trial, recording_csv, recording_mcap, openapi_json,
           ws_doc, ws_camera_doc),
-    components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer,
+    components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
                        TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters)),
     modifiers(&BearerAuth),
     tags((name = "service"), (name = "lab"), (name = "commands"), (name = "trials"), (name = "streams"))

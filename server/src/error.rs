@@ -42,6 +42,9 @@ pub enum AppError {
     /// The request body is larger than the limit (413).
     #[error("{0}")]
     PayloadTooLarge(String),
+    /// The request body is not of a media type the endpoint accepts (415).
+    #[error("{0}")]
+    UnsupportedMediaType(String),
     /// The lab is not running or did not answer (503).
     #[error("{0}")]
     Unavailable(String),
@@ -68,6 +71,7 @@ impl AppError {
             Self::NotFound(_) => StatusCode::NOT_FOUND,
             Self::Conflict { .. } => StatusCode::CONFLICT,
             Self::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             Self::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }

@@ -182,6 +182,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/disarm", post(api::disarm))
         .route("/magnet", post(api::magnet))
         .route("/stop", post(api::stop))
+        .route("/heartbeat", post(api::heartbeat))
         .route("/trials", get(api::list_trials).post(api::start_trial))
         .route("/trials/{id}", get(api::get_trial))
         .route("/trials/{id}/recording.csv", get(api::recording_csv))

@@ -183,6 +183,34 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             Some("id"),
         ),
         ("GET", "/api/trials?limit=0", vec![], 400, Some("limit")),
+        ("GET", "/api/trials?limit=1001", vec![], 400, Some("limit")),
+        (
+            "GET",
+            "/api/trials?limit=99999999999",
+            vec![],
+            400,
+            Some("limit"),
+        ),
+        ("GET", "/api/trials?limit=", vec![], 400, Some("limit")),
+        // Random bytes, a lone newline, JSON null: not an empty body nor `{}`.
+        (
+            "POST",
+            "/api/disarm",
+            vec![0x9f, 0x00, 0xc3, 0x28, 0xff, 0x7b, 0x0a],
+            400,
+            None,
+        ),
+        ("POST", "/api/disarm", b"\n".to_vec(), 400, None),
+        ("POST", "/api/disarm", b"null".to_vec(), 400, None),
+        ("POST", "/api/arm", b"null".to_vec(), 400, None),
+        ("POST", "/api/trials", b"[]".to_vec(), 400, None),
+        (
+            "POST",
+            "/api/heartbeat",
+            br#"{"n": 1}"#.to_vec(),
+            400,
+            Some("n"),
+        ),
         ("GET", "/api/trials?limit=many", vec![], 400, Some("limit")),
         ("GET", "/api/trials/12345", vec![], 404, None),
     ];
@@ -209,6 +237,25 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             "{what}: {j}"
         );
         assert_eq!(j["field"].as_str(), *field, "{what}: {j}");
+    }
+    // A body in another media type is refused before it is read (415).
+    for (path, body) in [
+        ("/api/disarm", &b"\x9f\x00random"[..]),
+        ("/api/arm", b"{}"),
+        ("/api/magnet", br#"{"on": false}"#),
+        ("/api/trials", b"{}"),
+    ] {
+        let ct = ("Content-Type", "application/octet-stream");
+        let r = http(svc.addr, "POST", path, &[AUTH, ct], body)
+            .await
+            .unwrap();
+        assert_eq!(
+            r.status,
+            415,
+            "{path}: {}",
+            String::from_utf8_lossy(&r.body)
+        );
+        assert!(r.json().unwrap()["error"].is_string());
     }
     // Nothing changed: parameters, the lab's state, and the control thread got no command.
     let params_after = http(svc.addr, "GET", "/api/params", &[], b"")
@@ -590,6 +637,7 @@ async fn the_openapi_document_validates_and_lists_every_endpoint() {
         ("post", "/api/disarm"),
         ("post", "/api/magnet"),
         ("post", "/api/stop"),
+        ("post", "/api/heartbeat"),
         ("post", "/api/trials"),
         ("get", "/api/trials"),
         ("get", "/api/trials/{id}"),
