@@ -85,6 +85,7 @@ export class Plots {
             {},
             {
               size: 56,
+              space: 22,
               values: (u, splits) => {
                 const unit = lengthUnit(u.scales.y.min ?? 0, u.scales.y.max ?? 0);
                 return tickLabels(splits.map((v) => v * unit.scale));
