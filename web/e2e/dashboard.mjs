@@ -223,15 +223,6 @@ try {
     assert(!t.some((x) => /^-0(\.0*)?$/.test(x)), `a tick reads -0: ${t.join(", ")}`);
     assert(/\(mm\)$/.test(a.pendulum.title), `pendulum title ${a.pendulum.title}`);
   });
-  await check("operator: the estimate and its 2σ band continue after the trial", async () => {
-    await page.waitForTimeout(1_500);
-    const a = await page.evaluate(() => window.__isochron.axes());
-    assert(a.estimate_finite_last_s > 0.9, `${(a.estimate_finite_last_s * 100).toFixed(0)}% of the last second has an estimate`);
-  });
-  await check("operator: the page keeps the operator heartbeat", async () => {
-    const n0 = await page.evaluate(() => window.__isochron.heartbeats());
-    await page.waitForFunction((n) => window.__isochron.heartbeats() >= n + 3, n0, { timeout: 3_000 });
-  });
   await check("operator: during the trial the phase portrait traced the Hopf limit cycle from rest and back", async () => {
     const p = await page.evaluate(() => window.__isochron.phase());
     measured.phase = {
@@ -261,6 +252,15 @@ try {
     assert(k > 0 && seq[k - 1] === "init" && seq[k + 1] === "final", `leads: ${seq.join(" -> ")}`);
     const dur = leads[k].t1_s - leads[k].t0_s;
     assert(Math.abs(dur - T) < 0.15, `u_hopf led for ${dur.toFixed(3)} s, the movement time is ${T} s`);
+  });
+  await check("operator: the estimate and its 2σ band continue after the trial", async () => {
+    await page.waitForTimeout(1_500);
+    const a = await page.evaluate(() => window.__isochron.axes());
+    assert(a.estimate_finite_last_s > 0.9, `${(a.estimate_finite_last_s * 100).toFixed(0)}% of the last second has an estimate`);
+  });
+  await check("operator: the page keeps the operator heartbeat", async () => {
+    const n0 = await page.evaluate(() => window.__isochron.heartbeats());
+    await page.waitForFunction((n) => window.__isochron.heartbeats() >= n + 3, n0, { timeout: 3_000 });
   });
   await check("operator: the emergency stop key stops a running motion", async () => {
     await page.click("#btn-trial");
