@@ -13,10 +13,10 @@ use std::{
 use isochron_tests::http;
 use rt_core::{
     bridge::{FriSessionState, TrialState},
+    lab::LabSetup,
     params::Scenario,
-    sim::realtime::LabSetup,
 };
-use server::{AppState, LabOptions, Records, app, simlab::start_lab};
+use server::{AppState, LabOptions, Records, app, runtime::start_lab};
 
 const TIMEOUT_S: f64 = 0.25;
 
