@@ -20,8 +20,12 @@ pub struct LedEdge {
     /// When the host wrote the command, seconds (host clock).
     pub t_sent_s: f64,
     /// Command -> firmware echo round trip, seconds (the firmware switches the pin
-    /// before it answers; half the round trip is taken as the command's one-way delay).
+    /// before it answers).
     pub round_trip_s: f64,
+    /// Time the command's bytes take on the wire (bytes x 10 bits / baud), seconds.
+    pub command_wire_s: f64,
+    /// Time the answer's bytes take on the wire, seconds.
+    pub answer_wire_s: f64,
     /// The state commanded.
     pub on: bool,
 }
@@ -37,7 +41,9 @@ pub struct LedLatency {
     /// Standard deviation of the delivery times around the frame grid, milliseconds
     /// (the latency's spread from frame to frame).
     pub spread_ms: f64,
-    /// Mean one-way delay of the serial command (half the echo round trip), milliseconds.
+    /// Mean delay from sending a switch to the pin switching, milliseconds: the
+    /// command's wire time plus half of what the round trip leaves after both wire
+    /// times (the USB and firmware latencies, taken as equal both ways).
     pub serial_one_way_ms: f64,
     /// Frame period measured from the delivery times, milliseconds.
     pub frame_period_ms: f64,
@@ -49,6 +55,13 @@ pub struct LedLatency {
     pub edges_consistent: usize,
     /// Frames read.
     pub frames: usize,
+}
+
+/// Sending a switch -> the pin switching: the command's wire time plus half of
+/// the round trip's remainder after both wire times (never negative).
+pub fn switch_delay_s(e: &LedEdge) -> f64 {
+    let rest = (e.round_trip_s - e.command_wire_s - e.answer_wire_s).max(0.0);
+    (e.command_wire_s + 0.5 * rest).min(e.round_trip_s)
 }
 
 /// When to send `n` switches: the frame grid is fitted from `deliveries` (delivery
@@ -117,7 +130,12 @@ pub fn estimate_led_latency(
         }
     }
     for (index, e) in edges.iter().enumerate() {
-        if !e.t_sent_s.is_finite() || !e.round_trip_s.is_finite() || e.round_trip_s < 0.0 {
+        let wires = [e.command_wire_s, e.answer_wire_s];
+        if !e.t_sent_s.is_finite()
+            || !e.round_trip_s.is_finite()
+            || e.round_trip_s < 0.0
+            || wires.iter().any(|w| !w.is_finite() || *w < 0.0)
+        {
             return Err(CalibrationError::NotFinite { what: WHAT, index });
         }
     }
@@ -181,8 +199,9 @@ pub fn estimate_led_latency(
     let mut intervals = Vec::with_capacity(edges.len());
     let mut one_way_sum = 0.0;
     for e in edges {
-        let t_switch = e.t_sent_s + 0.5 * e.round_trip_s;
-        one_way_sum += 0.5 * e.round_trip_s;
+        let one_way = switch_delay_s(e);
+        let t_switch = e.t_sent_s + one_way;
+        one_way_sum += one_way;
         // Frames delivered after the command was sent (only they can show it).
         let start = frames.partition_point(|f| f.t_delivered_s <= e.t_sent_s);
         let Some(offset) = lit[start..].iter().position(|&l| l == e.on) else {

@@ -79,11 +79,32 @@ pub struct HiddenWorld {
 }
 
 impl HiddenWorld {
-    /// A session's truth drawn from `seed` around the scenario's beliefs: length
-    /// +-6 cm, damping 0.01..0.06 /s, camera latency belief -10..+30 ms (at least
-    /// 5 ms), robot latency 3..30 ms with the scenario's jitter, servo lag 3..12 ms.
+    /// A session's truth. With the scenario's `[world]`: its session 0 of run
+    /// `seed` (`WorldParams::draw_session`) gives the length error, the damping
+    /// (believed times `damping_scale`), the camera latency (believed + offset +
+    /// half the uniform jitter bound: the mean) and the robot latency at the
+    /// session's start; the effects these simulators do not model yet (drag, pivot
+    /// friction, out-of-plane release, rolling shutter, distortion, camera pose
+    /// error, latency drift, the second-order servo) are left out, and the servo
+    /// lag is drawn here. Without `[world]`: drawn from `seed` around the beliefs:
+    /// length +-6 cm, damping 0.01..0.06 /s, camera latency belief -10..+30 ms (at
+    /// least 5 ms), robot latency 3..30 ms with the scenario's jitter, servo lag
+    /// 3..12 ms.
     pub fn draw(scenario: &Scenario, seed: u64) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5ca1_1b0a);
+        if let Some(world) = &scenario.world {
+            let d = world.draw_session(seed, 0, scenario.robot.latency_ms);
+            return Self {
+                length_error_m: d.length_error_m,
+                damping_per_s: scenario.pendulum.damping_per_s * d.damping_scale,
+                camera_latency_ms: (scenario.camera.latency_ms
+                    + (d.camera_latency_offset_s + 0.5 * d.camera_jitter_s) * 1e3)
+                    .max(1.0),
+                robot_latency_ms: (d.robot_latency_s * 1e3).clamp(0.0, 200.0),
+                robot_latency_jitter_ms: 0.0,
+                servo_time_constant_ms: rng.random_range(3.0..=12.0),
+            };
+        }
         Self {
             length_error_m: rng.random_range(-0.06..=0.06),
             damping_per_s: rng.random_range(0.01..=0.06),
@@ -411,11 +432,16 @@ pub fn run_led_latency(
     let mut edges = Vec::with_capacity(switches);
     let mut switch_at = Vec::with_capacity(switches);
     for (i, &t) in sends.iter().enumerate() {
-        let d_in = 7.0 * SERIAL_BYTE_S + rng.random_range(0.0002..0.0015);
-        let d_out = 30.0 * SERIAL_BYTE_S + rng.random_range(0.0002..0.0015);
+        // "LED ON\n" in, "OK LED led=on uptime_ms=123456\r\n" out; the USB and
+        // firmware latency each way.
+        let (wire_in, wire_out) = (7.0 * SERIAL_BYTE_S, 30.0 * SERIAL_BYTE_S);
+        let d_in = wire_in + rng.random_range(0.0002..0.0015);
+        let d_out = wire_out + rng.random_range(0.0002..0.0015);
         edges.push(LedEdge {
             t_sent_s: t,
             round_trip_s: d_in + d_out,
+            command_wire_s: wire_in,
+            answer_wire_s: wire_out,
             on: i % 2 == 0,
         });
         switch_at.push((t + d_in, i % 2 == 0));

@@ -109,7 +109,7 @@ fn led_frames(latency_s: f64, edges: &[LedEdge], visible: bool, seed: u64) -> Ve
             let state = edges
                 .iter()
                 .rev()
-                .find(|e| e.t_sent_s + 0.5 * e.round_trip_s <= t)
+                .find(|e| e.t_sent_s + latency::switch_delay_s(e) <= t)
                 .is_some_and(|e| e.on);
             on += i32::from(state);
         }
@@ -147,6 +147,8 @@ fn led_edges(seed: u64) -> Vec<LedEdge> {
         .map(|(i, &t)| LedEdge {
             t_sent_s: t,
             round_trip_s: rng.random_range(0.0015..0.0035),
+            command_wire_s: 0.0,
+            answer_wire_s: 0.0,
             on: i % 2 == 0,
         })
         .collect()
@@ -320,6 +322,34 @@ mod on_the_simulated_world {
                 run.true_rest_m
             );
         }
+    }
+
+    /// With `[world]` the truth is the world's session draw (length, damping,
+    /// camera and robot latency), and the pendulum step still finds the length.
+    #[test]
+    fn the_scenario_world_gives_the_truth() {
+        let mut s = model_scenario();
+        let text = "[pendulum]\nlength_error_m = [-0.05, 0.05]\n\
+                    [camera]\nlatency_ms = [5.0, 25.0]\n";
+        let w: crate::sim::world::WorldParams = toml::from_str(text).expect("world");
+        s.world = Some(w);
+        s.validate().expect("valid");
+        let truth = HiddenWorld::draw(&s, 4);
+        let d = s
+            .world
+            .as_ref()
+            .unwrap()
+            .draw_session(4, 0, s.robot.latency_ms);
+        assert_eq!(truth.length_error_m, d.length_error_m);
+        assert!(truth.length_error_m.abs() > 0.0 && truth.length_error_m.abs() <= 0.05);
+        assert!(truth.camera_latency_ms >= s.camera.latency_ms + 5.0);
+        let run = run_pendulum(&s, &truth, 4, 25.0, 20.0).expect("pendulum step");
+        assert!(
+            (run.calibration.swing.length_m - run.true_length_m).abs() < 0.003,
+            "{} vs {}",
+            run.calibration.swing.length_m,
+            run.true_length_m
+        );
     }
 
     #[test]
