@@ -65,3 +65,50 @@ pub const ACCELERATION_LIMIT_RADPS2: [f64; JOINTS] = [
     deg(900.0),
     deg(900.0),
 ];
+
+/// The arm's URDF (`iiwa7.urdf`, beside this file) with the default 0.10 m tool:
+/// links `base`, `link_1` .. `link_7`, `flange`, `tool`; revolute joints named
+/// [`JOINT_NAMES`]; at q = 0 it equals the DH model above (the test
+/// `rt-core/tests/urdf.rs` checks every frame to 1e-9 m).
+pub const URDF: &str = include_str!("iiwa7.urdf");
+
+/// Frame names of the URDF's links from the base to the tool (`base`, `link_1`
+/// .. `link_7`, `flange`, `tool`): the frames Foxglove's transforms use.
+pub const URDF_FRAMES: [&str; JOINTS + 3] = [
+    "base", "link_1", "link_2", "link_3", "link_4", "link_5", "link_6", "link_7", "flange", "tool",
+];
+
+/// Height of each URDF joint origin above its parent link's frame, metres
+/// (A1 .. A7, then the flange); every origin is on the parent's z axis.
+pub const URDF_JOINT_Z_M: [f64; JOINTS + 1] =
+    [0.1475, 0.1925, 0.1745, 0.2255, 0.1745, 0.2255, 0.091, 0.035];
+
+/// The URDF's joint axes in their link frames (z, y, z, -y, z, y, z).
+pub const URDF_AXES: [[f64; 3]; JOINTS] = [
+    [0.0, 0.0, 1.0],
+    [0.0, 1.0, 0.0],
+    [0.0, 0.0, 1.0],
+    [0.0, -1.0, 0.0],
+    [0.0, 0.0, 1.0],
+    [0.0, 1.0, 0.0],
+    [0.0, 0.0, 1.0],
+];
+
+/// The URDF with the tool `tool_length_m` along the flange's z axis (the
+/// scenario's `task.tool_length_m`).
+pub fn urdf_with_tool(tool_length_m: f64) -> String {
+    let head = URDF
+        .split("  <joint name=\"tool_joint\"")
+        .next()
+        .unwrap_or(URDF);
+    let l = tool_length_m.max(0.0);
+    format!(
+        "{head}  <joint name=\"tool_joint\" type=\"fixed\">\n    <parent link=\"flange\"/>\n    \
+         <child link=\"tool\"/>\n    <origin xyz=\"0 0 {l}\" rpy=\"0 0 0\"/>\n  </joint>\n  \
+         <link name=\"tool\">\n    <visual>\n      <origin xyz=\"0 0 {h}\" rpy=\"0 0 0\"/>\n      \
+         <geometry><cylinder radius=\"0.012\" length=\"{len}\"/></geometry>\n      \
+         <material name=\"dark\"/>\n    </visual>\n  </link>\n</robot>\n",
+        h = -l / 2.0,
+        len = l.max(1e-3),
+    )
+}
