@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
+.PHONY: py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -25,7 +25,7 @@ help:
 	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
 
 ## deps: install only what is missing.
-deps: apt-deps web-deps fuzz-deps py-deps
+deps: apt-deps web-deps fuzz-deps py-deps mcap-py-deps
 
 apt-deps:
 	@missing=""; \
@@ -36,6 +36,15 @@ apt-deps:
 	  echo "make deps: installing$$missing"; \
 	  $(SUDO) apt-get update -qq; \
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+# The MCAP test's second, independent reader (the `mcap` package from PyPI, for
+# the python3 the tests call: tests/py/mcap_summary.py).
+PY_MCAP_VERSION := 1.6.0
+mcap-py-deps:
+	@if ! python3 -c 'import mcap, sys; sys.exit(mcap.__version__ != "$(PY_MCAP_VERSION)")' 2>/dev/null; then \
+	  echo "make deps: installing the mcap Python package $(PY_MCAP_VERSION)"; \
+	  python3 -m pip install --quiet --disable-pip-version-check "mcap==$(PY_MCAP_VERSION)"; \
 	fi
 
 web-deps: web/node_modules/.package-lock.json

@@ -547,9 +547,15 @@ pub async fn start_trial(
     }
     let lab = lab(&state)?;
     let records = records(&state)?;
+    let params = lab.params();
+    let origin = crate::records::TrialOrigin {
+        scenario: params.name.clone(),
+        params_toml: toml::to_string(&params).unwrap_or_default(),
+        revision: crate::VERSION.to_owned(),
+    };
     let id = blocking({
         let r = Arc::clone(&records);
-        move || r.create_trial()
+        move || r.create_trial(&origin)
     })
     .await?;
     if let Err(e) = lab.command(Command::RunTrial { trial_id: id }).await {
@@ -656,7 +662,10 @@ pub async fn recording_csv(
     ))
 }
 
-/// A trial's signals as MCAP (topic `/isochron/state`, JSON messages with a JSON schema).
+/// A trial's recording as MCAP: the file written live during the trial (Foxglove's
+/// well-known schemas, Unix log times, metadata; `server/README.md`) once the
+/// trial ended; for trials recorded before live MCAP, converted from the CSV
+/// (topic `/isochron/state`, JSON messages with a JSON schema).
 #[utoipa::path(get, path = "/api/trials/{id}/recording.mcap", tag = "trials",
     params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
@@ -668,6 +677,17 @@ pub async fn recording_mcap(
     Path(raw): Path<String>,
 ) -> Result<Response, AppError> {
     let (r, rec) = existing(&state, &raw).await?;
+    let live = r.mcap_path(rec.id);
+    if rec.status != "running" && live.is_file() {
+        let bytes = tokio::fs::read(&live)
+            .await
+            .map_err(|_| AppError::NotFound(format!("trial {} has no recording", rec.id)))?;
+        return Ok(download(
+            bytes,
+            "application/octet-stream",
+            &format!("trial-{}.mcap", rec.id),
+        ));
+    }
     let path = r.recording_path(rec.id);
     if !path.is_file() {
         return Err(AppError::NotFound(format!(
@@ -681,6 +701,28 @@ pub async fn recording_mcap(
         "application/octet-stream",
         &format!("trial-{}.mcap", rec.id),
     ))
+}
+
+/// The arm's URDF (KUKA LBR iiwa 7 R800, `rt-core/src/kinematics/iiwa7.urdf`)
+/// with the tool length in effect: links `base`, `link_1` .. `link_7`, `flange`,
+/// `tool`; joints `A1` .. `A7`. The dashboard's twin and Foxglove load it.
+#[utoipa::path(get, path = "/api/robot.urdf", tag = "service",
+    responses((status = 200, description = "URDF (XML)", content_type = "application/xml", body = String)))]
+pub async fn robot_urdf(State(state): State<Arc<AppState>>) -> Response {
+    let tool_m = state
+        .lab
+        .as_ref()
+        .map_or(Scenario::default().task.tool_length_m, |l| {
+            l.params().task.tool_length_m
+        });
+    (
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/xml"),
+        )],
+        rt_core::kinematics::iiwa7::urdf_with_tool(tool_m),
+    )
+        .into_response()
 }
 
 fn download(bytes: Vec<u8>, content_type: &'static str, name: &str) -> Response {
@@ -811,7 +853,7 @@ impl utoipa::Modify for BearerAuth {
 #[openapi(
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
     paths(crate::health, get_state, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
-          start_trial, list_trials, get_trial, recording_csv, recording_mcap, openapi_json,
+          start_trial, list_trials, get_trial, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
                        TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters)),

@@ -25,6 +25,7 @@ use serde::Serialize;
 use tokio::sync::{broadcast, oneshot};
 
 use crate::records::{Recorder, Records, TrialEnd};
+use crate::viz::Foxglove;
 
 /// How the bridge thread and the stream behave.
 #[derive(Debug, Clone)]
@@ -37,6 +38,8 @@ pub struct LabOptions {
     pub ws_send_timeout: Duration,
     /// Messages buffered per WebSocket client before it skips (state) ones.
     pub ws_buffer: usize,
+    /// `simulated` or `real` (written into the recordings' metadata).
+    pub lab_mode: &'static str,
 }
 
 impl Default for LabOptions {
@@ -46,6 +49,7 @@ impl Default for LabOptions {
             ack_timeout: Duration::from_secs(3),
             ws_send_timeout: Duration::from_secs(2),
             ws_buffer: 32,
+            lab_mode: "simulated",
         }
     }
 }
@@ -152,6 +156,7 @@ pub struct Lab {
     options: LabOptions,
     shutdown: Arc<AtomicBool>,
     thread: Mutex<Option<JoinHandle<()>>>,
+    foxglove: Arc<foxglove::Context>,
 }
 
 /// What the bridge thread owns.
@@ -166,6 +171,8 @@ struct Pump {
     recorder: Recorder,
     /// Trials whose end was recorded: their later snapshots are not recorded.
     ended: Option<u64>,
+    /// The Foxglove channels (live server and MCAP recordings).
+    fox: Foxglove,
 }
 
 impl Lab {
@@ -190,6 +197,7 @@ impl Lab {
         let (state_tx, _) = broadcast::channel(options.ws_buffer.max(1));
         let (event_tx, _) = broadcast::channel(256);
         let (frame_tx, _) = broadcast::channel(4);
+        let fox = Foxglove::new(&params);
         let lab = Arc::new(Self {
             commands: Mutex::new(commands),
             pending: Mutex::new(HashMap::new()),
@@ -206,6 +214,7 @@ impl Lab {
             options,
             shutdown: Arc::new(AtomicBool::new(false)),
             thread: Mutex::new(None),
+            foxglove: Arc::clone(fox.context()),
         });
         let pump = Pump {
             lab: Arc::clone(&lab),
@@ -217,6 +226,7 @@ impl Lab {
             records,
             recorder: Recorder::default(),
             ended: None,
+            fox,
         };
         let handle = std::thread::Builder::new()
             .name("isochron-bridge".into())
@@ -234,6 +244,12 @@ impl Lab {
         if let Some(h) = handle {
             let _ = h.join();
         }
+    }
+
+    /// The Foxglove context: a live server (`viz::start_server`) or an MCAP
+    /// writer added to it receives every channel the bridge thread logs.
+    pub fn foxglove_context(&self) -> &Arc<foxglove::Context> {
+        &self.foxglove
     }
 
     /// The stream options.
@@ -348,6 +364,9 @@ impl Pump {
         if let Some((id, n)) = self.recorder.finish() {
             tracing::info!(trial = id, samples = n, "recording closed at shutdown");
         }
+        if let Some((id, path, _)) = self.fox.finish_recording(None) {
+            tracing::info!(trial = id, path = %path.display(), "MCAP recording closed at shutdown");
+        }
     }
 
     fn tick(&mut self, events: &mut Vec<EventRecord>) {
@@ -427,6 +446,9 @@ impl Pump {
             _ => 0,
         };
         self.ended = Some(e.trial_id);
+        if self.fox.recording() == Some(e.trial_id) {
+            self.fox.finish_recording(Some(&end));
+        }
         if let Some(records) = &self.records {
             match records.finish_trial(e.trial_id, end, samples) {
                 Ok(true) => tracing::info!(trial = e.trial_id, samples, "trial recorded"),
@@ -448,7 +470,35 @@ impl Pump {
         }
         if let Some(f) = newest {
             self.lab.stream.frames.fetch_add(1, Ordering::Relaxed);
+            self.fox.publish_frame(
+                f.t_us as f64 * 1e-6,
+                &f.jpeg,
+                crate::viz::jpeg_width(&f.jpeg),
+            );
             let _ = self.lab.frame_tx.send(Bytes::from(f.jpeg));
+        }
+    }
+
+    /// Opens the MCAP recording of a trial at its first state tick.
+    fn record_mcap(&mut self, s: &Snapshot) {
+        let Some(records) = &self.records else {
+            return;
+        };
+        let id = s.trial_id;
+        if id == 0 || self.ended == Some(id) || self.fox.recording() == Some(id) {
+            return;
+        }
+        let params = self.lab.params();
+        self.fox.set_scenario(&params);
+        let meta = crate::viz::RecordingContext {
+            scenario: params.name.clone(),
+            parameters_toml: toml::to_string(&params).unwrap_or_default(),
+            revision: crate::VERSION.to_owned(),
+            lab_mode: self.lab.options.lab_mode,
+        };
+        let path = records.mcap_path(id);
+        if let Err(e) = self.fox.start_recording(id, &path, &meta) {
+            tracing::error!(trial = id, error = %e, "cannot start the MCAP recording");
         }
     }
 
@@ -457,6 +507,8 @@ impl Pump {
             return;
         }
         let snapshot = *self.end_latest.read();
+        self.record_mcap(&snapshot);
+        self.fox.publish_state(&snapshot);
         let msg = StateMessage {
             kind: "state",
             snapshot: &snapshot,

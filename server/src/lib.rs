@@ -11,6 +11,7 @@ pub mod lab;
 pub mod records;
 pub mod runtime;
 pub mod serve;
+pub mod viz;
 pub mod ws;
 
 use std::{
@@ -187,6 +188,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/trials/{id}", get(api::get_trial))
         .route("/trials/{id}/recording.csv", get(api::recording_csv))
         .route("/trials/{id}/recording.mcap", get(api::recording_mcap))
+        .route("/robot.urdf", get(api::robot_urdf))
         .route("/openapi.json", get(api::openapi_json))
         .fallback(api_not_found);
     let mut router = Router::new()

@@ -43,6 +43,10 @@ enum Command {
         /// lab.calibration_file); a real lab refuses trials without one.
         #[arg(long)]
         calibration: Option<PathBuf>,
+        /// Also run a Foxglove WebSocket server on this address (loopback only, e.g.
+        /// 127.0.0.1:8765): the arm, pendulum, camera and plots live in Foxglove.
+        #[arg(long)]
+        foxglove: Option<SocketAddr>,
     },
     /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
@@ -107,6 +111,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data_dir,
             params,
             calibration,
+            foxglove,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -115,6 +120,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data_dir,
             params,
             calibration,
+            foxglove,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),

@@ -60,6 +60,10 @@ pub struct TrialRecord {
     pub abort_reason: Option<String>,
     /// Rows in the recording.
     pub samples: u64,
+    /// The scenario that ran (null for trials recorded before it was stored).
+    pub scenario: Option<String>,
+    /// The software revision that ran it.
+    pub revision: Option<String>,
 }
 
 /// How a trial ended.
@@ -92,8 +96,29 @@ CREATE TABLE IF NOT EXISTS trials (
     prediction_time_error_ms REAL,
     limit_violations INTEGER,
     abort_reason TEXT,
-    samples INTEGER NOT NULL DEFAULT 0
+    samples INTEGER NOT NULL DEFAULT 0,
+    scenario TEXT,
+    params_toml TEXT,
+    revision TEXT
 );";
+
+/// Columns added after the first schema (older databases get them on open).
+const ADDED_COLUMNS: [(&str, &str); 3] = [
+    ("scenario", "TEXT"),
+    ("params_toml", "TEXT"),
+    ("revision", "TEXT"),
+];
+
+/// What produced a trial: stored in its row when it starts.
+#[derive(Debug, Clone, Default)]
+pub struct TrialOrigin {
+    /// The scenario's name.
+    pub scenario: String,
+    /// The parameters in effect, as TOML.
+    pub params_toml: String,
+    /// The software revision (`0.1.0 (git ...)`).
+    pub revision: String,
+}
 
 impl Records {
     /// Opens (creating if needed) the records in `data_dir`.
@@ -107,6 +132,15 @@ impl Records {
         db.pragma_update(None, "journal_mode", "WAL")?;
         db.pragma_update(None, "synchronous", "FULL")?;
         db.execute_batch(SCHEMA)?;
+        let have: Vec<String> = db
+            .prepare("SELECT name FROM pragma_table_info('trials')")?
+            .query_map([], |r| r.get(0))?
+            .collect::<Result<_, _>>()?;
+        for (name, ty) in ADDED_COLUMNS {
+            if !have.iter().any(|h| h == name) {
+                db.execute_batch(&format!("ALTER TABLE trials ADD COLUMN {name} {ty}"))?;
+            }
+        }
         let interrupted = db.execute(
             "UPDATE trials SET status = 'interrupted' WHERE status = 'running'",
             [],
@@ -134,17 +168,28 @@ impl Records {
         &self.dir
     }
 
+    /// The MCAP recording of a trial (written live by the bridge thread).
+    pub fn mcap_path(&self, id: u64) -> PathBuf {
+        self.dir.join("recordings").join(format!("{id}.mcap"))
+    }
+
     /// The recording file of a trial.
     pub fn recording_path(&self, id: u64) -> PathBuf {
         self.dir.join("recordings").join(format!("{id}.csv"))
     }
 
     /// Adds a running trial and returns its id.
-    pub fn create_trial(&self) -> anyhow::Result<u64> {
+    pub fn create_trial(&self, origin: &TrialOrigin) -> anyhow::Result<u64> {
         let db = self.db()?;
         db.execute(
-            "INSERT INTO trials (status, started_unix_s) VALUES ('running', ?1)",
-            params![unix_now_s()],
+            "INSERT INTO trials (status, started_unix_s, scenario, params_toml, revision)
+             VALUES ('running', ?1, ?2, ?3, ?4)",
+            params![
+                unix_now_s(),
+                origin.scenario,
+                origin.params_toml,
+                origin.revision
+            ],
         )?;
         u64::try_from(db.last_insert_rowid()).context("negative row id")
     }
@@ -189,6 +234,22 @@ impl Records {
         Ok(n > 0)
     }
 
+    /// What produced a trial (scenario, parameters, revision) as its row stores it.
+    pub fn origin(&self, id: u64) -> anyhow::Result<Option<TrialOrigin>> {
+        let db = self.db()?;
+        let mut st =
+            db.prepare_cached("SELECT scenario, params_toml, revision FROM trials WHERE id = ?1")?;
+        Ok(st
+            .query_row(params![id as i64], |r| {
+                Ok(TrialOrigin {
+                    scenario: r.get::<_, Option<String>>(0)?.unwrap_or_default(),
+                    params_toml: r.get::<_, Option<String>>(1)?.unwrap_or_default(),
+                    revision: r.get::<_, Option<String>>(2)?.unwrap_or_default(),
+                })
+            })
+            .optional()?)
+    }
+
     /// One trial.
     pub fn get(&self, id: u64) -> anyhow::Result<Option<TrialRecord>> {
         let db = self.db()?;
@@ -211,7 +272,7 @@ fn finite(v: f64) -> Option<f64> {
 
 const SELECT: &str = "SELECT id, status, started_unix_s, finished_unix_s, success, timing_error_ms,
     position_error_m, movement_time_s, distance_m, prediction_time_error_ms, limit_violations,
-    abort_reason, samples FROM trials";
+    abort_reason, samples, scenario, revision FROM trials";
 
 fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
     Ok(TrialRecord {
@@ -228,6 +289,8 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
         limit_violations: r.get::<_, Option<i64>>(10)?.map(|v| v as u64),
         abort_reason: r.get(11)?,
         samples: r.get::<_, i64>(12)? as u64,
+        scenario: r.get(13)?,
+        revision: r.get(14)?,
     })
 }
 
@@ -510,8 +573,8 @@ mod tests {
         let dir = tmp("reopen");
         {
             let r = Records::open(&dir).unwrap();
-            let a = r.create_trial().unwrap();
-            let b = r.create_trial().unwrap();
+            let a = r.create_trial(&TrialOrigin::default()).unwrap();
+            let b = r.create_trial(&TrialOrigin::default()).unwrap();
             assert!(b > a);
             assert!(r.finish_trial(a, TrialEnd::Aborted("stop"), 7).unwrap());
             assert!(!r.finish_trial(a, TrialEnd::Aborted("stop"), 7).unwrap());

@@ -35,6 +35,8 @@ pub struct ServeArgs {
     pub params: Vec<PathBuf>,
     /// `--calibration FILE`: the calibration file (default: the config's `lab.calibration_file`).
     pub calibration: Option<PathBuf>,
+    /// `--foxglove ADDR`: a Foxglove WebSocket server (loopback only).
+    pub foxglove: Option<SocketAddr>,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
@@ -49,6 +51,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .or_else(|| cfg.server.token.clone())
         .filter(|t| !t.is_empty());
     check_bind(bind, token.as_deref())?;
+    if let Some(addr) = args.foxglove {
+        crate::viz::check_addr(addr)?;
+    }
     let web_dir = args
         .web_dir
         .or_else(|| cfg.server.web_dir.clone())
@@ -81,6 +86,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let options = crate::LabOptions {
         state_hz: cfg.server.state_hz,
         ws_send_timeout: std::time::Duration::from_millis(cfg.server.ws_send_timeout_ms),
+        lab_mode: match cfg.lab.mode {
+            LabMode::Simulated => "simulated",
+            LabMode::Real => "real",
+        },
         ..crate::LabOptions::default()
     };
     let seed = std::time::SystemTime::now()
@@ -113,7 +122,20 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_cors_origins(cfg.server.cors_origins.clone())
             .with_trials_refused(trials_refused),
     );
+    let foxglove_lab = Arc::clone(&lab);
     let result = runtime.block_on(async move {
+        let _foxglove = match args.foxglove {
+            Some(addr) => {
+                let h = crate::viz::start_server(&foxglove_lab, addr).await?;
+                println!(
+                    "Foxglove WebSocket server on ws://{}:{}",
+                    addr.ip(),
+                    h.port()
+                );
+                Some(h)
+            }
+            None => None,
+        };
         let listener = tokio::net::TcpListener::bind(bind)
             .await
             .with_context(|| format!("cannot listen on {bind}"))?;

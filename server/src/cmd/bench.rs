@@ -1,5 +1,9 @@
 //! `isochron bench [--json]`: the hot paths and the real-time loop (CONTRACT.md).
 
+use std::sync::{
+    Arc,
+    atomic::{AtomicU64, Ordering},
+};
 use std::time::{Duration, Instant};
 
 use nalgebra::UnitQuaternion;
@@ -29,6 +33,10 @@ pub struct BenchArgs {
     /// are timed: about 8,000 steps each.
     #[arg(long, default_value_t = 20)]
     pub control_trials: usize,
+    /// Also run the Foxglove WebSocket server with one client subscribed to every
+    /// channel while the real-time loop is measured.
+    #[arg(long)]
+    pub foxglove_client: bool,
 }
 
 #[derive(Debug, Serialize)]
@@ -67,6 +75,63 @@ struct Bench {
     vision_frame_ms: Option<P2>,
     #[serde(rename = "loop")]
     loop_: LoopReport,
+    /// The Foxglove client during the loop (`--foxglove-client`).
+    foxglove: Option<FoxgloveLoad>,
+}
+
+/// What the Foxglove client received while the loop was measured.
+#[derive(Debug, Serialize)]
+struct FoxgloveLoad {
+    /// Channels it subscribed to.
+    channels: u64,
+    /// Messages per second it received (all channels).
+    messages_per_s: f64,
+}
+
+/// A Foxglove WebSocket client (`foxglove.sdk.v1`) that subscribes to
+/// every advertised channel and counts the messages it receives.
+async fn foxglove_reader(
+    port: u16,
+    channels: Arc<AtomicU64>,
+    messages: Arc<AtomicU64>,
+) -> anyhow::Result<()> {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::{Message, client::IntoClientRequest, http::HeaderValue};
+    let mut req = format!("ws://127.0.0.1:{port}/").into_client_request()?;
+    req.headers_mut().insert(
+        "sec-websocket-protocol",
+        HeaderValue::from_static("foxglove.sdk.v1"),
+    );
+    let (mut ws, _) = tokio_tungstenite::connect_async(req).await?;
+    let mut next_sub = 1u64;
+    while let Some(m) = ws.next().await {
+        match m? {
+            Message::Text(t) => {
+                let v: serde_json::Value = serde_json::from_str(&t)?;
+                if v["op"] == "advertise" {
+                    let subs: Vec<_> = v["channels"]
+                        .as_array()
+                        .map(|cs| cs.iter().map(|c| c["id"].clone()).collect())
+                        .unwrap_or_default();
+                    let subs: Vec<_> = subs
+                        .into_iter()
+                        .map(|id| {
+                            next_sub += 1;
+                            serde_json::json!({"id": next_sub, "channelId": id})
+                        })
+                        .collect();
+                    channels.fetch_add(subs.len() as u64, Ordering::Relaxed);
+                    let msg = serde_json::json!({"op": "subscribe", "subscriptions": subs});
+                    ws.send(Message::Text(msg.to_string().into())).await?;
+                }
+            }
+            Message::Binary(_) => {
+                messages.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 fn sorted(mut v: Vec<f64>) -> Vec<f64> {
@@ -284,7 +349,8 @@ fn loop_with_clients(
     scenario: Scenario,
     window: Duration,
     clients: usize,
-) -> anyhow::Result<LoopReport> {
+    foxglove: bool,
+) -> anyhow::Result<(LoopReport, Option<FoxgloveLoad>)> {
     let (lab, sim) =
         server::runtime::start_simulated(scenario, None, server::LabOptions::default(), 1)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -303,6 +369,22 @@ fn loop_with_clients(
     let readers: Vec<_> = (0..clients)
         .map(|_| runtime.spawn(ws_reader(addr)))
         .collect();
+    let fox_channels = Arc::new(AtomicU64::new(0));
+    let fox_messages = Arc::new(AtomicU64::new(0));
+    let fox_server = if foxglove {
+        let h = runtime.block_on(server::viz::start_server(
+            &lab,
+            std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+        ))?;
+        let reader = runtime.spawn(foxglove_reader(
+            h.port(),
+            Arc::clone(&fox_channels),
+            Arc::clone(&fox_messages),
+        ));
+        Some((h, reader))
+    } else {
+        None
+    };
     let result = (|| {
         sim.wait_commanding(Duration::from_secs(10))?;
         let deadline = Instant::now() + Duration::from_secs(5);
@@ -315,14 +397,30 @@ fn loop_with_clients(
             }
             std::thread::sleep(Duration::from_millis(10));
         }
+        while foxglove && fox_messages.load(Ordering::Relaxed) == 0 {
+            if Instant::now() > deadline {
+                anyhow::bail!("the Foxglove client received nothing");
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
         let before = lab.stream().read().state_messages;
+        let fox_before = fox_messages.load(Ordering::Relaxed);
         let mut report = sim.measure(window);
+        let fox = foxglove.then(|| FoxgloveLoad {
+            channels: fox_channels.load(Ordering::Relaxed),
+            messages_per_s: (fox_messages.load(Ordering::Relaxed) - fox_before) as f64
+                / window.as_secs_f64(),
+        });
         report.ws_clients = lab.stream().read().clients;
         report.ws_state_messages_per_s =
             (lab.stream().read().state_messages - before) as f64 / window.as_secs_f64();
         report.deadline_misses = lab.latest().map_or(0, |(s, _)| s.timing.deadline_misses);
-        Ok(report)
+        Ok((report, fox))
     })();
+    if let Some((h, reader)) = fox_server {
+        reader.abort();
+        drop(h);
+    }
     for r in readers {
         r.abort();
     }
@@ -360,7 +458,12 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     }
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
-    let lp = loop_with_clients(rt, Duration::from_secs_f64(args.loop_s), args.ws_clients)?;
+    let (lp, fox) = loop_with_clients(
+        rt,
+        Duration::from_secs_f64(args.loop_s),
+        args.ws_clients,
+        args.foxglove_client,
+    )?;
     let q = quantile_sorted;
     let b = Bench {
         ekf_step_ns: P2 {
@@ -381,6 +484,7 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         control_step: control,
         vision_frame_ms: None,
         loop_: lp,
+        foxglove: fox,
     };
     if args.json {
         return Ok(serde_json::to_string(&b)?);
@@ -392,8 +496,8 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (wall clock)\n\
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (thread CPU time)\n\
          control steps   {} over {} trials at {} ms: {} deadline misses (CPU time > period), {} preempted (wall clock only); load average {}\n\
-         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99.9 {:.0} us, max {:.0} us; \
-         {} WebSocket clients at {:.0} state messages/s",
+         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us; \
+         {} WebSocket clients at {:.0} state messages/s; {}",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
         b.hopf_step_ns.p50,
@@ -423,9 +527,17 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         lp.late_replies,
         lp.missed_cycles,
         lp.reply_latency_us.p50,
+        lp.reply_latency_us.p99,
         lp.reply_latency_us.p999,
         lp.reply_latency_us.max,
         lp.ws_clients,
         lp.ws_state_messages_per_s,
+        b.foxglove.as_ref().map_or_else(
+            || "no Foxglove client".to_owned(),
+            |f| format!(
+                "a Foxglove client on {} channels at {:.0} messages/s",
+                f.channels, f.messages_per_s
+            )
+        ),
     ))
 }

@@ -1,0 +1,746 @@
+//! Foxglove: the live WebSocket server (`isochron serve --foxglove ADDR`) and the
+//! per-trial MCAP recordings, one set of channels with Foxglove's well-known
+//! schemas logged through one [`foxglove::Context`].
+//!
+//! Everything here runs on the bridge thread (`isochron-bridge`), which drains the
+//! control thread's bounded, wait-free hand-offs; the FRI thread never sees it.
+//! Messages are built at the state rate from the latest snapshot (only when a
+//! sink, a Foxglove client or a recording, listens) and for every camera frame.
+//!
+//! | topic | schema | rate |
+//! |---|---|---|
+//! | `/tf` | `foxglove.FrameTransforms`: base -> link_1 .. link_7 -> flange -> tool (measured joints) | state rate |
+//! | `/joint_states` | JSON `isochron.JointStates` (names, measured, commanded, limits) | state rate |
+//! | `/pendulum` | `foxglove.SceneUpdate`: ball (estimate), true ball (simulated lab), string, predicted path, intercept point | state rate |
+//! | `/series` | JSON `isochron.Series`: the dashboard's plotted scalars | state rate |
+//! | `/camera/image` | `foxglove.CompressedImage` (JPEG) | camera stream rate |
+//! | `/camera/annotations` | `foxglove.ImageAnnotations`: detection circle, predicted positions, intercept point | camera stream rate |
+//! | `/robot_description` | JSON `std_msgs/String` with the URDF | 1 Hz live, once per recording |
+//!
+//! Log times are the Unix clock (nanoseconds) when the bridge thread logs the
+//! message; the header timestamps are the control-clock times of the data moved
+//! onto the Unix clock (the offset is measured at each state tick). Positions are
+//! in the robot base frame (`base`, x forward to the pendulum, z up), metres.
+
+use std::{
+    collections::BTreeMap,
+    fs::File,
+    io::BufWriter,
+    path::{Path, PathBuf},
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use foxglove::{
+    Channel, Context, McapWriterHandle, RawChannel, Schema,
+    messages::{
+        CircleAnnotation, Color, CompressedImage, FrameTransform, FrameTransforms,
+        ImageAnnotations, LinePrimitive, Point2, Point3, PointsAnnotation, Pose, Quaternion,
+        SceneEntity, SceneUpdate, SpherePrimitive, Timestamp, Vector3, line_primitive,
+        points_annotation,
+    },
+};
+use rt_core::{
+    bridge::{Snapshot, TrialResult},
+    kinematics::iiwa7::{JOINT_NAMES, JOINTS, URDF_AXES, URDF_FRAMES, URDF_JOINT_Z_M},
+    params::Scenario,
+};
+use serde::Serialize;
+
+/// The topics, in the order [`Channels`] holds them.
+pub const TOPICS: [&str; 7] = [
+    "/tf",
+    "/joint_states",
+    "/pendulum",
+    "/series",
+    "/camera/image",
+    "/camera/annotations",
+    "/robot_description",
+];
+
+/// The robot description is re-sent this often to live clients (they join any time).
+const DESCRIPTION_PERIOD: Duration = Duration::from_secs(1);
+
+const JOINT_STATES_SCHEMA: &str = r#"{"type":"object","title":"isochron.JointStates","properties":{
+"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},
+"name":{"type":"array","items":{"type":"string"}},
+"position":{"type":"array","items":{"type":"number"},"description":"measured, rad"},
+"commanded":{"type":"array","items":{"type":"number"},"description":"commanded, rad"},
+"limit":{"type":"array","items":{"type":"number"},"description":"|q| <= limit, rad"}}}"#;
+
+const SERIES_SCHEMA: &str = r#"{"type":"object","title":"isochron.Series","properties":{
+"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}}},
+"t_s":{"type":"number","description":"control clock, s"},
+"trial_id":{"type":"integer"},
+"trial_state":{"type":"string"},
+"pendulum":{"type":"object","properties":{"measured_x_m":{"type":"number"},"x_m":{"type":"number"},"sigma_x_m":{"type":"number"},"phi_rad":{"type":"number"},"dphi_radps":{"type":"number"},"crossing_t_s":{"type":"number"},"crossing_sigma_s":{"type":"number"}}},
+"path":{"type":"object","properties":{"speed_planned_mps":{"type":"number"},"speed_executed_mps":{"type":"number"},"progress_planned":{"type":"number"},"progress_executed":{"type":"number"}}},
+"hopf":{"type":"object","properties":{"a":{"type":"number"},"b":{"type":"number"},"u_init":{"type":"number"},"u_hopf":{"type":"number"},"u_final":{"type":"number"}}},
+"timing":{"type":"object","properties":{"step_us":{"type":"number"},"period_mean_us":{"type":"number"},"period_max_us":{"type":"number"},"reply_latency_us":{"type":"number"},"missed_cycles":{"type":"integer"},"deadline_misses":{"type":"integer"}}}}}"#;
+
+const STRING_SCHEMA: &str =
+    r#"{"type":"object","title":"std_msgs/String","properties":{"data":{"type":"string"}}}"#;
+
+fn json_channel(
+    ctx: &Arc<Context>,
+    topic: &str,
+    name: &str,
+    schema: &'static str,
+) -> Arc<RawChannel> {
+    // Building a channel fails only for a duplicate topic with another schema,
+    // which this module never does on its own context.
+    ctx.channel_builder(topic)
+        .message_encoding("json")
+        .schema(Schema::new(name, "jsonschema", schema.as_bytes()))
+        .build_raw()
+        .unwrap_or_else(|e| panic!("channel {topic}: {e}"))
+}
+
+/// The channels of one context.
+struct Channels {
+    tf: Channel<FrameTransforms>,
+    joints: Arc<RawChannel>,
+    pendulum: Channel<SceneUpdate>,
+    series: Arc<RawChannel>,
+    image: Channel<CompressedImage>,
+    annotations: Channel<ImageAnnotations>,
+    description: Arc<RawChannel>,
+}
+
+/// What a recording's metadata says about the trial it records.
+#[derive(Debug, Clone)]
+pub struct RecordingContext {
+    /// The scenario's name.
+    pub scenario: String,
+    /// The parameters in effect, as TOML.
+    pub parameters_toml: String,
+    /// The software revision (`0.1.0 (git ...)`).
+    pub revision: String,
+    /// `simulated` or `real`.
+    pub lab_mode: &'static str,
+}
+
+struct Recording {
+    trial_id: u64,
+    path: PathBuf,
+    writer: McapWriterHandle<BufWriter<File>>,
+    /// The true ball at release (simulated lab): the world's draw as it happened.
+    truth_at_release: Option<(f64, [f64; 3])>,
+    states: u64,
+}
+
+/// The Foxglove side of the bridge thread.
+pub struct Foxglove {
+    ctx: Arc<Context>,
+    ch: Channels,
+    urdf: String,
+    ball_radius_m: f64,
+    length_m: f64,
+    /// Unix seconds minus control-clock seconds, measured at the last state tick.
+    unix_offset_s: f64,
+    last_description: Option<Instant>,
+    recording: Option<Recording>,
+    last: Option<Snapshot>,
+}
+
+impl std::fmt::Debug for Foxglove {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Foxglove")
+            .field("recording", &self.recording.as_ref().map(|r| r.trial_id))
+            .finish_non_exhaustive()
+    }
+}
+
+fn unix_now_s() -> f64 {
+    crate::records::unix_now_s()
+}
+
+fn stamp(unix_s: f64) -> Option<Timestamp> {
+    if !unix_s.is_finite() || unix_s < 0.0 {
+        return None;
+    }
+    let sec = unix_s.floor();
+    let nsec = ((unix_s - sec) * 1e9).round().min(999_999_999.0);
+    Some(Timestamp::new(sec as u32, nsec as u32))
+}
+
+fn v3(p: [f64; 3]) -> Option<Vector3> {
+    Some(Vector3 {
+        x: p[0],
+        y: p[1],
+        z: p[2],
+    })
+}
+
+fn p3(p: [f64; 3]) -> Point3 {
+    Point3 {
+        x: p[0],
+        y: p[1],
+        z: p[2],
+    }
+}
+
+fn color(r: f64, g: f64, b: f64, a: f64) -> Option<Color> {
+    Some(Color { r, g, b, a })
+}
+
+fn finite3(p: [f64; 3]) -> bool {
+    p.iter().all(|v| v.is_finite())
+}
+
+fn identity_pose(at: [f64; 3]) -> Option<Pose> {
+    Some(Pose {
+        position: v3(at),
+        orientation: Some(Quaternion {
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+            w: 1.0,
+        }),
+    })
+}
+
+#[derive(Serialize)]
+struct Stamp {
+    sec: u32,
+    nsec: u32,
+}
+
+#[derive(Serialize)]
+struct JointStates<'a> {
+    timestamp: Stamp,
+    name: &'a [&'a str; JOINTS],
+    position: [f64; JOINTS],
+    commanded: [f64; JOINTS],
+    limit: [f64; JOINTS],
+}
+
+#[derive(Serialize)]
+struct Series {
+    timestamp: Stamp,
+    t_s: f64,
+    trial_id: u64,
+    trial_state: &'static str,
+    pendulum: serde_json::Value,
+    path: serde_json::Value,
+    hopf: serde_json::Value,
+    timing: serde_json::Value,
+}
+
+fn js(t: Option<Timestamp>) -> Stamp {
+    t.map_or(Stamp { sec: 0, nsec: 0 }, |t| Stamp {
+        sec: t.sec(),
+        nsec: t.nsec(),
+    })
+}
+
+/// `base_from_link` transforms of the URDF's chain for joints `q`, each relative
+/// to its parent (what `FrameTransforms` carries).
+pub fn link_transforms(
+    q: &[f64; JOINTS],
+    tool_length_m: f64,
+) -> [([f64; 3], [f64; 4]); JOINTS + 2] {
+    let mut out = [([0.0; 3], [0.0, 0.0, 0.0, 1.0]); JOINTS + 2];
+    for i in 0..JOINTS {
+        let a = URDF_AXES[i];
+        let (s, c) = (q[i] / 2.0).sin_cos();
+        out[i] = (
+            [0.0, 0.0, URDF_JOINT_Z_M[i]],
+            [a[0] * s, a[1] * s, a[2] * s, c],
+        );
+    }
+    out[JOINTS] = ([0.0, 0.0, URDF_JOINT_Z_M[JOINTS]], [0.0, 0.0, 0.0, 1.0]);
+    out[JOINTS + 1] = ([0.0, 0.0, tool_length_m], [0.0, 0.0, 0.0, 1.0]);
+    out
+}
+
+impl Foxglove {
+    /// Channels on a new context, for the scenario's arm, tool and pendulum.
+    pub fn new(scenario: &Scenario) -> Self {
+        let ctx = Context::new();
+        let ch = Channels {
+            tf: ctx.channel_builder(TOPICS[0]).build(),
+            joints: json_channel(&ctx, TOPICS[1], "isochron.JointStates", JOINT_STATES_SCHEMA),
+            pendulum: ctx.channel_builder(TOPICS[2]).build(),
+            series: json_channel(&ctx, TOPICS[3], "isochron.Series", SERIES_SCHEMA),
+            image: ctx.channel_builder(TOPICS[4]).build(),
+            annotations: ctx.channel_builder(TOPICS[5]).build(),
+            description: json_channel(&ctx, TOPICS[6], "std_msgs/String", STRING_SCHEMA),
+        };
+        let mut f = Self {
+            ctx,
+            ch,
+            urdf: String::new(),
+            ball_radius_m: 0.0,
+            length_m: 1.0,
+            unix_offset_s: f64::NAN,
+            last_description: None,
+            recording: None,
+            last: None,
+        };
+        f.set_scenario(scenario);
+        f
+    }
+
+    /// Takes new parameters (tool length, pendulum).
+    pub fn set_scenario(&mut self, scenario: &Scenario) {
+        self.urdf = rt_core::kinematics::iiwa7::urdf_with_tool(scenario.task.tool_length_m);
+        self.ball_radius_m = scenario.pendulum.ball_radius_m;
+        self.length_m = scenario.pendulum.length_m;
+    }
+
+    /// The context the live server and the recordings log through.
+    pub fn context(&self) -> &Arc<Context> {
+        &self.ctx
+    }
+
+    /// The trial being recorded, if any.
+    pub fn recording(&self) -> Option<u64> {
+        self.recording.as_ref().map(|r| r.trial_id)
+    }
+
+    fn tool_length_m(&self) -> f64 {
+        // The URDF's tool joint carries it; kept in one place.
+        self.urdf
+            .split("<child link=\"tool\"/>")
+            .nth(1)
+            .and_then(|s| s.split("xyz=\"0 0 ").nth(1))
+            .and_then(|s| s.split('"').next())
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0.10)
+    }
+
+    fn unix_of(&self, t_s: f64) -> f64 {
+        t_s + self.unix_offset_s
+    }
+
+    /// Logs one state tick's messages (skipped when nobody listens).
+    pub fn publish_state(&mut self, s: &Snapshot) {
+        self.unix_offset_s = unix_now_s() - s.t_s;
+        self.last = Some(*s);
+        if let Some(r) = self.recording.as_mut() {
+            r.states += 1;
+            if r.truth_at_release.is_none()
+                && !matches!(
+                    s.trial_state,
+                    rt_core::bridge::TrialState::Idle
+                        | rt_core::bridge::TrialState::Arming
+                        | rt_core::bridge::TrialState::Armed
+                )
+                && finite3(s.pendulum.truth_ball_m)
+            {
+                r.truth_at_release = Some((s.t_s, s.pendulum.truth_ball_m));
+            }
+        }
+        let now = Instant::now();
+        if self.ch.description.has_sinks()
+            && self
+                .last_description
+                .is_none_or(|t| now.duration_since(t) >= DESCRIPTION_PERIOD)
+        {
+            self.log_description();
+            self.last_description = Some(now);
+        }
+        let ts = stamp(self.unix_of(s.t_s));
+        if self.ch.tf.has_sinks() {
+            let q: [f64; JOINTS] = s.robot.q_rad;
+            let links = link_transforms(&q, self.tool_length_m());
+            let transforms = links
+                .iter()
+                .enumerate()
+                .map(|(i, (t, r))| FrameTransform {
+                    timestamp: ts,
+                    parent_frame_id: URDF_FRAMES[i].to_owned(),
+                    child_frame_id: URDF_FRAMES[i + 1].to_owned(),
+                    translation: v3(*t),
+                    rotation: Some(Quaternion {
+                        x: r[0],
+                        y: r[1],
+                        z: r[2],
+                        w: r[3],
+                    }),
+                })
+                .collect();
+            self.ch.tf.log(&FrameTransforms { transforms });
+        }
+        if self.ch.joints.has_sinks() {
+            let msg = JointStates {
+                timestamp: js(ts),
+                name: &JOINT_NAMES,
+                position: s.robot.q_rad,
+                commanded: s.robot.q_cmd_rad,
+                limit: s.robot.q_limit_rad,
+            };
+            if let Ok(b) = serde_json::to_vec(&msg) {
+                self.ch.joints.log(&b);
+            }
+        }
+        if self.ch.pendulum.has_sinks() {
+            self.ch.pendulum.log(&self.scene(s, ts));
+        }
+        if self.ch.series.has_sinks() {
+            let p = &s.pendulum;
+            let msg = Series {
+                timestamp: js(ts),
+                t_s: s.t_s,
+                trial_id: s.trial_id,
+                trial_state: s.trial_state.as_str(),
+                pendulum: serde_json::json!({
+                    "measured_x_m": if p.measured.valid { p.measured.x_m } else { f64::NAN },
+                    "x_m": p.x_m, "sigma_x_m": p.sigma_x_m, "phi_rad": p.phi_rad,
+                    "dphi_radps": p.dphi_radps, "crossing_t_s": p.crossing_t_s,
+                    "crossing_sigma_s": p.crossing_sigma_s,
+                }),
+                path: serde_json::json!({
+                    "speed_planned_mps": s.path.speed_planned_mps,
+                    "speed_executed_mps": s.path.speed_executed_mps,
+                    "progress_planned": s.path.progress_planned,
+                    "progress_executed": s.path.progress_executed,
+                }),
+                hopf: serde_json::json!({
+                    "a": s.hopf.a, "b": s.hopf.b, "u_init": s.hopf.u_init,
+                    "u_hopf": s.hopf.u_hopf, "u_final": s.hopf.u_final,
+                }),
+                timing: serde_json::json!({
+                    "step_us": s.timing.step_us, "period_mean_us": s.timing.period_mean_us,
+                    "period_max_us": s.timing.period_max_us,
+                    "reply_latency_us": s.fri.reply_latency_us,
+                    "missed_cycles": s.fri.missed_cycles,
+                    "deadline_misses": s.timing.deadline_misses,
+                }),
+            };
+            if let Ok(b) = serde_json::to_vec(&msg) {
+                self.ch.series.log(&b);
+            }
+        }
+    }
+
+    fn log_description(&self) {
+        if let Ok(b) = serde_json::to_vec(&serde_json::json!({ "data": self.urdf })) {
+            self.ch.description.log(&b);
+        }
+    }
+
+    /// The pendulum as a scene: the ball (estimate), the true ball (simulated lab),
+    /// the string from the pivot, the predicted path and the intercept point.
+    fn scene(&self, s: &Snapshot, ts: Option<Timestamp>) -> SceneUpdate {
+        let p = &s.pendulum;
+        let l = self.length_m;
+        let d = 2.0 * self.ball_radius_m;
+        let mut entities = Vec::with_capacity(4);
+        let entity = |id: &str| SceneEntity {
+            timestamp: ts,
+            frame_id: "base".to_owned(),
+            id: id.to_owned(),
+            ..Default::default()
+        };
+        let sphere = |at: [f64; 3], size: f64, c: Option<Color>| SpherePrimitive {
+            pose: identity_pose(at),
+            size: v3([size, size, size]),
+            color: c,
+        };
+        let line = |points: Vec<Point3>, c: Option<Color>, thickness: f64| LinePrimitive {
+            r#type: line_primitive::Type::LineStrip as i32,
+            pose: identity_pose([0.0; 3]),
+            thickness,
+            scale_invariant: false,
+            points,
+            color: c,
+            ..Default::default()
+        };
+        if finite3(p.ball_m) {
+            // ball = pivot + l (0, sin phi, -cos phi).
+            let (sp, cp) = p.phi_rad.sin_cos();
+            let pivot = [p.ball_m[0], p.ball_m[1] - l * sp, p.ball_m[2] + l * cp];
+            let mut ball = entity("ball");
+            ball.spheres
+                .push(sphere(p.ball_m, d, color(0.85, 0.95, 0.2, 1.0)));
+            ball.lines.push(line(
+                vec![p3(pivot), p3(p.ball_m)],
+                color(0.8, 0.8, 0.8, 1.0),
+                0.004,
+            ));
+            entities.push(ball);
+            let horizon = p.horizon.as_slice();
+            if !horizon.is_empty() {
+                let pts = horizon
+                    .iter()
+                    .filter(|h| h.x_m.is_finite() && h.x_m.abs() <= l)
+                    .map(|h| {
+                        let lift = l - (l * l - h.x_m * h.x_m).sqrt();
+                        p3([pivot[0], pivot[1] + h.x_m, pivot[2] - l + lift])
+                    })
+                    .collect();
+                let mut path = entity("predicted_path");
+                path.lines.push(line(pts, color(0.3, 0.6, 1.0, 0.9), 0.006));
+                entities.push(path);
+            }
+        }
+        if finite3(p.truth_ball_m) {
+            let mut truth = entity("true_ball");
+            truth
+                .spheres
+                .push(sphere(p.truth_ball_m, d, color(0.2, 0.9, 0.3, 0.35)));
+            entities.push(truth);
+        }
+        if finite3(s.path.intercept_m) {
+            let mut x = entity("intercept");
+            x.spheres
+                .push(sphere(s.path.intercept_m, 0.03, color(1.0, 0.2, 0.2, 0.8)));
+            entities.push(x);
+        }
+        SceneUpdate {
+            deletions: Vec::new(),
+            entities,
+        }
+    }
+
+    /// Logs a camera frame (JPEG, `width_px` wide) and its annotations: the
+    /// latest detection, the predicted positions and the intercept point, scaled
+    /// from the full camera image to the frame.
+    pub fn publish_frame(&mut self, t_capture_s: f64, jpeg: &[u8], width_px: Option<u32>) {
+        if !self.ch.image.has_sinks() && !self.ch.annotations.has_sinks() {
+            return;
+        }
+        let ts = stamp(self.unix_of(t_capture_s));
+        self.ch.image.log(&CompressedImage {
+            timestamp: ts,
+            frame_id: "camera".to_owned(),
+            data: foxglove::bytes::Bytes::copy_from_slice(jpeg),
+            format: "jpeg".to_owned(),
+        });
+        let Some(s) = self.last else {
+            return;
+        };
+        let cam = &s.camera;
+        let mut a = ImageAnnotations {
+            timestamp: ts,
+            ..Default::default()
+        };
+        if cam.width_px > 0 {
+            let k = width_px.map_or(1.0, |w| f64::from(w) / f64::from(cam.width_px));
+            if cam.found {
+                a.circles.push(CircleAnnotation {
+                    timestamp: ts,
+                    position: Some(Point2 {
+                        x: cam.x_px * k,
+                        y: cam.y_px * k,
+                    }),
+                    diameter: 2.0 * cam.r_px * k,
+                    thickness: 2.0,
+                    fill_color: color(0.0, 0.0, 0.0, 0.0),
+                    outline_color: color(0.1, 1.0, 0.3, 1.0),
+                    metadata: Vec::new(),
+                });
+            }
+            let predicted: Vec<Point2> = s
+                .pendulum
+                .horizon
+                .as_slice()
+                .iter()
+                .filter_map(|h| cam.project_lateral(h.x_m, self.length_m))
+                .map(|[x, y]| Point2 { x: x * k, y: y * k })
+                .collect();
+            if !predicted.is_empty() {
+                a.points.push(PointsAnnotation {
+                    timestamp: ts,
+                    r#type: points_annotation::Type::LineStrip as i32,
+                    points: predicted,
+                    outline_color: color(0.3, 0.6, 1.0, 1.0),
+                    thickness: 2.0,
+                    ..Default::default()
+                });
+            }
+            if let Some([x, y]) = cam.project_lateral(0.0, self.length_m) {
+                a.circles.push(CircleAnnotation {
+                    timestamp: ts,
+                    position: Some(Point2 { x: x * k, y: y * k }),
+                    diameter: 10.0,
+                    thickness: 2.0,
+                    fill_color: color(1.0, 0.2, 0.2, 0.6),
+                    outline_color: color(1.0, 0.2, 0.2, 1.0),
+                    metadata: Vec::new(),
+                });
+            }
+        }
+        self.ch.annotations.log(&a);
+    }
+
+    /// Starts recording trial `trial_id` into `path` (MCAP, written live) with
+    /// its metadata; a recording still open is finished first.
+    pub fn start_recording(
+        &mut self,
+        trial_id: u64,
+        path: &Path,
+        meta: &RecordingContext,
+    ) -> anyhow::Result<()> {
+        self.finish_recording(None);
+        let file = File::create(path)
+            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let writer = self.ctx.mcap_writer().create(BufWriter::new(file))?;
+        let map = |kv: &[(&str, String)]| -> BTreeMap<String, String> {
+            kv.iter()
+                .map(|(k, v)| ((*k).to_owned(), v.clone()))
+                .collect()
+        };
+        writer.write_metadata(
+            "trial",
+            map(&[
+                ("trial_id", trial_id.to_string()),
+                ("scenario", meta.scenario.clone()),
+                ("revision", meta.revision.clone()),
+                ("lab_mode", meta.lab_mode.to_owned()),
+                ("started_unix_s", format!("{:.6}", unix_now_s())),
+            ]),
+        )?;
+        writer.write_metadata("parameters", map(&[("toml", meta.parameters_toml.clone())]))?;
+        let cal = self
+            .last
+            .map(|s| serde_json::to_string(&s.camera).unwrap_or_default())
+            .unwrap_or_default();
+        writer.write_metadata(
+            "calibration",
+            map(&[
+                ("camera_json", cal),
+                ("tool_length_m", self.tool_length_m().to_string()),
+                ("pendulum_length_m", self.length_m.to_string()),
+            ]),
+        )?;
+        self.recording = Some(Recording {
+            trial_id,
+            path: path.to_path_buf(),
+            writer,
+            truth_at_release: None,
+            states: 0,
+        });
+        // The robot description once per recording (its URDF layer reads it).
+        self.log_description();
+        Ok(())
+    }
+
+    /// Finishes the open recording with the judged result (or the abort reason)
+    /// and the world's draw; returns the trial, the file and the state ticks recorded.
+    pub fn finish_recording(
+        &mut self,
+        end: Option<&crate::records::TrialEnd>,
+    ) -> Option<(u64, PathBuf, u64)> {
+        let r = self.recording.take()?;
+        let mut result = BTreeMap::new();
+        match end {
+            Some(crate::records::TrialEnd::Done(TrialResult {
+                success,
+                timing_error_ms,
+                position_error_m,
+                movement_time_s,
+                distance_m,
+                t_star_s,
+                arrival_t_s,
+                prediction_time_error_ms,
+                limit_violations,
+                ..
+            })) => {
+                for (k, v) in [
+                    ("status", "done".to_owned()),
+                    ("success", success.to_string()),
+                    ("timing_error_ms", timing_error_ms.to_string()),
+                    ("position_error_m", position_error_m.to_string()),
+                    ("movement_time_s", movement_time_s.to_string()),
+                    ("distance_m", distance_m.to_string()),
+                    ("t_star_s", t_star_s.to_string()),
+                    ("arrival_t_s", arrival_t_s.to_string()),
+                    (
+                        "prediction_time_error_ms",
+                        prediction_time_error_ms.to_string(),
+                    ),
+                    ("limit_violations", limit_violations.to_string()),
+                ] {
+                    result.insert(k.to_owned(), v);
+                }
+            }
+            Some(crate::records::TrialEnd::Aborted(reason)) => {
+                result.insert("status".to_owned(), "aborted".to_owned());
+                result.insert("abort_reason".to_owned(), (*reason).to_owned());
+            }
+            None => {
+                result.insert("status".to_owned(), "interrupted".to_owned());
+            }
+        }
+        result.insert("finished_unix_s".to_owned(), format!("{:.6}", unix_now_s()));
+        result.insert("state_ticks".to_owned(), r.states.to_string());
+        let _ = r.writer.write_metadata("result", result);
+        let mut world = BTreeMap::new();
+        match r.truth_at_release {
+            Some((t_s, b)) => {
+                // ball = pivot + l (0, sin phi, -cos phi): the pivot's distance and
+                // the release angle the simulated world drew.
+                let l = self.length_m;
+                let phi = (b[1] / l).clamp(-1.0, 1.0).asin();
+                world.insert(
+                    "source".to_owned(),
+                    "simulated world (ground truth)".to_owned(),
+                );
+                world.insert("distance_m".to_owned(), b[0].to_string());
+                world.insert("release_angle_deg".to_owned(), phi.to_degrees().to_string());
+                world.insert("first_swing_t_s".to_owned(), t_s.to_string());
+            }
+            None => {
+                world.insert(
+                    "source".to_owned(),
+                    "none (real lab, or no release)".to_owned(),
+                );
+            }
+        }
+        let _ = r.writer.write_metadata("world", world);
+        if let Err(e) = r.writer.close() {
+            tracing::error!(trial = r.trial_id, error = %e, "cannot finish the MCAP recording");
+        }
+        Some((r.trial_id, r.path, r.states))
+    }
+}
+
+/// The width of a baseline or progressive JPEG (its SOF segment), if found.
+pub fn jpeg_width(jpeg: &[u8]) -> Option<u32> {
+    let mut i = 2;
+    while i + 9 < jpeg.len() {
+        if jpeg[i] != 0xFF {
+            return None;
+        }
+        let marker = jpeg[i + 1];
+        let len = usize::from(u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]));
+        if matches!(marker, 0xC0..=0xC3) {
+            return Some(u32::from(u16::from_be_bytes([jpeg[i + 7], jpeg[i + 8]])));
+        }
+        i += 2 + len;
+    }
+    None
+}
+
+/// Refuses a Foxglove address that is not loopback: the Foxglove WebSocket
+/// protocol carries no credentials, so the service's bearer token cannot guard
+/// it, and the service's rule is loopback-only without a token.
+pub fn check_addr(addr: std::net::SocketAddr) -> anyhow::Result<()> {
+    if !addr.ip().is_loopback() {
+        anyhow::bail!(
+            "--foxglove {addr}: the Foxglove WebSocket protocol has no authentication, so it \
+             listens on loopback only (use e.g. 127.0.0.1:8765 and an SSH tunnel)"
+        );
+    }
+    Ok(())
+}
+
+/// Starts the Foxglove WebSocket server on `addr` (loopback only) over the lab's
+/// channels; the robot description is also served as the `/robot_description` topic.
+pub async fn start_server(
+    lab: &crate::Lab,
+    addr: std::net::SocketAddr,
+) -> anyhow::Result<foxglove::WebSocketServerHandle> {
+    check_addr(addr)?;
+    let handle = foxglove::WebSocketServer::new()
+        .name(format!("isochron {}", crate::VERSION))
+        .context(lab.foxglove_context())
+        .bind(addr.ip().to_string(), addr.port())
+        .start()
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot start the Foxglove server on {addr}: {e}"))?;
+    Ok(handle)
+}
