@@ -58,6 +58,32 @@ const api = async (method, path, body, withToken = true) => {
   return { status: r.status, json: text ? JSON.parse(text) : null };
 };
 
+/** Origins of the DH frames 0..7 of the iiwa 7 (T_i = Rz(q) Tz(d) Rx(alpha)), base frame. */
+function dhOrigins(q) {
+  const d = [0.34, 0, 0.4, 0, 0.4, 0, 0.126];
+  const alpha = [-Math.PI / 2, Math.PI / 2, Math.PI / 2, -Math.PI / 2, -Math.PI / 2, Math.PI / 2, 0];
+  let r = [1, 0, 0, 0, 1, 0, 0, 0, 1]; // row-major rotation
+  let p = [0, 0, 0];
+  const out = [[0, 0, 0]];
+  for (let i = 0; i < 7; i++) {
+    p = [p[0] + r[2] * d[i], p[1] + r[5] * d[i], p[2] + r[8] * d[i]];
+    const [c, s, ca, sa] = [Math.cos(q[i]), Math.sin(q[i]), Math.cos(alpha[i]), Math.sin(alpha[i])];
+    const l = [c, -s * ca, s * sa, s, c * ca, -c * sa, 0, sa, ca];
+    const n = new Array(9).fill(0);
+    for (let a = 0; a < 3; a++) for (let b = 0; b < 3; b++) for (let k = 0; k < 3; k++) n[a * 3 + b] += r[a * 3 + k] * l[k * 3 + b];
+    r = n;
+    out.push(p);
+  }
+  return out;
+}
+
+/** A base-frame point through the twin's camera (column-major matrices) to CSS pixels. */
+function project(view, [x, y, z]) {
+  const mul = (m, v) => [0, 1, 2, 3].map((row) => m[row] * v[0] + m[4 + row] * v[1] + m[8 + row] * v[2] + m[12 + row] * v[3]);
+  const c = mul(view.projection, mul(view.worldToCamera, [x, y, z, 1]));
+  return [((c[0] / c[3] + 1) / 2) * view.width, ((1 - c[1] / c[3]) / 2) * view.height];
+}
+
 try {
   // Visitor: streams, renders, controls disabled.
   const visitor = await openPage();
@@ -71,6 +97,30 @@ try {
   });
   await check("visitor: the 3D view renders", async () => {
     await visitor.page.waitForFunction(() => window.__isochron.twinFrames() > 2, null, { timeout: 5_000 });
+  });
+  await check("visitor: the URDF twin shows the arm in the measured pose", async () => {
+    await visitor.page.waitForFunction(() => window.__isochron.twinLoaded(), null, { timeout: 5_000 });
+    // The arm is still while idle: the pose drawn is the one measured.
+    const state = (await api("GET", "/api/state", undefined, false)).json;
+    const names = ["link_2", "link_4", "link_6", "flange"];
+    const probe = await visitor.page.evaluate((n) => window.__isochron.twinProbe(n), names);
+    const view = await visitor.page.evaluate(() => window.__isochron.twinView());
+    assert(probe && probe.links.length === names.length, `probe ${JSON.stringify(probe)}`);
+    probe.q.forEach((q, i) => assert(Math.abs(q - state.robot.q_rad[i]) < 1e-3, `A${i + 1} drawn ${q}, measured ${state.robot.q_rad[i]}`));
+    // Forward kinematics from the DH model (IIWA7.md), written here apart from the dashboard:
+    // shoulder (DH frame 1) = link_2, elbow (3) = link_4, wrist (5) = link_6, flange (7).
+    const origins = dhOrigins(probe.q);
+    const want = { link_2: origins[1], link_4: origins[3], link_6: origins[5], flange: origins[7] };
+    for (const l of probe.links) {
+      const [sx, sy] = project(view, want[l.name]);
+      const err = Math.hypot(sx - l.screen[0], sy - l.screen[1]);
+      console.log(`  ${l.name}: FK projected (${sx.toFixed(1)}, ${sy.toFixed(1)}) px, drawn (${l.screen[0].toFixed(1)}, ${l.screen[1].toFixed(1)}) px, pixel ${l.rgba}`);
+      assert(err < 1.0, `${l.name} drawn ${err.toFixed(2)} px from FK`);
+      const [r, g, b] = l.rgba;
+      const background = Math.abs(r - 244) + Math.abs(g - 246) + Math.abs(b - 248) < 30;
+      assert(!background, `${l.name}: background pixel ${l.rgba} where the arm should be`);
+      if (l.name !== "flange") assert(r > b + 60, `${l.name}: pixel ${l.rgba} is not the arm's orange`);
+    }
   });
   await check("visitor: controls are disabled, the stop button is not", async () => {
     for (const id of ["btn-arm", "btn-drop", "btn-trial"]) {

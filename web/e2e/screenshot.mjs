@@ -1,10 +1,11 @@
 // The README's screenshot: the dashboard in headless Chromium during a trial
 // in the simulated lab, taken late in the arm's motion (the speed profile, the
 // neurons and the phase portrait then show nearly all of it).
-// Usage: node e2e/screenshot.mjs URL TOKEN OUT.png
+// Usage: node e2e/screenshot.mjs URL TOKEN OUT.png [twin]
+// With `twin`, only the 3D view (the arm from its URDF) is photographed.
 import { chromium } from "playwright-core";
 
-const [base, token, out] = process.argv.slice(2);
+const [base, token, out, part] = process.argv.slice(2);
 if (!base || !token || !out) {
   console.error("usage: node e2e/screenshot.mjs URL TOKEN OUT.png");
   process.exit(2);
@@ -31,7 +32,12 @@ try {
   const T = await page.evaluate(async () => (await (await fetch("/api/params")).json()).task.movement_time_s);
   await page.waitForTimeout(800 * T);
   await page.evaluate(() => (document.getElementById("toast").className = "toast hidden"));
-  await page.screenshot({ path: out, fullPage: false });
+  if (part === "twin") {
+    await page.waitForFunction(() => window.__isochron.twinLoaded(), null, { timeout: 5_000 });
+    await page.locator("#twin").screenshot({ path: out });
+  } else {
+    await page.screenshot({ path: out, fullPage: false });
+  }
   console.log(`screenshot: ${out}`);
 } finally {
   await browser.close();

@@ -138,6 +138,7 @@ async function loadGeometry(): Promise<void> {
   };
 }
 void loadGeometry();
+twin.loadRobot().catch((e: unknown) => notify(`3D arm: ${String(e)}`, "error"));
 void trials.refresh();
 void call("GET", "/api/health").catch(() => onStatus("lost"));
 
@@ -147,6 +148,9 @@ declare global {
     __isochron: {
       points: () => number[];
       twinFrames: () => number;
+      twinLoaded: () => boolean;
+      twinProbe: (names: string[]) => ReturnType<Twin["probe"]>;
+      twinView: () => ReturnType<Twin["view"]>;
       fps: () => number;
       received: () => number;
       state: () => string;
@@ -163,6 +167,9 @@ declare global {
 window.__isochron = {
   points: () => plots.pointCounts(),
   twinFrames: () => twin.frames,
+  twinLoaded: () => twin.robotLoaded,
+  twinProbe: (names: string[]) => twin.probe(names),
+  twinView: () => twin.view(),
   fps: () => fps,
   received: () => link.received,
   state: () => latest?.trial_state ?? "",

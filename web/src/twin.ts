@@ -1,7 +1,10 @@
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
-import { frames, origin } from "./iiwa";
+import URDFLoader, { type URDFRobot } from "urdf-loader";
 import { num, type StateMessage } from "./types";
+
+/** The arm's joints as the URDF (`GET /api/robot.urdf`) names them. */
+export const JOINT_NAMES = ["A1", "A2", "A3", "A4", "A5", "A6", "A7"] as const;
 
 /** Lab geometry the twin needs from `GET /api/params`. */
 export interface TwinGeometry {
@@ -33,15 +36,25 @@ function stretch(mesh: THREE.Mesh, a: THREE.Vector3, b: THREE.Vector3): void {
   mesh.quaternion.setFromUnitVectors(up, d.divideScalar(len));
 }
 
-/** The 3D twin: iiwa 7 from its kinematics, pendulum, ball, prediction, intercept and tool path. */
+/** What `Twin.probe` reports: a link as drawn, for the browser test. */
+export interface LinkProbe {
+  name: string;
+  /** Link origin, base frame, metres (from the drawn scene graph). */
+  world: [number, number, number];
+  /** Where it lands on the canvas, CSS pixels from the top left. */
+  screen: [number, number];
+  /** The rendered pixel there (RGBA 0..255). */
+  rgba: [number, number, number, number];
+}
+
+/** The 3D twin: the iiwa 7 from its URDF (urdf-loader), pendulum, ball, prediction, intercept and tool path. */
 export class Twin {
   readonly renderer: THREE.WebGLRenderer | null;
   private readonly scene = new THREE.Scene();
   private readonly camera: THREE.PerspectiveCamera;
   private readonly controls: OrbitControls | null;
-  private readonly links: THREE.Mesh[] = [];
-  private readonly joints: THREE.Mesh[] = [];
-  private readonly tool: THREE.Mesh;
+  private robot: URDFRobot | null = null;
+  private q: number[] = [0, 0.5, 0, -1.4, 0, 1.2, 0];
   private readonly ball: THREE.Mesh;
   private readonly truth: THREE.Mesh;
   private readonly string: THREE.Mesh;
@@ -77,19 +90,6 @@ export class Twin {
     this.scene.add(grid);
     this.scene.add(new THREE.AxesHelper(0.25));
 
-    const orange = new THREE.MeshStandardMaterial({ color: "#E69F00", roughness: 0.6 });
-    const grey = new THREE.MeshStandardMaterial({ color: "#d0d4d8", roughness: 0.5 });
-    const cyl = new THREE.CylinderGeometry(0.055, 0.055, 1, 20);
-    for (let i = 0; i < 7; i++) {
-      const m = new THREE.Mesh(cyl, i % 2 === 0 ? grey : orange);
-      this.links.push(m);
-      this.scene.add(m);
-      const j = new THREE.Mesh(new THREE.SphereGeometry(0.07, 16, 12), orange);
-      this.joints.push(j);
-      this.scene.add(j);
-    }
-    this.tool = new THREE.Mesh(new THREE.CylinderGeometry(0.02, 0.02, 1, 12), new THREE.MeshStandardMaterial({ color: "#333" }));
-    this.scene.add(this.tool);
     const ballMat = new THREE.MeshStandardMaterial({ color: "#c8e03c", roughness: 0.8 });
     this.ball = new THREE.Mesh(new THREE.SphereGeometry(1, 24, 16), ballMat);
     this.truth = new THREE.Mesh(
@@ -121,7 +121,23 @@ export class Twin {
     } else {
       this.controls = null;
     }
-    this.pose([0, 0.5, 0, -1.4, 0, 1.2, 0]);
+  }
+
+  /** Loads the arm from its URDF (the server's, with the tool length in effect). */
+  async loadRobot(url = "/api/robot.urdf"): Promise<void> {
+    const r = await fetch(url);
+    if (!r.ok) throw new Error(`GET ${url}: ${r.status}`);
+    const robot = new URDFLoader().parse(await r.text());
+    if (this.robot) this.scene.remove(this.robot);
+    this.robot = robot;
+    this.scene.add(robot);
+    this.pose(this.q);
+    this.dirty = true;
+  }
+
+  /** True once the URDF arm is in the scene. */
+  get robotLoaded(): boolean {
+    return this.robot !== null;
   }
 
   private resize(): void {
@@ -134,15 +150,51 @@ export class Twin {
   }
 
   private pose(q: readonly number[]): void {
-    const fs = frames(q);
-    const pts = fs.map((f) => new THREE.Vector3(...origin(f)));
-    for (let i = 0; i < 7; i++) {
-      stretch(this.links[i], pts[i], pts[i + 1]);
-      this.joints[i].position.copy(pts[i + 1]);
+    this.q = [...q];
+    if (!this.robot) return;
+    for (let i = 0; i < JOINT_NAMES.length; i++) this.robot.setJointValue(JOINT_NAMES[i], q[i]);
+    this.robot.updateMatrixWorld(true);
+  }
+
+  /**
+   * Renders now and reports where the named links' origins are drawn and the
+   * rendered pixel there (the browser test compares them with forward
+   * kinematics projected through `view()`), with the joint angles drawn.
+   */
+  probe(names: readonly string[]): { q: number[]; links: LinkProbe[] } | null {
+    const renderer = this.renderer;
+    if (!renderer || !this.robot) return null;
+    this.dirty = true;
+    this.draw(Number.POSITIVE_INFINITY);
+    const canvas = renderer.domElement;
+    const gl = renderer.getContext();
+    const links: LinkProbe[] = [];
+    for (const name of names) {
+      const link = this.robot.links[name];
+      if (!link) continue;
+      const w = new THREE.Vector3().setFromMatrixPosition(link.matrixWorld);
+      const ndc = w.clone().project(this.camera);
+      const sx = ((ndc.x + 1) / 2) * canvas.clientWidth;
+      const sy = ((1 - ndc.y) / 2) * canvas.clientHeight;
+      const bx = Math.round((sx / canvas.clientWidth) * gl.drawingBufferWidth);
+      const by = Math.round((1 - sy / canvas.clientHeight) * gl.drawingBufferHeight);
+      const px = new Uint8Array(4);
+      gl.readPixels(bx, by, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+      links.push({ name, world: [w.x, w.y, w.z], screen: [sx, sy], rgba: [px[0], px[1], px[2], px[3]] });
     }
-    const flange = fs[7];
-    const z = new THREE.Vector3(flange[2], flange[6], flange[10]);
-    stretch(this.tool, pts[7], pts[7].clone().addScaledVector(z, this.geometry.tool_length_m));
+    return { q: [...this.q], links };
+  }
+
+  /** The view: projection and world-to-camera matrices (column-major) and the canvas size in CSS pixels. */
+  view(): { projection: number[]; worldToCamera: number[]; width: number; height: number } {
+    this.camera.updateMatrixWorld();
+    const c = this.renderer?.domElement;
+    return {
+      projection: this.camera.projectionMatrix.toArray(),
+      worldToCamera: this.camera.matrixWorldInverse.toArray(),
+      width: c?.clientWidth ?? 0,
+      height: c?.clientHeight ?? 0,
+    };
   }
 
   update(s: StateMessage): void {

@@ -1,34 +1,9 @@
 import { describe, expect, it } from "vitest";
-import { frames, origin } from "./iiwa";
 import { SeriesWindow } from "./series";
 import { fmt, pct, wilson } from "./stats";
 import { parseCsv } from "./trials";
 import { num, parseMessage } from "./types";
 import { trialList } from "./api";
-
-describe("iiwa forward kinematics", () => {
-  it("stands upright at q = 0 with the flange at 1.266 m", () => {
-    const f = frames([0, 0, 0, 0, 0, 0, 0]);
-    const p = origin(f[7]);
-    expect(p[0]).toBeCloseTo(0, 12);
-    expect(p[2]).toBeCloseTo(1.266, 12);
-  });
-  it("reproduces IIWA7.md's check pose", () => {
-    const f = frames([0, Math.PI / 6, 0, -Math.PI / 3, 0, Math.PI / 2, 0]);
-    const [x, y, z] = origin(f[7]);
-    expect(x).toBeCloseTo(0.6, 9);
-    expect(y).toBeCloseTo(0, 9);
-    expect(z).toBeCloseTo(0.560410162, 8);
-    // Rotation rows [-1,0,0; 0,1,0; 0,0,-1].
-    const t = f[7];
-    expect(t[0]).toBeCloseTo(-1, 9);
-    expect(t[5]).toBeCloseTo(1, 9);
-    expect(t[10]).toBeCloseTo(-1, 9);
-  });
-  it("refuses a wrong number of joints", () => {
-    expect(() => frames([0, 0, 0])).toThrow();
-  });
-});
 
 describe("series window", () => {
   it("keeps the newest rows in order and never grows", () => {
