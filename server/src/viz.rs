@@ -15,7 +15,7 @@
 //! | `/series` | JSON `isochron.Series`: the dashboard's plotted scalars | state rate |
 //! | `/camera/image` | `foxglove.CompressedImage` (JPEG) | camera stream rate |
 //! | `/camera/annotations` | `foxglove.ImageAnnotations`: detection circle, predicted positions, intercept point | camera stream rate |
-//! | `/robot_description` | JSON `std_msgs/String` with the URDF | 1 Hz live, once per recording |
+//! | `/robot_description` | JSON `std_msgs/String` with the URDF | when a recording opens, then 1 Hz |
 //!
 //! Log times are the Unix clock (nanoseconds) when the bridge thread logs the
 //! message; the header timestamps are the control-clock times of the data moved
