@@ -35,7 +35,7 @@ use rt_core::{
     params::Scenario,
 };
 use serde_json::Value;
-use server::{AppState, LabOptions, Records, app, simlab::start_simulated, viz::TOPICS};
+use server::{AppState, LabOptions, Records, app, runtime::start_simulated, viz::TOPICS};
 use tokio_tungstenite::tungstenite::{Message, client::IntoClientRequest, http::HeaderValue};
 
 const SCHEMAS: [(&str, &str, &str); 7] = [
