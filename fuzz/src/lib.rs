@@ -10,7 +10,7 @@ use std::mem::discriminant;
 use std::sync::atomic::Ordering::Relaxed;
 
 use rt_core::fri::codec::{
-    command_view, decode_command_message, decode_monitoring_message, monitoring_view,
+    command_view, decode_command_message_of, decode_monitoring_message_of, monitoring_view,
 };
 use rt_core::fri::{
     CommandDecoder, CommandEncoder, ControlStep, FriClient, FriClientParams, Joints, LinkState,
@@ -99,7 +99,8 @@ fn same<T: std::fmt::Debug>(a: &T, b: &T) -> bool {
 /// re-encodes to one that decodes to the same view.
 pub fn monitoring_decode(dec: &mut MonitoringDecoder, enc: &mut MonitoringEncoder, data: &[u8]) {
     let reused = dec.decode(data);
-    let fresh = decode_monitoring_message(data).and_then(|m| monitoring_view(&m));
+    let v = dec.version();
+    let fresh = decode_monitoring_message_of(data, v).and_then(|m| monitoring_view(&m, v));
     match (&reused, &fresh) {
         (Ok(a), Ok(b)) => assert!(same(a, b), "reused {a:?}\nfresh {b:?}"),
         (Err(a), Err(b)) => assert_eq!(discriminant(a), discriminant(b), "{a} vs {b}"),
@@ -115,7 +116,8 @@ pub fn monitoring_decode(dec: &mut MonitoringDecoder, enc: &mut MonitoringEncode
 /// Command decode: as [`monitoring_decode`], for the controller's side.
 pub fn command_decode(dec: &mut CommandDecoder, enc: &mut CommandEncoder, data: &[u8]) {
     let reused = dec.decode(data);
-    let fresh = decode_command_message(data).and_then(|m| command_view(&m));
+    let v = dec.version();
+    let fresh = decode_command_message_of(data, v).and_then(|m| command_view(&m, v));
     match (&reused, &fresh) {
         (Ok(a), Ok(b)) => assert!(same(a, b), "reused {a:?}\nfresh {b:?}"),
         (Err(a), Err(b)) => assert_eq!(discriminant(a), discriminant(b), "{a} vs {b}"),
@@ -131,11 +133,14 @@ pub fn command_decode(dec: &mut CommandDecoder, enc: &mut CommandEncoder, data: 
             .expect("a decoded command re-encodes")
             .to_vec();
         // 77 bytes with counters below 128; each counter is a varint of up to 5 bytes.
-        let max = if c.joint_position_rad.is_some() {
-            85
-        } else {
-            18
-        };
+        // FRI 2.7 frames add 4 bytes of length and 4 of CRC.
+        let framing = if v.framed() { 8 } else { 0 };
+        let max = framing
+            + if c.joint_position_rad.is_some() {
+                85
+            } else {
+                18
+            };
         assert!(bytes.len() <= max, "{} bytes", bytes.len());
         let again = dec.decode(&bytes).expect("re-encoded command decodes");
         assert_eq!(again.sequence_counter, c.sequence_counter);

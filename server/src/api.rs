@@ -247,6 +247,53 @@ async fn run(state: &AppState, command: Command) -> Result<Json<Accepted>, AppEr
     }))
 }
 
+/// `GET /api/fri`: the FRI link's version and `isochron fri doctor`'s last report.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct FriInfo {
+    /// The FRI version the lab's client speaks (`"1.15"`).
+    pub version: &'static str,
+    /// Its wire format in words.
+    pub wire: &'static str,
+    /// The doctor's last report (`isochron fri doctor --json`), or null when it
+    /// has not run (or its file is unreadable).
+    #[schema(value_type = Object)]
+    pub doctor: Option<serde_json::Value>,
+    /// When that report was written, Unix seconds.
+    pub doctor_t_s: Option<f64>,
+}
+
+/// The FRI link's version and the connection doctor's last findings.
+#[utoipa::path(get, path = "/api/fri", tag = "lab",
+    responses((status = 200, description = "version and the last `fri doctor` report", body = FriInfo)))]
+pub async fn get_fri(State(state): State<Arc<AppState>>) -> Json<FriInfo> {
+    let (doctor, doctor_t_s) = match &state.fri_doctor_report {
+        Some(path) => {
+            let path = path.clone();
+            tokio::task::spawn_blocking(move || {
+                let text = std::fs::read(&path).ok()?;
+                let value: serde_json::Value = serde_json::from_slice(&text).ok()?;
+                let t = std::fs::metadata(&path)
+                    .and_then(|m| m.modified())
+                    .ok()
+                    .and_then(|m| m.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map(|d| d.as_secs_f64());
+                Some((value, t))
+            })
+            .await
+            .ok()
+            .flatten()
+            .map_or((None, None), |(v, t)| (Some(v), t))
+        }
+        None => (None, None),
+    };
+    Json(FriInfo {
+        version: state.fri_version.name(),
+        wire: state.fri_version.wire_summary(),
+        doctor,
+        doctor_t_s,
+    })
+}
+
 /// The latest state, as on the WebSocket (`"type": "state"`).
 #[utoipa::path(get, path = "/api/state", tag = "lab",
     responses(
@@ -852,11 +899,11 @@ impl utoipa::Modify for BearerAuth {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
-    paths(crate::health, get_state, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
+    paths(crate::health, get_state, get_fri, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
           start_trial, list_trials, get_trial, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
-                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters)),
+                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters, FriInfo)),
     modifiers(&BearerAuth),
     tags((name = "service"), (name = "lab"), (name = "commands"), (name = "trials"), (name = "streams"))
 )]

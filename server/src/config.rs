@@ -155,6 +155,9 @@ pub struct FriHardware {
     pub controller: SocketAddr,
     /// Send period configured in the robot application, ms.
     pub period_ms: u32,
+    /// The FRI version of the controller's Sunrise release (`"1.15"` default;
+    /// `"1.11"`, `"1.14"`, `"1.15"`, `"1.16"`, `"2.5"`, `"2.7"`).
+    pub version: rt_core::fri::FriVersion,
 }
 
 impl Default for FriHardware {
@@ -163,6 +166,7 @@ impl Default for FriHardware {
             local_bind: SocketAddr::from(([192, 170, 10, 1], 30200)),
             controller: SocketAddr::from(([192, 170, 10, 2], 30200)),
             period_ms: 5,
+            version: rt_core::fri::FriVersion::default(),
         }
     }
 }
@@ -328,6 +332,10 @@ mod tests {
         assert!(e.to_string().contains("yaw"), "{e}");
         let e = ServeConfig::from_toml_str("[fri]\nperiod = 5\n").unwrap_err();
         assert!(e.to_string().contains("period"), "{e}");
+        let e = ServeConfig::from_toml_str("[fri]\nversion = \"2.6\"\n").unwrap_err();
+        assert!(e.to_string().contains("unknown FRI version \"2.6\""), "{e}");
+        let cfg = ServeConfig::from_toml_str("[fri]\nversion = \"2.7\"\n").unwrap();
+        assert_eq!(cfg.fri.version, rt_core::fri::FriVersion::V2_7);
         assert_eq!(
             ServeConfig::from_toml_str("").unwrap(),
             ServeConfig::default()

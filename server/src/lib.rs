@@ -53,6 +53,9 @@ pub fn default_web_dir() -> PathBuf {
     PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../web/dist"))
 }
 
+/// File name of `isochron fri doctor`'s last report in the data folder.
+pub const FRI_DOCTOR_REPORT_FILE: &str = "fri-doctor.json";
+
 /// Default largest request body, bytes.
 pub const DEFAULT_BODY_LIMIT_BYTES: usize = 64 * 1024;
 
@@ -75,6 +78,10 @@ pub struct AppState {
     pub cors_origins: Vec<String>,
     /// Why trials are refused (a real lab without calibration); none: allowed.
     pub trials_refused: Option<String>,
+    /// The FRI version the lab's client speaks.
+    pub fri_version: rt_core::fri::FriVersion,
+    /// Where `isochron fri doctor` writes its last report (none: not shown).
+    pub fri_doctor_report: Option<PathBuf>,
 }
 
 impl AppState {
@@ -89,7 +96,17 @@ impl AppState {
             trials_refused: None,
             body_limit_bytes: DEFAULT_BODY_LIMIT_BYTES,
             cors_origins: Vec::new(),
+            fri_version: rt_core::fri::FriVersion::default(),
+            fri_doctor_report: None,
         }
+    }
+
+    /// The FRI version of the lab and the file of `isochron fri doctor`'s last
+    /// report (`GET /api/fri`).
+    pub fn with_fri(mut self, version: rt_core::fri::FriVersion, doctor_report: PathBuf) -> Self {
+        self.fri_version = version;
+        self.fri_doctor_report = Some(doctor_report);
+        self
     }
 
     /// Requires this bearer token for commands (an empty token means none).
@@ -178,6 +195,7 @@ pub fn app(state: Arc<AppState>) -> Router {
     let api = Router::new()
         .route("/health", get(health))
         .route("/state", get(api::get_state))
+        .route("/fri", get(api::get_fri))
         .route("/params", get(api::get_params).put(api::put_params))
         .route("/arm", post(api::arm))
         .route("/disarm", post(api::disarm))

@@ -62,8 +62,13 @@ enum Command {
     Magnet(cmd::magnet::MagnetArgs),
     /// Run trials across distances and movement times and write a report beside the paper's results.
     Eval(cmd::eval::EvalArgs),
-    /// A standalone simulated KUKA FRI controller (any FRI 1.15 client can connect).
+    /// A standalone simulated KUKA FRI controller (FRI 1.11 to 2.7, --fri-version).
     FriSim(cmd::fri_sim::FriSimArgs),
+    /// The FRI link: `fri doctor` diagnoses the connection to the robot controller.
+    Fri {
+        #[command(subcommand)]
+        command: cmd::fri_doctor::FriCommand,
+    },
     /// Run the ball detector over a recorded video.
     Detect(cmd::detect::DetectArgs),
     /// Scenario files.
@@ -130,6 +135,18 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
         Command::Eval(args) => print_out(&cmd::eval::run(args)?),
         Command::FriSim(args) => print_out(&cmd::fri_sim::run(args)?),
+        Command::Fri {
+            command: cmd::fri_doctor::FriCommand::Doctor(args),
+        } => {
+            let (report, ok) = cmd::fri_doctor::run(args)?;
+            print_out(&report)?;
+            if ok {
+                Ok(())
+            } else {
+                // The report says why; the status says that.
+                std::process::exit(2)
+            }
+        }
         Command::Detect(args) => cmd::detect::run(args),
         Command::Scenario {
             command: ScenarioCommand::Check { file },

@@ -113,6 +113,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
+    let fri_version = match cfg.lab.mode {
+        LabMode::Real => cfg.fri.version,
+        LabMode::Simulated => rt_core::fri::FriVersion::default(),
+    };
     let state = Arc::new(
         AppState::new(web_dir)
             .with_token(token)
@@ -120,7 +124,8 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_lab(Arc::clone(&lab))
             .with_body_limit(cfg.server.body_limit_bytes)
             .with_cors_origins(cfg.server.cors_origins.clone())
-            .with_trials_refused(trials_refused),
+            .with_trials_refused(trials_refused)
+            .with_fri(fri_version, data_dir.join(crate::FRI_DOCTOR_REPORT_FILE)),
     );
     let foxglove_lab = Arc::clone(&lab);
     let result = runtime.block_on(async move {
@@ -228,7 +233,10 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         bind: cfg.fri.local_bind,
         controller: cfg.fri.controller,
     };
-    setup.session = rt_core::fri::FriClientParams::default();
+    setup.session = rt_core::fri::FriClientParams {
+        version: cfg.fri.version,
+        ..rt_core::fri::FriClientParams::default()
+    };
     setup.camera = CameraLink::Source { open, calibration };
     setup.magnet = MagnetLink::Port(MagnetParams {
         baud: cfg.magnet.baud,

@@ -5,6 +5,7 @@ import { Link, wsUrl, type LinkStatus } from "./connection";
 import { Controls, ParamsPanel } from "./controls";
 import type { Lead } from "./hopf";
 import { Plots } from "./plots";
+import { FriPanel } from "./fri";
 import { fmt } from "./stats";
 import { TrialsView } from "./trials";
 import { DEFAULT_GEOMETRY, Twin } from "./twin";
@@ -27,6 +28,8 @@ const camera = new CameraView($("camera"));
 const trials = new TrialsView($("trials"));
 const params = new ParamsPanel($<HTMLFormElement>("params"), notify);
 const controls = new Controls(notify, () => void trials.refresh());
+const fri = new FriPanel($("fri"));
+fri.start();
 
 let latest: StateMessage | null = null;
 let lastTrialState = "";
@@ -79,6 +82,7 @@ function status(s: StateMessage): void {
   const st = $("st-trial");
   if (st.dataset.state !== s.trial_state) st.dataset.state = s.trial_state;
   set("st-fri", `${s.fri.session} · ${s.fri.quality}`);
+  fri.link(s.fri);
   set("st-rtt", fmt(s.fri.reply_latency_us, 0, "µs"));
   set("st-magnet", s.magnet);
   set("st-latency", fmt(s.robot.actuation_latency_ms, 1, "ms"));

@@ -12,9 +12,11 @@ use std::sync::atomic::{AtomicU8, AtomicU32, AtomicU64, Ordering::Relaxed};
 use serde::{Deserialize, Serialize};
 
 use super::codec::{CodecError, CommandEncoder, Joints, Monitoring, MonitoringDecoder};
+use super::framing::FrameError;
 use super::guard::{CommandGuard, GuardOutcome, GuardParams};
 use super::proto::{ConnectionQuality, SessionState};
 use super::stats::{AtomicJoints, LatencyHistogram, LatencySummary};
+use super::version::FriVersion;
 use crate::params::{ParamError, check};
 
 /// Client settings, units in the names.
@@ -32,6 +34,8 @@ pub struct FriClientParams {
     /// Apply the guard (always `true` on a robot; `false` only to test the
     /// controller's own limit checks).
     pub guard_enabled: bool,
+    /// The FRI version the controller speaks (`"1.15"` by default).
+    pub version: FriVersion,
 }
 
 impl Default for FriClientParams {
@@ -41,6 +45,7 @@ impl Default for FriClientParams {
             late_fraction: 0.5,
             guard: GuardParams::default(),
             guard_enabled: true,
+            version: FriVersion::default(),
         }
     }
 }
@@ -163,6 +168,7 @@ impl ControlStep for HoldPosition {
 pub struct SessionStats {
     state: AtomicU8,
     quality: AtomicU8,
+    version: AtomicU8,
     receive_period_us: AtomicU32,
     /// Valid controller messages received.
     pub received: AtomicU64,
@@ -170,8 +176,13 @@ pub struct SessionStats {
     pub replies: AtomicU64,
     /// Replies that carried a joint command (COMMANDING_ACTIVE).
     pub commands: AtomicU64,
-    /// Datagrams refused by the decoder (garbage, truncated, wrong identifier).
+    /// Datagrams refused by the decoder (garbage, truncated, wrong identifier,
+    /// bad framing); none of them reaches the control step.
     pub decode_errors: AtomicU64,
+    /// Of those, FRI 2.7 frames whose CRC-32 did not match.
+    pub crc_errors: AtomicU64,
+    /// Of those, FRI 2.7 frames whose length field did not match the datagram.
+    pub frame_length_errors: AtomicU64,
     /// Datagrams from an address other than the configured controller.
     pub foreign_datagrams: AtomicU64,
     /// Replies whose receive -> send time exceeded `late_fraction` of the period.
@@ -213,6 +224,8 @@ pub struct SessionStats {
 /// A plain copy of [`SessionStats`] for display and JSON.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct SessionStatus {
+    /// The FRI version the client speaks (`"1.15"`).
+    pub version: &'static str,
     /// Session state (or no link).
     pub state: LinkState,
     /// The controller's connection quality; `None` without a link.
@@ -227,6 +240,10 @@ pub struct SessionStatus {
     pub commands: u64,
     /// Datagrams refused by the decoder.
     pub decode_errors: u64,
+    /// FRI 2.7 frames refused for their CRC-32.
+    pub crc_errors: u64,
+    /// FRI 2.7 frames refused for their length field.
+    pub frame_length_errors: u64,
     /// Late replies.
     pub late_replies: u64,
     /// Controller messages never received.
@@ -263,6 +280,15 @@ impl SessionStats {
         }
     }
 
+    /// The FRI version the client speaks.
+    pub fn version(&self) -> FriVersion {
+        // 0: not set (the default version); else the index in `ALL` + 1.
+        match usize::from(self.version.load(Relaxed)) {
+            0 => FriVersion::default(),
+            i => FriVersion::ALL.get(i - 1).copied().unwrap_or_default(),
+        }
+    }
+
     /// Records the receive -> reply time of one reply (by the runtime).
     pub fn record_reply_latency(&self, ns: u64, late_after_ns: u64) {
         self.reply_latency.record_ns(ns);
@@ -277,6 +303,7 @@ impl SessionStats {
         let l = |a: &AtomicU64| a.load(Relaxed);
         let p = self.receive_period_us.load(Relaxed);
         SessionStatus {
+            version: self.version().name(),
             state: self.state(),
             quality: self.quality().map(ConnectionQuality::name),
             period_ms: if p == 0 { f64::NAN } else { f64::from(p) / 1e3 },
@@ -284,6 +311,8 @@ impl SessionStats {
             replies: l(&self.replies),
             commands: l(&self.commands),
             decode_errors: l(&self.decode_errors),
+            crc_errors: l(&self.crc_errors),
+            frame_length_errors: l(&self.frame_length_errors),
             late_replies: l(&self.late_replies),
             missed_cycles: l(&self.missed_cycles),
             silences: l(&self.silences),
@@ -321,12 +350,18 @@ impl FriClient {
     /// A client; `params` are validated.
     pub fn new(params: FriClientParams) -> Result<Self, ParamError> {
         params.validate()?;
+        let stats = SessionStats::default();
+        let code = FriVersion::ALL
+            .iter()
+            .position(|v| *v == params.version)
+            .unwrap_or(0);
+        stats.version.store(code as u8 + 1, Relaxed);
         Ok(Self {
             guard: CommandGuard::new(&params.guard),
+            decoder: MonitoringDecoder::with_version(params.version),
+            encoder: CommandEncoder::with_version(params.version),
             params,
-            decoder: MonitoringDecoder::new(),
-            encoder: CommandEncoder::new(),
-            stats: Arc::new(SessionStats::default()),
+            stats: Arc::new(stats),
             state: LinkState::Disconnected,
             sequence: 0,
             since_reply: 0,
@@ -403,8 +438,17 @@ impl FriClient {
     ) -> Option<&[u8]> {
         let m = match self.decoder.decode(bytes) {
             Ok(m) => m,
-            Err(_) => {
+            Err(e) => {
                 self.stats.decode_errors.fetch_add(1, Relaxed);
+                match e {
+                    CodecError::Frame(FrameError::Crc { .. }) => {
+                        self.stats.crc_errors.fetch_add(1, Relaxed);
+                    }
+                    CodecError::Frame(FrameError::Length { .. }) => {
+                        self.stats.frame_length_errors.fetch_add(1, Relaxed);
+                    }
+                    _ => {}
+                }
                 return None;
             }
         };

@@ -1,4 +1,11 @@
-//! Encoding and decoding FRI 1.15 datagrams without allocating per message.
+//! Encoding and decoding FRI datagrams (versions 1.11 to 2.7) without
+//! allocating per message.
+//!
+//! Every encoder and decoder speaks one [`FriVersion`] (`new()`: 1.15): 2.7
+//! datagrams are framed (length + CRC-32, [`super::framing`]); after decoding,
+//! the fields the version does not define are dropped (a decoder of that
+//! version's schema skips them as unknown), and the encoders write only fields
+//! the version defines.
 //!
 //! [`MonitoringDecoder`] and [`CommandDecoder`] decode into a message they keep
 //! and reuse (the joint arrays keep their capacity), check proto2's required
@@ -10,12 +17,14 @@
 
 use prost::Message;
 
+use super::framing::{FRAME_OVERHEAD, FrameError, frame_in_place, unframe};
 use super::proto::{
     ClientCommandMode, ConnectionInfo, ConnectionQuality, ControlMode, DriveState,
     FriCommandMessage, FriMonitoringMessage, JointValues, MessageCommandData, MessageHeader,
     MessageIpoData, MessageMonitorData, OperationMode, OverlayType, RobotInfo, SafetyState,
     SessionState, TimeStamp,
 };
+use super::version::FriVersion;
 use crate::kinematics::iiwa7::JOINTS;
 
 /// `header.messageIdentifier` of a monitoring message (controller -> client).
@@ -71,7 +80,23 @@ pub enum CodecError {
     /// The encoded message does not fit in one datagram.
     #[error("encoded message exceeds {MAX_DATAGRAM_BYTES} bytes")]
     EncodeOverflow,
+    /// A 2.7 frame with a wrong length field or CRC-32.
+    #[error("FRI 2.7 framing: {0}")]
+    Frame(#[from] FrameError),
+    /// A value array of the wrong size (transformations, external force).
+    #[error("{field} has {got} values, expected {expected}")]
+    ValueCount {
+        /// The field.
+        field: &'static str,
+        /// How many values it had.
+        got: usize,
+        /// How many this version defines.
+        expected: usize,
+    },
 }
+
+/// Cartesian force and torque, N and N m (`externalForce`, FRI 2.7).
+pub type Wrench = [f64; 6];
 
 /// Controller time (Unix time).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -125,6 +150,8 @@ pub struct Monitoring {
     pub commanded_torque_nm: Option<Joints>,
     /// External torques, N m.
     pub external_torque_nm: Option<Joints>,
+    /// External force and torque at the flange, N and N m (FRI 2.7 only).
+    pub external_force: Option<Wrench>,
     /// Controller time of the measurement.
     pub timestamp: Option<UnixTime>,
     /// `ipoData.jointPosition`, rad (COMMANDING_* only).
@@ -155,6 +182,7 @@ impl Default for Monitoring {
             commanded_joint_position_rad: None,
             commanded_torque_nm: None,
             external_torque_nm: None,
+            external_force: None,
             timestamp: None,
             ipo_joint_position_rad: None,
             client_command_mode: None,
@@ -246,14 +274,82 @@ fn check_timestamp(
     }
 }
 
-fn check_transformations(ts: &[super::proto::Transformation]) -> Result<(), CodecError> {
+fn check_transformations<'a>(
+    ts: impl IntoIterator<Item = &'a super::proto::Transformation>,
+    version: FriVersion,
+) -> Result<(), CodecError> {
     for t in ts {
         if t.name.is_none() {
             return Err(CodecError::MissingField("transformation.name"));
         }
+        let expected = version.transformation_values();
+        if !t.matrix.is_empty() && t.matrix.len() != expected {
+            return Err(CodecError::ValueCount {
+                field: "transformation values",
+                got: t.matrix.len(),
+                expected,
+            });
+        }
         check_timestamp("transformation.timestamp", t.timestamp.as_ref())?;
     }
     Ok(())
+}
+
+fn check_redundancy(r: Option<&super::proto::RedundancyInformation>) -> Result<(), CodecError> {
+    match r {
+        Some(r) if r.strategy.is_none() || r.value.is_none() => {
+            Err(CodecError::MissingField("redundancyInformation"))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Drops the fields `version` does not define (its decoder skips them as unknown).
+fn strip_monitoring(msg: &mut FriMonitoringMessage, version: FriVersion) {
+    if !version.has_end_of_message() {
+        msg.end_of_message_data = None;
+    }
+    if let Some(md) = &mut msg.monitor_data {
+        if !version.has_commanded_joint_position()
+            && let Some(jv) = &mut md.commanded_joint_position
+        {
+            jv.value.clear();
+        }
+        if !version.has_external_force()
+            && let Some(f) = &mut md.external_force
+        {
+            f.element.clear();
+        }
+        if !version.has_io() {
+            md.read_io_request.clear();
+        }
+        if !version.is_2x() {
+            md.measured_cartesian_pose = None;
+            md.measured_redundancy_information = None;
+        }
+    }
+    if !version.is_2x()
+        && let Some(ipo) = &mut msg.ipo_data
+    {
+        ipo.cartesian_pose = None;
+        ipo.redundancy_information = None;
+    }
+}
+
+/// Drops the command fields `version` does not define.
+fn strip_command(msg: &mut FriCommandMessage, version: FriVersion) {
+    if !version.has_end_of_message() {
+        msg.end_of_message_data = None;
+    }
+    if let Some(cd) = &mut msg.command_data {
+        if !version.has_io() {
+            cd.write_io_request.clear();
+        }
+        if !version.is_2x() {
+            cd.cartesian_pose = None;
+            cd.redundancy_information = None;
+        }
+    }
 }
 
 fn check_io(ios: &[super::proto::FriIoValue]) -> Result<(), CodecError> {
@@ -275,11 +371,15 @@ fn opt_enum<E: TryFrom<i32>>(v: Option<i32>) -> Option<E> {
     v.and_then(|x| E::try_from(x).ok())
 }
 
-/// Checks a decoded monitoring message and returns its view.
+/// Checks a decoded monitoring message (of `version`'s fields, see
+/// [`strip_monitoring`]) and returns its view.
 ///
 /// Joint arrays that are present but empty count as absent (so a decoder that
 /// reuses its message can keep their allocations).
-pub fn monitoring_view(msg: &FriMonitoringMessage) -> Result<Monitoring, CodecError> {
+pub fn monitoring_view(
+    msg: &FriMonitoringMessage,
+    version: FriVersion,
+) -> Result<Monitoring, CodecError> {
     let (seq, refl) = check_header(msg.header.as_ref(), MONITORING_MESSAGE_ID)?;
     let ci = msg
         .connection_info
@@ -308,7 +408,7 @@ pub fn monitoring_view(msg: &FriMonitoringMessage) -> Result<Monitoring, CodecEr
         receive_multiplier: ci.receive_multiplier.unwrap_or(1).max(1),
         ..Monitoring::default()
     };
-    check_transformations(&msg.requested_transformations)?;
+    check_transformations(&msg.requested_transformations, version)?;
     if let Some(ri) = &msg.robot_info {
         v.safety_state = opt_enum(ri.safety_state);
         v.operation_mode = opt_enum(ri.operation_mode);
@@ -342,6 +442,20 @@ pub fn monitoring_view(msg: &FriMonitoringMessage) -> Result<Monitoring, CodecEr
             read_joints("monitorData.externalTorque", md.external_torque.as_ref())?;
         v.timestamp = check_timestamp("monitorData.timestamp", md.timestamp.as_ref())?;
         check_io(&md.read_io_request)?;
+        check_transformations(md.measured_cartesian_pose.as_ref(), version)?;
+        check_redundancy(md.measured_redundancy_information.as_ref())?;
+        v.external_force = match &md.external_force {
+            Some(f) if !f.element.is_empty() => {
+                Some(<Wrench>::try_from(f.element.as_slice()).map_err(|_| {
+                    CodecError::ValueCount {
+                        field: "monitorData.externalForce",
+                        got: f.element.len(),
+                        expected: 6,
+                    }
+                })?)
+            }
+            _ => None,
+        };
     }
     if let Some(ipo) = &msg.ipo_data {
         v.ipo_joint_position_rad =
@@ -349,12 +463,19 @@ pub fn monitoring_view(msg: &FriMonitoringMessage) -> Result<Monitoring, CodecEr
         v.client_command_mode = opt_enum(ipo.client_command_mode);
         v.overlay_type = opt_enum(ipo.overlay_type);
         v.tracking_performance = ipo.tracking_performance;
+        check_transformations(ipo.cartesian_pose.as_ref(), version)?;
+        check_redundancy(ipo.redundancy_information.as_ref())?;
+        if let Some(m) = ipo.client_command_mode
+            && !(0..=version.max_client_command_mode()).contains(&m)
+        {
+            v.client_command_mode = None;
+        }
     }
     Ok(v)
 }
 
 /// Checks a decoded command message and returns its view.
-pub fn command_view(msg: &FriCommandMessage) -> Result<Command, CodecError> {
+pub fn command_view(msg: &FriCommandMessage, version: FriVersion) -> Result<Command, CodecError> {
     let (seq, refl) = check_header(msg.header.as_ref(), COMMAND_MESSAGE_ID)?;
     let mut c = Command {
         sequence_counter: seq,
@@ -365,7 +486,9 @@ pub fn command_view(msg: &FriCommandMessage) -> Result<Command, CodecError> {
         c.joint_position_rad =
             read_joints("commandData.jointPosition", cd.joint_position.as_ref())?;
         c.joint_torque_nm = read_joints("commandData.jointTorque", cd.joint_torque.as_ref())?;
-        check_transformations(&cd.commanded_transformations)?;
+        check_transformations(&cd.commanded_transformations, version)?;
+        check_transformations(cd.cartesian_pose.as_ref(), version)?;
+        check_redundancy(cd.redundancy_information.as_ref())?;
         check_io(&cd.write_io_request)?;
     }
     Ok(c)
@@ -401,33 +524,70 @@ fn check_len(bytes: &[u8]) -> Result<(), CodecError> {
     }
 }
 
-/// Decodes and checks a monitoring datagram into a fresh message (allocates;
-/// for tools and tests; the session uses [`MonitoringDecoder`]).
+/// The protobuf bytes of a datagram of `version`: checks the size and, for
+/// 2.7, the frame's length and CRC.
+pub fn payload(bytes: &[u8], version: FriVersion) -> Result<&[u8], CodecError> {
+    check_len(bytes)?;
+    if version.framed() {
+        Ok(unframe(bytes)?)
+    } else {
+        Ok(bytes)
+    }
+}
+
+/// Decodes and checks an FRI 1.15 monitoring datagram into a fresh message
+/// (allocates; for tools and tests; the session uses [`MonitoringDecoder`]).
 pub fn decode_monitoring_message(bytes: &[u8]) -> Result<FriMonitoringMessage, CodecError> {
-    check_len(bytes)?;
-    let msg = FriMonitoringMessage::decode(bytes)
-        .map_err(|e| classify(e, bytes, MONITORING_MESSAGE_ID))?;
-    monitoring_view(&msg)?;
+    decode_monitoring_message_of(bytes, FriVersion::V1_15)
+}
+
+/// Decodes and checks a monitoring datagram of `version` (allocates).
+pub fn decode_monitoring_message_of(
+    bytes: &[u8],
+    version: FriVersion,
+) -> Result<FriMonitoringMessage, CodecError> {
+    let pb = payload(bytes, version)?;
+    let mut msg =
+        FriMonitoringMessage::decode(pb).map_err(|e| classify(e, pb, MONITORING_MESSAGE_ID))?;
+    strip_monitoring(&mut msg, version);
+    monitoring_view(&msg, version)?;
     Ok(msg)
 }
 
-/// Decodes and checks a command datagram into a fresh message (allocates).
+/// Decodes and checks an FRI 1.15 command datagram into a fresh message (allocates).
 pub fn decode_command_message(bytes: &[u8]) -> Result<FriCommandMessage, CodecError> {
-    check_len(bytes)?;
-    let msg =
-        FriCommandMessage::decode(bytes).map_err(|e| classify(e, bytes, COMMAND_MESSAGE_ID))?;
-    command_view(&msg)?;
+    decode_command_message_of(bytes, FriVersion::V1_15)
+}
+
+/// Decodes and checks a command datagram of `version` (allocates).
+pub fn decode_command_message_of(
+    bytes: &[u8],
+    version: FriVersion,
+) -> Result<FriCommandMessage, CodecError> {
+    let pb = payload(bytes, version)?;
+    let mut msg = FriCommandMessage::decode(pb).map_err(|e| classify(e, pb, COMMAND_MESSAGE_ID))?;
+    strip_command(&mut msg, version);
+    command_view(&msg, version)?;
     Ok(msg)
 }
 
+/// Encodes `msg` into `buf` as a datagram of `version` (framed for 2.7).
 fn encode_into(
     msg: &impl Message,
     buf: &mut [u8; MAX_DATAGRAM_BYTES],
+    version: FriVersion,
 ) -> Result<usize, CodecError> {
-    let mut rest: &mut [u8] = &mut buf[..];
+    let start = if version.framed() { 4 } else { 0 };
+    let room = MAX_DATAGRAM_BYTES - if version.framed() { FRAME_OVERHEAD } else { 0 };
+    let mut rest: &mut [u8] = &mut buf[start..room + start];
     msg.encode(&mut rest)
         .map_err(|_| CodecError::EncodeOverflow)?;
-    Ok(MAX_DATAGRAM_BYTES - rest.len())
+    let n = room - rest.len();
+    if version.framed() {
+        frame_in_place(&mut buf[..], n).ok_or(CodecError::EncodeOverflow)
+    } else {
+        Ok(n)
+    }
 }
 
 /// Decodes monitoring datagrams, reusing one message (no allocation per datagram
@@ -435,12 +595,26 @@ fn encode_into(
 #[derive(Debug, Default)]
 pub struct MonitoringDecoder {
     msg: FriMonitoringMessage,
+    version: FriVersion,
 }
 
 impl MonitoringDecoder {
-    /// A decoder.
+    /// An FRI 1.15 decoder.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A decoder of `version`'s datagrams.
+    pub fn with_version(version: FriVersion) -> Self {
+        Self {
+            version,
+            ..Self::default()
+        }
+    }
+
+    /// The version it decodes.
+    pub fn version(&self) -> FriVersion {
+        self.version
     }
 
     fn reset(&mut self) {
@@ -469,13 +643,20 @@ impl MonitoringDecoder {
             {
                 jv.value.clear();
             }
+            if let Some(f) = &mut md.external_force {
+                f.element.clear();
+            }
             md.read_io_request.clear();
+            md.measured_cartesian_pose = None;
+            md.measured_redundancy_information = None;
             md.timestamp = None;
         }
         if let Some(ipo) = &mut m.ipo_data {
             if let Some(jv) = &mut ipo.joint_position {
                 jv.value.clear();
             }
+            ipo.cartesian_pose = None;
+            ipo.redundancy_information = None;
             ipo.client_command_mode = None;
             ipo.overlay_type = None;
             ipo.tracking_performance = None;
@@ -484,12 +665,13 @@ impl MonitoringDecoder {
 
     /// Decodes and checks one datagram.
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Monitoring, CodecError> {
-        check_len(bytes)?;
+        let pb = payload(bytes, self.version)?;
         self.reset();
         self.msg
-            .merge(bytes)
-            .map_err(|e| classify(e, bytes, MONITORING_MESSAGE_ID))?;
-        monitoring_view(&self.msg)
+            .merge(pb)
+            .map_err(|e| classify(e, pb, MONITORING_MESSAGE_ID))?;
+        strip_monitoring(&mut self.msg, self.version);
+        monitoring_view(&self.msg, self.version)
     }
 }
 
@@ -497,12 +679,26 @@ impl MonitoringDecoder {
 #[derive(Debug, Default)]
 pub struct CommandDecoder {
     msg: FriCommandMessage,
+    version: FriVersion,
 }
 
 impl CommandDecoder {
-    /// A decoder.
+    /// An FRI 1.15 decoder.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// A decoder of `version`'s datagrams.
+    pub fn with_version(version: FriVersion) -> Self {
+        Self {
+            version,
+            ..Self::default()
+        }
+    }
+
+    /// The version it decodes.
+    pub fn version(&self) -> FriVersion {
+        self.version
     }
 
     fn reset(&mut self) {
@@ -521,17 +717,20 @@ impl CommandDecoder {
             }
             cd.commanded_transformations.clear();
             cd.write_io_request.clear();
+            cd.cartesian_pose = None;
+            cd.redundancy_information = None;
         }
     }
 
     /// Decodes and checks one datagram.
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Command, CodecError> {
-        check_len(bytes)?;
+        let pb = payload(bytes, self.version)?;
         self.reset();
         self.msg
-            .merge(bytes)
-            .map_err(|e| classify(e, bytes, COMMAND_MESSAGE_ID))?;
-        command_view(&self.msg)
+            .merge(pb)
+            .map_err(|e| classify(e, pb, COMMAND_MESSAGE_ID))?;
+        strip_command(&mut self.msg, self.version);
+        command_view(&self.msg, self.version)
     }
 }
 
@@ -542,6 +741,7 @@ pub struct CommandEncoder {
     /// The command data while a header-only reply is sent (keeps its allocation).
     stash: Option<MessageCommandData>,
     buf: [u8; MAX_DATAGRAM_BYTES],
+    version: FriVersion,
 }
 
 impl Default for CommandEncoder {
@@ -551,8 +751,13 @@ impl Default for CommandEncoder {
 }
 
 impl CommandEncoder {
-    /// An encoder.
+    /// An FRI 1.15 encoder.
     pub fn new() -> Self {
+        Self::with_version(FriVersion::default())
+    }
+
+    /// An encoder of `version`'s datagrams.
+    pub fn with_version(version: FriVersion) -> Self {
         let mut cd = MessageCommandData::default();
         write_joints(&mut cd.joint_position, Some(&[0.0; JOINTS]));
         Self {
@@ -567,6 +772,7 @@ impl CommandEncoder {
             },
             stash: Some(cd),
             buf: [0; MAX_DATAGRAM_BYTES],
+            version,
         }
     }
 
@@ -597,7 +803,7 @@ impl CommandEncoder {
                 }
             }
         }
-        let n = encode_into(&self.msg, &mut self.buf)?;
+        let n = encode_into(&self.msg, &mut self.buf, self.version)?;
         Ok(&self.buf[..n])
     }
 }
@@ -607,7 +813,9 @@ impl CommandEncoder {
 pub struct MonitoringEncoder {
     msg: FriMonitoringMessage,
     ipo_stash: Option<MessageIpoData>,
+    force_stash: Option<super::proto::CartesianVector>,
     buf: [u8; MAX_DATAGRAM_BYTES],
+    version: FriVersion,
 }
 
 impl Default for MonitoringEncoder {
@@ -617,8 +825,13 @@ impl Default for MonitoringEncoder {
 }
 
 impl MonitoringEncoder {
-    /// An encoder.
+    /// An FRI 1.15 encoder.
     pub fn new() -> Self {
+        Self::with_version(FriVersion::default())
+    }
+
+    /// An encoder of `version`'s datagrams.
+    pub fn with_version(version: FriVersion) -> Self {
         let zeros = [0.0; JOINTS];
         let mut md = MessageMonitorData::default();
         for jv in [
@@ -642,12 +855,17 @@ impl MonitoringEncoder {
                 ..FriMonitoringMessage::default()
             },
             ipo_stash: Some(ipo),
+            force_stash: Some(super::proto::CartesianVector {
+                element: Vec::with_capacity(6),
+            }),
             buf: [0; MAX_DATAGRAM_BYTES],
+            version,
         }
     }
 
-    /// Encodes `m`: every field that is `Some` in the view is written, joint
-    /// arrays as 7 unpacked doubles. Returns the datagram.
+    /// Encodes `m`: every field that is `Some` in the view and defined in the
+    /// encoder's version is written, joint arrays as 7 unpacked doubles.
+    /// Returns the datagram.
     pub fn encode(&mut self, m: &Monitoring) -> Result<&[u8], CodecError> {
         let msg = &mut self.msg;
         msg.header = Some(MessageHeader {
@@ -676,12 +894,28 @@ impl MonitoringEncoder {
             m.measured_joint_position_rad.as_ref(),
         );
         write_joints(&mut md.measured_torque, m.measured_torque_nm.as_ref());
-        write_joints(
-            &mut md.commanded_joint_position,
-            m.commanded_joint_position_rad.as_ref(),
-        );
+        let commanded = m
+            .commanded_joint_position_rad
+            .as_ref()
+            .filter(|_| self.version.has_commanded_joint_position());
+        write_joints(&mut md.commanded_joint_position, commanded);
         write_joints(&mut md.commanded_torque, m.commanded_torque_nm.as_ref());
         write_joints(&mut md.external_torque, m.external_torque_nm.as_ref());
+        match (&m.external_force, self.version.has_external_force()) {
+            (Some(f), true) => {
+                if md.external_force.is_none() {
+                    md.external_force = self.force_stash.take();
+                }
+                let cv = md.external_force.get_or_insert_with(Default::default);
+                cv.element.clear();
+                cv.element.extend_from_slice(f);
+            }
+            _ => {
+                if let Some(cv) = md.external_force.take() {
+                    self.force_stash = Some(cv);
+                }
+            }
+        }
         md.timestamp = m.timestamp.map(|t| TimeStamp {
             sec: Some(t.sec),
             nanosec: Some(t.nanosec),
@@ -702,7 +936,7 @@ impl MonitoringEncoder {
         } else if let Some(ipo) = msg.ipo_data.take() {
             self.ipo_stash = Some(ipo);
         }
-        let n = encode_into(&self.msg, &mut self.buf)?;
+        let n = encode_into(&self.msg, &mut self.buf, self.version)?;
         Ok(&self.buf[..n])
     }
 }

@@ -2,12 +2,17 @@
 
 pub mod client;
 pub mod codec;
+pub mod doctor;
+pub mod framing;
 pub mod guard;
 pub mod net;
 pub mod proto;
 pub mod session;
 pub mod stats;
+pub mod version;
 
+#[cfg(test)]
+mod golden_tests;
 #[cfg(test)]
 mod tests;
 
@@ -18,8 +23,10 @@ pub use client::{
 pub use codec::{
     COMMAND_MESSAGE_ID, CodecError, Command, CommandDecoder, CommandEncoder, Joints,
     MAX_DATAGRAM_BYTES, MONITORING_MESSAGE_ID, Monitoring, MonitoringDecoder, MonitoringEncoder,
-    UnixTime,
+    UnixTime, Wrench,
 };
+pub use framing::FrameError;
 pub use guard::{CommandGuard, GuardOutcome, GuardParams};
 pub use proto::{ConnectionQuality, SessionState};
 pub use session::{FriSession, FriSessionParams, SessionError};
+pub use version::FriVersion;

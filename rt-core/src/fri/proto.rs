@@ -1,4 +1,7 @@
-//! The FRI 1.15 wire messages as prost structs (FRI.md, "Messages").
+//! The FRI wire messages as prost structs (FRI.md, "Messages"): the union of
+//! the fields of versions 1.11 to 2.7 ([`super::version`] says which version
+//! has which; the codec drops the fields a version lacks after decoding and
+//! never writes them).
 //!
 //! Written by hand from the public field table; no `.proto` file and no `protoc`.
 //! proto2 semantics: fields that FRI declares `required` are `Option`s here so the
@@ -107,7 +110,7 @@ pub struct MessageMonitorData {
     /// Measured joint torques, N m.
     #[prost(message, optional, tag = "2")]
     pub measured_torque: Option<JointValues>,
-    /// The controller's commanded joint positions, rad.
+    /// The controller's commanded joint positions, rad (FRI 1.x only).
     #[prost(message, optional, tag = "3")]
     pub commanded_joint_position: Option<JointValues>,
     /// Commanded joint torques, N m.
@@ -116,9 +119,18 @@ pub struct MessageMonitorData {
     /// Estimated external torques, N m.
     #[prost(message, optional, tag = "5")]
     pub external_torque: Option<JointValues>,
-    /// IO values the client asked for (at most 10).
+    /// Estimated external Cartesian force and torque at the flange (FRI 2.7), 6 values.
+    #[prost(message, optional, tag = "6")]
+    pub external_force: Option<CartesianVector>,
+    /// IO values the client asked for (at most 10; from FRI 1.14).
     #[prost(message, repeated, tag = "8")]
     pub read_io_request: Vec<FriIoValue>,
+    /// Measured Cartesian pose (FRI 2.x, 7-value quaternion transformation).
+    #[prost(message, optional, tag = "9")]
+    pub measured_cartesian_pose: Option<Transformation>,
+    /// Measured redundancy information (FRI 2.x).
+    #[prost(message, optional, tag = "10")]
+    pub measured_redundancy_information: Option<RedundancyInformation>,
     /// Controller time of the measurement (Unix time).
     #[prost(message, optional, tag = "15")]
     pub timestamp: Option<TimeStamp>,
@@ -130,6 +142,12 @@ pub struct MessageIpoData {
     /// The interpolator's joint positions, rad (COMMANDING_* only).
     #[prost(message, optional, tag = "1")]
     pub joint_position: Option<JointValues>,
+    /// The interpolator's Cartesian pose (FRI 2.x).
+    #[prost(message, optional, tag = "2")]
+    pub cartesian_pose: Option<Transformation>,
+    /// The interpolator's redundancy information (FRI 2.x).
+    #[prost(message, optional, tag = "3")]
+    pub redundancy_information: Option<RedundancyInformation>,
     /// [`ClientCommandMode`].
     #[prost(enumeration = "ClientCommandMode", optional, tag = "10")]
     pub client_command_mode: Option<i32>,
@@ -156,9 +174,26 @@ pub struct MessageCommandData {
     /// Commanded frames (at most 5).
     #[prost(message, repeated, tag = "4")]
     pub commanded_transformations: Vec<Transformation>,
-    /// IO values to write (at most 10).
+    /// IO values to write (at most 10; from FRI 1.14).
     #[prost(message, repeated, tag = "5")]
     pub write_io_request: Vec<FriIoValue>,
+    /// Commanded Cartesian pose (FRI 2.x).
+    #[prost(message, optional, tag = "6")]
+    pub cartesian_pose: Option<Transformation>,
+    /// Commanded redundancy information (FRI 2.x).
+    #[prost(message, optional, tag = "7")]
+    pub redundancy_information: Option<RedundancyInformation>,
+}
+
+/// The arm's redundancy (FRI 2.x; both fields required).
+#[derive(Clone, Copy, PartialEq, prost::Message)]
+pub struct RedundancyInformation {
+    /// `RedundancyStrategy`: E1 0, NONE 4.
+    #[prost(int32, optional, tag = "1")]
+    pub strategy: Option<i32>,
+    /// The redundancy value (E1: the elbow angle, rad).
+    #[prost(double, optional, tag = "2")]
+    pub value: Option<f64>,
 }
 
 /// One value per joint: always exactly 7, written unpacked.
@@ -188,13 +223,15 @@ pub struct TimeStamp {
     pub nanosec: Option<u32>,
 }
 
-/// A named 3x4 frame (FRI 1.x; FRI 2.x uses quaternions instead).
+/// A named frame: FRI 1.x `Transformation` (12 values, a 3x4 matrix) or FRI
+/// 2.x `QuaternionTransformation` (7 values, under the same field numbers).
 #[derive(Clone, PartialEq, prost::Message)]
 pub struct Transformation {
     /// Required: the frame's name (at most 64 bytes).
     #[prost(string, optional, tag = "1")]
     pub name: Option<String>,
-    /// 12 values, a row-major 3x4 matrix.
+    /// 1.x: 12 values, a row-major 3x4 matrix; 2.x: 7 values, x y z (mm) and
+    /// the quaternion.
     #[prost(double, repeated, packed = "false", tag = "2")]
     pub matrix: Vec<f64>,
     /// When the frame was valid.
@@ -365,12 +402,14 @@ pub enum ControlMode {
 pub enum ClientCommandMode {
     /// No command mode.
     NoCommandMode = 0,
-    /// Joint positions.
+    /// Joint positions (POSITION up to 1.16, JOINT_POSITION from 2.5).
     Position = 1,
     /// Cartesian wrench.
     Wrench = 2,
     /// Joint torques.
     Torque = 3,
+    /// Cartesian pose (FRI 2.x).
+    CartesianPose = 4,
 }
 
 /// `OverlayType`.

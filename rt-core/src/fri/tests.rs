@@ -9,6 +9,7 @@ use rand::SeedableRng;
 
 use super::codec::*;
 use super::proto::*;
+use super::version::FriVersion;
 
 fn sample_monitoring(seq: u32, with_ipo: bool) -> Monitoring {
     let q = [0.1, -0.2, 0.3, -1.4, 0.5, 0.6, -0.7];
@@ -32,6 +33,7 @@ fn sample_monitoring(seq: u32, with_ipo: bool) -> Monitoring {
         commanded_joint_position_rad: Some(q),
         commanded_torque_nm: Some([0.0; 7]),
         external_torque_nm: Some([0.5; 7]),
+        external_force: None,
         timestamp: Some(UnixTime {
             sec: 1_790_000_000,
             nanosec: 123_456_789,
@@ -95,7 +97,7 @@ fn monitoring_round_trip_and_size() {
         assert_eq!(dec.decode(&bytes).unwrap(), m);
         // The reference decoder agrees.
         let full = decode_monitoring_message(&bytes).unwrap();
-        assert_eq!(monitoring_view(&full).unwrap(), m);
+        assert_eq!(monitoring_view(&full, FriVersion::V1_15).unwrap(), m);
         if with_ipo {
             // FRI.md: "a full monitoring message without IO or transformations about 471 bytes".
             assert!((380..=520).contains(&bytes.len()), "{} bytes", bytes.len());

@@ -944,6 +944,7 @@ impl SimController {
             commanded_joint_position_rad: Some(self.setpoint),
             commanded_torque_nm: Some(torque),
             external_torque_nm: Some([0.0; JOINTS]),
+            external_force: None,
             timestamp: Some(UnixTime::from_ns(self.epoch_unix_ns + now_ns)),
             ipo_joint_position_rad: commanding.then_some(self.ipo),
             client_command_mode: commanding.then_some(ClientCommandMode::Position),
