@@ -3,7 +3,9 @@
 //! It sends monitoring messages to `--client` every period, walks
 //! MONITORING_WAIT -> MONITORING_READY -> COMMANDING_WAIT -> COMMANDING_ACTIVE
 //! (asking for commanding as soon as the client's answers are good enough), and
-//! closes with IDLE after `--duration-s`. Any FRI 1.15 client works against it,
+//! closes with IDLE after `--duration-s`. It speaks the FRI version of
+//! `--fri-version` (1.11, 1.14, 1.15 (default), 1.16, 2.5, 2.7: fields and, for
+//! 2.7, length + CRC-32 framing); any client of that version works against it,
 //! including KUKA's own SDK run without a host argument (it answers the sender).
 
 use std::net::SocketAddr;
@@ -11,6 +13,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
+use rt_core::fri::FriVersion;
 use rt_core::params::check;
 use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
 
@@ -35,6 +38,9 @@ pub struct FriSimArgs {
     /// Seed of the simulated jitter and loss.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// The FRI version to speak: 1.11, 1.14, 1.15, 1.16, 2.5 or 2.7.
+    #[arg(long, default_value = "1.15")]
+    pub fri_version: FriVersion,
     /// Print one JSON summary object instead of text.
     #[arg(long)]
     pub json: bool,
@@ -47,6 +53,7 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
         fri_period_ms: args.period_ms,
         packet_loss: args.packet_loss,
         seed: args.seed,
+        fri_version: args.fri_version,
         ..FriSimParams::default()
     };
     params.validate().map_err(|e| {
@@ -67,7 +74,8 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
     )?;
     if !args.json {
         eprintln!(
-            "isochron fri-sim: controller on {} -> client {}, {} ms period, {:.1} s",
+            "isochron fri-sim: FRI {} controller on {} -> client {}, {} ms period, {:.1} s",
+            args.fri_version,
             server.local_addr(),
             args.client,
             args.period_ms,

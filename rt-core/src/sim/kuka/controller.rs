@@ -80,6 +80,8 @@ pub struct FriSimParams {
     pub measurement_noise_rad: f64,
     /// Seed of the random draws (jitter, loss, noise).
     pub seed: u64,
+    /// The FRI version the controller speaks (`"1.15"` by default).
+    pub fri_version: crate::fri::FriVersion,
 }
 
 impl Default for FriSimParams {
@@ -107,6 +109,7 @@ impl Default for FriSimParams {
             reply_delay_jitter_ms: 0.0,
             measurement_noise_rad: 0.0,
             seed: 1,
+            fri_version: crate::fri::FriVersion::default(),
         }
     }
 }
@@ -628,10 +631,9 @@ impl SimController {
         stats.setpoint_rad.store(&q);
         let mut s = Self {
             rng: ChaCha8Rng::seed_from_u64(params.seed),
-            p: params,
             stats,
-            enc: MonitoringEncoder::new(),
-            dec: CommandDecoder::new(),
+            enc: MonitoringEncoder::with_version(params.fri_version),
+            dec: CommandDecoder::with_version(params.fri_version),
             epoch_unix_ns,
             state: SessionState::MonitoringWait,
             quality: ConnectionQuality::Fair,
@@ -658,6 +660,7 @@ impl SimController {
             close_requested: false,
             closed: false,
             world: None,
+            p: params,
         };
         s.set_state(SessionState::MonitoringWait);
         s.set_quality(ConnectionQuality::Fair);
@@ -944,7 +947,9 @@ impl SimController {
             commanded_joint_position_rad: Some(self.setpoint),
             commanded_torque_nm: Some(torque),
             external_torque_nm: Some([0.0; JOINTS]),
-            external_force: None,
+            // FRI 2.7's estimated external force: no contact is simulated
+            // (the encoder writes it for 2.7 only).
+            external_force: Some([0.0; 6]),
             timestamp: Some(UnixTime::from_ns(self.epoch_unix_ns + now_ns)),
             ipo_joint_position_rad: commanding.then_some(self.ipo),
             client_command_mode: commanding.then_some(ClientCommandMode::Position),

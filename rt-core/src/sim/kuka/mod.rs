@@ -1,4 +1,4 @@
-//! The simulated KUKA controller: the robot side of FRI 1.15 ([`SimController`],
+//! The simulated KUKA controller: the robot side of FRI 1.11 to 2.7 (`fri_version`; [`SimController`],
 //! stepped by its caller: virtual time) and its UDP server ([`SimServer`],
 //! thread `isochron-fri-sim`, or `isochron fri-sim`). It speaks to the real
 //! FRI client (`crate::fri`) through the real codec.
