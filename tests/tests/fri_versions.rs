@@ -634,10 +634,7 @@ fn each_versions_controller_and_client_datagrams_decode_with_an_independent_deco
         let mut states = std::collections::BTreeSet::new();
         let (mut monitored, mut commands, mut positions) = (0, 0, 0);
         let mut t = 0u64;
-        loop {
-            let Some(m) = sim.tick(t).map(<[u8]>::to_vec) else {
-                break;
-            };
+        while let Some(m) = sim.tick(t).map(<[u8]>::to_vec) {
             let n = monitoring(&m, v).unwrap_or_else(|e| panic!("FRI {v} monitoring: {e}"));
             monitored += 1;
             let state = n.u(&["connectionInfo", "sessionState"]).unwrap();

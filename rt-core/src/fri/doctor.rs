@@ -766,6 +766,6 @@ fn conclude(params: &DoctorParams, listen: SocketAddr, seen: &Seen, r: &mut Doct
         });
     }
     // Worst first; among equals, in the order found (the cause before its effects).
-    f.sort_by(|a, b| b.severity.cmp(&a.severity));
+    f.sort_by_key(|x| std::cmp::Reverse(x.severity));
     r.findings = f;
 }
