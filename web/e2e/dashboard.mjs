@@ -128,6 +128,16 @@ try {
     }
     assert(await visitor.page.isEnabled("#btn-stop"), "stop disabled");
   });
+  await check("visitor: the FRI panel shows version, period, quality and the doctor's findings", async () => {
+    await visitor.page.waitForFunction(
+      () => /^FRI 1\.15 · \d+ ms · \w+/.test(document.querySelector("#fri .fri-link")?.textContent ?? ""),
+      null,
+      { timeout: 5_000 },
+    );
+    await visitor.page.waitForSelector('#fri .fri-doctor li.problem[data-code="no_datagrams"]', { timeout: 5_000 });
+    const hint = await visitor.page.textContent('#fri .fri-doctor li[data-code="no_datagrams"]');
+    assert(hint.includes("ip -br addr"), `no hint in ${hint}`);
+  });
   await check("visitor: no console errors", async () => {
     assert(visitor.errors.length === 0, visitor.errors.join(" | "));
   });

@@ -12,6 +12,8 @@ fi
 data=$(mktemp -d)
 token="e2e-$RANDOM$RANDOM"
 out="$data/serve.out"
+# The FRI doctor's last report, as a user leaves one (nothing sends here: no_datagrams).
+"$bin" fri doctor --listen 127.0.0.1:0 --seconds 0.3 --scan-ports none --data-dir "$data/db" >/dev/null 2>&1 || true
 "$bin" serve --bind 127.0.0.1:0 --token "$token" --data-dir "$data/db" --web-dir "$here/dist" >"$out" 2>"$data/serve.err" &
 pid=$!
 cleanup() { kill "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; rm -rf "$data"; }
