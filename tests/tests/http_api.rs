@@ -631,6 +631,7 @@ async fn the_openapi_document_validates_and_lists_every_endpoint() {
     let expected = [
         ("get", "/api/health"),
         ("get", "/api/state"),
+        ("get", "/api/fri"),
         ("get", "/api/params"),
         ("put", "/api/params"),
         ("post", "/api/arm"),
