@@ -256,7 +256,7 @@ pub struct FriInfo {
     pub wire: &'static str,
     /// The doctor's last report (`isochron fri doctor --json`), or null when it
     /// has not run (or its file is unreadable).
-    #[schema(value_type = Object)]
+    #[schema(value_type = Option<Object>)]
     pub doctor: Option<serde_json::Value>,
     /// When that report was written, Unix seconds.
     pub doctor_t_s: Option<f64>,
