@@ -30,10 +30,10 @@ pub struct TrialRecord {
     /// The ground-truth verdict, when there was a motion to judge.
     #[serde(flatten)]
     pub judgement: Option<Judgement>,
-    /// The physical judge's verdict on the true world (reality lab only:
-    /// scenarios with `[world]`); then it decides success.
+    /// The physical judge's verdict on the ground truth (reality-lab scenarios
+    /// only); then it decides success.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub physical: Option<crate::sim::world::PhysicalJudgement>,
+    pub physical: Option<PhysicalJudgement>,
     /// At the motion's start: predicted pass time minus the true one, milliseconds.
     pub prediction_crossing_time_error_ms: Option<f64>,
     /// At the motion's start: predicted ball position at the pass to the true one, metres.
@@ -329,4 +329,22 @@ mod tests {
         let line = serde_json::to_value(&rs[0]).unwrap();
         assert!(line["timing_error_ms"].is_number() && line["failure"].is_null());
     }
+}
+
+/// The physical judge's verdict on one trial (written by the lab's
+/// judge on the ground truth; the controller never computes it and only carries it in its report).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PhysicalJudgement {
+    /// True pass the controller committed to, s.
+    pub t_star_s: f64,
+    /// Arrival: the true tool settled within 2 mm of its final point, s.
+    pub arrival_s: f64,
+    /// `arrival - t*`, ms (negative: early).
+    pub timing_error_ms: f64,
+    /// First contact of ball and disc in the committed pass, s.
+    pub contact_s: Option<f64>,
+    /// Smallest ball-to-disc gap in the committed pass (negative: overlap), m.
+    pub min_gap_m: f64,
+    /// Contact within the pass and |timing error| within the tolerance.
+    pub hit_in_time: bool,
 }

@@ -15,7 +15,6 @@
 //!   tolerance, no limit violation or abort (the caller's part).
 
 use nalgebra::Vector3;
-use serde::Serialize;
 
 use super::pendulum::Disc;
 
@@ -33,22 +32,7 @@ pub struct WorldSample {
     pub disc: Disc,
 }
 
-/// What the physical judge says about one trial.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct PhysicalJudgement {
-    /// True pass the controller committed to, s.
-    pub t_star_s: f64,
-    /// Arrival: the true tool settled within 2 mm of its final point, s.
-    pub arrival_s: f64,
-    /// `arrival - t*`, ms (negative: early).
-    pub timing_error_ms: f64,
-    /// First contact of ball and disc in the committed pass, s.
-    pub contact_s: Option<f64>,
-    /// Smallest ball-to-disc gap in the committed pass (negative: overlap), m.
-    pub min_gap_m: f64,
-    /// Contact within the pass and |timing error| within the tolerance.
-    pub hit_in_time: bool,
-}
+pub use crate::control::report::PhysicalJudgement;
 
 /// Why a trial could not be judged physically.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
