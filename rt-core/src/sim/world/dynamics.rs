@@ -24,16 +24,8 @@ pub const JOINT_ORIGIN_M: [[f64; 3]; JOINTS + 1] = [
     [0.0, 0.0, 0.035],
 ];
 
-/// Joint axes in their link frame.
-pub const JOINT_AXIS: [[f64; 3]; JOINTS] = [
-    [0.0, 0.0, 1.0],
-    [0.0, 1.0, 0.0],
-    [0.0, 0.0, 1.0],
-    [0.0, -1.0, 0.0],
-    [0.0, 0.0, 1.0],
-    [0.0, 1.0, 0.0],
-    [0.0, 0.0, 1.0],
-];
+/// Joint axes in their link frame: the URDF's (`kinematics::iiwa7::URDF_AXES`).
+pub const JOINT_AXIS: [[f64; 3]; JOINTS] = crate::kinematics::iiwa7::URDF_AXES;
 
 /// Links 1..7: centre of mass in the link frame (m), mass (kg), inertia about
 /// the centre of mass `[ixx, iyy, izz, iyz]` (kg m^2).
