@@ -9,14 +9,16 @@
 //! |---|---|
 //! | [`calibration`] | calibration fits: free swing, camera latency by LED, robot latency and servo; the calibration file |
 //! | [`bridge`] | hand-offs between the control thread and the server; the shared data model |
+//! | [`check`] | `ParamError` and the validation helpers (a leaf: imports nothing of the crate) |
 //! | [`params`] | typed, validated parameters and scenario files |
 //! | [`pendulum`] | the damped pendulum (eq. 8), its geometry, the ground-truth simulator |
 //! | [`ekf`] | the extended Kalman filter (eqs. 1-16) and the predictor (pass times, motion start) |
 //! | [`kinematics`] | the KUKA LBR iiwa 7 R800 model, limits, FK/Jacobian/IK |
 //! | [`trajectory`] | timed Cartesian motions, profiles, feasibility |
-//! | [`fri`] | KUKA FRI 1.15: wire codec, client session, simulated controller |
+//! | [`fri`] | KUKA FRI 1.15, the client side: wire codec, client session, guard, socket session |
 //! | [`control`] | the closed loop: control step, trial states, latency estimate, judging |
-//! | [`sim`] | the simulated lab: virtual-time runtime wiring truth, camera, FRI robot and control |
+//! | [`lab`] | the lab runtime and the one trial driver, on the wall clock or a virtual clock |
+//! | [`sim`] | the simulated world only: simulated KUKA controller, cameras, magnet board, the reality lab's world |
 //! | [`magnet`] | the electromagnet: firmware protocol, serial driver thread, fake device |
 //! | [`timing`] | Hopf speed dynamics, competing neurons, timed straight-line motion (eqs. 20-21) |
 //! | [`tuning`] | EKF noise estimated from recordings (maximum likelihood), the paper's Fig. 4 |
@@ -24,6 +26,7 @@
 
 pub mod bridge;
 pub mod calibration;
+pub mod check;
 pub mod control;
 pub mod ekf;
 pub mod fri;

@@ -4,6 +4,7 @@ pub mod file;
 pub mod latency;
 pub mod lsq;
 pub mod robot;
+#[cfg(feature = "opencv")]
 pub mod simworld;
 pub mod swing;
 

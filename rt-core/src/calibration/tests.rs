@@ -285,6 +285,7 @@ fn calibration_file_round_trip_and_apply() {
     assert!(CalibrationFile::from_toml_str("[pendulum]\nbogus = 1\n").is_err());
 }
 
+#[cfg(feature = "opencv")]
 mod on_the_simulated_world {
     use super::super::CalibrationError;
     use super::super::simworld::{

@@ -222,11 +222,42 @@ pub fn pass_times(trace: &TrialTrace, intercept_y_m: f64, out: &mut Vec<f64>) {
     }
 }
 
+/// Working memory of [`judge_into`] (allocated once: judging then allocates
+/// nothing as long as the trace fits the capacity).
+#[derive(Debug, Clone, Default)]
+pub struct JudgeScratch {
+    times: Vec<f64>,
+    progress: Vec<f64>,
+    passes: Vec<f64>,
+}
+
+impl JudgeScratch {
+    /// Room for a trace of `n` samples.
+    pub fn with_capacity(n: usize) -> Self {
+        Self {
+            times: Vec::with_capacity(n),
+            progress: Vec::with_capacity(n),
+            passes: Vec::with_capacity(256),
+        }
+    }
+}
+
 /// Judges one motion of a trial against the truth in `trace`.
 pub fn judge(
     trace: &TrialTrace,
     motion: &PlannedMotion,
     intercept_m: &Vector3<f64>,
+) -> Result<Judgement, JudgeError> {
+    judge_into(trace, motion, intercept_m, &mut JudgeScratch::default())
+}
+
+/// [`judge`] with its working memory in `scratch` (the trial driver judges on
+/// the control thread without allocating).
+pub fn judge_into(
+    trace: &TrialTrace,
+    motion: &PlannedMotion,
+    intercept_m: &Vector3<f64>,
+    scratch: &mut JudgeScratch,
 ) -> Result<Judgement, JudgeError> {
     let n = trace.len();
     if n < 3 || trace.tool_m.len() != n || trace.ball_m.len() != n {
@@ -242,8 +273,14 @@ pub fn judge(
     // command to a little after the planned end.
     let lo = motion.commanded_start_s - 0.25 * motion.duration_s;
     let hi = motion.commanded_start_s + 1.5 * motion.duration_s;
-    let mut times = Vec::with_capacity(n);
-    let mut progress = Vec::with_capacity(n);
+    let JudgeScratch {
+        times,
+        progress,
+        passes,
+    } = scratch;
+    times.clear();
+    progress.clear();
+    passes.clear();
     for i in 0..n {
         let t = trace.t_s[i];
         if t >= lo && t <= hi {
@@ -261,14 +298,13 @@ pub fn judge(
     let (start_s, dur_s, rms) = fit_profile(
         motion.profile,
         distance_m,
-        &times,
-        &progress,
+        times,
+        progress,
         motion.commanded_start_s,
         motion.duration_s,
     );
     let arrival_s = start_s + dur_s;
-    let mut passes = Vec::new();
-    pass_times(trace, intercept_m.y, &mut passes);
+    pass_times(trace, intercept_m.y, passes);
     let t_star_s = passes
         .iter()
         .copied()

@@ -9,7 +9,7 @@ pub mod stats;
 pub mod step;
 
 pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
-pub use judge::{Judgement, PlannedMotion, TrialTrace, judge};
+pub use judge::{JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into};
 pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};

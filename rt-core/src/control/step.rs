@@ -9,12 +9,13 @@ use serde::{Deserialize, Serialize};
 
 use super::latency::LatencyEstimator;
 use super::state::{AbortReason, TrialMachine, TrialState};
+use crate::check::{self, ParamError};
 use crate::ekf::{Ekf, EkfCounters, EkfParams, MotionRequest, PassDirection, StateVec};
 use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
 };
 use crate::kinematics::{Joints, Tool, tool_pose};
-use crate::params::{ParamError, Scenario, check};
+use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;

@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 pub use model::{ProcessModel, ProcessNoiseModel, StateCov, StateVec};
 pub use predict::{Crossing, Doubt, MotionPlan, MotionRequest, PassDirection, Prediction};
 
-use crate::params::{ParamError, PendulumParams, check};
+use crate::check::{self, ParamError};
+use crate::params::PendulumParams;
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 
 /// How many past measurements (with the posterior after each) the filter keeps, so

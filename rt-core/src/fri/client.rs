@@ -17,7 +17,7 @@ use super::guard::{CommandGuard, GuardOutcome, GuardParams};
 use super::proto::{ConnectionQuality, SessionState};
 use super::stats::{AtomicJoints, LatencyHistogram, LatencySummary};
 use super::version::FriVersion;
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 
 /// Client settings, units in the names.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -9,8 +9,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::codec::Joints;
+use crate::check::{self, ParamError};
 use crate::kinematics::iiwa7::{JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS};
-use crate::params::{ParamError, check};
 
 /// Guard settings: `[fri.guard]`-style, units in the names.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

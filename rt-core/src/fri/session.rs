@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::client::{ControlStep, FriClient, FriClientParams, LinkState, SessionStats};
 use super::net::wait_readable;
-use crate::params::ParamError;
+use crate::check::ParamError;
 
 /// Where the session listens and whom it answers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -11,7 +11,7 @@ mod tests;
 use nalgebra::{IsometryMatrix3, SMatrix, SVector, Translation3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 
 pub use analytic::{ArmFlags, ArmGeometry, IkError, arm_angle};
 pub use fk::{flange_pose, frames, jacobian, tool_pose};

@@ -2,17 +2,25 @@
 
 pub mod fri_step;
 pub mod loop_step;
+#[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
-mod step;
+pub mod step;
 pub mod trial;
+pub mod truth;
+pub mod virtual_time;
+#[cfg(feature = "opencv")]
 pub mod vision;
 
 pub use fri_step::FriLoopStep;
 pub use loop_step::LoopStep;
+#[cfg(all(feature = "opencv", feature = "serial"))]
 pub use runtime::{
     CameraLink, FRI_PRIORITY, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs, LoopReport,
     MagnetLink, RuntimeError, SourceFactory, raise_fri_priority, run_loop,
 };
-pub use step::LabStep;
+pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
 pub use trial::{TrialDraw, draw_trial};
-pub use vision::{TruthUpdate, TruthView, VideoParams, VideoStats, VisionLoop, VisionParts};
+pub use truth::{TruthUpdate, TruthView};
+pub use virtual_time::{INITIAL_JOINTS_DEG, LOOPBACK_NS, LabError, VirtualLab, robot_params};
+#[cfg(feature = "opencv")]
+pub use vision::{VideoParams, VideoStats, VisionLoop, VisionParts};

@@ -9,7 +9,7 @@
 //!   sends the guarded command back.
 //! - `isochron-fri-sim`: the simulated KUKA controller ([`SimServer`]) over
 //!   loopback UDP with the scenario's latency, jitter and servo lag
-//!   ([`FriSimParams::from_robot`]); or a real controller at an address.
+//!   ([`super::robot_params`]); or a real controller at an address.
 //! - `isochron-vision`: a [`crate::vision::FrameSource`] (the simulated
 //!   camera rendering the ground-truth pendulum, a webcam or a video file) ->
 //!   OpenCV detector -> a bounded wait-free ring to the control thread, and
@@ -31,8 +31,11 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use super::step::LabStep;
-use super::step::{CameraModel, IoReply, IoRequest, LabParts, MagnetNote, Truth};
-pub use super::vision::{TruthUpdate, TruthView, VideoParams, VideoStats, VisionLoop, VisionParts};
+use super::step::{
+    CameraModel, IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params,
+};
+use super::truth::{TruthUpdate, TruthView};
+pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
 use crate::control::Controller;
@@ -41,7 +44,7 @@ use crate::magnet::{EventKind, MagnetHandle, MagnetParams};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use crate::sim::camera::{SimCamera, SimCameraParams, SimCameraSource};
-use crate::sim::kuka::{FriSimParams, SimError, SimRunOptions, SimServer, SimStats};
+use crate::sim::kuka::{SimError, SimRunOptions, SimServer, SimStats};
 use crate::sim::magnet::FakeDevice;
 use crate::vision::{
     DetectorParams, FrameSource, SwingPlaneCalibration, VisionError, VisionStats, source::Clock,
@@ -109,7 +112,7 @@ pub enum RuntimeError {
     Magnet(#[from] crate::magnet::MagnetError),
     /// A parameter was refused.
     #[error(transparent)]
-    Param(#[from] crate::params::ParamError),
+    Param(#[from] crate::check::ParamError),
     /// A thread panicked.
     #[error("real-time lab: the {0} thread failed")]
     Thread(&'static str),
@@ -424,12 +427,12 @@ impl LabRuntime {
                 seed,
                 fixed_distance_m,
                 bridge: control,
-                epoch,
+                clock: LabClock::Wall(epoch),
                 measurements: meas_rx,
                 magnet_notes: note_rx,
                 io_requests: req_tx,
                 io_replies: reply_rx,
-                magnet: magnet.clone(),
+                magnet: Some(magnet.clone()),
                 session: Arc::clone(&session_cell),
                 truth,
                 calibration,
@@ -454,19 +457,15 @@ impl LabRuntime {
 
         // The robot: the simulated controller sends to the client's socket.
         let sim = match controller_addr {
-            None => {
-                let mut p = FriSimParams::from_robot(&scenario.robot);
-                p.seed = seed;
-                Some(Arc::new(SimServer::spawn(
-                    p,
-                    SocketAddr::from(([127, 0, 0, 1], 0)),
-                    session.local_addr(),
-                    SimRunOptions {
-                        auto_command: true,
-                        duration: None,
-                    },
-                )?))
-            }
+            None => Some(Arc::new(SimServer::spawn(
+                super::virtual_time::robot_params(&scenario, seed),
+                SocketAddr::from(([127, 0, 0, 1], 0)),
+                session.local_addr(),
+                SimRunOptions {
+                    auto_command: true,
+                    duration: None,
+                },
+            )?)),
             Some(_) => None,
         };
 
@@ -701,36 +700,10 @@ impl Io {
                 drop(c);
                 return;
             }
-            IoRequest::Plan {
-                ack,
-                trial_id,
-                auto_release,
-                draw,
-            } => IoReply::Plan {
-                ack,
-                trial_id,
-                auto_release,
-                draw,
-                plan: Controller::plan(&self.scenario, draw.distance_m)
-                    .map_err(|_| crate::bridge::Refusal::Infeasible),
+            req => match plan_or_params(&mut self.scenario, req) {
+                Some(reply) => reply,
+                None => return,
             },
-            IoRequest::Params { ack, scenario } => {
-                let period = f64::from(scenario.robot.fri_period_ms) * 1e-3;
-                let same_period = scenario.robot.fri_period_ms == self.scenario.robot.fri_period_ms;
-                match Controller::new(&scenario, period) {
-                    Ok(c) if same_period => {
-                        self.scenario = (*scenario).clone();
-                        IoReply::Params {
-                            ack,
-                            result: Ok((Box::new(c), scenario)),
-                        }
-                    }
-                    _ => IoReply::Params {
-                        ack,
-                        result: Err(scenario),
-                    },
-                }
-            }
         };
         // The control thread drains replies every step; the ring holds more
         // than the requests it can have open (one).
@@ -835,5 +808,25 @@ mod tests {
         assert!(!lab.fake_magnet().unwrap().magnet_on());
         let step = lab.stop().unwrap();
         assert_eq!(step.inner().controller().counters().limit_violations(), 0);
+
+        // The same seed and world on the virtual clock (the same trial
+        // driver, links in-process): the same draw and the same judged
+        // timing error within one FRI period.
+        let s = Scenario::default();
+        let mut virt = super::super::VirtualLab::new(&s, 5).unwrap();
+        assert_eq!(virt.vision_used(), "full");
+        let v = virt.run_trial(0);
+        let vj = v.judgement.unwrap();
+        let period_ms = f64::from(s.robot.fri_period_ms);
+        println!(
+            "timing error: wall clock {:.3} ms, virtual clock {:.3} ms (FRI period {period_ms} ms)",
+            r.timing_error_ms, vj.timing_error_ms
+        );
+        assert!(v.success, "{v:?}");
+        assert_eq!(v.distance_m, r.distance_m);
+        assert!(
+            (vj.timing_error_ms - r.timing_error_ms).abs() <= period_ms,
+            "wall {r:?}, virtual {v:?}"
+        );
     }
 }

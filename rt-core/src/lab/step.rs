@@ -1,10 +1,12 @@
-//! The lab's control step on the FRI session's thread: [`LabStep`] wraps the
-//! closed loop's [`FriLoopStep`] and, around each call, polls the bridge
-//! (stop, commands), folds in the camera measurements of the vision ring,
-//! follows the magnet, keeps the ground truth and the judge's trace, reports
-//! events and publishes the snapshot. Nothing here allocates, locks, logs or
-//! blocks, except handling a command (planning a trial, new parameters),
-//! which happens once per operator action.
+//! The trial driver: the one code path that owns a trial's lifecycle, in
+//! both clocks. [`LabStep`] wraps the closed loop's [`FriLoopStep`] and,
+//! around each call, polls the bridge (stop, commands), folds in the camera
+//! measurements of the vision ring, follows the magnet, keeps the ground
+//! truth and the judge's trace, runs the trial (plan, arm, wait for release,
+//! commit, move, judge, time out, return home), reports events and publishes
+//! the snapshot. Nothing here allocates, locks, logs or blocks, except
+//! handling a command (planning a trial, new parameters), which happens once
+//! per operator action.
 
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
@@ -14,19 +16,20 @@ use rtrb::{Consumer, Producer};
 
 use super::fri_step::FriLoopStep;
 use super::trial::{TrialDraw, draw_trial};
-use super::vision::TruthUpdate;
+use super::truth::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, Command, ControlEnd, Event, EventRecord, FriQuality,
     FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
 };
 use crate::control::{
-    AbortReason, ArmPlan, Controller, Measurement, PlannedMotion, TrialRecord, TrialState,
-    TrialTrace, judge,
+    AbortReason, ArmPlan, Controller, JudgeScratch, Judgement, Measurement, PlannedMotion,
+    TrialState, TrialTrace, judge_into,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
 use crate::fri::codec::Joints;
 use crate::fri::proto::{ConnectionQuality, SessionState};
+#[cfg(feature = "serial")]
 use crate::magnet::{MagnetHandle, view};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
@@ -35,9 +38,56 @@ use crate::trajectory::profile::ProfileKind;
 use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
 
 /// Time after `Done` still recorded for the judge, seconds.
-const AFTER_DONE_S: f64 = 0.3;
-/// Longest a trial may take, seconds.
-pub(crate) const TRIAL_TIMEOUT_S: f64 = 40.0;
+pub const AFTER_DONE_S: f64 = 0.3;
+/// Longest a trial may take from arming, seconds.
+pub const TRIAL_TIMEOUT_S: f64 = 40.0;
+/// True passes of the ball through the intercept point kept per trial.
+const MAX_PASSES: usize = 64;
+
+/// The control clock of a lab.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LabClock {
+    /// The wall clock from `epoch` (shared with the camera): the session's
+    /// receive times are shifted onto it at the first message.
+    Wall(Instant),
+    /// Virtual time: the FRI client's `now_ns` is the control clock.
+    Virtual,
+}
+
+/// How a trial ended, as the control thread saw it (plain data: no
+/// allocation at the end of a trial; [`super::VirtualLab`] turns it into a
+/// [`crate::control::TrialRecord`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrialOutcome {
+    /// The trial's id (the operator's `trial_id`, 0 for a bare arm).
+    pub id: u64,
+    /// Index of the trial in the run (its draw).
+    pub index: usize,
+    /// What the trial drew from the seed.
+    pub draw: TrialDraw,
+    /// The motion's planned duration, seconds.
+    pub planned_movement_time_s: f64,
+    /// The state the trial ended in (`Done` or `Abort`).
+    pub final_state: TrialState,
+    /// The ground-truth verdict (when the lab knows the truth and there was a motion).
+    pub judgement: Option<Judgement>,
+    /// Why the motion could not be judged, when it could not.
+    pub judge_error: Option<crate::control::judge::JudgeError>,
+    /// At commit: predicted pass time minus the nearest true pass, milliseconds.
+    pub prediction_crossing_time_error_ms: Option<f64>,
+    /// At commit: predicted ball centre to the true one at the predicted time, metres.
+    pub prediction_position_error_m: Option<f64>,
+    /// The latency the interception compensated (at commit), milliseconds.
+    pub latency_estimate_ms: f64,
+    /// The controller's limit violations during the trial.
+    pub limit_violations: u64,
+    /// Control steps over the period (own computation) during the trial.
+    pub deadline_misses: u64,
+    /// Control steps over the period by wall clock only during the trial.
+    pub preempted_steps: u64,
+    /// When the trial ended, control clock, seconds.
+    pub t_end_s: f64,
+}
 /// Spacing of the predicted horizon points, seconds.
 const HORIZON_STEP_S: f64 = 0.08;
 /// The predicted horizon is recomputed this often (the stream runs at 100 Hz).
@@ -64,6 +114,7 @@ pub(crate) enum IoRequest {
         ack: u64,
         trial_id: u64,
         auto_release: bool,
+        index: usize,
         draw: TrialDraw,
     },
     /// Build a controller for new parameters (answered by [`IoReply::Params`]).
@@ -82,6 +133,7 @@ pub(crate) enum IoReply {
         ack: u64,
         trial_id: u64,
         auto_release: bool,
+        index: usize,
         draw: TrialDraw,
         plan: Result<ArmPlan, Refusal>,
     },
@@ -121,6 +173,11 @@ struct Trial {
     released: bool,
     done_at: Option<f64>,
     t0: f64,
+    index: usize,
+    /// Controller limit violations, deadline misses, preempted steps at the start.
+    counters_at_start: (u64, u64, u64),
+    /// The true ball centre at the committed prediction's pass time (exact).
+    at_predicted: Option<Vector3<f64>>,
 }
 
 /// Everything the control thread owns besides the closed loop.
@@ -131,12 +188,15 @@ pub(crate) struct LabParts {
     /// drawn per trial (the simulated lab).
     pub fixed_distance_m: Option<f64>,
     pub bridge: ControlEnd,
-    pub epoch: Instant,
+    pub clock: LabClock,
     pub measurements: Consumer<crate::vision::Measurement>,
     pub magnet_notes: Consumer<MagnetNote>,
     pub io_requests: Producer<IoRequest>,
     pub io_replies: Consumer<IoReply>,
-    pub magnet: MagnetHandle,
+    /// The magnet driver's view (`None`: the virtual-time magnet, known
+    /// only through its notes).
+    #[cfg(feature = "serial")]
+    pub magnet: Option<MagnetHandle>,
     pub session: Arc<OnceLock<Arc<SessionStats>>>,
     pub truth: Option<Truth>,
     /// The camera's calibration at the start (the dashboard's overlays).
@@ -155,6 +215,11 @@ pub struct LabStep {
     trial_index: usize,
     trial: Option<Trial>,
     trace: TrialTrace,
+    judge_scratch: JudgeScratch,
+    /// The true ball's passes through the intercept point's `y` in the
+    /// current trial: exact time (a root of the true pendulum) and centre.
+    passes: Vec<(f64, Vector3<f64>)>,
+    outcome: Option<TrialOutcome>,
     snap: Snapshot,
     horizon: Vec<Prediction>,
     next_horizon_s: f64,
@@ -252,6 +317,9 @@ impl LabStep {
             trial_index: 0,
             trial: None,
             trace: TrialTrace::with_capacity(trace_len),
+            judge_scratch: JudgeScratch::with_capacity(trace_len),
+            passes: Vec::with_capacity(MAX_PASSES),
+            outcome: None,
             snap,
             horizon: vec![Prediction::default(); bridge::HORIZON_POINTS],
             next_horizon_s: 0.0,
@@ -282,9 +350,34 @@ impl LabStep {
         &self.inner
     }
 
+    /// The closed loop (its step timing; the controller between steps).
+    pub fn inner_mut(&mut self) -> &mut FriLoopStep {
+        &mut self.inner
+    }
+
     /// The latest snapshot.
     pub fn snapshot(&self) -> &Snapshot {
         &self.snap
+    }
+
+    /// The last finished trial's outcome, once (taken).
+    pub fn take_outcome(&mut self) -> Option<TrialOutcome> {
+        self.outcome.take()
+    }
+
+    /// Index (draw) of the next trial planned.
+    pub fn set_next_trial(&mut self, index: usize) {
+        self.trial_index = index;
+    }
+
+    /// The current trial's judge trace (tool point and true ball centre).
+    pub fn trace(&self) -> &TrialTrace {
+        &self.trace
+    }
+
+    /// The current trial's true passes through the intercept point's `y`.
+    pub fn passes(&self) -> &[(f64, Vector3<f64>)] {
+        &self.passes
     }
 
     fn controller(&mut self) -> &mut Controller {
@@ -361,7 +454,8 @@ impl LabStep {
     }
 
     fn follow_magnet(&mut self) {
-        if let Some(v) = self.p.magnet.try_view() {
+        #[cfg(feature = "serial")]
+        if let Some(v) = self.p.magnet.as_ref().and_then(MagnetHandle::try_view) {
             self.snap.magnet = match (v.link, v.magnet) {
                 (view::LinkState::Lost, _) => MagnetState::Fault,
                 (_, view::MagnetState::On) => MagnetState::On,
@@ -504,6 +598,7 @@ impl LabStep {
             ack,
             trial_id,
             auto_release,
+            index: self.trial_index,
             draw,
         };
         if self.p.io_requests.push(req).is_ok() {
@@ -522,12 +617,13 @@ impl LabStep {
                 ack,
                 trial_id,
                 auto_release,
+                index,
                 draw,
                 plan,
             } => {
                 let outcome = match plan {
                     _ if cancelled => Err(Refusal::ChecksFailed),
-                    Ok(plan) => self.begin(t, trial_id, auto_release, draw, plan),
+                    Ok(plan) => self.begin(t, (trial_id, index), auto_release, draw, plan),
                     Err(r) => Err(r),
                 };
                 self.p.bridge.ack(ack, outcome, None);
@@ -558,7 +654,7 @@ impl LabStep {
     fn begin(
         &mut self,
         t: f64,
-        id: u64,
+        (id, index): (u64, usize),
         auto_release: bool,
         draw: TrialDraw,
         plan: ArmPlan,
@@ -612,7 +708,14 @@ impl LabStep {
         }
         self.inner.clear_stop();
         self.trace.clear();
+        self.passes.clear();
+        self.outcome = None;
         self.snap.trial_id = id;
+        let counters_at_start = (
+            self.inner.controller().counters().limit_violations(),
+            self.inner.step.deadline_misses,
+            self.inner.step.preempted_steps,
+        );
         self.trial = Some(Trial {
             id,
             draw,
@@ -625,6 +728,9 @@ impl LabStep {
             released: false,
             done_at: None,
             t0: t,
+            index,
+            counters_at_start,
+            at_predicted: None,
         });
         Ok(())
     }
@@ -655,11 +761,37 @@ impl LabStep {
             self.last_state = state;
         }
         let tool = self.inner.controller().tool_point(&self.q);
+        let commit = self.inner.controller().commit().copied();
         let Some(trial) = self.trial.as_mut() else {
             return;
         };
         if let Some(ball) = trial.ball.as_mut() {
             if trial.released && t > ball.time_s() {
+                // Exact times between the last step and this one: the true
+                // passes through the intercept point's `y` (roots of the true
+                // pendulum, found on a copy), and the true ball centre at the
+                // committed prediction's pass time (the filter's own tests
+                // measure it so; at t* both are the intercept point by
+                // definition).
+                let y = trial.plan.intercept_m.y;
+                if let Some(tp) = ball.next_crossing_s(y, t - ball.time_s())
+                    && self.passes.len() < MAX_PASSES
+                {
+                    let mut at = ball.clone();
+                    if at.advance_to(tp).is_ok() {
+                        self.passes.push((tp, at.ball_position_m()));
+                    }
+                }
+                if let Some(c) = commit
+                    && trial.at_predicted.is_none()
+                    && c.predicted_pass_s >= ball.time_s()
+                    && c.predicted_pass_s < t
+                {
+                    let mut at = ball.clone();
+                    if at.advance_to(c.predicted_pass_s).is_ok() {
+                        trial.at_predicted = Some(at.ball_position_m());
+                    }
+                }
                 let _ = ball.advance_to(t);
             }
             self.trace.push(t, tool, ball.ball_position_m());
@@ -675,20 +807,23 @@ impl LabStep {
             TrialState::Done => {
                 let since = *trial.done_at.get_or_insert(t);
                 if t - since >= AFTER_DONE_S {
-                    self.finish(t);
-                    return;
+                    self.conclude(t);
                 }
-            }
-            TrialState::Abort(_) => {
-                self.trial = None;
-                self.snap.trial_id = 0;
                 return;
             }
-            _ => {
-                if t - trial.t0 > TRIAL_TIMEOUT_S {
-                    self.controller().abort(t, AbortReason::PredictionTimeout);
-                }
+            TrialState::Abort(_) => {
+                self.conclude(t);
+                return;
             }
+            _ => {}
+        }
+        // An operator's trial waits in Armed for the release as long as it
+        // takes; any other trial ends by this time.
+        let timed_out =
+            (trial.auto_release || state != TrialState::Armed) && t - trial.t0 > TRIAL_TIMEOUT_S;
+        if timed_out {
+            self.controller().abort(t, AbortReason::PredictionTimeout);
+            return;
         }
         if want_release && self.request_magnet(false) {
             if let Some(tr) = self.trial.as_mut() {
@@ -697,62 +832,77 @@ impl LabStep {
         }
     }
 
-    /// Judges the finished trial on ground truth (simulated lab) and reports it.
-    fn finish(&mut self, t: f64) {
+    /// Ends the trial: judges it on ground truth (when the lab knows the
+    /// truth), keeps its [`TrialOutcome`] and, when it finished, reports it.
+    fn conclude(&mut self, t: f64) {
         let Some(trial) = self.trial.take() else {
             return;
         };
         let c = self.inner.controller();
-        let mut rec = TrialRecord {
-            trial: self.trial_index,
-            seed: self.p.seed,
-            distance_m: trial.draw.distance_m,
-            release_angle_deg: trial.draw.release_angle_deg,
-            success: false,
-            failure: None,
-            final_state: "done".to_owned(),
-            abort_reason: None,
+        let state = c.state();
+        let (v0, m0, p0) = trial.counters_at_start;
+        let mut o = TrialOutcome {
+            id: trial.id,
+            index: trial.index,
+            draw: trial.draw,
             planned_movement_time_s: trial.plan.duration_s,
+            final_state: state,
             judgement: None,
-            physical: None,
+            judge_error: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: c.latency().latency_s() * 1e3,
-            limit_violations: c.counters().limit_violations(),
-            deadline_misses: self.inner.step.deadline_misses,
-            preempted_steps: self.inner.step.preempted_steps,
+            limit_violations: c.counters().limit_violations().saturating_sub(v0),
+            deadline_misses: self.inner.step.deadline_misses.saturating_sub(m0),
+            preempted_steps: self.inner.step.preempted_steps.saturating_sub(p0),
+            t_end_s: t,
         };
-        let mut result = TrialResult {
-            success: false,
-            timing_error_ms: f64::NAN,
-            position_error_m: f64::NAN,
-            movement_time_s: f64::NAN,
-            distance_m: trial.draw.distance_m,
-            t_star_s: f64::NAN,
-            arrival_t_s: f64::NAN,
-            prediction_time_error_ms: f64::NAN,
-            limit_violations: rec.limit_violations,
-        };
-        if let (Some(commit), true) = (c.commit().copied(), trial.ball.is_some()) {
-            let motion = PlannedMotion {
-                start_m: c.home_m(),
-                end_m: c.motion_target_m(),
-                profile: ProfileKind::Hopf,
-                duration_s: commit.duration_s,
-                commanded_start_s: commit.motion_start_s,
-            };
-            if let Ok(j) = judge(&self.trace, &motion, &trial.plan.intercept_m) {
-                result.timing_error_ms = j.timing_error_ms;
-                result.position_error_m = j.position_error_m;
-                result.movement_time_s = j.movement_time_s;
-                result.t_star_s = j.t_star_s;
-                result.arrival_t_s = j.arrival_s;
-                result.prediction_time_error_ms = (commit.predicted_pass_s - j.t_star_s) * 1e3;
-                rec.judgement = Some(j);
+        if let Some(commit) = c.commit().copied() {
+            o.latency_estimate_ms = commit.latency_s * 1e3;
+            if trial.ball.is_some() {
+                let motion = PlannedMotion {
+                    start_m: c.home_m(),
+                    end_m: c.motion_target_m(),
+                    profile: ProfileKind::Hopf,
+                    duration_s: commit.duration_s,
+                    commanded_start_s: commit.motion_start_s,
+                };
+                match judge_into(
+                    &self.trace,
+                    &motion,
+                    &trial.plan.intercept_m,
+                    &mut self.judge_scratch,
+                ) {
+                    Ok(j) => o.judgement = Some(j),
+                    Err(e) => o.judge_error = Some(e),
+                }
+                if let Some((tp, _)) = nearest_pass(&self.passes, commit.predicted_pass_s) {
+                    o.prediction_crossing_time_error_ms =
+                        Some((commit.predicted_pass_s - tp) * 1e3);
+                }
+                if let Some(truth) = trial.at_predicted {
+                    o.prediction_position_error_m = Some((commit.predicted_ball_m - truth).norm());
+                }
             }
         }
-        rec.decide(&self.p.scenario.success);
-        result.success = rec.success;
+        self.outcome = Some(o);
+        self.snap.trial_id = 0;
+        if state != TrialState::Done {
+            // Aborted: reported by the state change (`Aborted`).
+            return;
+        }
+        let j = o.judgement;
+        let result = TrialResult {
+            success: o.succeeded(&self.p.scenario.success),
+            timing_error_ms: j.map_or(f64::NAN, |j| j.timing_error_ms),
+            position_error_m: j.map_or(f64::NAN, |j| j.position_error_m),
+            movement_time_s: j.map_or(f64::NAN, |j| j.movement_time_s),
+            distance_m: trial.draw.distance_m,
+            t_star_s: j.map_or(f64::NAN, |j| j.t_star_s),
+            arrival_t_s: j.map_or(f64::NAN, |j| j.arrival_s),
+            prediction_time_error_ms: o.prediction_crossing_time_error_ms.unwrap_or(f64::NAN),
+            limit_violations: o.limit_violations,
+        };
         self.snap.counters.trials += 1;
         self.p.bridge.emit(EventRecord {
             t_s: t,
@@ -760,7 +910,6 @@ impl LabStep {
             event: Event::TrialFinished { result },
         });
         let _ = self.controller().reset(t);
-        self.snap.trial_id = 0;
     }
 
     fn fill_snapshot(&mut self, t: f64) {
@@ -913,14 +1062,20 @@ impl ControlStep for LabStep {
     fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
         let started = Instant::now();
         self.period_stats(started);
-        // The control clock is the lab's (shared with the camera): the
-        // session's receive time moved by the offset between the two clocks,
-        // taken at the first message (error: the receive -> step delay, us).
-        let lab_ns = started.saturating_duration_since(self.p.epoch).as_nanos() as i64;
-        let off = *self
-            .offset_ns
-            .get_or_insert(lab_ns - input.now_ns.min(i64::MAX as u64) as i64);
-        let now_ns = (input.now_ns as i64).saturating_add(off).max(0) as u64;
+        let now_ns = match self.p.clock {
+            // The control clock is the lab's (shared with the camera): the
+            // session's receive time moved by the offset between the two
+            // clocks, taken at the first message (error: the receive -> step
+            // delay, us).
+            LabClock::Wall(epoch) => {
+                let lab_ns = started.saturating_duration_since(epoch).as_nanos() as i64;
+                let off = *self
+                    .offset_ns
+                    .get_or_insert(lab_ns - input.now_ns.min(i64::MAX as u64) as i64);
+                (input.now_ns as i64).saturating_add(off).max(0) as u64
+            }
+            LabClock::Virtual => input.now_ns,
+        };
         let t = now_ns as f64 * 1e-9;
         self.t_s = t;
         let m = input.monitoring;
@@ -962,4 +1117,67 @@ impl ControlStep for LabStep {
             self.p.bridge.publish_latest(&self.snap);
         }
     }
+}
+
+impl TrialOutcome {
+    /// The success rule of [`crate::control::TrialRecord::decide`] on what
+    /// the control thread knows (no abort, no limit violation, both errors
+    /// within tolerance), without building the record.
+    pub fn succeeded(&self, tol: &crate::params::SuccessParams) -> bool {
+        self.final_state == TrialState::Done
+            && self.limit_violations == 0
+            && self.judgement.is_some_and(|j| {
+                j.timing_error_ms <= tol.timing_tolerance_ms
+                    && j.position_error_m <= tol.position_tolerance_m
+            })
+    }
+}
+
+/// The pass in `passes` nearest to `t_s`.
+fn nearest_pass(passes: &[(f64, Vector3<f64>)], t_s: f64) -> Option<(f64, Vector3<f64>)> {
+    passes
+        .iter()
+        .min_by(|a, b| (a.0 - t_s).abs().total_cmp(&(b.0 - t_s).abs()))
+        .copied()
+}
+
+/// Answers a planning or parameter request of the control thread (on
+/// `isochron-lab-io` in real time, in line in virtual time); `None` for the
+/// other requests.
+pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<IoReply> {
+    Some(match req {
+        IoRequest::Plan {
+            ack,
+            trial_id,
+            auto_release,
+            index,
+            draw,
+        } => IoReply::Plan {
+            ack,
+            trial_id,
+            auto_release,
+            index,
+            draw,
+            plan: Controller::plan(scenario, draw.distance_m)
+                .map_err(|_| crate::bridge::Refusal::Infeasible),
+        },
+        IoRequest::Params { ack, scenario: new } => {
+            let period = f64::from(new.robot.fri_period_ms) * 1e-3;
+            let same_period = new.robot.fri_period_ms == scenario.robot.fri_period_ms;
+            match Controller::new(&new, period) {
+                Ok(c) if same_period => {
+                    *scenario = (*new).clone();
+                    IoReply::Params {
+                        ack,
+                        result: Ok((Box::new(c), new)),
+                    }
+                }
+                _ => IoReply::Params {
+                    ack,
+                    result: Err(new),
+                },
+            }
+        }
+        IoRequest::Magnet(_) | IoRequest::Free(_) => return None,
+    })
 }

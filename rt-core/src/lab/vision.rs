@@ -5,8 +5,8 @@
 //! channel for `/ws/camera` (a full channel drops the frame, counted; video
 //! never waits and never touches the measurement path).
 //!
-//! The simulated camera ([`SimCameraSource`]) renders the ground-truth pendulum
-//! that the control thread hands over through a ring of [`TruthUpdate`]s.
+//! The simulated camera ([`crate::sim::camera::SimCameraSource`]) renders the ground-truth pendulum
+//! that the control thread hands over through a ring of [`super::TruthUpdate`]s.
 
 use std::sync::{
     Arc,
@@ -21,9 +21,7 @@ use opencv::{
 use rtrb::{Consumer, Producer};
 
 use crate::bridge::{Frame as VideoFrame, FrameSender};
-use crate::params::check;
-use crate::pendulum::PendulumSim;
-use crate::sim::camera::BallState;
+use crate::check;
 use crate::vision::{
     DetectorParams, FrameSource, Measurement, SwingPlaneCalibration, VisionError, VisionPipeline,
     VisionStats, source::Clock,
@@ -52,7 +50,7 @@ impl Default for VideoParams {
 
 impl VideoParams {
     /// Checks every field; the error names the first bad one.
-    pub fn validate(&self) -> Result<(), crate::params::ParamError> {
+    pub fn validate(&self) -> Result<(), crate::check::ParamError> {
         check::within_u32("video.width_px", self.width_px, 64, 3840)?;
         check::within("video.fps", self.fps, 0.5, 60.0)?;
         check::within_u32("video.quality", u32::from(self.quality), 1, 100)
@@ -72,49 +70,6 @@ pub struct VideoStats {
     pub last_encode_us: AtomicU64,
     /// Frames the detector failed on (skipped; the thread goes on).
     pub detector_errors: AtomicU64,
-}
-
-/// What the control thread tells the simulated camera about the true pendulum.
-#[derive(Debug, Clone)]
-pub enum TruthUpdate {
-    /// From now on the camera shows this pendulum (held or swinging).
-    Ball(PendulumSim),
-    /// Nothing in view.
-    Nothing,
-}
-
-/// The simulated camera's view of the truth: the latest pendulum the control
-/// thread handed over, advanced to each frame's capture time.
-#[derive(Debug)]
-pub struct TruthView {
-    rx: Consumer<TruthUpdate>,
-    ball: Option<PendulumSim>,
-}
-
-impl TruthView {
-    /// Reads updates from `rx`.
-    pub fn new(rx: Consumer<TruthUpdate>) -> Self {
-        Self { rx, ball: None }
-    }
-
-    /// The ball at `t_s` (control clock), `None` when nothing is in view.
-    pub fn at(&mut self, t_s: f64) -> Option<BallState> {
-        while let Ok(u) = self.rx.pop() {
-            self.ball = match u {
-                TruthUpdate::Ball(b) => Some(b),
-                TruthUpdate::Nothing => None,
-            };
-        }
-        let ball = self.ball.as_mut()?;
-        if t_s > ball.time_s() && ball.advance_to(t_s).is_err() {
-            // Too far ahead (a long idle gap): start over from this state.
-            return None;
-        }
-        Some(BallState {
-            centre_m: ball.ball_position_m(),
-            velocity_mps: ball.ball_velocity_mps(),
-        })
-    }
 }
 
 /// The running vision thread.

@@ -1,16 +1,18 @@
 #![doc = include_str!("README.md")]
 
+#[cfg(feature = "serial")]
 pub mod driver;
 pub mod protocol;
 pub mod view;
 
-#[cfg(test)]
+#[cfg(all(test, feature = "serial"))]
 mod tests;
 
 use serde::{Deserialize, Serialize};
 
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 
+#[cfg(feature = "serial")]
 pub use driver::{Answer, EventHook, MagnetEvent, MagnetHandle, Pending};
 pub use protocol::{Command, DeviceEvent, DeviceStatus, OkReply, ResetCause};
 pub use view::{EventKind, LinkState, MagnetState, MagnetView, SwitchCause};

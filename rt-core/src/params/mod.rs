@@ -1,67 +1,13 @@
 #![doc = include_str!("README.md")]
 
-pub mod check;
+// `ParamError` and the `check` helpers live in the leaf module `crate::check`
+// (every part may use it; it imports nothing of the crate).
+pub use crate::check;
+pub use crate::check::ParamError;
 
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
-
-/// A parameter that was refused, naming the field, the value and the bound.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[non_exhaustive]
-pub enum ParamError {
-    /// A value outside its allowed range.
-    #[error("{field} = {value} is out of range: {bound}")]
-    OutOfRange {
-        /// Dotted path of the field, e.g. `pendulum.length_m`.
-        field: String,
-        /// The refused value, as written.
-        value: String,
-        /// The bound it broke, e.g. `must be > 0`.
-        bound: String,
-    },
-    /// NaN or an infinity.
-    #[error("{field} = {value} is not a finite number")]
-    NotFinite {
-        /// Dotted path of the field.
-        field: String,
-        /// The refused value.
-        value: String,
-    },
-    /// A `[lo, hi]` range with `lo > hi`.
-    #[error("{field} = [{lo}, {hi}] is reversed: the first value must not exceed the second")]
-    Reversed {
-        /// Dotted path of the field.
-        field: String,
-        /// First value.
-        lo: f64,
-        /// Second value.
-        hi: f64,
-    },
-    /// The file could not be parsed (syntax, wrong type, unknown key).
-    #[error("{0}")]
-    Parse(String),
-    /// The file could not be read.
-    #[error("cannot read {path}: {reason}")]
-    Io {
-        /// The path that was asked for.
-        path: String,
-        /// The operating system's reason.
-        reason: String,
-    },
-}
-
-impl ParamError {
-    /// The dotted field path this error is about, when it is about one field.
-    pub fn field(&self) -> Option<&str> {
-        match self {
-            Self::OutOfRange { field, .. }
-            | Self::NotFinite { field, .. }
-            | Self::Reversed { field, .. } => Some(field),
-            Self::Parse(_) | Self::Io { .. } => None,
-        }
-    }
-}
 
 /// A closed interval `[lo, hi]` from which a value is drawn per trial.
 ///

@@ -8,7 +8,7 @@ use serde::Serialize;
 use super::dynamics::{HopfDrive, SpeedDynamics, SpeedState};
 use super::neurons::{Neurons, Regime};
 use super::{TimingError, TimingParams};
-use crate::params::ParamError;
+use crate::check::ParamError;
 use crate::trajectory::profile::ProfileKind;
 
 /// Shortest motion accepted by [`TimedMotion::begin`], metres.

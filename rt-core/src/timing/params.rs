@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 use crate::trajectory::profile::ProfileKind;
 
 /// Parameters of the timed motion (`[timing]` once the closed loop wires it in).

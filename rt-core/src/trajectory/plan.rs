@@ -21,12 +21,12 @@ use nalgebra::{Rotation3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::path::{MotionRequest, tool_rotation};
+use crate::check::{self, ParamError};
 use crate::kinematics::analytic::{ArmFlags, ArmGeometry, IkError, check_limits, wrap_angle};
 use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINT_NAMES, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
 };
 use crate::kinematics::{Joints, Pose};
-use crate::params::{ParamError, check};
 
 /// How the arm's redundancy may be used.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]

@@ -2,8 +2,9 @@
 
 pub mod figure;
 
+use crate::check::ParamError;
 use crate::ekf::{Ekf, EkfError, EkfParams, MeasureOutcome, Prediction, ProcessNoiseModel};
-use crate::params::{ParamError, Scenario};
+use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 use serde::Serialize;
 use std::path::Path;

@@ -8,7 +8,7 @@ use nalgebra::{Matrix3, Rotation3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 
 /// Pinhole intrinsics with two radial distortion terms (OpenCV's k1, k2).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

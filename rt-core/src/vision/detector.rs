@@ -16,7 +16,7 @@ use opencv::{
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
-use crate::params::{ParamError, check};
+use crate::check::{self, ParamError};
 
 /// Detector settings: `[vision.detector]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

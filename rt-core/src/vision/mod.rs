@@ -1,16 +1,22 @@
 #![doc = include_str!("README.md")]
 
 pub mod calibration;
+#[cfg(feature = "opencv")]
 pub mod detector;
+#[cfg(feature = "opencv")]
 pub mod source;
+#[cfg(feature = "opencv")]
 pub mod thread;
 
 pub use calibration::{CalibrationReport, CameraIntrinsics, CameraPose, SwingPlaneCalibration};
+#[cfg(feature = "opencv")]
 pub use detector::{Detection, Detector, DetectorParams};
+#[cfg(feature = "opencv")]
 pub use source::{Frame, FrameSource, Recorder, VideoFileSource, WebcamParams, WebcamSource};
-pub use thread::{VisionPipeline, VisionStats, VisionThread, measurement_ring};
+#[cfg(feature = "opencv")]
+pub use thread::{VisionPipeline, VisionStats};
 
-use crate::params::ParamError;
+use crate::check::ParamError;
 
 /// Anything that went wrong in the vision part.
 #[derive(Debug, thiserror::Error)]
@@ -41,6 +47,7 @@ pub enum VisionError {
     Thread(String),
 }
 
+#[cfg(feature = "opencv")]
 impl From<opencv::Error> for VisionError {
     fn from(e: opencv::Error) -> Self {
         Self::OpenCv(e.message)
@@ -99,6 +106,7 @@ impl Measurement {
     /// A measurement from a detection converted through a calibration.
     ///
     /// Returns a missing measurement when the pixel's ray does not meet the plane.
+    #[cfg(feature = "opencv")]
     pub fn from_detection(
         frame: u64,
         t_capture_s: f64,
@@ -124,13 +132,24 @@ impl Measurement {
     }
 }
 
+/// The bounded single-producer single-consumer ring of measurements.
+///
+/// The vision thread pushes; the control step pops with `Consumer::pop`, which
+/// neither allocates nor blocks.
+pub fn measurement_ring(
+    capacity: usize,
+) -> (rtrb::Producer<Measurement>, rtrb::Consumer<Measurement>) {
+    rtrb::RingBuffer::new(capacity.max(1))
+}
+
 /// Limits OpenCV to one worker thread, so the control thread keeps a core.
 ///
 /// OpenCV's setting is process-wide; calling it again is harmless.
+#[cfg(feature = "opencv")]
 pub fn limit_opencv_threads() -> Result<(), VisionError> {
     opencv::core::set_num_threads(1)?;
     Ok(())
 }
 
-#[cfg(test)]
+#[cfg(all(test, feature = "opencv"))]
 mod tests;

@@ -15,7 +15,8 @@ use opencv::{
 };
 
 use super::VisionError;
-use crate::params::{CameraParams, check};
+use crate::check;
+use crate::params::CameraParams;
 
 /// A monotonic clock: seconds since an epoch shared by the threads that compare times.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -9,7 +9,8 @@ use opencv::{
 };
 
 use super::{source::Clock, *};
-use crate::params::{CameraParams, ParamError, VisionMode};
+use crate::check::ParamError;
+use crate::params::{CameraParams, VisionMode};
 use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimCameraSource, SimVision};
 
 const L: f64 = 1.93;
@@ -546,10 +547,19 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
     let cal = cam.true_calibration(&rest(0.6));
     let t0 = clock.now_s();
     let source = SimCameraSource::new(cam, move |t| Some(swing(0.6, 20.0, t - t0)), clock);
-    let pipeline = VisionPipeline::new(DetectorParams::default(), cal).unwrap();
     let (producer, mut consumer) = measurement_ring(8);
-    let thread = VisionThread::spawn(Box::new(source), pipeline, producer, clock).unwrap();
-    let stats = thread.stats();
+    // The lab's vision thread (`isochron-vision`), without a video stream.
+    let thread = crate::lab::VisionLoop::spawn(crate::lab::VisionParts {
+        source: Box::new(source),
+        detector: DetectorParams::default(),
+        calibration: cal,
+        calibrations: None,
+        measurements: producer,
+        video: None,
+        clock,
+    })
+    .unwrap();
+    let stats = std::sync::Arc::clone(thread.stats());
     // Read 20 measurements as the control step would: poll, never wait on the ring.
     let deadline = Instant::now() + Duration::from_secs(10);
     let mut got = Vec::new();

@@ -15,6 +15,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::check::{self, ParamError};
 use crate::fri::codec::{CommandDecoder, Joints, Monitoring, MonitoringEncoder, UnixTime};
 use crate::fri::proto::{
     ClientCommandMode, ConnectionQuality, ControlMode, DriveState, OperationMode, OverlayType,
@@ -22,7 +23,7 @@ use crate::fri::proto::{
 };
 use crate::fri::stats::{AtomicF64, AtomicJoints, LatencyHistogram, LatencySummary};
 use crate::kinematics::iiwa7::{JOINTS, POSITION_LIMIT_RAD, TORQUE_LIMIT_NM, VELOCITY_LIMIT_RADPS};
-use crate::params::{ParamError, RobotParams, check};
+use crate::params::RobotParams;
 
 /// Largest quality window, replies.
 pub const MAX_QUALITY_WINDOW: usize = 1000;

@@ -12,9 +12,9 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use super::controller::{FriSimParams, SimController, SimReport, SimStats};
+use crate::check::ParamError;
 use crate::fri::net::wait_readable;
 use crate::fri::proto::SessionState;
-use crate::params::ParamError;
 
 /// How the runner drives the session.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

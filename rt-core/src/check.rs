@@ -1,9 +1,66 @@
-//! Small validation helpers shared by every `*Params::validate()`.
+//! `ParamError` and the small validation helpers shared by every
+//! `*Params::validate()`: a leaf module (it imports nothing of the crate), so
+//! every part may use it without importing the scenario.
 //!
 //! Each returns a [`ParamError`] that names the field (as a dotted path such as
 //! `pendulum.length_m`), the offending value and the bound it broke.
 
-use super::ParamError;
+/// A parameter that was refused, naming the field, the value and the bound.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum ParamError {
+    /// A value outside its allowed range.
+    #[error("{field} = {value} is out of range: {bound}")]
+    OutOfRange {
+        /// Dotted path of the field, e.g. `pendulum.length_m`.
+        field: String,
+        /// The refused value, as written.
+        value: String,
+        /// The bound it broke, e.g. `must be > 0`.
+        bound: String,
+    },
+    /// NaN or an infinity.
+    #[error("{field} = {value} is not a finite number")]
+    NotFinite {
+        /// Dotted path of the field.
+        field: String,
+        /// The refused value.
+        value: String,
+    },
+    /// A `[lo, hi]` range with `lo > hi`.
+    #[error("{field} = [{lo}, {hi}] is reversed: the first value must not exceed the second")]
+    Reversed {
+        /// Dotted path of the field.
+        field: String,
+        /// First value.
+        lo: f64,
+        /// Second value.
+        hi: f64,
+    },
+    /// The file could not be parsed (syntax, wrong type, unknown key).
+    #[error("{0}")]
+    Parse(String),
+    /// The file could not be read.
+    #[error("cannot read {path}: {reason}")]
+    Io {
+        /// The path that was asked for.
+        path: String,
+        /// The operating system's reason.
+        reason: String,
+    },
+}
+
+impl ParamError {
+    /// The dotted field path this error is about, when it is about one field.
+    pub fn field(&self) -> Option<&str> {
+        match self {
+            Self::OutOfRange { field, .. }
+            | Self::NotFinite { field, .. }
+            | Self::Reversed { field, .. } => Some(field),
+            Self::Parse(_) | Self::Io { .. } => None,
+        }
+    }
+}
 
 /// Refuses NaN and infinities.
 pub fn finite(field: &str, value: f64) -> Result<(), ParamError> {

@@ -1,0 +1,829 @@
+//! The lab on a virtual clock: one thread, deterministic for a seed, faster
+//! than real time (`isochron trials`, `isochron eval`, the closed-loop tests).
+//!
+//! It runs the same trial driver as the real-time runtime ([`LabStep`]: plan,
+//! arm, wait for release, commit, move, judge, time out, return home) behind
+//! the same FRI client ([`FriClient`]); only the links are in-process:
+//!
+//! - robot: the simulated KUKA controller ([`SimController`]) is stepped
+//!   here: its monitoring datagram goes to [`FriClient::on_datagram`] (which
+//!   calls the [`LabStep`]) and the command datagram reaches it
+//!   [`LOOPBACK_NS`] later;
+//! - camera: frames captured up to the next message from the true pendulum
+//!   the driver hands over ([`TruthView`], as the real-time simulated camera
+//!   reads it), through the measurement model ([`ModelCamera`]) or rendered
+//!   and run through the OpenCV detector ([`SimVision`]), into the same
+//!   measurement ring;
+//! - magnet: the firmware model behind a simulated serial line
+//!   ([`VirtualMagnet`]); the driver's switch reports reach the control step
+//!   through the same ring of [`MagnetNote`]s once their pin time has passed;
+//! - `isochron-lab-io`'s work (planning, new parameters) is done in line
+//!   between two messages.
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rtrb::{Consumer, Producer};
+
+use super::fri_step::FriLoopStep;
+use super::loop_step::LoopStep;
+use super::step::{
+    CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
+    TrialOutcome, Truth, plan_or_params,
+};
+use super::truth::{TruthUpdate, TruthView};
+use crate::bridge::{self, Command, ServerEnd};
+use crate::control::{ControlError, Controller, TrialRecord, TrialState};
+use crate::fri::client::{FriClient, FriClientParams, LinkState};
+use crate::fri::codec::MAX_DATAGRAM_BYTES;
+use crate::fri::proto::SessionState;
+use crate::kinematics::iiwa7::JOINTS;
+use crate::params::{Scenario, VisionMode};
+use crate::sim::camera::{ModelCamera, SimCameraParams};
+#[cfg(feature = "opencv")]
+use crate::sim::camera::{SimCamera, SimVision};
+use crate::sim::kuka::{FriSimParams, SimController};
+use crate::sim::magnet::{Switch, VirtualMagnet};
+#[cfg(feature = "opencv")]
+use crate::vision::DetectorParams;
+use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
+
+/// Errors setting up the lab.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum LabError {
+    /// The controller refused its parameters.
+    #[error(transparent)]
+    Control(#[from] ControlError),
+    /// The simulated robot refused its parameters or its session.
+    #[error("simulated robot: {0}")]
+    Robot(String),
+    /// The simulated camera could not start.
+    #[error("simulated camera: {0}")]
+    Camera(String),
+}
+
+/// Joint angles of the simulated robot at power-on, degrees.
+pub const INITIAL_JOINTS_DEG: [f64; JOINTS] = [0.0, 30.0, 0.0, -80.0, 0.0, 60.0, 0.0];
+/// Monitoring datagram sent -> command datagram back at the controller, in
+/// virtual time (a loopback round trip), nanoseconds.
+pub const LOOPBACK_NS: u64 = 20_000;
+/// Unix time of the lab's time 0 (message timestamps; fixed for determinism), ns.
+const EPOCH_UNIX_NS: u64 = 1_700_000_000_000_000_000;
+/// Mixed into a trial's seed for the magnet's own random stream.
+const MAGNET_STREAM: u64 = 0x6d61_676e_6574;
+/// Longest wait for the session to reach COMMANDING_ACTIVE, seconds.
+const COMMANDING_TIMEOUT_S: f64 = 5.0;
+/// Longest a trial may take before the driver gives up on it (the trial
+/// driver's own timeout plus the time to plan and to finish), seconds.
+const DRIVER_TIMEOUT_S: f64 = TRIAL_TIMEOUT_S + 5.0;
+
+/// The simulated KUKA controller of `scenario`'s lab: its `[robot]` section
+/// (FRI period, command-to-motion latency and jitter) over
+/// [`FriSimParams`]'s defaults (5 ms servo lag), the joints at
+/// [`INITIAL_JOINTS_DEG`], its random draws seeded with `seed`. The jitter is
+/// capped at the latency (a command never takes effect before it arrives).
+pub fn robot_params(scenario: &Scenario, seed: u64) -> FriSimParams {
+    let mut p = FriSimParams::from_robot(&scenario.robot);
+    p.latency_jitter_ms = p.latency_jitter_ms.min(p.latency_ms);
+    p.initial_joint_position_deg = INITIAL_JOINTS_DEG;
+    p.seed = seed;
+    p
+}
+
+/// Wraps the handling of one controller message: called with the trial
+/// state before it and the handling (which returns the state after it).
+pub type Around<'a> = &'a mut dyn FnMut(TrialState, &mut dyn FnMut() -> TrialState);
+
+/// The camera of the virtual lab (one per lab: its size does not matter).
+#[allow(clippy::large_enum_variant)]
+enum Camera {
+    /// The measurement model (`vision = "model"`).
+    Model {
+        camera: ModelCamera,
+        rng: ChaCha8Rng,
+        delivered: Vec<crate::control::Measurement>,
+    },
+    /// Rendered frames through the OpenCV detector (`vision = "full"`).
+    #[cfg(feature = "opencv")]
+    Full {
+        vision: Box<SimVision>,
+        next_capture_s: f64,
+        in_flight: std::collections::VecDeque<Measurement>,
+    },
+}
+
+impl Camera {
+    /// The scenario's camera; its per-frame randomness from `seed`.
+    fn new(
+        scenario: &Scenario,
+        seed: u64,
+        calibration: SwingPlaneCalibration,
+    ) -> Result<Self, LabError> {
+        if scenario.camera.vision == VisionMode::Full {
+            #[cfg(feature = "opencv")]
+            {
+                let cam = SimCamera::new(
+                    &scenario.camera,
+                    &SimCameraParams::default(),
+                    scenario.pendulum.ball_radius_m,
+                    seed,
+                )
+                .map_err(|e| LabError::Camera(e.to_string()))?;
+                let vision = SimVision::new(cam, DetectorParams::default(), calibration)
+                    .map_err(|e| LabError::Camera(format!("vision: {e}")))?;
+                return Ok(Self::Full {
+                    vision: Box::new(vision),
+                    next_capture_s: f64::INFINITY,
+                    in_flight: std::collections::VecDeque::with_capacity(64),
+                });
+            }
+            #[cfg(not(feature = "opencv"))]
+            {
+                let _ = calibration;
+                return Err(LabError::Camera(
+                    "camera.vision = \"full\" renders frames through the OpenCV detector: \
+                     this build has no `opencv` feature (use vision = \"model\")"
+                        .to_owned(),
+                ));
+            }
+        }
+        Ok(Self::Model {
+            camera: ModelCamera::new(&scenario.camera, f64::INFINITY),
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            delivered: Vec::with_capacity(64),
+        })
+    }
+}
+
+/// The virtual-time lab (see the module documentation): one simulated KUKA
+/// controller, one FRI client session and one trial driver across trials
+/// (so the latency estimate carries over, as it does in the lab).
+pub struct VirtualLab {
+    scenario: Scenario,
+    robot: SimController,
+    client: FriClient,
+    step: LabStep,
+    server: ServerEnd,
+    period_ns: u64,
+    t_ns: u64,
+    seed: u64,
+    truth: TruthView,
+    calibrations: Consumer<SwingPlaneCalibration>,
+    camera: Camera,
+    measurements: Producer<Measurement>,
+    magnet: VirtualMagnet,
+    magnet_rng: ChaCha8Rng,
+    notes: Producer<MagnetNote>,
+    /// Switch reports not yet due (pin time in the future).
+    notes_due: Vec<MagnetNote>,
+    io_requests: Consumer<IoRequest>,
+    io_replies: Producer<IoReply>,
+    last_release: Option<Switch>,
+    /// Why the last plan was refused (the controller's words).
+    plan_error: Option<String>,
+    magnet_error: Option<String>,
+}
+
+impl std::fmt::Debug for VirtualLab {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("VirtualLab")
+            .field("t_ns", &self.t_ns)
+            .field("seed", &self.seed)
+            .finish_non_exhaustive()
+    }
+}
+
+impl VirtualLab {
+    /// A lab for `scenario`, its simulated robot seeded from `seed`
+    /// ([`robot_params`]).
+    pub fn new(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
+        Self::with_robot(scenario, seed, robot_params(scenario, seed))
+    }
+
+    /// A lab for `scenario` whose simulated KUKA controller has `robot`
+    /// (e.g. [`robot_params`] with injected faults). Brings the FRI session up
+    /// to COMMANDING_ACTIVE.
+    pub fn with_robot(
+        scenario: &Scenario,
+        seed: u64,
+        robot: FriSimParams,
+    ) -> Result<Self, LabError> {
+        let period_ms = robot.fri_period_ms * robot.receive_multiplier;
+        let period_s = f64::from(period_ms) * 1e-3;
+        let controller = Controller::new(scenario, period_s)?;
+        let robot_period_ns = robot.period_ns();
+        let robot =
+            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
+        let client = FriClient::new(FriClientParams::default())
+            .map_err(|e| LabError::Robot(e.to_string()))?;
+        // The camera's geometry (the rendered camera's; the model camera
+        // needs none, but the dashboard's overlay and the calibration ring do).
+        let sim_camera = SimCameraParams::default();
+        let model = CameraModel {
+            intrinsics: CameraIntrinsics::from_hfov(
+                scenario.camera.width_px,
+                scenario.camera.height_px,
+                sim_camera.hfov_deg,
+            ),
+            pose: sim_camera.pose,
+            ball_radius_m: scenario.pendulum.ball_radius_m,
+        };
+        let rest = nalgebra::Vector3::new(
+            scenario.task.distance_m.lo,
+            0.0,
+            scenario.task.intercept_height_m,
+        );
+        let calibration = SwingPlaneCalibration::from_pose(
+            model.intrinsics,
+            &model.pose,
+            &rest,
+            model.ball_radius_m,
+        );
+        let camera = Camera::new(scenario, seed, calibration)?;
+        let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
+        let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
+        let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
+        let (req_tx, req_rx) = rtrb::RingBuffer::<IoRequest>::new(16);
+        let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
+        let (truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
+        let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
+        let session = client.stats().clone();
+        let cell = std::sync::Arc::new(std::sync::OnceLock::new());
+        let _ = cell.set(session);
+        let step = LabStep::new(
+            controller,
+            LabParts {
+                scenario: Box::new(scenario.clone()),
+                seed,
+                fixed_distance_m: None,
+                bridge: control,
+                clock: LabClock::Virtual,
+                measurements: meas_rx,
+                magnet_notes: note_rx,
+                io_requests: req_tx,
+                io_replies: reply_rx,
+                #[cfg(feature = "serial")]
+                magnet: None,
+                session: cell,
+                truth: Some(Truth {
+                    to_camera: truth_tx,
+                    calibrations: cal_tx,
+                    camera: model,
+                }),
+                calibration,
+            },
+        );
+        let mut lab = Self {
+            scenario: scenario.clone(),
+            robot,
+            client,
+            step,
+            server,
+            period_ns: robot_period_ns,
+            t_ns: 0,
+            seed,
+            truth: TruthView::new(truth_rx),
+            calibrations: cal_rx,
+            camera,
+            measurements: meas_tx,
+            magnet: VirtualMagnet::new(0.0),
+            magnet_rng: ChaCha8Rng::seed_from_u64(seed ^ MAGNET_STREAM),
+            notes: note_tx,
+            notes_due: Vec::with_capacity(8),
+            io_requests: req_rx,
+            io_replies: reply_tx,
+            last_release: None,
+            plan_error: None,
+            magnet_error: None,
+        };
+        lab.ensure_commanding()?;
+        Ok(lab)
+    }
+
+    /// Runs the session until the client is in COMMANDING_ACTIVE (asking the
+    /// controller for commanding first, as the robot program does).
+    fn ensure_commanding(&mut self) -> Result<(), LabError> {
+        let max = (COMMANDING_TIMEOUT_S * 1e9 / self.period_ns as f64).ceil() as usize;
+        for _ in 0..max {
+            if self.client.state() == LinkState::CommandingActive
+                && self.robot.state() == SessionState::CommandingActive
+            {
+                return Ok(());
+            }
+            if self.robot.state() != SessionState::CommandingActive {
+                self.robot.request_commanding();
+            }
+            self.period(&mut |_, f| {
+                f();
+            });
+        }
+        Err(LabError::Robot(format!(
+            "the FRI session did not reach COMMANDING_ACTIVE within {COMMANDING_TIMEOUT_S} s \
+             (controller {}, quality {})",
+            self.robot.state().name(),
+            self.robot.quality().name()
+        )))
+    }
+
+    /// The last trial's release: decided, command written, coil switched off.
+    pub fn last_release(&self) -> Option<Switch> {
+        self.last_release
+    }
+
+    /// The simulated KUKA controller (for inspection).
+    pub fn robot(&self) -> &SimController {
+        &self.robot
+    }
+
+    /// The FRI client session (for inspection).
+    pub fn client(&self) -> &FriClient {
+        &self.client
+    }
+
+    /// The controller (for inspection).
+    pub fn controller(&self) -> &Controller {
+        self.step.inner().controller()
+    }
+
+    /// The trial driver (its trace, passes, snapshot).
+    pub fn lab_step(&self) -> &LabStep {
+        &self.step
+    }
+
+    /// How this lab produces camera measurements: `"full"` (rendered frames
+    /// through the OpenCV detector) or `"model"` (the measurement model).
+    pub fn vision_used(&self) -> &'static str {
+        match self.camera {
+            #[cfg(feature = "opencv")]
+            Camera::Full { .. } => "full",
+            Camera::Model { .. } => "model",
+        }
+    }
+
+    /// The loop adapter (step timing, deadline misses).
+    pub fn loop_step(&mut self) -> &mut LoopStep {
+        &mut self.step.inner_mut().step
+    }
+
+    /// The closed loop behind the FRI client.
+    pub fn fri_step(&self) -> &FriLoopStep {
+        self.step.inner()
+    }
+
+    /// The virtual time, seconds.
+    pub fn t_s(&self) -> f64 {
+        self.t_ns as f64 * 1e-9
+    }
+
+    /// Runs trial `index` of the run and judges it.
+    pub fn run_trial(&mut self, index: usize) -> TrialRecord {
+        self.run_trial_with(index, &mut |_, f| {
+            f();
+        })
+    }
+
+    /// [`Self::run_trial`], every FRI datagram's handling
+    /// ([`FriClient::on_datagram`]: the whole control step) run inside
+    /// `around` (e.g. to count its allocations), which is given the trial
+    /// state before the message; the handling returns the state after it.
+    pub fn run_trial_with(&mut self, index: usize, around: Around<'_>) -> TrialRecord {
+        let draw = super::trial::draw_trial(&self.scenario, self.seed, index);
+        let mut rec = TrialRecord {
+            trial: index,
+            seed: self.seed,
+            distance_m: draw.distance_m,
+            release_angle_deg: draw.release_angle_deg,
+            success: false,
+            failure: None,
+            final_state: "idle".to_owned(),
+            abort_reason: None,
+            planned_movement_time_s: self.scenario.task.movement_time_s,
+            judgement: None,
+            prediction_crossing_time_error_ms: None,
+            prediction_position_error_m: None,
+            latency_estimate_ms: self.controller().latency().latency_s() * 1e3,
+            limit_violations: 0,
+            deadline_misses: 0,
+            preempted_steps: 0,
+        };
+        // A controller abort in an earlier trial left the session out of
+        // commanding: the robot program starts the overlay again.
+        if let Err(e) = self.ensure_commanding() {
+            rec.failure = Some(e.to_string());
+            rec.decide(&self.scenario.success);
+            return rec;
+        }
+        self.last_release = None;
+        self.plan_error = None;
+        self.magnet_error = None;
+        let _ = self.step.take_outcome();
+        self.step.set_next_trial(index);
+        let fri_before = self.fri_counts();
+        let Ok(ack) = self.server.commands.send(Command::RunTrial {
+            trial_id: index as u64 + 1,
+        }) else {
+            rec.failure = Some("the command ring is full".to_owned());
+            rec.decide(&self.scenario.success);
+            return rec;
+        };
+        let t0 = self.t_s();
+        let outcome = loop {
+            self.period(around);
+            if let Some(o) = self.step.take_outcome() {
+                break Ok(o);
+            }
+            let mut refused = None;
+            while let Some(a) = self.server.acks.pop() {
+                if a.id == ack
+                    && let Err(r) = a.outcome
+                {
+                    refused = Some(r);
+                }
+            }
+            if let Some(r) = refused {
+                break Err(self
+                    .plan_error
+                    .take()
+                    .unwrap_or_else(|| format!("refused: {}", r.as_str())));
+            }
+            if let Some(e) = self.magnet_error.take() {
+                break Err(e);
+            }
+            if self.t_s() - t0 > DRIVER_TIMEOUT_S {
+                break Err(format!(
+                    "timeout in state {}",
+                    self.controller().state().name()
+                ));
+            }
+        };
+        let o = match outcome {
+            Ok(o) => o,
+            Err(e) => {
+                rec.failure = Some(e);
+                let t = self.t_s();
+                self.step
+                    .inner_mut()
+                    .controller_mut()
+                    .abort(t, crate::control::AbortReason::StopRequested);
+                rec.decide(&self.scenario.success);
+                return rec;
+            }
+        };
+        self.record(&mut rec, &o, fri_before);
+        rec
+    }
+
+    /// Fills `rec` from the trial driver's outcome and the FRI side's counts.
+    fn record(&self, rec: &mut TrialRecord, o: &TrialOutcome, fri_before: FriCounts) {
+        let fri = self.fri_counts();
+        rec.planned_movement_time_s = o.planned_movement_time_s;
+        rec.latency_estimate_ms = o.latency_estimate_ms;
+        rec.limit_violations = o.limit_violations + (fri.violations - fri_before.violations);
+        rec.deadline_misses = o.deadline_misses;
+        rec.preempted_steps = o.preempted_steps;
+        rec.final_state = o.final_state.name().to_owned();
+        rec.judgement = o.judgement;
+        rec.prediction_crossing_time_error_ms = o.prediction_crossing_time_error_ms;
+        rec.prediction_position_error_m = o.prediction_position_error_m;
+        if let TrialState::Abort(r) = o.final_state {
+            let mut why = r.name().to_owned();
+            if let Some(stop) = self.step.inner().last_stop() {
+                why.push_str(&format!(": {stop}"));
+            }
+            if fri.aborts > fri_before.aborts
+                && let Some(a) = self.robot.stats().last_abort()
+            {
+                why.push_str(&format!(" (the robot controller aborted commanding: {a})"));
+            }
+            rec.abort_reason = Some(why);
+        }
+        if o.judgement.is_none()
+            && o.final_state == TrialState::Done
+            && let Some(e) = o.judge_error
+        {
+            rec.failure = Some(format!("not judged: {e}"));
+        }
+        rec.decide(&self.scenario.success);
+    }
+
+    /// One controller send period: the world up to the next message (camera
+    /// frames, magnet reports due), the message itself (the simulated
+    /// controller's monitoring datagram to the FRI client, which runs the
+    /// trial driver and returns the command datagram, reaching the controller
+    /// a loopback round trip later; `around` wraps that handling), then the
+    /// control thread's requests (plans, magnet switches) and the server end.
+    fn period(&mut self, around: Around<'_>) {
+        let now = self.t_ns + self.period_ns;
+        let t_next = now as f64 * 1e-9;
+        self.camera_until(t_next);
+        let mut i = 0;
+        while i < self.notes_due.len() {
+            if self.notes_due[i].t_s <= t_next {
+                let n = self.notes_due.remove(i);
+                let _ = self.notes.push(n);
+            } else {
+                i += 1;
+            }
+        }
+        self.t_ns = now;
+        let Self {
+            client,
+            robot,
+            step,
+            ..
+        } = self;
+        client.poll(now, step);
+        if let Some(bytes) = robot.tick(now) {
+            let mut reply = [0u8; MAX_DATAGRAM_BYTES];
+            let mut len = None;
+            let before = step.inner().controller().state();
+            around(before, &mut || {
+                len = client.on_datagram(bytes, now, step).map(|r| {
+                    let n = r.len().min(MAX_DATAGRAM_BYTES);
+                    reply[..n].copy_from_slice(&r[..n]);
+                    n
+                });
+                step.inner().controller().state()
+            });
+            if let Some(n) = len {
+                robot.on_reply(&reply[..n], now + LOOPBACK_NS);
+            }
+        }
+        self.serve_requests(t_next);
+        while self.server.events.pop().is_some() {}
+        while self.server.telemetry.pop().is_some() {}
+    }
+
+    /// What `isochron-lab-io` does in real time, in line.
+    fn serve_requests(&mut self, t: f64) {
+        while let Ok(req) = self.io_requests.pop() {
+            match req {
+                IoRequest::Magnet(on) => match self.magnet.switch(t, on, &mut self.magnet_rng) {
+                    Ok(sw) => {
+                        if !on {
+                            self.last_release = Some(sw);
+                        }
+                        self.notes_due.push(MagnetNote {
+                            on,
+                            t_s: sw.t_pin_s,
+                        });
+                    }
+                    Err(e) => self.magnet_error = Some(e),
+                },
+                IoRequest::Free(c) => drop(c),
+                req => {
+                    if let IoRequest::Plan { draw, .. } = &req {
+                        self.new_trial_world(t, draw.seed, draw.camera_phase_s, draw.distance_m);
+                    }
+                    if let Some(reply) = plan_or_params(&mut self.scenario, req) {
+                        if let IoReply::Plan {
+                            plan: Err(_), draw, ..
+                        } = &reply
+                        {
+                            self.plan_error = Some(
+                                Controller::plan(&self.scenario, draw.distance_m)
+                                    .err()
+                                    .map_or_else(|| "infeasible".to_owned(), |e| e.to_string()),
+                            );
+                        }
+                        let _ = self.io_replies.push(reply);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A trial's own random streams (camera, magnet) from its seed, and the
+    /// camera's frame phase: a trial's draws do not depend on the others.
+    fn new_trial_world(&mut self, t: f64, seed: u64, phase_s: f64, _distance_m: f64) {
+        self.magnet_rng = ChaCha8Rng::seed_from_u64(seed ^ MAGNET_STREAM);
+        let first = t + self.period_ns as f64 * 1e-9 + phase_s;
+        match &mut self.camera {
+            Camera::Model { camera, rng, .. } => {
+                *camera = ModelCamera::new(&self.scenario.camera, first);
+                *rng = ChaCha8Rng::seed_from_u64(seed);
+            }
+            #[cfg(feature = "opencv")]
+            Camera::Full {
+                vision,
+                next_capture_s,
+                in_flight,
+            } => {
+                vision.reset(seed);
+                *next_capture_s = first;
+                in_flight.clear();
+            }
+        }
+    }
+
+    /// Camera frames captured up to `t_next`, and the measurements available
+    /// by then, into the measurement ring.
+    fn camera_until(&mut self, t_next: f64) {
+        while let Ok(_cal) = self.calibrations.pop() {
+            #[cfg(feature = "opencv")]
+            if let Camera::Full { vision, .. } = &mut self.camera {
+                vision.set_calibration(_cal);
+            }
+        }
+        match &mut self.camera {
+            Camera::Model {
+                camera,
+                rng,
+                delivered,
+            } => {
+                while camera.next_capture_s() <= t_next {
+                    let tc = camera.next_capture_s();
+                    match self.truth.at(tc) {
+                        // The pivot is on the base's x axis: lateral = y.
+                        Some(b) => camera.capture(b.centre_m.y, rng),
+                        None => camera.skip(),
+                    }
+                }
+                camera.deliver(t_next, delivered);
+                for m in delivered.drain(..) {
+                    let _ = self.measurements.push(Measurement {
+                        t_capture_s: m.t_capture_s,
+                        t_available_s: t_next,
+                        found: true,
+                        lateral_m: m.lateral_m,
+                        ..Measurement::default()
+                    });
+                }
+            }
+            #[cfg(feature = "opencv")]
+            Camera::Full {
+                vision,
+                next_capture_s,
+                in_flight,
+            } => {
+                let period = 1.0 / self.scenario.camera.fps;
+                while *next_capture_s <= t_next {
+                    let tc = *next_capture_s;
+                    *next_capture_s += period;
+                    let ball = self.truth.at(tc);
+                    match vision.capture(tc, ball.as_ref()) {
+                        Ok(Some(m)) => in_flight.push_back(m),
+                        Ok(None) => {}
+                        Err(e) => self.magnet_error = Some(format!("vision: {e}")),
+                    }
+                }
+                while let Some(m) = in_flight.front() {
+                    if m.t_available_s > t_next {
+                        break;
+                    }
+                    let _ = self.measurements.push(*m);
+                    in_flight.pop_front();
+                }
+            }
+        }
+    }
+
+    /// The FRI side's limit violations (commands the client's guard had to
+    /// change, commands the simulated controller refused with an abort) and the
+    /// controller's commanding aborts of any kind.
+    fn fri_counts(&self) -> FriCounts {
+        use std::sync::atomic::Ordering::Relaxed;
+        let c = self.client.stats();
+        let r = self.robot.stats();
+        FriCounts {
+            violations: c.guard_position.load(Relaxed)
+                + c.guard_step.load(Relaxed)
+                + c.guard_non_finite.load(Relaxed)
+                + r.violations.load(Relaxed),
+            aborts: r.aborts.load(Relaxed),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct FriCounts {
+    violations: u64,
+    aborts: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::Ordering::Relaxed;
+
+    fn model_lab() -> Scenario {
+        let mut s = Scenario::default();
+        s.camera.vision = VisionMode::Model;
+        s
+    }
+
+    #[test]
+    fn trials_run_through_the_fri_session_and_the_simulated_controller() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 3).unwrap();
+        assert_eq!(lab.client().state(), LinkState::CommandingActive);
+        let applied_before = lab.robot().stats().commands_applied.load(Relaxed);
+        let r = lab.run_trial(0);
+        assert!(r.success, "{r:?}");
+        let sim = lab.robot().stats().report();
+        let cli = lab.client().stats().snapshot();
+        // Every command the controller moved with came through the client.
+        assert!(sim.commands_applied > applied_before + 300, "{sim:?}");
+        assert_eq!(sim.commands_accepted, cli.commands);
+        assert_eq!(sim.violations + sim.aborts, 0, "{sim:?}");
+        assert_eq!(sim.client_sequence_errors, 0, "{sim:?}");
+        assert_eq!(cli.late_replies + cli.missed_cycles + cli.silences, 0);
+        assert_eq!(sim.quality, "EXCELLENT");
+        // The latency estimate sees the robot's latency plus its servo lag.
+        assert!(r.latency_estimate_ms > 8.0, "{r:?}");
+    }
+
+    #[test]
+    fn the_ball_drops_when_the_magnets_pin_switches() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 9).unwrap();
+        let mut pins = Vec::new();
+        for i in 0..3 {
+            let r = lab.run_trial(i);
+            assert!(r.success, "{r:?}");
+            let sw = lab.last_release().unwrap();
+            // 11 bytes at 115200 baud after the host's wake-up delay.
+            let line_s = 11.0 * 10.0 / 115_200.0;
+            assert!(
+                sw.latency_s() >= line_s
+                    && sw.latency_s() < line_s + crate::sim::magnet::HOST_WRITE_DELAY_MAX_S,
+                "{sw:?}"
+            );
+            // Until the pin time the ball hangs still; after it, it swings.
+            let i_pin = lab
+                .lab_step()
+                .trace()
+                .t_s
+                .partition_point(|&t| t < sw.t_pin_s);
+            let trace = lab.lab_step().trace();
+            let still = trace.ball_m[i_pin - 1];
+            assert_eq!(trace.ball_m[0], still);
+            assert_ne!(trace.ball_m[i_pin + 2], still);
+            pins.push(sw.t_pin_s);
+        }
+        // The same seed, the same releases.
+        let mut again = VirtualLab::new(&s, 9).unwrap();
+        for (i, pin) in pins.iter().enumerate() {
+            again.run_trial(i);
+            assert_eq!(again.last_release().unwrap().t_pin_s, *pin);
+        }
+    }
+
+    #[test]
+    fn the_prediction_is_compared_with_the_truth_at_exact_times() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 5).unwrap();
+        for i in 0..4 {
+            let r = lab.run_trial(i);
+            assert!(r.success, "{r:?}");
+            // At the predicted time exactly, the filter's place error is its
+            // pass-time error times the ball's speed (<= 3 m/s): about a millimetre (a
+            // trace sample up to one period after t* would add up to
+            // 1.5 m/s * 5 ms of ball travel).
+            let e = r.prediction_position_error_m.unwrap();
+            let dt = r.prediction_crossing_time_error_ms.unwrap();
+            assert!(dt.abs() < 2.0, "trial {i}: {dt} ms");
+            assert!(e < 0.003, "trial {i}: {e} m");
+            assert!(
+                e <= (dt.abs() * 1e-3 * 3.0).max(1e-4),
+                "trial {i}: {e} m, {dt} ms"
+            );
+            // t* is a root of the true pendulum: the ball is then at the
+            // intercept point's y.
+            let (tp, p) = lab.lab_step().passes()[0];
+            assert!(tp > 0.0 && p.y.abs() < 1e-9, "{tp} {p}");
+        }
+    }
+
+    #[test]
+    fn a_controller_abort_ends_the_trial_as_an_abort_and_counts_a_violation() {
+        let s = model_lab();
+        // A controller that trips at half the joints' speed limits: the
+        // interception motion is faster than that.
+        let mut robot = robot_params(&s, 1);
+        robot.velocity_tolerance = 0.5;
+        let mut lab = VirtualLab::with_robot(&s, 1, robot).unwrap();
+        let r = lab.run_trial(0);
+        assert!(!r.success);
+        assert_eq!(r.final_state, "abort");
+        let why = r.abort_reason.as_deref().unwrap();
+        assert!(why.starts_with("fri_lost"), "{why}");
+        assert!(why.contains("left commanding"), "{why}");
+        assert!(why.contains("velocity limit"), "{why}");
+        assert!(r.limit_violations >= 1, "{r:?}");
+        assert!(r.failure.as_deref().unwrap().contains("abort"), "{r:?}");
+        // The next trial brings the session back to commanding first.
+        let r2 = lab.run_trial(1);
+        assert_ne!(r2.final_state, "idle", "{r2:?}");
+        assert!(lab.robot().stats().commanding_entered.load(Relaxed) >= 2);
+    }
+
+    #[test]
+    fn a_bad_robot_is_refused_with_the_field() {
+        let s = model_lab();
+        let mut robot = robot_params(&s, 1);
+        robot.latency_ms = 500.0;
+        let e = VirtualLab::with_robot(&s, 1, robot).unwrap_err();
+        assert!(e.to_string().contains("fri_sim.latency_ms"), "{e}");
+    }
+}
