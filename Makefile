@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
+.PHONY: test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -150,6 +150,16 @@ test-rust: deps firmware
 	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
 
+## test-core: the core builds and runs with Rust alone (no OpenCV, libclang or
+## libudev: rt-core without its default features `opencv` and `serial`): its
+## normal dependency tree has none of them, and the virtual-clock trial driver's
+## allocation test passes in that build.
+test-core:
+	@if $(CARGO) tree -p rt-core --no-default-features -e normal --prefix none \
+	    | grep -E '^(opencv|clang-sys|libudev-sys) '; then \
+	  echo "rt-core --no-default-features depends on a C/C++ library (above)"; exit 1; fi
+	$(CARGO) test -p rt-core --no-default-features --test control_step_no_alloc
+
 ## test-browser: the dashboard in headless Chromium against `isochron serve` (the simulated lab).
 test-browser: web
 	$(CARGO) build --bin isochron
@@ -162,7 +172,7 @@ test-api-fuzz: py-deps
 	$(CARGO) build --bin isochron
 	tests/api-fuzz/run.sh ./target/debug/isochron $(API_FUZZ_SECONDS)
 
-test: lint test-web test-browser test-api-fuzz fuzz-smoke test-rust
+test: lint test-core test-web test-browser test-api-fuzz fuzz-smoke test-rust
 
 bench: deps
 	$(CARGO) bench --workspace
