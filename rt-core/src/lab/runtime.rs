@@ -335,7 +335,8 @@ impl LabRuntime {
         control.set_epoch(epoch);
         let clock = Clock::new(epoch);
         let period_ms = scenario.robot.fri_period_ms;
-        let controller = Controller::new(&scenario, f64::from(period_ms) * 1e-3)?;
+        // The controller is built from the beliefs only: it never holds `[world]`.
+        let controller = Controller::new(&scenario.beliefs(), f64::from(period_ms) * 1e-3)?;
 
         // The magnet: driver thread, its events to the control thread.
         let (mut note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
@@ -399,10 +400,14 @@ impl LabRuntime {
                 }
                 let mut view = TruthView::new(truth_rx);
                 let src = SimCameraSource::new(cam, move |t| view.at(t), clock);
+                // In real time the simulated lab is a truthful world (the
+                // reality lab, `[world]`, runs on the virtual clock).
                 let truth = Truth {
                     to_camera: truth_tx,
                     calibrations: cal_tx,
                     camera: model,
+                    world: false,
+                    joints: None,
                 };
                 (Box::new(src), cal, Some(truth), Some(cal_rx))
             }

@@ -33,6 +33,10 @@ use crate::fri::proto::{ConnectionQuality, SessionState};
 use crate::magnet::{MagnetHandle, view};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::sim::world::judge::PhysicalJudgeError;
+use crate::sim::world::{
+    Disc, PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical,
+};
 
 use crate::trajectory::profile::ProfileKind;
 use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
@@ -73,6 +77,11 @@ pub struct TrialOutcome {
     pub judgement: Option<Judgement>,
     /// Why the motion could not be judged, when it could not.
     pub judge_error: Option<crate::control::judge::JudgeError>,
+    /// The physical judge's verdict on the true world (the reality lab,
+    /// `[world]`, in virtual time); then it decides success.
+    pub physical: Option<PhysicalJudgement>,
+    /// Why the physical judge could not judge the trial, when it could not.
+    pub physical_error: Option<PhysicalJudgeError>,
     /// At commit: predicted pass time minus the nearest true pass, milliseconds.
     pub prediction_crossing_time_error_ms: Option<f64>,
     /// At commit: predicted ball centre to the true one at the predicted time, metres.
@@ -158,6 +167,54 @@ pub(crate) struct Truth {
     pub to_camera: Producer<TruthUpdate>,
     pub calibrations: Producer<SwingPlaneCalibration>,
     pub camera: CameraModel,
+    /// The scenario's `[world]` is simulated (the virtual-time lab: its
+    /// camera and robot simulate it too); `false`: a truthful world.
+    pub world: bool,
+    /// The simulated robot's true joint angles at each message (the virtual
+    /// lab; `None`: the measured ones stand for them).
+    pub joints: Option<Arc<crate::fri::stats::AtomicJoints>>,
+}
+
+/// The true pendulum of a simulated trial (inline: a trial starts without
+/// allocating).
+#[allow(clippy::large_enum_variant)]
+enum TrueBall {
+    /// A truthful world: the pendulum the controller's model describes.
+    Ideal(PendulumSim),
+    /// The reality lab (`[world]`).
+    World(WorldBall),
+}
+
+/// The reality lab's trial: the true pendulum, stopped by the true tool's
+/// disc, and its ghost (the same ball without the tool in its way: t* and
+/// contact are judged on it).
+struct WorldBall {
+    world: World,
+    ball: TruePendulum,
+    ghost: TruePendulum,
+    /// When the ball drops (the pin time plus the residual magnetism's delay).
+    drop_at: Option<f64>,
+    last_disc: Option<Disc>,
+}
+
+impl TrueBall {
+    fn position_m(&self) -> Vector3<f64> {
+        match self {
+            Self::Ideal(b) => b.ball_position_m(),
+            Self::World(w) => w.ball.ball_position_m(),
+        }
+    }
+}
+
+/// Advances a true pendulum to `t_s`, dropping the ball at `drop_at`.
+fn advance_true_ball(ball: &mut TruePendulum, drop_at: Option<f64>, t_s: f64) {
+    if let Some(tr) = drop_at
+        && tr <= t_s
+        && ball.is_held()
+    {
+        ball.release(tr.max(ball.time_s()));
+    }
+    ball.advance_to(t_s);
 }
 
 struct Trial {
@@ -165,7 +222,7 @@ struct Trial {
     draw: TrialDraw,
     plan: ArmPlan,
     /// The true pendulum (simulated lab only).
-    ball: Option<PendulumSim>,
+    ball: Option<TrueBall>,
     auto_release: bool,
     armed_at: Option<f64>,
     release_requested: bool,
@@ -219,6 +276,12 @@ pub struct LabStep {
     /// The true ball's passes through the intercept point's `y` in the
     /// current trial: exact time (a root of the true pendulum) and centre.
     passes: Vec<(f64, Vector3<f64>)>,
+    /// The reality lab's trace of the true world (ghost ball, true disc) and
+    /// the passes' times, for the physical judge.
+    world_trace: Vec<WorldSample>,
+    pass_times: Vec<f64>,
+    /// The simulated robot's true joints at this message (virtual lab).
+    q_true: Option<Joints>,
     outcome: Option<TrialOutcome>,
     snap: Snapshot,
     horizon: Vec<Prediction>,
@@ -319,6 +382,9 @@ impl LabStep {
             trace: TrialTrace::with_capacity(trace_len),
             judge_scratch: JudgeScratch::with_capacity(trace_len),
             passes: Vec::with_capacity(MAX_PASSES),
+            world_trace: Vec::with_capacity(trace_len),
+            pass_times: Vec::with_capacity(MAX_PASSES),
+            q_true: None,
             outcome: None,
             snap,
             horizon: vec![Prediction::default(); bridge::HORIZON_POINTS],
@@ -482,13 +548,19 @@ impl LabStep {
             // The coil let go: the ball swings from this moment.
             let t = note.t_s;
             tr.released = true;
-            if let Some(ball) = tr.ball.as_mut() {
-                let at = t.max(ball.time_s());
-                if ball.release(at).is_ok()
-                    && let Some(truth) = self.p.truth.as_mut()
-                {
-                    let _ = truth.to_camera.push(TruthUpdate::Ball(ball.clone()));
+            match tr.ball.as_mut() {
+                Some(TrueBall::Ideal(ball)) => {
+                    let at = t.max(ball.time_s());
+                    if ball.release(at).is_ok()
+                        && let Some(truth) = self.p.truth.as_mut()
+                    {
+                        let _ = truth.to_camera.push(TruthUpdate::Ball(ball.clone()));
+                    }
                 }
+                // Residual magnetism holds the ball a little longer (the
+                // simulated camera knows the same drop time from the switch).
+                Some(TrueBall::World(w)) => w.drop_at = Some(t + w.world.trial.release_delay_s),
+                None => {}
             }
             let c = self.inner.controller_mut();
             if c.state() == TrialState::Armed {
@@ -662,7 +734,29 @@ impl LabStep {
         let _ = self.controller().reset(t);
         // The trial starts now on the operator's command: the dead-man counts from here.
         self.operator_since_s = t;
+        let world = match &self.p.truth {
+            Some(truth) if truth.world => {
+                World::for_trial(&self.p.scenario, self.p.seed, index, &plan.intercept_m)
+            }
+            _ => None,
+        };
         let ball = match &self.p.truth {
+            Some(_) if world.is_some() => world.map(|w| {
+                let ball = TruePendulum::held_at(
+                    w.pendulum,
+                    draw.release_angle_deg.to_radians(),
+                    w.trial.out_of_plane_rad,
+                    t,
+                    w.trial.seed,
+                );
+                TrueBall::World(WorldBall {
+                    world: w,
+                    ghost: ball.clone(),
+                    ball,
+                    drop_at: None,
+                    last_disc: None,
+                })
+            }),
             Some(_) => {
                 let s = &self.p.scenario;
                 let model =
@@ -673,10 +767,10 @@ impl LabStep {
                     s.task.intercept_height_m,
                 )
                 .map_err(|_| Refusal::Invalid)?;
-                Some(
+                Some(TrueBall::Ideal(
                     PendulumSim::held_at(model, geometry, draw.release_angle_deg.to_radians(), t)
                         .map_err(|_| Refusal::Invalid)?,
-                )
+                ))
             }
             None => None,
         };
@@ -704,11 +798,15 @@ impl LabStep {
                 .camera
                 .set_calibration(&cal, size.width_px, size.height_px);
             let _ = truth.calibrations.push(cal);
-            let _ = truth.to_camera.push(TruthUpdate::Ball(ball.clone()));
+            let _ = truth.to_camera.push(match ball {
+                TrueBall::Ideal(b) => TruthUpdate::Ball(b.clone()),
+                TrueBall::World(w) => TruthUpdate::World(w.ball.clone()),
+            });
         }
         self.inner.clear_stop();
         self.trace.clear();
         self.passes.clear();
+        self.world_trace.clear();
         self.outcome = None;
         self.snap.trial_id = id;
         let counters_at_start = (
@@ -760,41 +858,94 @@ impl LabStep {
             }
             self.last_state = state;
         }
-        let tool = self.inner.controller().tool_point(&self.q);
+        // The robot's true joints where the simulator tells them (the judge's
+        // tool point), else the measured ones.
+        let q_true = self.q_true.unwrap_or(self.q);
+        let tool = self.inner.controller().tool_point(&q_true);
         let commit = self.inner.controller().commit().copied();
         let Some(trial) = self.trial.as_mut() else {
             return;
         };
-        if let Some(ball) = trial.ball.as_mut() {
-            if trial.released && t > ball.time_s() {
-                // Exact times between the last step and this one: the true
-                // passes through the intercept point's `y` (roots of the true
-                // pendulum, found on a copy), and the true ball centre at the
-                // committed prediction's pass time (the filter's own tests
-                // measure it so; at t* both are the intercept point by
-                // definition).
-                let y = trial.plan.intercept_m.y;
-                if let Some(tp) = ball.next_crossing_s(y, t - ball.time_s())
-                    && self.passes.len() < MAX_PASSES
-                {
-                    let mut at = ball.clone();
-                    if at.advance_to(tp).is_ok() {
+        match trial.ball.as_mut() {
+            Some(TrueBall::Ideal(ball)) => {
+                if trial.released && t > ball.time_s() {
+                    // Exact times between the last step and this one: the true
+                    // passes through the intercept point's `y` (roots of the true
+                    // pendulum, found on a copy), and the true ball centre at the
+                    // committed prediction's pass time (the filter's own tests
+                    // measure it so; at t* both are the intercept point by
+                    // definition).
+                    let y = trial.plan.intercept_m.y;
+                    if let Some(tp) = ball.next_crossing_s(y, t - ball.time_s())
+                        && self.passes.len() < MAX_PASSES
+                    {
+                        let mut at = ball.clone();
+                        if at.advance_to(tp).is_ok() {
+                            self.passes.push((tp, at.ball_position_m()));
+                        }
+                    }
+                    if let Some(c) = commit
+                        && trial.at_predicted.is_none()
+                        && c.predicted_pass_s >= ball.time_s()
+                        && c.predicted_pass_s < t
+                    {
+                        let mut at = ball.clone();
+                        if at.advance_to(c.predicted_pass_s).is_ok() {
+                            trial.at_predicted = Some(at.ball_position_m());
+                        }
+                    }
+                    let _ = ball.advance_to(t);
+                }
+                self.trace.push(t, tool, ball.ball_position_m());
+            }
+            Some(TrueBall::World(w)) => {
+                // The same, on the ghost (the ball without the tool in its
+                // way) and the true intercept point.
+                if t > w.ghost.time_s() {
+                    let y = w.world.intercept_m.y;
+                    if let Some(tp) = w.ghost.next_crossing_s(y, t - w.ghost.time_s())
+                        && self.passes.len() < MAX_PASSES
+                    {
+                        let mut at = w.ghost.clone();
+                        at.advance_to(tp);
                         self.passes.push((tp, at.ball_position_m()));
                     }
-                }
-                if let Some(c) = commit
-                    && trial.at_predicted.is_none()
-                    && c.predicted_pass_s >= ball.time_s()
-                    && c.predicted_pass_s < t
-                {
-                    let mut at = ball.clone();
-                    if at.advance_to(c.predicted_pass_s).is_ok() {
+                    if let Some(c) = commit
+                        && trial.at_predicted.is_none()
+                        && c.predicted_pass_s >= w.ghost.time_s()
+                        && c.predicted_pass_s < t
+                        && !w.ghost.is_held()
+                    {
+                        let mut at = w.ghost.clone();
+                        at.advance_to(c.predicted_pass_s);
                         trial.at_predicted = Some(at.ball_position_m());
                     }
+                    advance_true_ball(&mut w.ball, w.drop_at, t);
+                    advance_true_ball(&mut w.ghost, w.drop_at, t);
                 }
-                let _ = ball.advance_to(t);
+                // The true tool (the world's kinematics at the robot's true
+                // joints); the ball stops against its disc.
+                let disc = w.world.arm.disc(&q_true);
+                let v_disc = w.last_disc.map_or(Vector3::zeros(), |d| {
+                    (disc.centre_m - d.centre_m) / self.period_s
+                });
+                w.last_disc = Some(disc);
+                if w.ball.collide(&disc, &v_disc, 0.0)
+                    && let Some(truth) = self.p.truth.as_mut()
+                {
+                    // The camera sees the ball where the tool stopped it.
+                    let _ = truth.to_camera.push(TruthUpdate::World(w.ball.clone()));
+                }
+                self.trace.push(t, tool, w.ball.ball_position_m());
+                if self.world_trace.len() < self.world_trace.capacity() {
+                    self.world_trace.push(WorldSample {
+                        t_s: t,
+                        ball_m: w.ghost.ball_position_m(),
+                        disc,
+                    });
+                }
             }
-            self.trace.push(t, tool, ball.ball_position_m());
+            None => {}
         }
         let mut want_release = false;
         match state {
@@ -849,6 +1000,8 @@ impl LabStep {
             final_state: state,
             judgement: None,
             judge_error: None,
+            physical: None,
+            physical_error: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: c.latency().latency_s() * 1e3,
@@ -867,12 +1020,11 @@ impl LabStep {
                     duration_s: commit.duration_s,
                     commanded_start_s: commit.motion_start_s,
                 };
-                match judge_into(
-                    &self.trace,
-                    &motion,
-                    &trial.plan.intercept_m,
-                    &mut self.judge_scratch,
-                ) {
+                let intercept = match &trial.ball {
+                    Some(TrueBall::World(w)) => w.world.intercept_m,
+                    _ => trial.plan.intercept_m,
+                };
+                match judge_into(&self.trace, &motion, &intercept, &mut self.judge_scratch) {
                     Ok(j) => o.judgement = Some(j),
                     Err(e) => o.judge_error = Some(e),
                 }
@@ -883,6 +1035,9 @@ impl LabStep {
                 if let Some(truth) = trial.at_predicted {
                     o.prediction_position_error_m = Some((commit.predicted_ball_m - truth).norm());
                 }
+            }
+            if let Some(TrueBall::World(w)) = &trial.ball {
+                self.judge_world(w, commit.predicted_pass_s, &mut o);
             }
         }
         self.outcome = Some(o);
@@ -910,6 +1065,41 @@ impl LabStep {
             event: Event::TrialFinished { result },
         });
         let _ = self.controller().reset(t);
+    }
+
+    /// The physical judge on the true world: fills `o.physical` and puts its
+    /// figures (t*, arrival, |timing error|, tool-ball distance at t*) into
+    /// the reported judgement; the fitted movement time stays.
+    fn judge_world(&mut self, w: &WorldBall, committed_pass_s: f64, o: &mut TrialOutcome) {
+        self.pass_times.clear();
+        self.pass_times.extend(self.passes.iter().map(|p| p.0));
+        match judge_physical(
+            &self.world_trace,
+            &self.pass_times,
+            committed_pass_s,
+            w.world.pendulum.ball_radius_m,
+            self.p.scenario.success.timing_tolerance_ms,
+        ) {
+            Ok(p) => {
+                let at = self
+                    .world_trace
+                    .iter()
+                    .min_by(|a, b| {
+                        (a.t_s - p.t_star_s)
+                            .abs()
+                            .total_cmp(&(b.t_s - p.t_star_s).abs())
+                    })
+                    .map_or(f64::NAN, |s| (s.disc.centre_m - s.ball_m).norm());
+                if let Some(j) = o.judgement.as_mut() {
+                    j.t_star_s = p.t_star_s;
+                    j.arrival_s = p.arrival_s;
+                    j.timing_error_ms = p.timing_error_ms.abs();
+                    j.position_error_m = at;
+                }
+                o.physical = Some(p);
+            }
+            Err(e) => o.physical_error = Some(e),
+        }
     }
 
     fn fill_snapshot(&mut self, t: f64) {
@@ -958,7 +1148,7 @@ impl LabStep {
                 .as_ref()
                 .and_then(|tr| tr.ball.as_ref())
                 .map_or([f64::NAN; 3], |b| {
-                    let b = b.ball_position_m();
+                    let b = b.position_m();
                     [b.x, b.y, b.z]
                 });
         // Motion: the timing system (Hopf oscillator and neurons) and the path.
@@ -1084,6 +1274,10 @@ impl ControlStep for LabStep {
         if let Some(q) = m.measured_joint_position_rad {
             self.q = q;
         }
+        if let Some(q) = self.p.truth.as_ref().and_then(|t| t.joints.as_ref()) {
+            let q = q.load();
+            self.q_true = q.iter().all(|v| v.is_finite()).then_some(q);
+        }
         let send_period_s = if m.send_period_ms > 0 {
             f64::from(m.send_period_ms) * 1e-3
         } else {
@@ -1124,6 +1318,14 @@ impl TrialOutcome {
     /// the control thread knows (no abort, no limit violation, both errors
     /// within tolerance), without building the record.
     pub fn succeeded(&self, tol: &crate::params::SuccessParams) -> bool {
+        if let Some(p) = &self.physical {
+            // The reality lab: the physical judge decides (as
+            // `TrialRecord::decide`).
+            return self.final_state == TrialState::Done
+                && self.limit_violations == 0
+                && p.contact_s.is_some()
+                && p.timing_error_ms.abs() <= tol.timing_tolerance_ms;
+        }
         self.final_state == TrialState::Done
             && self.limit_violations == 0
             && self.judgement.is_some_and(|j| {
@@ -1158,13 +1360,14 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             auto_release,
             index,
             draw,
-            plan: Controller::plan(scenario, draw.distance_m)
+            // The controller plans on the beliefs only (never `[world]`).
+            plan: Controller::plan(&scenario.beliefs(), draw.distance_m)
                 .map_err(|_| crate::bridge::Refusal::Infeasible),
         },
         IoRequest::Params { ack, scenario: new } => {
             let period = f64::from(new.robot.fri_period_ms) * 1e-3;
             let same_period = new.robot.fri_period_ms == scenario.robot.fri_period_ms;
-            match Controller::new(&new, period) {
+            match Controller::new(&new.beliefs(), period) {
                 Ok(c) if same_period => {
                     *scenario = (*new).clone();
                     IoReply::Params {

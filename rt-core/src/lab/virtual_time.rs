@@ -20,7 +20,7 @@
 //! - `isochron-lab-io`'s work (planning, new parameters) is done in line
 //!   between two messages.
 
-use rand::SeedableRng;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rtrb::{Consumer, Producer};
 
@@ -30,9 +30,10 @@ use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
     TrialOutcome, Truth, plan_or_params,
 };
+use super::trial::TrialDraw;
 use super::truth::{TruthUpdate, TruthView};
 use crate::bridge::{self, Command, ServerEnd};
-use crate::control::{ControlError, Controller, TrialRecord, TrialState};
+use crate::control::{ArmPlan, ControlError, Controller, TrialRecord, TrialState};
 use crate::fri::client::{FriClient, FriClientParams, LinkState};
 use crate::fri::codec::MAX_DATAGRAM_BYTES;
 use crate::fri::proto::SessionState;
@@ -41,8 +42,10 @@ use crate::params::{Scenario, VisionMode};
 use crate::sim::camera::{ModelCamera, SimCameraParams};
 #[cfg(feature = "opencv")]
 use crate::sim::camera::{SimCamera, SimVision};
+use crate::sim::kuka::controller::WorldRobot;
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::sim::magnet::{Switch, VirtualMagnet};
+use crate::sim::world::{LatencyModel, World, WorldCamera, WorldJoints};
 #[cfg(feature = "opencv")]
 use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
@@ -71,6 +74,8 @@ pub const LOOPBACK_NS: u64 = 20_000;
 const EPOCH_UNIX_NS: u64 = 1_700_000_000_000_000_000;
 /// Mixed into a trial's seed for the magnet's own random stream.
 const MAGNET_STREAM: u64 = 0x6d61_676e_6574;
+/// Mixed into a trial's world seed for the true camera's own random stream.
+const CAMERA_STREAM: u64 = 0x6361_6d65_7261;
 /// Longest wait for the session to reach COMMANDING_ACTIVE, seconds.
 const COMMANDING_TIMEOUT_S: f64 = 5.0;
 /// Longest a trial may take before the driver gives up on it (the trial
@@ -155,6 +160,23 @@ impl Camera {
     }
 }
 
+/// The reality lab's camera in the current trial (`[world]`): the true
+/// camera's timing and optics over the true pendulum the trial driver hands
+/// over ([`TruthView::world_ball`]); the lab's belief (the believed
+/// calibration) turns the pixels into measurements.
+struct WorldView {
+    camera: WorldCamera,
+    /// The true camera's own random stream (timing, drops).
+    rng: ChaCha8Rng,
+    believed: SwingPlaneCalibration,
+    next_frame_s: f64,
+    /// When the ball drops (pin time plus the residual magnetism's delay).
+    drop_at: Option<f64>,
+    release_delay_s: f64,
+    /// Measurements on their way: (delivery time, measurement).
+    in_flight: std::collections::VecDeque<(f64, Measurement)>,
+}
+
 /// The virtual-time lab (see the module documentation): one simulated KUKA
 /// controller, one FRI client session and one trial driver across trials
 /// (so the latency estimate carries over, as it does in the lab).
@@ -182,6 +204,16 @@ pub struct VirtualLab {
     /// Why the last plan was refused (the controller's words).
     plan_error: Option<String>,
     magnet_error: Option<String>,
+    /// The simulated robot's true joints, to the trial driver's judge.
+    true_joints: std::sync::Arc<crate::fri::stats::AtomicJoints>,
+    /// The reality lab (`[world]`): the session the simulated robot is in
+    /// and the current trial's camera.
+    world_session: Option<u64>,
+    world_view: Option<WorldView>,
+    /// When `Some`, every byte the controller reads (FRI messages, then the
+    /// measurements handed to it) is appended (tests: the controller cannot
+    /// read the world).
+    pub input_log: Option<Vec<u8>>,
 }
 
 impl std::fmt::Debug for VirtualLab {
@@ -210,7 +242,8 @@ impl VirtualLab {
     ) -> Result<Self, LabError> {
         let period_ms = robot.fri_period_ms * robot.receive_multiplier;
         let period_s = f64::from(period_ms) * 1e-3;
-        let controller = Controller::new(scenario, period_s)?;
+        // The controller is built from the beliefs only: it never holds `[world]`.
+        let controller = Controller::new(&scenario.beliefs(), period_s)?;
         let robot_period_ns = robot.period_ns();
         let robot =
             SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
@@ -247,6 +280,7 @@ impl VirtualLab {
         let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
         let (truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
         let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
+        let true_joints = std::sync::Arc::new(crate::fri::stats::AtomicJoints::default());
         let session = client.stats().clone();
         let cell = std::sync::Arc::new(std::sync::OnceLock::new());
         let _ = cell.set(session);
@@ -269,8 +303,12 @@ impl VirtualLab {
                     to_camera: truth_tx,
                     calibrations: cal_tx,
                     camera: model,
+                    world: scenario.world.is_some(),
+                    joints: Some(std::sync::Arc::clone(&true_joints)),
                 }),
                 calibration,
+                // No operator in virtual time: no dead-man.
+                operator_timeout_s: None,
             },
         );
         let mut lab = Self {
@@ -295,6 +333,10 @@ impl VirtualLab {
             last_release: None,
             plan_error: None,
             magnet_error: None,
+            true_joints,
+            world_session: None,
+            world_view: None,
+            input_log: None,
         };
         lab.ensure_commanding()?;
         Ok(lab)
@@ -399,6 +441,7 @@ impl VirtualLab {
             abort_reason: None,
             planned_movement_time_s: self.scenario.task.movement_time_s,
             judgement: None,
+            physical: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: self.controller().latency().latency_s() * 1e3,
@@ -503,6 +546,12 @@ impl VirtualLab {
         {
             rec.failure = Some(format!("not judged: {e}"));
         }
+        rec.physical = o.physical;
+        if let Some(e) = o.physical_error
+            && rec.failure.is_none()
+        {
+            rec.failure = Some(format!("not judged: {e}"));
+        }
         rec.decide(&self.scenario.success);
     }
 
@@ -530,10 +579,24 @@ impl VirtualLab {
             client,
             robot,
             step,
+            true_joints,
+            input_log,
             ..
         } = self;
         client.poll(now, step);
-        if let Some(bytes) = robot.tick(now) {
+        let mut datagram = [0u8; MAX_DATAGRAM_BYTES];
+        let received = robot.tick(now).map(|b| {
+            let n = b.len().min(MAX_DATAGRAM_BYTES);
+            datagram[..n].copy_from_slice(&b[..n]);
+            n
+        });
+        if let Some(n) = received {
+            let bytes = &datagram[..n];
+            // The robot's true joints as this message leaves it (the judge's).
+            true_joints.store(robot.joint_rad());
+            if let Some(log) = input_log.as_mut() {
+                log.extend_from_slice(bytes);
+            }
             let mut reply = [0u8; MAX_DATAGRAM_BYTES];
             let mut len = None;
             let before = step.inner().controller().state();
@@ -562,6 +625,10 @@ impl VirtualLab {
                     Ok(sw) => {
                         if !on {
                             self.last_release = Some(sw);
+                            if let Some(w) = self.world_view.as_mut() {
+                                // Residual magnetism holds the ball a little longer.
+                                w.drop_at = Some(sw.t_pin_s + w.release_delay_s);
+                            }
                         }
                         self.notes_due.push(MagnetNote {
                             on,
@@ -581,16 +648,91 @@ impl VirtualLab {
                         } = &reply
                         {
                             self.plan_error = Some(
-                                Controller::plan(&self.scenario, draw.distance_m)
+                                Controller::plan(&self.scenario.beliefs(), draw.distance_m)
                                     .err()
                                     .map_or_else(|| "infeasible".to_owned(), |e| e.to_string()),
                             );
+                        }
+                        if let IoReply::Plan {
+                            plan: Ok(plan),
+                            index,
+                            draw,
+                            ..
+                        } = &reply
+                        {
+                            self.world_trial(t, *index, draw, plan);
                         }
                         let _ = self.io_replies.push(reply);
                     }
                 }
             }
         }
+    }
+
+    /// The reality lab (`[world]`): trial `index`'s true world, the same the
+    /// trial driver draws ([`World::for_trial`]): the simulated robot enters
+    /// its session, the camera sees it through the true camera. A truthful
+    /// world changes nothing.
+    fn world_trial(&mut self, t: f64, index: usize, draw: &TrialDraw, plan: &ArmPlan) {
+        self.world_view = None;
+        let Some(world) = World::for_trial(&self.scenario, self.seed, index, &plan.intercept_m)
+        else {
+            return;
+        };
+        self.enter_session(&world);
+        let cam = &self.scenario.camera;
+        let sim_cam = SimCameraParams::default();
+        let intrinsics = CameraIntrinsics::from_hfov(cam.width_px, cam.height_px, sim_cam.hfov_deg);
+        let camera = WorldCamera::from_session(
+            sim_cam.pose,
+            intrinsics,
+            cam.height_px,
+            cam.latency_ms * 1e-3,
+            &world.session,
+        );
+        // What the lab believes: the believed camera, the believed rest point.
+        let believed = SwingPlaneCalibration::from_pose(
+            intrinsics,
+            &sim_cam.pose,
+            &plan.intercept_m,
+            self.scenario.pendulum.ball_radius_m,
+        );
+        self.world_view = Some(WorldView {
+            camera,
+            rng: ChaCha8Rng::seed_from_u64(world.trial.seed ^ CAMERA_STREAM),
+            believed,
+            next_frame_s: t + self.period_ns as f64 * 1e-9 + draw.camera_phase_s,
+            drop_at: None,
+            release_delay_s: world.trial.release_delay_s,
+            in_flight: std::collections::VecDeque::with_capacity(64),
+        });
+    }
+
+    /// Enters the session of `world` when the simulated robot is not in it
+    /// yet (a "reboot": a new latency, servos and inertias).
+    fn enter_session(&mut self, world: &World) {
+        if self.world_session == Some(world.session.session) {
+            return;
+        }
+        self.world_session = Some(world.session.session);
+        let Some(w) = self.scenario.world.as_ref() else {
+            return;
+        };
+        let r = &w.robot;
+        let mut joints = WorldJoints::new(
+            *self.robot.joint_rad(),
+            &world.session,
+            self.robot.params().servo_time_constant_ms * 1e-3,
+            r.torque_limit_scale,
+            r.torque_trip,
+            r.position_noise_rad,
+            self.seed ^ world.session.session.wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        joints.set_interpolation_s(self.period_ns as f64 * 1e-9);
+        self.robot.set_world(Some(WorldRobot {
+            latency: LatencyModel::from_session(&world.session, self.t_s()),
+            joints,
+        }));
     }
 
     /// A trial's own random streams (camera, magnet) from its seed, and the
@@ -624,6 +766,10 @@ impl VirtualLab {
             if let Camera::Full { vision, .. } = &mut self.camera {
                 vision.set_calibration(_cal);
             }
+        }
+        if self.world_view.is_some() {
+            self.world_camera_until(t_next);
+            return;
         }
         match &mut self.camera {
             Camera::Model {
@@ -675,6 +821,102 @@ impl VirtualLab {
                     in_flight.pop_front();
                 }
             }
+        }
+    }
+
+    /// [`Self::camera_until`] in the reality lab: frames whose exposure
+    /// starts before `t_next`, of the true pendulum through the true camera
+    /// (its stamps, delivery, rolling shutter, optics, drops), turned into
+    /// measurements through the believed calibration (the model camera's
+    /// noise, or rendered through the believed camera at the point the true
+    /// camera sees and run through the OpenCV detector); delivered in order
+    /// of delivery.
+    fn world_camera_until(&mut self, t_next: f64) {
+        let Some(w) = self.world_view.as_mut() else {
+            return;
+        };
+        let period = 1.0 / self.scenario.camera.fps;
+        let drop_rate = self.scenario.camera.drop_rate;
+        while w.next_frame_s <= t_next {
+            let tc = w.next_frame_s;
+            w.next_frame_s += period;
+            let Some(ball) = self.truth.world_ball() else {
+                break;
+            };
+            if let Some(tr) = w.drop_at
+                && tr <= tc
+                && ball.is_held()
+            {
+                ball.release(tr.max(ball.time_s()));
+            }
+            ball.advance_to(tc);
+            let timing = w.camera.timing(tc, &mut w.rng);
+            let dropped = drop_rate > 0.0 && w.rng.random_bool(drop_rate.min(1.0));
+            let Some(sight) = w.camera.sight(tc, |t| {
+                let mut b = ball.clone();
+                b.advance_to(t);
+                b.ball_position_m()
+            }) else {
+                continue;
+            };
+            match &mut self.camera {
+                #[cfg(feature = "opencv")]
+                Camera::Full { vision, .. } => {
+                    // The renderer draws, through the believed camera, the
+                    // point the true camera sees.
+                    let state = crate::sim::camera::BallState {
+                        centre_m: w
+                            .camera
+                            .equivalent_centre_m(&sight.px, &ball.ball_position_m()),
+                        velocity_mps: ball.ball_velocity_mps(),
+                    };
+                    match vision.capture(tc, Some(&state)) {
+                        Ok(Some(m)) if m.found => w.in_flight.push_back((
+                            timing.t_delivered_s,
+                            Measurement {
+                                t_capture_s: timing.t_stamp_s,
+                                t_available_s: timing.t_delivered_s,
+                                found: true,
+                                lateral_m: m.lateral_m,
+                                ..Measurement::default()
+                            },
+                        )),
+                        Ok(_) => {}
+                        Err(e) => self.magnet_error = Some(format!("vision: {e}")),
+                    }
+                }
+                Camera::Model { rng, .. } => {
+                    if !dropped && let Some(lat) = w.believed.lateral_m(sight.px.x, sight.px.y) {
+                        let z = lat
+                            + crate::sim::camera::model::MODEL_NOISE_M
+                                * crate::sim::camera::gaussian(rng);
+                        w.in_flight.push_back((
+                            timing.t_delivered_s,
+                            Measurement {
+                                t_capture_s: timing.t_stamp_s,
+                                t_available_s: timing.t_delivered_s,
+                                found: true,
+                                lateral_m: z,
+                                ..Measurement::default()
+                            },
+                        ));
+                    }
+                }
+            }
+        }
+        // Delivered in order of delivery (jitter may reorder frames).
+        w.in_flight
+            .make_contiguous()
+            .sort_by(|a, b| a.0.total_cmp(&b.0));
+        while let Some(&(avail, m)) = w.in_flight.front() {
+            if avail > t_next {
+                break;
+            }
+            if let Some(log) = self.input_log.as_mut() {
+                log.extend_from_slice(format!("{m:?}").as_bytes());
+            }
+            let _ = self.measurements.push(m);
+            w.in_flight.pop_front();
         }
     }
 
@@ -816,6 +1058,41 @@ mod tests {
         let r2 = lab.run_trial(1);
         assert_ne!(r2.final_state, "idle", "{r2:?}");
         assert!(lab.robot().stats().commanding_entered.load(Relaxed) >= 2);
+    }
+
+    #[test]
+    fn the_controller_cannot_read_the_world() {
+        // Two labs that differ only in `[world]` (the pendulum's true length
+        // and the camera's true latency): the controller's inputs are
+        // byte-identical until the first measurement, and the outcomes differ.
+        let run = |world: &str| {
+            let mut s =
+                Scenario::from_toml_str(&format!("[camera]\nvision = \"model\"\n{world}")).unwrap();
+            s.name = "x".into();
+            let mut lab = VirtualLab::new(&s, 4).unwrap();
+            lab.input_log = Some(Vec::new());
+            let r = lab.run_trial(0);
+            (lab.input_log.take().unwrap(), r)
+        };
+        let (a, ra) = run("[world.pendulum]\nlength_error_m = 0.0\n");
+        let (b, rb) =
+            run("[world.pendulum]\nlength_error_m = 0.02\n[world.camera]\nlatency_ms = 12.0\n");
+        let first = |log: &[u8]| {
+            let key = b"Measurement";
+            log.windows(key.len()).position(|w| w == key).unwrap()
+        };
+        let (fa, fb) = (first(&a), first(&b));
+        assert!(fa > 1000, "{fa}");
+        let n = fa.min(fb);
+        assert_eq!(
+            a[..n],
+            b[..n],
+            "the inputs differ before the first measurement"
+        );
+        assert_ne!(a, b);
+        let (pa, pb) = (ra.physical.unwrap(), rb.physical.unwrap());
+        assert_ne!(pa.t_star_s, pb.t_star_s);
+        assert_ne!(pa.timing_error_ms, pb.timing_error_ms);
     }
 
     #[test]
