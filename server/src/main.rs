@@ -54,6 +54,8 @@ enum Command {
     Tune(cmd::tune::TuneArgs),
     /// Run N closed-loop trials of a scenario in virtual time and judge them on ground truth.
     Trials(cmd::trials::TrialsArgs),
+    /// Combine the --json outputs of `trials --shard I/N` into the unsharded run's summary.
+    Merge(cmd::merge::MergeArgs),
     /// Measure the hot paths and the real-time loop (1 ms FRI over loopback UDP).
     Bench(cmd::bench::BenchArgs),
     /// iiwa 7 kinematics: forward (fk), inverse (ik) and motion planning (plan).
@@ -130,6 +132,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),
         Command::Trials(args) => print_out(&cmd::trials::run(&args)?),
+        Command::Merge(args) => print_out(&cmd::merge::run(&args)?),
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Kin(args) => cmd::kin::run(args),
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),

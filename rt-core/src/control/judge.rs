@@ -14,7 +14,7 @@
 //! Not real-time code: it runs once per trial on the recorded trace.
 
 use nalgebra::Vector3;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::trajectory::profile::ProfileKind;
 
@@ -81,7 +81,7 @@ pub struct PlannedMotion {
 }
 
 /// The ground-truth verdict on one motion.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Judgement {
     /// When the ball centre passed the intercept point, seconds.
     pub t_star_s: f64,

@@ -1,13 +1,13 @@
 //! Per-trial records and the `isochron trials --json` summary (CONTRACT.md).
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::judge::Judgement;
 use super::stats::{Moments, Percentiles, wilson_ci95};
 use crate::params::SuccessParams;
 
-/// One trial's numbers (a line of `--per-trial`).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+/// One trial's numbers (a line of `--per-trial`; `isochron merge` reads them back).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrialRecord {
     /// Index of the trial in the run, from 0.
     pub trial: usize,
@@ -333,7 +333,7 @@ mod tests {
 
 /// The physical judge's verdict on one trial (written by the lab's
 /// judge on the ground truth; the controller never computes it and only carries it in its report).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PhysicalJudgement {
     /// True pass the controller committed to, s.
     pub t_star_s: f64,

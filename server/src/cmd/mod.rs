@@ -8,5 +8,6 @@ pub mod fri_doctor;
 pub mod fri_sim;
 pub mod kin;
 pub mod magnet;
+pub mod merge;
 pub mod trials;
 pub mod tune;

@@ -1,5 +1,14 @@
-//! `isochron trials --scenario FILE --n N [--seed S] [--json] [--per-trial FILE.jsonl]`:
-//! N closed-loop trials of a scenario in virtual time (CONTRACT.md).
+//! `isochron trials --scenario FILE --n N [--seed S] [--json] [--per-trial FILE.jsonl]
+//! [--shard I/N] [--block B]`: N closed-loop trials of a scenario in virtual time
+//! (CONTRACT.md).
+//!
+//! A run is cut into *lab days* of `--block` trials: each day a freshly started
+//! lab (a new simulated robot session, a new controller, as after restarting
+//! `isochron serve`) runs its trials, whose draws follow from the seed and the
+//! trial's index alone. So a day's outcomes do not depend on the days before it,
+//! and `--shard I/N` (the I-th of N contiguous runs of whole days, I from 0) gives
+//! exactly the trials the unsharded run gives for the same indices; `isochron
+//! merge` ([`super::merge`]) puts the shards' `--json` outputs back together.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -14,6 +23,45 @@ use rt_core::params::Scenario;
 
 /// Largest number of trials one run accepts.
 const MAX_TRIALS: usize = 1_000_000;
+
+/// Trials one freshly started lab runs (one lab day), unless `--block` says otherwise.
+pub const DEFAULT_BLOCK: usize = 100;
+
+/// Most shards one run may be cut into.
+const MAX_SHARDS: usize = 100_000;
+
+/// `--shard I/N`: the I-th (from 0) of N slices of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    /// Which slice, `0..count`.
+    pub index: usize,
+    /// How many slices.
+    pub count: usize,
+}
+
+impl std::str::FromStr for Shard {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || format!("`{s}` is not I/N with 0 <= I < N <= {MAX_SHARDS} (e.g. 0/4)");
+        let (i, n) = s.split_once('/').ok_or_else(bad)?;
+        let index: usize = i.trim().parse().map_err(|_| bad())?;
+        let count: usize = n.trim().parse().map_err(|_| bad())?;
+        if count == 0 || count > MAX_SHARDS || index >= count {
+            return Err(bad());
+        }
+        Ok(Self { index, count })
+    }
+}
+
+/// The trial indices `lo..hi` shard `shard` runs of `n` trials in days of `block`:
+/// days `index * days / count .. (index + 1) * days / count`.
+pub fn shard_range(n: usize, block: usize, shard: Shard) -> std::ops::Range<usize> {
+    let days = n.div_ceil(block);
+    let first = shard.index * days / shard.count;
+    let end = (shard.index + 1) * days / shard.count;
+    (first * block).min(n)..(end * block).min(n)
+}
 
 /// Arguments of `isochron trials`.
 #[derive(Debug, clap::Args)]
@@ -42,6 +90,14 @@ pub struct TrialsArgs {
     /// the robot latency prior.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
+    /// Run only the I-th of N slices (I from 0, e.g. `--shard 3/8`): whole lab days,
+    /// contiguous; with `--json` the output also holds the slice's per-trial records
+    /// for `isochron merge`.
+    #[arg(long)]
+    pub shard: Option<Shard>,
+    /// Trials per lab day: each day a freshly started lab runs this many trials.
+    #[arg(long, default_value_t = DEFAULT_BLOCK)]
+    pub block: usize,
 }
 
 /// Runs the trials; returns the text for stdout.
@@ -49,6 +105,31 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     if args.n == 0 || args.n > MAX_TRIALS {
         anyhow::bail!("--n = {} is out of range: must be 1..={MAX_TRIALS}", args.n);
     }
+    if args.block == 0 || args.block > MAX_TRIALS {
+        anyhow::bail!(
+            "--block = {} is out of range: must be 1..={MAX_TRIALS}",
+            args.block
+        );
+    }
+    let days = args.n.div_ceil(args.block);
+    if let Some(sh) = args.shard
+        && sh.count > days
+    {
+        anyhow::bail!(
+            "--shard {}/{}: {} trials in days of {} make {days} lab days, fewer than {} shards \
+             (use --shard I/{days} or fewer, or a smaller --block)",
+            sh.index,
+            sh.count,
+            args.n,
+            args.block,
+            sh.count
+        );
+    }
+    let range = shard_range(
+        args.n,
+        args.block,
+        args.shard.unwrap_or(Shard { index: 0, count: 1 }),
+    );
     let mut scenario = Scenario::from_file(&args.scenario)?;
     for p in &args.params {
         scenario = rt_core::tuning::overlay_params_file(&scenario, p)?;
@@ -71,8 +152,10 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
             lab.vision_used()
         );
     }
-    let bar =
-        ProgressBar::with_draw_target(Some(args.n as u64), ProgressDrawTarget::stderr_with_hz(5));
+    let bar = ProgressBar::with_draw_target(
+        Some(range.len() as u64),
+        ProgressDrawTarget::stderr_with_hz(5),
+    );
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} trials {pos}/{len} [{bar:30}] {msg} ({elapsed}, eta {eta})",
@@ -80,10 +163,17 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
         .unwrap_or_else(|_| ProgressStyle::default_bar())
         .progress_chars("=> "),
     );
-    let mut records: Vec<TrialRecord> = Vec::with_capacity(args.n);
+    let mut records: Vec<TrialRecord> = Vec::with_capacity(range.len());
     let mut successes = 0usize;
     let mut ekf_counters = rt_core::ekf::EkfCounters::default();
-    for i in 0..args.n {
+    // Lab time of the days already run (each lab's clock starts at 0).
+    let mut lab_time_s = 0.0;
+    for i in range.clone() {
+        if i % args.block == 0 && i != range.start {
+            // A new lab day: a freshly started lab, as after a restart.
+            lab_time_s += lab.t_s();
+            lab = VirtualLab::new(&scenario, args.seed)?;
+        }
         let r = lab.run_trial(i);
         successes += usize::from(r.success);
         if let Some(c) = lab.controller().ekf().map(rt_core::ekf::Ekf::counters) {
@@ -105,27 +195,66 @@ pub fn run(args: &TrialsArgs) -> anyhow::Result<String> {
     }
     let wall_s = started.elapsed().as_secs_f64();
     // Virtual time simulated (the lab's clock starts at 0), against the wall clock.
+    lab_time_s += lab.t_s();
     eprintln!(
-        "isochron trials: {:.0} s of lab time in {wall_s:.1} s of wall time ({:.0}x real time)",
-        lab.t_s(),
-        lab.t_s() / wall_s.max(1e-9)
+        "isochron trials: {lab_time_s:.0} s of lab time in {wall_s:.1} s of wall time ({:.0}x real time)",
+        lab_time_s / wall_s.max(1e-9)
     );
     let mut summary = Summary::of(&scenario.name, &records, wall_s);
     summary.vision = Some(lab.vision_used().to_owned());
     if args.json {
-        let mut v = serde_json::to_value(&summary)?;
         // The filter the trials ran with (read back from the controller) and what it did.
-        if let Some(ekf) = lab.controller().ekf() {
-            v["ekf"] = serde_json::to_value(ekf.params())?;
-            v["ekf_counters"] = serde_json::json!({
-                "fused": ekf_counters.fused,
-                "rejected": ekf_counters.rejected,
-                "reinitialisations": ekf_counters.reinitialisations,
-            });
+        let ekf = match lab.controller().ekf() {
+            Some(ekf) => Some((serde_json::to_value(ekf.params())?, ekf_counters)),
+            None => None,
+        };
+        let mut v = summary_json(&summary, ekf)?;
+        if let Some(sh) = args.shard {
+            v["shard"] = serde_json::to_value(ShardInfo {
+                index: sh.index,
+                count: sh.count,
+                n: args.n,
+                block: args.block,
+                seed: args.seed,
+            })?;
+            v["records"] = serde_json::to_value(&records)?;
         }
         return Ok(serde_json::to_string(&v)?);
     }
     Ok(human(&summary))
+}
+
+/// What a shard's `--json` output says of the run it is a slice of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct ShardInfo {
+    /// Which slice, from 0.
+    pub index: usize,
+    /// How many slices.
+    pub count: usize,
+    /// Trials in the whole run.
+    pub n: usize,
+    /// Trials per lab day.
+    pub block: usize,
+    /// The run's seed.
+    pub seed: u64,
+}
+
+/// The `--json` summary object (CONTRACT.md): the summary, and the filter's
+/// parameters and counters when the controller ran one.
+pub fn summary_json(
+    summary: &Summary,
+    ekf: Option<(serde_json::Value, rt_core::ekf::EkfCounters)>,
+) -> anyhow::Result<serde_json::Value> {
+    let mut v = serde_json::to_value(summary)?;
+    if let Some((params, c)) = ekf {
+        v["ekf"] = params;
+        v["ekf_counters"] = serde_json::json!({
+            "fused": c.fused,
+            "rejected": c.rejected,
+            "reinitialisations": c.reinitialisations,
+        });
+    }
+    Ok(v)
 }
 
 fn human(s: &Summary) -> String {
@@ -187,6 +316,8 @@ mod tests {
             per_trial,
             params: Vec::new(),
             calibration: None,
+            shard: None,
+            block: DEFAULT_BLOCK,
         }
     }
 
@@ -217,7 +348,33 @@ mod tests {
     }
 
     #[test]
+    fn shards_are_disjoint_runs_of_whole_days_covering_the_run() {
+        for (n, block, count) in [(10, 3, 4), (7, 100, 1), (1000, 100, 7), (5, 1, 5)] {
+            let mut next = 0;
+            for index in 0..count {
+                let r = shard_range(n, block, Shard { index, count });
+                assert_eq!(r.start, next, "n {n} block {block} shard {index}/{count}");
+                assert!(r.start % block == 0 || r.is_empty());
+                next = r.end;
+            }
+            assert_eq!(next, n);
+        }
+        assert_eq!("3/8".parse::<Shard>(), Ok(Shard { index: 3, count: 8 }));
+        for bad in ["8/8", "1", "-1/2", "a/b", "0/0", "1/2/3", ""] {
+            assert!(bad.parse::<Shard>().is_err(), "{bad}");
+        }
+    }
+
+    #[test]
     fn bad_arguments_are_refused() {
+        let mut a = args(4, None);
+        a.block = 2;
+        a.shard = Some(Shard { index: 0, count: 3 });
+        let e = run(&a).unwrap_err().to_string();
+        assert!(e.contains("--shard 0/3") && e.contains("2 lab days"), "{e}");
+        let mut a = args(4, None);
+        a.block = 0;
+        assert!(run(&a).unwrap_err().to_string().contains("--block"));
         assert!(run(&args(0, None)).unwrap_err().to_string().contains("--n"));
         let mut a = args(1, None);
         a.scenario = PathBuf::from("/nonexistent/s.toml");

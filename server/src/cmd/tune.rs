@@ -162,6 +162,8 @@ mod tests {
                 per_trial: None,
                 params,
                 calibration: None,
+                shard: None,
+                block: super::super::trials::DEFAULT_BLOCK,
             })
             .unwrap();
             serde_json::from_str(&out).unwrap()
