@@ -71,7 +71,18 @@ fn shards_run_as_separate_processes_merge_into_the_unsharded_summary() {
     )
     .unwrap();
     let sc = scenario.to_str().unwrap();
-    let common = ["trials", "--scenario", sc, "--n", "7", "--seed", "5", "--block", "2", "--json"];
+    let common = [
+        "trials",
+        "--scenario",
+        sc,
+        "--n",
+        "7",
+        "--seed",
+        "5",
+        "--block",
+        "2",
+        "--json",
+    ];
 
     let whole = json(&run(&bin, &common), "the unsharded run");
     assert_eq!(whole["trials"], 7);
@@ -142,7 +153,20 @@ fn shards_run_as_separate_processes_merge_into_the_unsharded_summary() {
     let other = json(
         &run(
             &bin,
-            &["trials", "--scenario", sc, "--n", "7", "--seed", "6", "--block", "2", "--json", "--shard", "2/3"],
+            &[
+                "trials",
+                "--scenario",
+                sc,
+                "--n",
+                "7",
+                "--seed",
+                "6",
+                "--block",
+                "2",
+                "--json",
+                "--shard",
+                "2/3",
+            ],
         ),
         "a shard of another seed",
     );
@@ -157,7 +181,17 @@ fn shards_run_as_separate_processes_merge_into_the_unsharded_summary() {
     refused(&["merge", whole_file.to_str().unwrap()], "no \"shard\"");
     // More shards than lab days.
     refused(
-        &["trials", "--scenario", sc, "--n", "7", "--block", "2", "--shard", "0/5"],
+        &[
+            "trials",
+            "--scenario",
+            sc,
+            "--n",
+            "7",
+            "--block",
+            "2",
+            "--shard",
+            "0/5",
+        ],
         "4 lab days",
     );
 }

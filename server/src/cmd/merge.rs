@@ -38,21 +38,23 @@ fn read_part(file: &PathBuf) -> anyhow::Result<Part> {
         .with_context(|| format!("cannot read {}", file.display()))?
         .len();
     if len > MAX_FILE_BYTES {
-        bail!("{}: {len} bytes is more than {MAX_FILE_BYTES}", file.display());
+        bail!(
+            "{}: {len} bytes is more than {MAX_FILE_BYTES}",
+            file.display()
+        );
     }
     let text =
         std::fs::read_to_string(file).with_context(|| format!("cannot read {}", file.display()))?;
     let mut value: Value = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a JSON summary", file.display()))?;
-    let shard: ShardInfo = serde_json::from_value(value.get("shard").cloned().with_context(
-        || {
+    let shard: ShardInfo =
+        serde_json::from_value(value.get("shard").cloned().with_context(|| {
             format!(
                 "{}: no \"shard\" object (write it with isochron trials --shard I/N --json)",
                 file.display()
             )
-        },
-    )?)
-    .with_context(|| format!("{}: bad \"shard\" object", file.display()))?;
+        })?)
+        .with_context(|| format!("{}: bad \"shard\" object", file.display()))?;
     let records: Vec<TrialRecord> = serde_json::from_value(
         value
             .get_mut("records")
@@ -88,7 +90,10 @@ pub fn run(args: &MergeArgs) -> anyhow::Result<String> {
     };
     let name = first.value["scenario"].clone();
     for p in &parts {
-        let same = ShardInfo { index: 0, ..p.shard } == run;
+        let same = ShardInfo {
+            index: 0,
+            ..p.shard
+        } == run;
         if !same || p.value["scenario"] != name {
             bail!(
                 "{} is a shard of another run ({}, {}/{} of n {} seed {} block {}) than {} ({}, n {} seed {} block {})",
