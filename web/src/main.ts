@@ -88,6 +88,7 @@ function status(s: StateMessage): void {
   set("st-latency", fmt(s.robot.actuation_latency_ms, 1, "ms"));
   set("st-step", `${fmt(s.timing.step_us, 1)} / ${fmt(s.timing.step_max_us, 1)} µs`);
   set("st-misses", String(s.timing.deadline_misses + s.fri.missed_cycles));
+  set("st-rejected", String(s.camera?.rejected ?? "–"));
   const ahead = (s.pendulum.crossing_t_s ?? Number.NaN) - s.t_s;
   set("st-pass", ahead >= 0 ? `in ${fmt(ahead, 2, "s")} ± ${fmt((s.pendulum.crossing_sigma_s ?? NaN) * 1000, 1, "ms")}` : "–");
 }

@@ -422,6 +422,9 @@ pub struct CameraView {
     pub t_s: f64,
     /// Whether the detector found the ball in it.
     pub found: bool,
+    /// Detections dropped so far as inconsistent with the track and shape
+    /// (a ball-like blob where the tracked ball cannot be).
+    pub rejected: u64,
     /// Ball centre, image column, pixels (pixel centres at integers).
     pub x_px: f64,
     /// Ball centre, image row, pixels.
@@ -472,6 +475,7 @@ impl CameraView {
         self.frame = m.frame;
         self.t_s = m.t_capture_s;
         self.found = m.found;
+        self.rejected = m.rejected;
         (self.x_px, self.y_px, self.r_px) = (m.x_px, m.y_px, m.r_px);
     }
 

@@ -18,6 +18,28 @@ use serde::{Deserialize, Serialize};
 use super::VisionError;
 use crate::check::{self, ParamError};
 
+/// The arc fit's sampling seed (deterministic for the same frames).
+const RNG_SEED: u64 = 0x9E37_79B9_7F4A_7C15;
+
+/// A blob at least this elongated is read as a motion streak.
+const STREAK_ELONGATION: f64 = 1.15;
+
+/// A blob at least this elongated may be a (short) motion streak: it is one
+/// when its long axis is along the track's motion and it is not narrower
+/// than the ball.
+const BLUR_ELONGATION: f64 = 1.04;
+
+/// A streak's long axis is within this angle of the track's velocity, radians.
+const STREAK_ANGLE_RAD: f64 = 0.35;
+
+/// Outline pixels within this distance of a fitted circle lie on it, pixels.
+const ARC_TOL_PX: f64 = 1.2;
+
+/// A ball is seen whole when at least this share of its outline lies on the
+/// circle fitted to all of it (a cap cut off by the tool, or a look-alike
+/// merged in, puts a larger share off it).
+const WHOLE_SHARE: f64 = 0.95;
+
 /// Detector settings: `[vision.detector]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -128,6 +150,8 @@ struct Track {
     vy: f64,
     r: f64,
     t_s: f64,
+    /// Whether `vx, vy` were measured (two detections in a row), not assumed zero.
+    moving: bool,
 }
 
 /// The ball detector with its scratch buffers and track.
@@ -146,8 +170,15 @@ pub struct Detector {
     tmp: Mat,
     contours: Vector<Vector<Point>>,
     candidates: Vec<Detection>,
+    /// `outline[i]`: `candidates[i]`'s outline (index in `contours`) and
+    /// the direction of its long axis.
+    outline: Vec<Outline>,
     coarse: Vec<Detection>,
     track: Option<Track>,
+    points: Vec<(f64, f64)>,
+    rng: u64,
+    rejected: u64,
+    arc_fits: u64,
 }
 
 impl std::fmt::Debug for Detector {
@@ -159,12 +190,22 @@ impl std::fmt::Debug for Detector {
     }
 }
 
+/// Where a candidate's outline is and which way its long axis points.
+#[derive(Debug, Clone, Copy)]
+struct Outline {
+    /// Index in the detector's `contours`.
+    contour: usize,
+    /// Direction of the moment ellipse's long axis, radians (image x right, y down).
+    axis_rad: f64,
+}
+
 /// A blob's measurements, in the coordinates of the image it was found in.
 struct Blob {
     x: f64,
     y: f64,
     r: f64,
     elongation: f64,
+    axis_rad: f64,
     confidence: f64,
 }
 
@@ -197,8 +238,13 @@ impl Detector {
             tmp: Mat::default(),
             contours: Vector::new(),
             candidates: Vec::with_capacity(16),
+            outline: Vec::with_capacity(16),
             coarse: Vec::with_capacity(16),
             track: None,
+            points: Vec::with_capacity(1024),
+            rng: RNG_SEED,
+            rejected: 0,
+            arc_fits: 0,
         })
     }
 
@@ -207,9 +253,23 @@ impl Detector {
         &self.params
     }
 
-    /// Forgets the track: the next frame is searched whole.
+    /// Forgets the track: the next frame is searched whole (and the arc
+    /// fit's sampling restarts: the same frames give the same detections).
     pub fn reset(&mut self) {
         self.track = None;
+        self.rng = RNG_SEED;
+    }
+
+    /// Detections dropped so far because they were inconsistent with the
+    /// track (a ball-like blob far from where the tracked ball can be).
+    pub fn rejected(&self) -> u64 {
+        self.rejected
+    }
+
+    /// Detections so far whose centre came from a circle fitted to the arc of
+    /// the outline that belongs to the ball (touching look-alike, occluder).
+    pub fn arc_fits(&self) -> u64 {
+        self.arc_fits
     }
 
     /// Finds the ball in an 8-bit BGR image taken at `t_s` (seconds, any clock;
@@ -224,48 +284,259 @@ impl Detector {
             )));
         }
         let (w, h) = (image.cols(), image.rows());
-        if let Some(tr) = self.track.filter(|tr| {
+        let fresh = self.track.filter(|tr| {
             let dt = t_s - tr.t_s;
             (0.0..=self.params.track_timeout_s).contains(&dt)
-        }) {
+        });
+        let mut gate: Option<(f64, f64, f64)> = None;
+        if let Some(tr) = fresh {
             let dt = t_s - tr.t_s;
             let (px, py) = (tr.x + tr.vx * dt, tr.y + tr.vy * dt);
             let speed = tr.vx.hypot(tr.vy);
             let half = (self.params.window_radii * tr.r).max(40.0) + 0.5 * speed * dt;
+            gate = Some((px, py, half));
             if let Some(rect) = window(px, py, half, w, h) {
                 let roi = Mat::roi(image, rect)?;
                 self.candidates.clear();
                 self.search(&roi, rect, 1, w, h)?;
-                if let Some(mut best) = self.best(Some((px, py))) {
+                let best = self.best_index(Some((px, py)));
+                let whole = best.and_then(|i| self.whole(i, &tr));
+                let found = match (best, whole) {
+                    (Some(i), Some(round)) => Some((self.candidates[i], round)),
+                    // The arc fit needs a trusted prediction: not on the first
+                    // frame after a full-frame find (no velocity yet).
+                    _ if tr.moving => self.arc_fit(rect, (px, py), tr.r).map(|d| (d, false)),
+                    _ => None,
+                };
+                if let Some((mut best, round)) = found {
                     best.tracked = true;
-                    self.update_track(&best, t_s);
+                    self.update_track(&best, t_s, round);
                     return Ok(Some(best));
                 }
             }
         }
         let found = self.full_frame(image)?;
-        match found {
-            Some(det) => self.update_track(&det, t_s),
-            None => self.track = None,
+        match (found, gate) {
+            // The tracked ball cannot be there: a look-alike (or the ball merged
+            // with one while the real one is hidden). Dropped and counted; the
+            // track is kept until it times out.
+            (Some(det), Some((px, py, half)))
+                if (det.x_px - px).hypot(det.y_px - py) > half + det.r_px
+                    || fresh.is_some_and(|tr| !self.consistent(&det, &tr)) =>
+            {
+                self.rejected += 1;
+                Ok(None)
+            }
+            (Some(det), _) => {
+                self.update_track(&det, t_s, true);
+                Ok(Some(det))
+            }
+            (None, Some(_)) => Ok(None),
+            (None, None) => {
+                self.track = None;
+                Ok(None)
+            }
         }
-        Ok(found)
     }
 
-    fn update_track(&mut self, det: &Detection, t_s: f64) {
-        let (vx, vy) = match self.track {
+    /// Whether candidate `i` of the tracking window is the tracked ball seen
+    /// whole: `Some(true)` a round ball (its radius matches the track's and
+    /// its whole outline lies on one circle), `Some(false)` a motion streak
+    /// (its short semi-axis, the radius, is at least the track's: blur only
+    /// adds width), `None` otherwise. A ball partly covered, or merged with a
+    /// look-alike, has part of its outline off the circle, or a short
+    /// semi-axis below the radius, and goes to [`Self::arc_fit`].
+    fn whole(&self, i: usize, tr: &Track) -> Option<bool> {
+        let c = &self.candidates[i];
+        if !self.consistent(c, tr) {
+            return None;
+        }
+        let outline = *self.outline.get(i)?;
+        // Motion blur stretches the ball along its motion and never narrows it.
+        let along = !tr.moving || {
+            let a = (outline.axis_rad - tr.vy.atan2(tr.vx)).rem_euclid(std::f64::consts::PI);
+            a.min(std::f64::consts::PI - a) <= STREAK_ANGLE_RAD
+        };
+        let wide = c.r_px >= 0.95 * tr.r - 0.3;
+        // (A track just acquired has no velocity yet, and its radius may be a
+        // streak's width: a streak is taken as it is.)
+        if c.elongation >= BLUR_ELONGATION && along && (wide || !tr.moving) {
+            return Some(false);
+        }
+        if c.elongation >= STREAK_ELONGATION {
+            return None;
+        }
+        let contour = self.contours.get(outline.contour).ok()?;
+        let n = contour.len();
+        let pts = || contour.iter().map(|p| (f64::from(p.x), f64::from(p.y)));
+        let (sx, sy) = pts().fold((0.0, 0.0), |(a, b), (x, y)| (a + x, b + y));
+        let origin = (sx / n as f64, sy / n as f64);
+        // Kasa's fit over the whole outline (no inlier selection).
+        let (cx, cy, rr) = kasa(pts(), origin)?;
+        let k = pts()
+            .filter(|&(x, y)| ((x - cx).hypot(y - cy) - rr).abs() <= ARC_TOL_PX)
+            .count();
+        (k as f64 >= WHOLE_SHARE * n as f64).then_some(true)
+    }
+
+    /// Whether a detection's radius is the track's: within 8% + 0.5 px for a
+    /// round blob, 0.92..1.2 of it for a streak (a streak's short semi-axis
+    /// grows to 1.155 r as it lengthens; a covered ball's shrinks).
+    fn consistent(&self, c: &Detection, tr: &Track) -> bool {
+        if c.elongation < STREAK_ELONGATION {
+            (c.r_px - tr.r).abs() <= 0.08 * tr.r + 0.5
+        } else {
+            c.r_px >= 0.92 * tr.r - 0.5 && c.r_px <= 1.2 * tr.r + 0.5
+        }
+    }
+
+    /// Fits a circle of about the track's radius `r` to the outline pixels of
+    /// the tracking window's blobs near `pred` (RANSAC over point triples, then
+    /// least squares on the inliers). Accepted when the inliers cover at
+    /// least 150 degrees of the circle, at least 40% of its circumference, and
+    /// the mask fills at least 40% of it: the arc that belongs to the ball when
+    /// it touches a same-coloured object or the tool covers up to half of it.
+    fn arc_fit(&mut self, rect: Rect, pred: (f64, f64), r: f64) -> Option<Detection> {
+        let (px, py) = (pred.0 - f64::from(rect.x), pred.1 - f64::from(rect.y));
+        let reach = 2.5 * r + 4.0;
+        self.points.clear();
+        for contour in &self.contours {
+            for p in &contour {
+                let (x, y) = (f64::from(p.x), f64::from(p.y));
+                if (x - px).hypot(y - py) <= reach && self.points.len() < self.points.capacity() {
+                    self.points.push((x, y));
+                }
+            }
+        }
+        let n = self.points.len();
+        if n < 12 {
+            return None;
+        }
+        let tol = ARC_TOL_PX;
+        let (r_lo, r_hi) = (0.85 * r, 1.15 * r);
+        let mut best: Option<(usize, (f64, f64, f64))> = None;
+        for _ in 0..120 {
+            let (i, j, k) = (self.next_index(n), self.next_index(n), self.next_index(n));
+            let (a, b, c) = (self.points[i], self.points[j], self.points[k]);
+            let Some((cx, cy, rr)) = circumcircle(a, b, c) else {
+                continue;
+            };
+            if !(r_lo..=r_hi).contains(&rr) || (cx - px).hypot(cy - py) > reach {
+                continue;
+            }
+            let inl = self
+                .points
+                .iter()
+                .filter(|&&(x, y)| ((x - cx).hypot(y - cy) - rr).abs() <= tol)
+                .count();
+            if best.is_none_or(|(k, _)| inl > k) {
+                best = Some((inl, (cx, cy, rr)));
+            }
+        }
+        let (_, (mut cx, mut cy, mut rr)) = best?;
+        // Least squares on the inliers with a free radius (Kasa's algebraic
+        // fit), re-selecting the inliers around each new circle.
+        for _ in 0..6 {
+            let Some((x, y, rad)) = fit_circle(&self.points, (cx, cy, rr), tol) else {
+                return None;
+            };
+            (cx, cy, rr) = (x, y, rad);
+        }
+        if !(r_lo - 0.5..=r_hi).contains(&rr) || (cx - px).hypot(cy - py) > reach {
+            return None;
+        }
+        // Angular coverage of the inliers (360 minus the largest gap).
+        let mut bins = [false; 72];
+        let mut inliers = 0usize;
+        for &(x, y) in &self.points {
+            if ((x - cx).hypot(y - cy) - rr).abs() <= tol {
+                inliers += 1;
+                let a = (y - cy).atan2(x - cx).to_degrees().rem_euclid(360.0);
+                bins[(a / 5.0) as usize % 72] = true;
+            }
+        }
+        let mut gap = 0usize;
+        let mut run = 0usize;
+        for i in 0..144 {
+            if bins[i % 72] {
+                run = 0;
+            } else {
+                run += 1;
+                gap = gap.max(run.min(72));
+            }
+        }
+        let coverage_deg = 360.0 - 5.0 * gap as f64;
+        let circumference = std::f64::consts::TAU * rr;
+        if coverage_deg < 150.0 || (inliers as f64) < 0.4 * circumference {
+            return None;
+        }
+        // The mask must fill a good part of the circle (not a ring or a gap).
+        let (mut inside, mut on) = (0u32, 0u32);
+        let step = (rr / 6.0).max(1.0);
+        let mut yy = cy - rr;
+        while yy <= cy + rr {
+            let mut xx = cx - rr;
+            while xx <= cx + rr {
+                if (xx - cx).hypot(yy - cy) <= rr - 1.0 {
+                    let (ix, iy) = (xx.round() as i32, yy.round() as i32);
+                    if ix >= 0 && iy >= 0 && ix < self.mask.cols() && iy < self.mask.rows() {
+                        inside += 1;
+                        if self.mask.at_2d::<u8>(iy, ix).is_ok_and(|v| *v > 0) {
+                            on += 1;
+                        }
+                    }
+                }
+                xx += step;
+            }
+            yy += step;
+        }
+        if inside == 0 || f64::from(on) < 0.4 * f64::from(inside) {
+            return None;
+        }
+        self.arc_fits += 1;
+        // Outline pixels lie half a pixel inside the ball's edge.
+        Some(Detection {
+            x_px: f64::from(rect.x) + cx,
+            y_px: f64::from(rect.y) + cy,
+            r_px: r,
+            confidence: (coverage_deg / 360.0).clamp(0.0, 1.0),
+            elongation: 1.0,
+            tracked: true,
+        })
+    }
+
+    fn next_index(&mut self, n: usize) -> usize {
+        // xorshift64*: deterministic, no allocation.
+        self.rng ^= self.rng >> 12;
+        self.rng ^= self.rng << 25;
+        self.rng ^= self.rng >> 27;
+        (self.rng.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 33) as usize % n
+    }
+
+    /// Moves the track to `det`; its radius follows `det` only when `round`
+    /// (a ball seen whole and round: a streak's short semi-axis overstates the
+    /// radius, a covered ball's understates it, an arc fit reports the track's).
+    fn update_track(&mut self, det: &Detection, t_s: f64, round: bool) {
+        let (vx, vy, moving) = match self.track {
             Some(tr) if t_s > tr.t_s && t_s - tr.t_s <= self.params.track_timeout_s => {
                 let dt = t_s - tr.t_s;
-                ((det.x_px - tr.x) / dt, (det.y_px - tr.y) / dt)
+                ((det.x_px - tr.x) / dt, (det.y_px - tr.y) / dt, true)
             }
-            _ => (0.0, 0.0),
+            _ => (0.0, 0.0, false),
+        };
+        let r = match self.track {
+            Some(tr) if !round || det.elongation >= STREAK_ELONGATION => tr.r,
+            Some(tr) if det.tracked => 0.7 * tr.r + 0.3 * det.r_px,
+            _ => det.r_px,
         };
         self.track = Some(Track {
             x: det.x_px,
             y: det.y_px,
             vx,
             vy,
-            r: det.r_px,
+            r,
             t_s,
+            moving,
         });
     }
 
@@ -324,21 +595,27 @@ impl Detector {
     /// The best candidate: the most confident, or the nearest to `near` among the
     /// confident ones.
     fn best(&self, near: Option<(f64, f64)>) -> Option<Detection> {
+        self.best_index(near).map(|i| self.candidates[i])
+    }
+
+    /// [`Self::best`]'s index in `candidates`.
+    fn best_index(&self, near: Option<(f64, f64)>) -> Option<usize> {
         let ok = self
             .candidates
             .iter()
-            .filter(|c| c.confidence >= self.params.confidence_min);
+            .enumerate()
+            .filter(|(_, c)| c.confidence >= self.params.confidence_min);
         match near {
             Some((x, y)) => ok
-                .min_by(|a, b| {
+                .min_by(|(_, a), (_, b)| {
                     let da = (a.x_px - x).hypot(a.y_px - y);
                     let db = (b.x_px - x).hypot(b.y_px - y);
                     da.total_cmp(&db)
                 })
-                .copied(),
+                .map(|(i, _)| i),
             None => ok
-                .max_by(|a, b| a.confidence.total_cmp(&b.confidence))
-                .copied(),
+                .max_by(|(_, a), (_, b)| a.confidence.total_cmp(&b.confidence))
+                .map(|(i, _)| i),
         }
     }
 
@@ -380,7 +657,7 @@ impl Detector {
         let loosen = if coarse { 1.5 } else { 1.0 };
         let r_min = self.params.radius_min_px / s / loosen;
         let r_max = self.params.radius_max_px / s * loosen;
-        for contour in &self.contours {
+        for (ci, contour) in self.contours.iter().enumerate() {
             let n = contour.len();
             if n < 5 {
                 continue;
@@ -424,6 +701,11 @@ impl Detector {
                 }
             }
             if self.candidates.len() < self.candidates.capacity() {
+                self.outline.truncate(self.candidates.len());
+                self.outline.push(Outline {
+                    contour: ci,
+                    axis_rad: blob.axis_rad,
+                });
                 self.candidates.push(Detection {
                     x_px: x,
                     y_px: y,
@@ -495,6 +777,7 @@ fn measure(
         y: cy + f64::from(br.y),
         r: semi_short,
         elongation,
+        axis_rad: theta,
         confidence,
     })
 }
@@ -509,4 +792,65 @@ fn window(x: f64, y: f64, half: f64, w: i32, h: i32) -> Option<Rect> {
     let x1 = ((x + half).ceil() as i32 + 1).clamp(0, w);
     let y1 = ((y + half).ceil() as i32 + 1).clamp(0, h);
     (x1 - x0 >= 8 && y1 - y0 >= 8).then(|| Rect::new(x0, y0, x1 - x0, y1 - y0))
+}
+
+/// The circle through three points: (centre x, centre y, radius).
+fn circumcircle(a: (f64, f64), b: (f64, f64), c: (f64, f64)) -> Option<(f64, f64, f64)> {
+    let d = 2.0 * (a.0 * (b.1 - c.1) + b.0 * (c.1 - a.1) + c.0 * (a.1 - b.1));
+    if d.abs() < 1e-6 {
+        return None;
+    }
+    let (a2, b2, c2) = (
+        a.0 * a.0 + a.1 * a.1,
+        b.0 * b.0 + b.1 * b.1,
+        c.0 * c.0 + c.1 * c.1,
+    );
+    let ux = (a2 * (b.1 - c.1) + b2 * (c.1 - a.1) + c2 * (a.1 - b.1)) / d;
+    let uy = (a2 * (c.0 - b.0) + b2 * (a.0 - c.0) + c2 * (b.0 - a.0)) / d;
+    Some((ux, uy, (a.0 - ux).hypot(a.1 - uy)))
+}
+
+/// Kasa's algebraic circle fit, `x^2 + y^2 + D x + E y + F = 0` in least
+/// squares, over the `points` within `tol` of the circle `around`
+/// (coordinates taken relative to its centre for conditioning). `None` with
+/// fewer than 6 such points or a degenerate arc.
+fn fit_circle(points: &[(f64, f64)], around: (f64, f64, f64), tol: f64) -> Option<(f64, f64, f64)> {
+    let (ox, oy, r0) = around;
+    let near = points
+        .iter()
+        .copied()
+        .filter(|&(x, y)| ((x - ox).hypot(y - oy) - r0).abs() <= tol);
+    kasa(near, (ox, oy))
+}
+
+/// Kasa's algebraic circle fit, `x^2 + y^2 + D x + E y + F = 0` in least
+/// squares, with coordinates relative to `origin` (near the centre, for
+/// conditioning): (centre x, centre y, radius). `None` with fewer than 6
+/// points or a degenerate arc. No allocation.
+fn kasa(points: impl Iterator<Item = (f64, f64)>, origin: (f64, f64)) -> Option<(f64, f64, f64)> {
+    let (ox, oy) = origin;
+    let (mut sxx, mut sxy, mut syy, mut sx, mut sy, mut n) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let (mut sxz, mut syz, mut sz) = (0.0, 0.0, 0.0);
+    for (px, py) in points {
+        let (x, y) = (px - ox, py - oy);
+        let z = x * x + y * y;
+        sxx += x * x;
+        sxy += x * y;
+        syy += y * y;
+        sx += x;
+        sy += y;
+        n += 1.0;
+        sxz += x * z;
+        syz += y * z;
+        sz += z;
+    }
+    if n < 6.0 {
+        return None;
+    }
+    let a = nalgebra::Matrix3::new(sxx, sxy, sx, sxy, syy, sy, sx, sy, n);
+    let b = nalgebra::Vector3::new(-sxz, -syz, -sz);
+    let s = a.lu().solve(&b)?;
+    let (cx, cy) = (-0.5 * s.x, -0.5 * s.y);
+    let r2 = cx * cx + cy * cy - s.z;
+    (r2 > 0.0 && r2.is_finite()).then(|| (ox + cx, oy + cy, r2.sqrt()))
 }

@@ -84,6 +84,9 @@ pub struct Measurement {
     pub confidence: f64,
     /// Camera -> ball distance implied by the apparent size, metres (a cross-check).
     pub size_distance_m: f64,
+    /// Detections the detector dropped so far as inconsistent with the track
+    /// (a ball-like blob where the tracked ball cannot be).
+    pub rejected: u64,
 }
 
 impl Measurement {
@@ -100,6 +103,7 @@ impl Measurement {
             r_px: 0.0,
             confidence: 0.0,
             size_distance_m: 0.0,
+            rejected: 0,
         }
     }
 
@@ -126,6 +130,7 @@ impl Measurement {
                 r_px: det.r_px,
                 confidence: det.confidence,
                 size_distance_m: cal.distance_from_size_m(det.x_px, det.y_px, det.r_px),
+                rejected: 0,
             },
             None => Self::missing(frame, t_capture_s, t_available_s),
         }
@@ -151,5 +156,7 @@ pub fn limit_opencv_threads() -> Result<(), VisionError> {
     Ok(())
 }
 
+#[cfg(all(test, feature = "opencv"))]
+mod edge_tests;
 #[cfg(all(test, feature = "opencv"))]
 mod tests;

@@ -30,18 +30,20 @@ impl VisionPipeline {
         frame: &Frame<'_>,
         t_available_s: f64,
     ) -> Result<Measurement, VisionError> {
-        Ok(
-            match self.detector.detect(frame.image, frame.t_capture_s)? {
-                Some(det) => Measurement::from_detection(
-                    frame.index,
-                    frame.t_capture_s,
-                    t_available_s,
-                    &det,
-                    &self.calibration,
-                ),
-                None => Measurement::missing(frame.index, frame.t_capture_s, t_available_s),
-            },
-        )
+        let m = match self.detector.detect(frame.image, frame.t_capture_s)? {
+            Some(det) => Measurement::from_detection(
+                frame.index,
+                frame.t_capture_s,
+                t_available_s,
+                &det,
+                &self.calibration,
+            ),
+            None => Measurement::missing(frame.index, frame.t_capture_s, t_available_s),
+        };
+        Ok(Measurement {
+            rejected: self.detector.rejected(),
+            ..m
+        })
     }
 
     /// The calibration in use.

@@ -11,4 +11,7 @@ pub mod render;
 pub use geometry::{BallState, SimCameraParams};
 pub use model::{ModelCamera, gaussian};
 #[cfg(feature = "opencv")]
-pub use render::{SimCamera, SimCameraSource, SimVision};
+pub use render::{
+    EdgeScene, ImageBall, Lookalike, SimCamera, SimCameraSource, SimVision, covered_fraction,
+    tool_occluder,
+};

@@ -9,7 +9,9 @@
 
 use nalgebra::{Rotation3, Vector3};
 use opencv::{
-    core::{self, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Point, Rect, Scalar},
+    core::{
+        self, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Point, Rect, Scalar, Vector,
+    },
     imgproc,
 };
 use rand::{Rng, RngExt, SeedableRng};
@@ -706,4 +708,223 @@ impl<F: FnMut(f64) -> Option<BallState> + Send> FrameSource for SimCameraSource<
     fn fps(&self) -> f64 {
         self.camera.camera_params().fps
     }
+}
+
+/// A same-coloured thing in the scene that is not a ball (the detector's
+/// look-alikes), in image pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Lookalike {
+    /// A filled polygon (bars, L-shapes, triangles, a hand-drawn blob).
+    Polygon(Vec<[i32; 2]>),
+    /// A thick line (a cable, a strap).
+    Line {
+        /// One end.
+        a: [i32; 2],
+        /// The other end.
+        b: [i32; 2],
+        /// Thickness, pixels.
+        thickness: i32,
+    },
+}
+
+/// A ball in image space for [`EdgeScene::render`]: centre at mid-exposure,
+/// radius, and the centre's travel over the exposure (the motion blur), pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageBall {
+    /// Centre column at mid-exposure, pixels.
+    pub x_px: f64,
+    /// Centre row at mid-exposure, pixels.
+    pub y_px: f64,
+    /// Radius, pixels.
+    pub r_px: f64,
+    /// Travel of the centre over the exposure, columns.
+    pub blur_dx_px: f64,
+    /// Travel of the centre over the exposure, rows.
+    pub blur_dy_px: f64,
+}
+
+/// Scenes for the detector's hard cases, drawn directly in image pixels: a
+/// textured background with ball-coloured look-alikes (non-round, drawn once),
+/// the shaded ball with its motion blur, and an occluder (the arm's tool: a
+/// grey polygon drawn over the ball), with fresh pixel noise every frame.
+pub struct EdgeScene {
+    background: Mat,
+    frame: Mat,
+    ball_bgr: [f64; 3],
+    noise_sigma: f64,
+    noise: Vec<f32>,
+    rng: ChaCha8Rng,
+}
+
+impl std::fmt::Debug for EdgeScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EdgeScene")
+            .field("ball_bgr", &self.ball_bgr)
+            .finish_non_exhaustive()
+    }
+}
+
+impl EdgeScene {
+    /// A `width` x `height` scene: texture from `seed`, the look-alikes in the
+    /// ball's colour `ball_rgb` (0..255), pixel noise `noise_sigma` (grey levels).
+    pub fn new(
+        width: i32,
+        height: i32,
+        ball_rgb: [f64; 3],
+        lookalikes: &[Lookalike],
+        noise_sigma: f64,
+        seed: u64,
+    ) -> Result<Self, VisionError> {
+        crate::vision::limit_opencv_threads()?;
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut bg =
+            Mat::new_rows_cols_with_default(height, width, core::CV_8UC3, Scalar::all(0.0))?;
+        paint_texture(
+            bg.data_bytes_mut()?,
+            width as usize,
+            height as usize,
+            &mut rng,
+        );
+        // The look-alikes are lit like the ball's brightest side.
+        let colour = Scalar::new(ball_rgb[2], ball_rgb[1], ball_rgb[0], 0.0);
+        for l in lookalikes {
+            match l {
+                Lookalike::Polygon(pts) => {
+                    let poly: Vector<Point> = pts.iter().map(|p| Point::new(p[0], p[1])).collect();
+                    imgproc::fill_poly_def(
+                        &mut bg,
+                        &Vector::<Vector<Point>>::from(vec![poly]),
+                        colour,
+                    )?;
+                }
+                Lookalike::Line { a, b, thickness } => {
+                    imgproc::line(
+                        &mut bg,
+                        Point::new(a[0], a[1]),
+                        Point::new(b[0], b[1]),
+                        colour,
+                        *thickness,
+                        imgproc::LINE_AA,
+                        0,
+                    )?;
+                }
+            }
+        }
+        let frame = bg.try_clone()?;
+        let noise = noise_table(&mut rng);
+        Ok(Self {
+            background: bg,
+            frame,
+            ball_bgr: [ball_rgb[2], ball_rgb[1], ball_rgb[0]],
+            noise_sigma,
+            noise,
+            rng,
+        })
+    }
+
+    /// Draws one frame: the ball (if any, shaded, blurred over its travel),
+    /// then the occluder polygon (if any) in `occluder_rgb`, then noise.
+    pub fn render(
+        &mut self,
+        ball: Option<&ImageBall>,
+        occluder: Option<(&[[f64; 2]], [f64; 3])>,
+    ) -> Result<&Mat, VisionError> {
+        self.background.copy_to(&mut self.frame)?;
+        let (w, h) = (self.frame.cols(), self.frame.rows());
+        if let Some(b) = ball {
+            let travel = b.blur_dx_px.hypot(b.blur_dy_px);
+            let n = ((travel / 0.75).ceil() as usize + 1).clamp(1, 96);
+            let x0 =
+                ((b.x_px - 0.5 * b.blur_dx_px.abs() - b.r_px - 2.0).floor() as i32).clamp(0, w);
+            let x1 =
+                ((b.x_px + 0.5 * b.blur_dx_px.abs() + b.r_px + 2.0).ceil() as i32 + 1).clamp(0, w);
+            let y0 =
+                ((b.y_px - 0.5 * b.blur_dy_px.abs() - b.r_px - 2.0).floor() as i32).clamp(0, h);
+            let y1 =
+                ((b.y_px + 0.5 * b.blur_dy_px.abs() + b.r_px + 2.0).ceil() as i32 + 1).clamp(0, h);
+            let wu = w as usize;
+            let data = self.frame.data_bytes_mut()?;
+            let r = b.r_px;
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let (px, py) = (f64::from(x), f64::from(y));
+                    let (mut cover, mut shade) = (0.0, 0.0);
+                    for i in 0..n {
+                        let f = if n == 1 {
+                            0.0
+                        } else {
+                            i as f64 / (n - 1) as f64 - 0.5
+                        };
+                        let (u, v) = (b.x_px + f * b.blur_dx_px, b.y_px + f * b.blur_dy_px);
+                        let (dx, dy) = (px - u, py - v);
+                        let c = (r - dx.hypot(dy) + 0.5).clamp(0.0, 1.0);
+                        if c > 0.0 {
+                            let q = ((dx * dx + dy * dy) / (r * r)).min(1.0);
+                            let lambert = (-0.4 * dy / r + 0.9165 * (1.0 - q).sqrt()).max(0.0);
+                            cover += c;
+                            shade += c * (0.55 + 0.45 * lambert);
+                        }
+                    }
+                    cover /= n as f64;
+                    shade /= n as f64;
+                    let i = (y as usize * wu + x as usize) * 3;
+                    for ch in 0..3 {
+                        let v = f64::from(data[i + ch]) * (1.0 - cover) + self.ball_bgr[ch] * shade;
+                        data[i + ch] = v.round().clamp(0.0, 255.0) as u8;
+                    }
+                }
+            }
+        }
+        if let Some((pts, rgb)) = occluder {
+            let poly: Vector<Point> = pts
+                .iter()
+                .map(|p| Point::new(p[0].round() as i32, p[1].round() as i32))
+                .collect();
+            imgproc::fill_poly(
+                &mut self.frame,
+                &Vector::<Vector<Point>>::from(vec![poly]),
+                Scalar::new(rgb[2], rgb[1], rgb[0], 0.0),
+                imgproc::LINE_AA,
+                0,
+                Point::new(0, 0),
+            )?;
+        }
+        if self.noise_sigma > 0.0 {
+            let s = self.noise_sigma as f32;
+            let row = w as usize * 3;
+            let data = self.frame.data_bytes_mut()?;
+            for line in data.chunks_mut(row) {
+                let off = self.rng.random_range(0..NOISE_TABLE - row);
+                for (v, n) in line.iter_mut().zip(&self.noise[off..off + row]) {
+                    *v = (f32::from(*v) + s * n).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        Ok(&self.frame)
+    }
+}
+
+/// The tool as an occluder: a long bar of width `width_px` at angle `angle_rad`
+/// whose edge passes at signed distance `d_px` from `(x, y)` (the covered side
+/// is the far side of the edge: `d_px = 0` covers half a ball centred there,
+/// `d_px = r` none of it).
+pub fn tool_occluder(x: f64, y: f64, d_px: f64, angle_rad: f64, width_px: f64) -> [[f64; 2]; 4] {
+    let (s, c) = angle_rad.sin_cos();
+    // Normal (c, s) points into the bar; the edge line is at distance d_px.
+    let (ex, ey) = (x + c * d_px, y + s * d_px);
+    let (tx, ty) = (-s * 400.0, c * 400.0);
+    let (fx, fy) = (c * width_px, s * width_px);
+    [
+        [ex - tx, ey - ty],
+        [ex + tx, ey + ty],
+        [ex + tx + fx, ey + ty + fy],
+        [ex - tx + fx, ey - ty + fy],
+    ]
+}
+
+/// The fraction of a disc of radius `r` covered by a half-plane whose edge is
+/// at distance `d` from its centre (`d` in [0, r]).
+pub fn covered_fraction(d: f64, r: f64) -> f64 {
+    let d = d.clamp(-r, r);
+    ((d / r).acos() * r * r - d * (r * r - d * d).sqrt()) / (std::f64::consts::PI * r * r)
 }
