@@ -69,8 +69,8 @@ export interface CameraInfo {
   frame: number;
   t_s: number | null;
   found: boolean;
-  /** Detections dropped so far as inconsistent with the track and shape (absent from older services). */
-  rejected?: number;
+  /** Detections the detector dropped so far as inconsistent with the track and shape (a fresh count per detector: per trial in the simulated lab). */
+  rejected: number;
   x_px: number | null;
   y_px: number | null;
   r_px: number | null;

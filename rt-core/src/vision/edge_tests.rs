@@ -6,7 +6,7 @@
 //! blur), no detection more than 10 px from the ball.
 
 use super::{Detector, DetectorParams};
-use crate::sim::camera::{EdgeScene, ImageBall, Lookalike, covered_fraction, tool_occluder};
+use crate::sim::camera::{EdgeScene, ImageBall, Lookalike, tool_occluder};
 
 const W: i32 = 1280;
 const H: i32 = 720;

@@ -12,6 +12,5 @@ pub use geometry::{BallState, SimCameraParams};
 pub use model::{ModelCamera, gaussian};
 #[cfg(feature = "opencv")]
 pub use render::{
-    EdgeScene, ImageBall, Lookalike, SimCamera, SimCameraSource, SimVision, covered_fraction,
-    tool_occluder,
+    EdgeScene, ImageBall, Lookalike, SimCamera, SimCameraSource, SimVision, tool_occluder,
 };

@@ -617,7 +617,7 @@ impl SimVision {
         let m = match self.mode {
             VisionMode::Full => {
                 let image = self.camera.render(ball)?;
-                match self.detector.detect(image, t_capture_s)? {
+                let m = match self.detector.detect(image, t_capture_s)? {
                     Some(det) => Measurement::from_detection(
                         frame,
                         t_capture_s,
@@ -626,6 +626,10 @@ impl SimVision {
                         &self.calibration,
                     ),
                     None => Measurement::missing(frame, t_capture_s, t_available_s),
+                };
+                Measurement {
+                    rejected: self.detector.rejected(),
+                    ..m
                 }
             }
             VisionMode::Model => match ball.and_then(|b| self.camera.model_observation(b)) {
@@ -920,11 +924,4 @@ pub fn tool_occluder(x: f64, y: f64, d_px: f64, angle_rad: f64, width_px: f64) -
         [ex + tx + fx, ey + ty + fy],
         [ex - tx + fx, ey - ty + fy],
     ]
-}
-
-/// The fraction of a disc of radius `r` covered by a half-plane whose edge is
-/// at distance `d` from its centre (`d` in [0, r]).
-pub fn covered_fraction(d: f64, r: f64) -> f64 {
-    let d = d.clamp(-r, r);
-    ((d / r).acos() * r * r - d * (r * r - d * d).sqrt()) / (std::f64::consts::PI * r * r)
 }
