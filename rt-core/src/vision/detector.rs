@@ -437,10 +437,7 @@ impl Detector {
         // Least squares on the inliers with a free radius (Kasa's algebraic
         // fit), re-selecting the inliers around each new circle.
         for _ in 0..6 {
-            let Some((x, y, rad)) = fit_circle(&self.points, (cx, cy, rr), tol) else {
-                return None;
-            };
-            (cx, cy, rr) = (x, y, rad);
+            (cx, cy, rr) = fit_circle(&self.points, (cx, cy, rr), tol)?;
         }
         if !(r_lo - 0.5..=r_hi).contains(&rr) || (cx - px).hypot(cy - py) > reach {
             return None;

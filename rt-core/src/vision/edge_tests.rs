@@ -238,7 +238,7 @@ fn finds_the_ball_up_to_half_covered_by_the_tool() {
     let mut tally = Tally::default();
     let mut arcs = 0;
     let mut most: f64 = 0.0;
-    for k in 0..3 {
+    for (k, colour) in COLOURS.iter().enumerate() {
         let swing = Swing {
             pivot: (640.0 - 80.0 * k as f64, -800.0),
             length_px: 1150.0,
@@ -246,7 +246,7 @@ fn finds_the_ball_up_to_half_covered_by_the_tool() {
             period_s: 2.0,
             r_px: 18.0 + 4.0 * k as f64,
         };
-        let mut scene = EdgeScene::new(W, H, COLOURS[k], &[], 3.0, 20 + k as u64).unwrap();
+        let mut scene = EdgeScene::new(W, H, *colour, &[], 3.0, 20 + k as u64).unwrap();
         let mut det = Detector::new(DetectorParams::default()).unwrap();
         let shape = tool_shape(k, swing.r_px);
         let grey = [95.0 + 30.0 * k as f64, 98.0, 104.0];
