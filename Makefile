@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware
+.PHONY: test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -23,6 +23,7 @@ help:
 	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
 	@echo "make fuzz   each FRI fuzz target for FUZZ_SECONDS (default 60; fuzz/README.md)"
 	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
+	@echo "make types  regenerate web/src/generated/types.ts from the Rust types (ts-rs)"
 
 ## deps: install only what is missing.
 deps: apt-deps web-deps fuzz-deps py-deps mcap-py-deps
@@ -176,6 +177,11 @@ test: lint test-core test-web test-browser test-api-fuzz fuzz-smoke test-rust
 
 bench: deps
 	$(CARGO) bench --workspace
+
+## types: the dashboard's TypeScript declarations from the Rust types (server/src/typescript.rs);
+## `cargo test` fails while web/src/generated/types.ts is stale.
+types:
+	UPDATE_TS=1 $(CARGO) test -p server --lib typescript
 
 ## eval: the evaluation report beside the paper's results (reports/eval/report.md).
 ## The binary is where cargo put it (CARGO_TARGET_DIR, default ./target).

@@ -17,7 +17,12 @@ use rt_core::magnet::{Command, LinkState, MagnetHandle, MagnetParams, MagnetStat
 use rt_core::sim::magnet::FakeDevice;
 
 fn link(tag: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("isochron-bench-{tag}-{}", std::process::id()))
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-bench-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
+        .join("tty")
 }
 
 fn driver(port: &Path) -> MagnetHandle {

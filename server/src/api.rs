@@ -297,7 +297,7 @@ pub async fn get_fri(State(state): State<Arc<AppState>>) -> Json<FriInfo> {
 /// The latest state, as on the WebSocket (`"type": "state"`).
 #[utoipa::path(get, path = "/api/state", tag = "lab",
     responses(
-        (status = 200, description = "the latest state message (schema: server/README.md)", body = Object),
+        (status = 200, description = "the latest state message (as on /ws)", body = crate::lab::StateMessage),
         (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)))]
 pub async fn get_state(State(state): State<Arc<AppState>>) -> Result<Response, AppError> {
     let (_, text) = lab(&state)?
@@ -787,7 +787,7 @@ fn download(bytes: Vec<u8>, content_type: &'static str, name: &str) -> Response 
 
 /// Documents the WebSocket state/event stream (upgrade with `GET /ws`).
 #[utoipa::path(get, path = "/ws", tag = "streams",
-    responses((status = 101, description = "WebSocket: JSON text messages, each with \"type\" (hello, state, event) and \"t_s\"; state at the stream rate (100 Hz default). Schema: server/README.md")))]
+    responses((status = 101, description = "WebSocket: JSON text messages, each with \"type\" (hello, state, event) and \"t_s\"; state at the stream rate (100 Hz default). Schemas: Hello, StateMessage, EventMessage")))]
 #[allow(dead_code)]
 fn ws_doc() {}
 
@@ -903,7 +903,10 @@ impl utoipa::Modify for BearerAuth {
           start_trial, list_trials, get_trial, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
-                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters, FriInfo)),
+                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters, FriInfo,
+                       crate::lab::StateMessage, crate::lab::EventMessage, crate::ws::Hello,
+                       rt_core::bridge::Snapshot, rt_core::bridge::EventRecord,
+                       rt_core::bridge::Event, rt_core::bridge::TrialResult)),
     modifiers(&BearerAuth),
     tags((name = "service"), (name = "lab"), (name = "commands"), (name = "trials"), (name = "streams"))
 )]

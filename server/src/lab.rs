@@ -70,17 +70,22 @@ pub struct StreamStats {
 }
 
 /// A copy of [`StreamStats`].
-#[derive(Debug, Clone, Copy, Serialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, Copy, Serialize, utoipa::ToSchema, ts_rs::TS)]
 pub struct StreamCounters {
     /// Clients connected now.
+    #[ts(type = "number")]
     pub clients: u64,
     /// State messages produced.
+    #[ts(type = "number")]
     pub state_messages: u64,
     /// Messages slow clients skipped.
+    #[ts(type = "number")]
     pub skipped: u64,
     /// Clients dropped because they stalled.
+    #[ts(type = "number")]
     pub dropped_clients: u64,
     /// Camera frames forwarded.
+    #[ts(type = "number")]
     pub frames: u64,
 }
 
@@ -114,25 +119,41 @@ pub enum CommandError {
     NoAnswer,
 }
 
-#[derive(Serialize)]
-struct StateMessage<'a> {
+/// A state message of `/ws` and `GET /api/state`: the snapshot's fields, with
+/// the hand-off counters.
+#[derive(Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct StateMessage<'a> {
+    /// Always `state`.
     #[serde(rename = "type")]
-    kind: &'static str,
+    #[ts(type = "\"state\"")]
+    #[schema(value_type = String, pattern = "^state$")]
+    pub kind: &'static str,
+    /// The control thread's snapshot.
     #[serde(flatten)]
-    snapshot: &'a Snapshot,
-    bridge: BridgeCounters,
-    stream: StreamCounters,
+    #[ts(flatten)]
+    pub snapshot: &'a Snapshot,
+    /// Bridge hand-off counters.
+    pub bridge: BridgeCounters,
+    /// WebSocket stream counters.
+    pub stream: StreamCounters,
 }
 
-#[derive(Serialize)]
-struct EventMessage<'a> {
+/// An event message of `/ws`.
+#[derive(Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct EventMessage<'a> {
+    /// Always `event`.
     #[serde(rename = "type")]
-    kind: &'static str,
+    #[ts(type = "\"event\"")]
+    #[schema(value_type = String, pattern = "^event$")]
+    pub kind: &'static str,
+    /// The event, its time and trial.
     #[serde(flatten)]
-    record: &'a EventRecord,
+    #[ts(flatten)]
+    pub record: &'a EventRecord,
     /// A sentence for people, for aborts.
     #[serde(skip_serializing_if = "Option::is_none")]
-    message: Option<&'static str>,
+    #[ts(optional)]
+    pub message: Option<&'static str>,
 }
 
 type Pending = HashMap<u64, oneshot::Sender<Result<(), Refusal>>>;

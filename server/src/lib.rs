@@ -11,6 +11,7 @@ pub mod lab;
 pub mod records;
 pub mod runtime;
 pub mod serve;
+pub mod typescript;
 pub mod viz;
 pub mod ws;
 

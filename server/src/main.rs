@@ -7,7 +7,7 @@ use rt_core::params::Scenario;
 use tracing_subscriber::EnvFilter;
 
 mod cmd;
-mod svg;
+mod plot;
 
 #[derive(Debug, Parser)]
 #[command(name = "isochron", version = server::VERSION, about = "Timed interception of a swinging ball by a KUKA LBR iiwa 7")]

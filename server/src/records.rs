@@ -12,7 +12,7 @@
 
 use std::{
     fs::{File, OpenOptions},
-    io::{BufRead, BufReader, BufWriter, Write},
+    io::Write,
     path::{Path, PathBuf},
     sync::Mutex,
     time::{SystemTime, UNIX_EPOCH},
@@ -32,9 +32,10 @@ pub fn unix_now_s() -> f64 {
 }
 
 /// One trial as stored.
-#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema, ts_rs::TS)]
 pub struct TrialRecord {
     /// Trial id (> 0).
+    #[ts(type = "number")]
     pub id: u64,
     /// `running`, `done`, `aborted` or `interrupted` (the service stopped mid-trial).
     pub status: String,
@@ -55,10 +56,12 @@ pub struct TrialRecord {
     /// Predicted minus true crossing time at motion start, milliseconds.
     pub prediction_time_error_ms: Option<f64>,
     /// Joint limit violations.
+    #[ts(type = "number | null")]
     pub limit_violations: Option<u64>,
     /// Why it was aborted (snake_case reason).
     pub abort_reason: Option<String>,
     /// Rows in the recording.
+    #[ts(type = "number")]
     pub samples: u64,
     /// The scenario that ran (null for trials recorded before it was stored).
     pub scenario: Option<String>,
@@ -370,39 +373,35 @@ const COLUMNS: &[Column] = &[
     col!("step_us", |s| s.timing.step_us),
 ];
 
-/// The CSV header line (without newline).
-pub fn csv_header() -> String {
-    let mut h = String::from("trial_state");
-    for c in COLUMNS {
-        h.push(',');
-        h.push_str(c.name);
-    }
-    h
+/// The CSV header fields: `trial_state`, then [`COLUMNS`].
+pub fn csv_header() -> impl Iterator<Item = &'static str> {
+    std::iter::once("trial_state").chain(COLUMNS.iter().map(|c| c.name))
 }
 
-fn csv_row(s: &Snapshot, out: &mut String) {
+/// Writes one snapshot as a CSV row (`buf` is scratch space for the numbers).
+fn csv_row<W: Write>(w: &mut csv::Writer<W>, s: &Snapshot, buf: &mut String) -> csv::Result<()> {
     use std::fmt::Write as _;
-    out.clear();
-    out.push_str(s.trial_state.as_str());
+    w.write_field(s.trial_state.as_str())?;
     for c in COLUMNS {
-        let v = (c.get)(s);
+        buf.clear();
         // `{}` on f64 is the shortest text that reads back to the same number.
-        let _ = write!(out, ",{v}");
+        let _ = write!(buf, "{}", (c.get)(s));
+        w.write_field(buf.as_bytes())?;
     }
-    out.push('\n');
+    w.write_record(None::<&[u8]>)
 }
 
 /// Writes the running trial's recording (owned by the server's bridge thread).
 #[derive(Debug, Default)]
 pub struct Recorder {
     current: Option<Recording>,
-    line: String,
+    buf: String,
 }
 
 #[derive(Debug)]
 struct Recording {
     id: u64,
-    file: BufWriter<File>,
+    file: csv::Writer<File>,
     samples: u64,
 }
 
@@ -418,9 +417,9 @@ impl Recorder {
                 .open(path)
                 .with_context(|| format!("cannot open {}", path.display()))?;
             let empty = file.metadata().map(|m| m.len() == 0).unwrap_or(true);
-            let mut file = BufWriter::new(file);
+            let mut file = csv::Writer::from_writer(file);
             if empty {
-                writeln!(file, "{}", csv_header())?;
+                file.write_record(csv_header())?;
             }
             self.current = Some(Recording {
                 id: trial_id,
@@ -428,9 +427,8 @@ impl Recorder {
                 samples: 0,
             });
         }
-        csv_row(s, &mut self.line);
         if let Some(r) = self.current.as_mut() {
-            r.file.write_all(self.line.as_bytes())?;
+            csv_row(&mut r.file, s, &mut self.buf)?;
             r.samples += 1;
         }
         Ok(())
@@ -469,19 +467,25 @@ impl Recorder {
 /// Converts a CSV recording to MCAP: one JSON message per row on the topic
 /// `/isochron/state`, with a JSON schema, log time = the control clock `t_s`.
 pub fn csv_to_mcap(csv_path: &Path) -> anyhow::Result<Vec<u8>> {
-    let file =
-        File::open(csv_path).with_context(|| format!("cannot open {}", csv_path.display()))?;
-    let mut lines = BufReader::new(file).lines();
-    let header = lines.next().context("empty recording")??;
-    let names: Vec<&str> = header.split(',').collect();
+    let mut reader = csv::ReaderBuilder::new()
+        .flexible(true)
+        .from_path(csv_path)
+        .with_context(|| format!("cannot open {}", csv_path.display()))?;
+    let names: Vec<String> = reader
+        .headers()
+        .context("empty recording")?
+        .iter()
+        .map(str::to_owned)
+        .collect();
+    anyhow::ensure!(names.len() > 1, "empty recording: {}", csv_path.display());
     let mut props = serde_json::Map::new();
     for n in &names {
-        let ty = if *n == "trial_state" {
+        let ty = if n == "trial_state" {
             serde_json::json!({"type": "string"})
         } else {
             serde_json::json!({"type": ["number", "null"]})
         };
-        props.insert((*n).to_owned(), ty);
+        props.insert(n.clone(), ty);
     }
     let schema = serde_json::json!({
         "type": "object",
@@ -502,27 +506,28 @@ pub fn csv_to_mcap(csv_path: &Path) -> anyhow::Result<Vec<u8>> {
     )?;
     let mut seq = 0u32;
     let mut last_t_ns = 0u64;
-    for line in lines {
-        let line = line?;
-        let fields: Vec<&str> = line.split(',').collect();
-        if fields.len() != names.len() {
+    for row in reader.records() {
+        let fields = match row {
+            Ok(r) if r.len() == names.len() => r,
             // A line cut short by a crash: the rows before it are kept.
-            tracing::warn!(file = %csv_path.display(), "skipping a truncated recording row");
-            continue;
-        }
+            _ => {
+                tracing::warn!(file = %csv_path.display(), "skipping a truncated recording row");
+                continue;
+            }
+        };
         let mut obj = serde_json::Map::new();
         let mut t_s = f64::NAN;
         for (n, f) in names.iter().zip(&fields) {
-            let v = if *n == "trial_state" {
-                serde_json::Value::String((*f).to_owned())
+            let v = if n == "trial_state" {
+                serde_json::Value::String(f.to_owned())
             } else {
                 let x: f64 = f.parse().unwrap_or(f64::NAN);
-                if *n == "t_s" {
+                if n == "t_s" {
                     t_s = x;
                 }
                 serde_json::Number::from_f64(x).map_or(serde_json::Value::Null, Into::into)
             };
-            obj.insert((*n).to_owned(), v);
+            obj.insert(n.clone(), v);
         }
         let t_ns = if t_s.is_finite() && t_s >= 0.0 {
             (t_s * 1e9) as u64
@@ -551,19 +556,21 @@ mod tests {
     use super::*;
 
     fn tmp(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("isochron-rec-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        d
+        // A fresh private directory (`tempfile`); `name/` inside it does not exist yet.
+        tempfile::Builder::new()
+            .prefix("isochron-rec-")
+            .tempdir()
+            .expect("a temporary directory")
+            .keep()
+            .join(name)
     }
 
     #[test]
     fn header_and_rows_have_the_same_width() {
-        let mut line = String::new();
-        csv_row(&Snapshot::default(), &mut line);
-        assert_eq!(
-            line.trim_end().split(',').count(),
-            csv_header().split(',').count()
-        );
+        let mut w = csv::Writer::from_writer(Vec::new());
+        csv_row(&mut w, &Snapshot::default(), &mut String::new()).unwrap();
+        let line = String::from_utf8(w.into_inner().unwrap()).unwrap();
+        assert_eq!(line.trim_end().split(',').count(), csv_header().count());
         assert!(line.starts_with("idle,0,0,"));
         assert!(line.contains("NaN"), "unknown values are NaN: {line}");
     }

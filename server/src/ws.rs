@@ -22,14 +22,22 @@ use tokio::sync::broadcast::error::RecvError;
 
 use crate::{AppError, AppState, lab::Lab};
 
-#[derive(Serialize)]
-struct Hello {
+/// The first message of `/ws`.
+#[derive(Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct Hello {
+    /// Always `hello`.
     #[serde(rename = "type")]
-    kind: &'static str,
-    t_s: f64,
-    version: &'static str,
-    state_hz: f64,
-    token_required: bool,
+    #[ts(type = "\"hello\"")]
+    #[schema(value_type = String, pattern = "^hello$")]
+    pub kind: &'static str,
+    /// The latest state's time, control clock, seconds.
+    pub t_s: f64,
+    /// The service's version.
+    pub version: &'static str,
+    /// State messages per second.
+    pub state_hz: f64,
+    /// Whether commands need a bearer token.
+    pub token_required: bool,
 }
 
 /// `GET /ws`: state and event messages.

@@ -43,8 +43,8 @@ fn scenario_check_prints_the_resolved_scenario() {
 
 #[test]
 fn scenario_check_fills_in_defaults() {
-    let dir = std::env::temp_dir().join(format!("isochron-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     let file = dir.join("short.toml");
     std::fs::write(&file, "name = \"short\"\n[pendulum]\nlength_m = 1.2\n").unwrap();
     let out = isochron()
@@ -60,8 +60,8 @@ fn scenario_check_fills_in_defaults() {
 
 #[test]
 fn a_bad_scenario_is_one_line_naming_the_field() {
-    let dir = std::env::temp_dir().join(format!("isochron-cli-bad-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     for (text, field) in [
         ("[camera]\ndrop_rate = 2.0\n", "camera.drop_rate"),
         ("[task]\nmovment_time_s = 1.5\n", "movment_time_s"),
@@ -96,7 +96,8 @@ fn serve_refuses_an_open_bind_without_a_token() {
 
 #[test]
 fn serve_answers_health_and_stops_on_sigterm() {
-    let data = std::env::temp_dir().join(format!("isochron-cli-data-{}", std::process::id()));
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
     let mut child = isochron()
         .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
         .arg(&data)

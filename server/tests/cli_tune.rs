@@ -9,9 +9,11 @@ fn isochron() -> Command {
 }
 
 fn temp_dir(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("isochron-tune-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-tune-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
 }
 
 /// 40 s of a 1.93 m pendulum at 30 fps with 2 mm of deterministic pseudo-noise.

@@ -68,9 +68,8 @@ fn per_trial(text: &str) -> Vec<Value> {
 #[test]
 fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
     let Some(bin) = isochron() else { return };
-    let dir = std::env::temp_dir().join(format!("isochron-evalcheck-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     let lab = dir.join("lab.toml");
     std::fs::write(&lab, "name = \"evalcheck\"\n[camera]\nvision = \"model\"\n").unwrap();
     let out = Command::new(&bin)
@@ -78,7 +77,7 @@ fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
         .arg("--scenario")
         .arg(&lab)
         .arg("--out")
-        .arg(&dir)
+        .arg(dir)
         .args([
             "--n",
             "4",
@@ -116,7 +115,7 @@ fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
         let again = dir.join(format!("{cell}.again.jsonl"));
         let again_s = again.display().to_string();
         args.extend(["--per-trial", &again_s]);
-        let summary = run_json(&bin, &dir, &args);
+        let summary = run_json(&bin, dir, &args);
         // The report's row for this cell.
         let t: f64 = cell.split("-T").nth(1).unwrap()[..4].parse().unwrap();
         let band = cell.rsplit("-d").next().unwrap().replace('-', "..");
@@ -176,5 +175,4 @@ fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
             "{row}"
         );
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }

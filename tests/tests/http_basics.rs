@@ -15,10 +15,11 @@ async fn start(web_dir: std::path::PathBuf) -> std::net::SocketAddr {
 
 /// A dashboard folder of its own for each test (tests run in parallel).
 fn fake_web_dir() -> std::path::PathBuf {
-    static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let dir = std::env::temp_dir().join(format!("isochron-web-{}-{n}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tempfile::Builder::new()
+        .prefix("isochron-web-")
+        .tempdir()
+        .expect("a temporary directory")
+        .keep();
     std::fs::write(
         dir.join("index.html"),
         "<!doctype html><title>isochron</title>",

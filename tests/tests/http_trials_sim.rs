@@ -13,8 +13,8 @@ use server::{AppState, LabOptions, Records, app, runtime::start_simulated};
 
 #[tokio::test]
 async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart() {
-    let data = std::env::temp_dir().join(format!("isochron-simtrial-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&data);
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
     let records = Arc::new(Records::open(&data).unwrap());
     let (lab, sim) = start_simulated(
         Scenario::default(),

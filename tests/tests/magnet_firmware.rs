@@ -10,10 +10,7 @@ use std::{
     io::{BufRead, BufReader, Read, Write},
     path::{Path, PathBuf},
     process::{Child, ChildStdin, Command as Process, Stdio},
-    sync::{
-        Arc, Condvar, Mutex,
-        atomic::{AtomicU64, Ordering},
-    },
+    sync::{Arc, Condvar, Mutex},
     time::{Duration, Instant},
 };
 
@@ -43,9 +40,12 @@ fn firmware() -> Option<(PathBuf, PathBuf)> {
 }
 
 fn link_path(tag: &str) -> PathBuf {
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let n = NEXT.fetch_add(1, Ordering::Relaxed);
-    std::env::temp_dir().join(format!("isochron-sim-{tag}-{}-{n}", std::process::id()))
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-sim-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
+        .join("tty")
 }
 
 /// A pin report: pin name, level, simulated time in microseconds.

@@ -34,9 +34,8 @@ fn free_udp_port() -> SocketAddr {
 
 #[test]
 fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_serial_magnet() {
-    let dir = std::env::temp_dir().join(format!("isochron-real-lab-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     let scenario = Scenario::default();
 
     // The camera: a rendered video of the ball swinging at 0.6 m.
@@ -155,5 +154,4 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
     assert!(board.magnet_on());
     lab.shutdown();
     drop(sim);
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -35,10 +35,11 @@ fn scenario_path() -> PathBuf {
 }
 
 fn temp_dir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("isochron-roundtrip-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-roundtrip-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
 }
 
 /// A running `isochron serve`, stopped when dropped.

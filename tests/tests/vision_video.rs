@@ -24,7 +24,12 @@ fn swing(t: f64) -> BallState {
 }
 
 fn temp_path(name: &str) -> PathBuf {
-    std::env::temp_dir().join(format!("isochron-vision-{}-{name}", std::process::id()))
+    tempfile::Builder::new()
+        .prefix("isochron-vision-")
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
+        .join(name)
 }
 
 /// Renders `FRAMES` frames of a swing (every 10th without the ball) into `path`;

@@ -1,5 +1,7 @@
 /** The REST API (CONTRACT.md, "HTTP"), with the session's bearer token. */
 
+import type { TrialRecord } from "./generated/types";
+
 const TOKEN_KEY = "isochron.token";
 
 export function getToken(): string {
@@ -44,23 +46,11 @@ export async function call<T>(method: string, path: string, body?: unknown): Pro
   return (text ? JSON.parse(text) : {}) as T;
 }
 
-/** One trial's record, as `GET /api/trials` lists them. */
-export interface TrialRecord {
-  id: number;
-  success?: boolean;
-  timing_error_ms?: number;
-  position_error_m?: number;
-  movement_time_s?: number;
-  distance_m?: number;
-  reason?: string | null;
-  /** `running`, `done`, `aborted` or `interrupted`. */
-  status?: string;
-  abort_reason?: string | null;
-  [k: string]: unknown;
-}
+/** One trial's record, as `GET /api/trials` lists them (generated from `server::records::TrialRecord`). */
+export type { TrialRecord } from "./generated/types";
 
 /** The verdict of a trial: `hit`, `miss` (aborted counts as a miss) or `null` while unfinished. */
-export function verdict(t: TrialRecord): "hit" | "miss" | null {
+export function verdict(t: Pick<TrialRecord, "id" | "status"> & { success?: boolean | null }): "hit" | "miss" | null {
   if (t.status === "running" || t.status === "interrupted") return null;
   if (t.status === "aborted") return "miss";
   return typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : null;

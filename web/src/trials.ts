@@ -44,9 +44,9 @@ export class TrialsView {
         v ?? t.status ?? "…",
         fmt(t.distance_m, 3),
         fmt(t.timing_error_ms, 1),
-        fmt(t.position_error_m !== undefined ? t.position_error_m * 1000 : undefined, 1),
+        fmt(t.position_error_m != null ? t.position_error_m * 1000 : null, 1),
         fmt(t.movement_time_s, 3),
-        typeof t.abort_reason === "string" ? t.abort_reason : typeof t.reason === "string" ? t.reason : "",
+        t.abort_reason ?? "",
       ];
       for (const c of cells) {
         const td = document.createElement("td");

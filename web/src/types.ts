@@ -1,117 +1,32 @@
-/** Messages of `/ws` (server/README.md): a mirror of `rt_core::bridge::Snapshot`. */
+/**
+ * Messages of `/ws` (server/README.md). Their types are generated from the Rust
+ * types (`rt_core::bridge::Snapshot`, `server::lab::StateMessage`, ...) into
+ * `generated/types.ts` by ts-rs: run `make types` after changing them
+ * (`cargo test` fails while the file is stale). A number that may be NaN in
+ * Rust is `null` in JSON.
+ */
+import type { CameraView, EventMessage, Hello, StateMessage } from "./generated/types";
 
-export type TrialState =
-  | "idle" | "arming" | "armed" | "released" | "tracking"
-  | "intercepting" | "holding" | "returning" | "done" | "aborted";
-
-export interface HorizonPoint { t_s: number; x_m: number; sigma_m: number }
-
-export interface PendulumView {
-  measured: { valid: boolean; t_s: number; x_m: number };
-  phi_rad: number;
-  dphi_radps: number;
-  sigma_phi_rad: number | null;
-  x_m: number;
-  sigma_x_m: number | null;
-  ball_m: (number | null)[];
-  truth_ball_m: (number | null)[];
-  crossing_t_s: number | null;
-  crossing_sigma_s: number | null;
-  horizon: HorizonPoint[];
-}
-
-export interface HopfView { active: boolean; a: number; b: number; u_init: number; u_hopf: number; u_final: number }
-
-export interface PathView {
-  speed_planned_mps: number;
-  speed_executed_mps: number;
-  progress_planned: number;
-  progress_executed: number;
-  length_m: number;
-  start_t_s: number | null;
-  arrival_t_s: number | null;
-  movement_time_s: number | null;
-  intercept_m: (number | null)[];
-}
-
-export interface RobotView {
-  q_rad: number[];
-  q_cmd_rad: number[];
-  q_limit_rad: number[];
-  tool_m: (number | null)[];
-  actuation_latency_ms: number | null;
-}
-
-export interface FriView {
-  session: string;
-  quality: string;
-  period_ms: number | null;
-  reply_latency_us: number | null;
-  late_replies: number;
-  missed_cycles: number;
-}
-
-export interface LoopTiming {
-  step_us: number;
-  step_max_us: number;
-  period_mean_us: number;
-  period_max_us: number;
-  deadline_misses: number;
-}
+export type {
+  EventMessage,
+  FriView,
+  HopfView,
+  HorizonPoint,
+  LoopTiming,
+  PathView,
+  PendulumView,
+  RobotView,
+  StateMessage,
+  TrialState,
+} from "./generated/types";
 
 /**
  * The camera's latest detection in the full camera image's pixels, and the
  * swing plane's calibration (rt_core::bridge::CameraView). `width_px` 0: no camera.
  */
-export interface CameraInfo {
-  width_px: number;
-  height_px: number;
-  frame: number;
-  t_s: number | null;
-  found: boolean;
-  /** Detections the detector dropped so far as inconsistent with the track and shape (a fresh count per detector: per trial in the simulated lab). */
-  rejected: number;
-  x_px: number | null;
-  y_px: number | null;
-  r_px: number | null;
-  fx_px: number;
-  fy_px: number;
-  cx_px: number;
-  cy_px: number;
-  k1: number;
-  k2: number;
-  rest_c_m: (number | null)[];
-  lateral_c: (number | null)[];
-  up_c: (number | null)[];
-}
+export type CameraInfo = CameraView;
 
-export interface StateMessage {
-  type: "state";
-  t_s: number;
-  seq: number;
-  trial_id: number;
-  trial_state: TrialState;
-  pendulum: PendulumView;
-  hopf: HopfView;
-  path: PathView;
-  robot: RobotView;
-  fri: FriView;
-  magnet: string;
-  timing: LoopTiming;
-  counters: Record<string, number>;
-  /** Absent from services older than the camera overlays. */
-  camera?: CameraInfo;
-}
-
-export interface EventMessage {
-  type: "event";
-  t_s: number;
-  trial_id: number;
-  event: { kind: string; [k: string]: unknown };
-  message?: string;
-}
-
-export interface HelloMessage { type: "hello"; t_s: number; version: string; state_hz: number; token_required: boolean }
+export type HelloMessage = Hello;
 
 export type ServerMessage = StateMessage | EventMessage | HelloMessage;
 

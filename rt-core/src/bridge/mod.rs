@@ -80,21 +80,30 @@ impl BridgeStats {
 }
 
 /// A copy of [`BridgeStats`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, ts_rs::TS, utoipa::ToSchema,
+)]
 pub struct BridgeCounters {
     /// Snapshots published by the control thread.
+    #[ts(type = "number")]
     pub published: u64,
     /// Snapshots the recorder lost (telemetry ring full).
+    #[ts(type = "number")]
     pub telemetry_overflows: u64,
     /// Events lost (event ring full).
+    #[ts(type = "number")]
     pub event_overflows: u64,
     /// Commands refused because the command ring was full.
+    #[ts(type = "number")]
     pub command_overflows: u64,
     /// Acknowledgements lost (ack ring full).
+    #[ts(type = "number")]
     pub ack_overflows: u64,
     /// Camera frames dropped (frame ring full).
+    #[ts(type = "number")]
     pub frame_overflows: u64,
     /// Emergency stops requested.
+    #[ts(type = "number")]
     pub stop_requests: u64,
     /// Operator heartbeats received.
     pub heartbeats: u64,

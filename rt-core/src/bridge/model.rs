@@ -6,6 +6,8 @@
 //! publishing it never allocates.
 
 use serde::{Serialize, Serializer, ser::SerializeSeq};
+use ts_rs::TS;
+use utoipa::ToSchema;
 
 use crate::kinematics::iiwa7::JOINTS;
 use crate::params::Scenario;
@@ -14,7 +16,7 @@ use crate::params::Scenario;
 pub const HORIZON_POINTS: usize = 25;
 
 /// Where a trial is (DESIGN.md, "The trial").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum TrialState {
     /// Nothing running; the arm may be anywhere safe.
@@ -84,7 +86,7 @@ impl TrialState {
 }
 
 /// The last camera measurement the filter used.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct Measurement {
     /// False until a measurement arrived (then the other fields are meaningless).
     pub valid: bool,
@@ -95,7 +97,7 @@ pub struct Measurement {
 }
 
 /// One point of the predicted ball trajectory.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct HorizonPoint {
     /// Time, control clock, seconds.
     pub t_s: f64,
@@ -106,7 +108,7 @@ pub struct HorizonPoint {
 }
 
 /// The pendulum as measured, estimated and predicted.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct PendulumView {
     /// Last measurement.
     pub measured: Measurement,
@@ -115,23 +117,39 @@ pub struct PendulumView {
     /// Estimated angular velocity, rad/s.
     pub dphi_radps: f64,
     /// One standard deviation of `phi_rad`.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub sigma_phi_rad: f64,
     /// One standard deviation of `dphi_radps`.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub sigma_dphi_radps: f64,
     /// Estimated lateral position l sin(phi), metres.
     pub x_m: f64,
     /// One standard deviation of `x_m`, metres.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub sigma_x_m: f64,
     /// Estimated ball centre in the robot base frame, metres.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub ball_m: [f64; 3],
     /// True ball centre (simulated lab only; NaN, shown as null, otherwise).
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub truth_ball_m: [f64; 3],
     /// Predicted time the ball next crosses the intercept point, seconds (NaN if none).
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub crossing_t_s: f64,
     /// One standard deviation of `crossing_t_s`, seconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub crossing_sigma_s: f64,
     /// The predicted horizon; only the first `horizon_len` points are meaningful.
     #[serde(serialize_with = "serialize_horizon", rename = "horizon")]
+    #[ts(as = "Vec<HorizonPoint>")]
+    #[schema(value_type = Vec<HorizonPoint>)]
     pub horizon: Horizon,
 }
 
@@ -201,7 +219,7 @@ impl Default for PendulumView {
 }
 
 /// The Hopf oscillator and the three competing neurons (paper eqs. 20-21).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct HopfView {
     /// True while the timing system drives a motion.
     pub active: bool,
@@ -218,7 +236,7 @@ pub struct HopfView {
 }
 
 /// The straight-line interception path and its speed profile.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct PathView {
     /// Planned tool speed along the path now, m/s.
     pub speed_planned_mps: f64,
@@ -231,12 +249,20 @@ pub struct PathView {
     /// Path length, metres.
     pub length_m: f64,
     /// Motion start, control clock, seconds (NaN before a motion).
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub start_t_s: f64,
     /// Planned arrival at the intercept point, control clock, seconds (NaN before a motion).
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub arrival_t_s: f64,
     /// Planned movement time, seconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub movement_time_s: f64,
     /// Intercept point, robot base frame, metres.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub intercept_m: [f64; 3],
 }
 
@@ -257,7 +283,7 @@ impl Default for PathView {
 }
 
 /// The arm.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct RobotView {
     /// Measured joint angles, radians.
     pub q_rad: [f64; JOINTS],
@@ -266,8 +292,12 @@ pub struct RobotView {
     /// Symmetric position limits |q| <= limit, radians.
     pub q_limit_rad: [f64; JOINTS],
     /// Tool point, robot base frame, metres.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub tool_m: [f64; 3],
     /// Estimated command-to-motion latency of the robot, milliseconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub actuation_latency_ms: f64,
 }
 
@@ -284,7 +314,7 @@ impl Default for RobotView {
 }
 
 /// The FRI session state (KUKA FRI 1.15 `ESessionState`, plus "no link").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum FriSessionState {
     /// No controller messages (yet, or any more).
@@ -303,7 +333,7 @@ pub enum FriSessionState {
 }
 
 /// The FRI connection quality (KUKA FRI `EConnectionQuality`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum FriQuality {
     /// Not known (no link).
@@ -320,23 +350,31 @@ pub enum FriQuality {
 }
 
 /// The FRI link.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct FriView {
     /// Session state.
     pub session: FriSessionState,
     /// Connection quality.
     pub quality: FriQuality,
     /// Controller send period, milliseconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub period_ms: f64,
     /// Message receive -> reply sent of the last cycle, microseconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub reply_latency_us: f64,
     /// Replies sent after their deadline, since start.
+    #[ts(type = "number")]
     pub late_replies: u64,
     /// Controller messages not answered, since start.
+    #[ts(type = "number")]
     pub missed_cycles: u64,
     /// Times the controller went silent (the client's safe reaction ran), since start.
+    #[ts(type = "number")]
     pub silences: u64,
     /// Times the controller left commanding (abort, quality drop), since start.
+    #[ts(type = "number")]
     pub commanding_lost: u64,
 }
 
@@ -356,7 +394,7 @@ impl Default for FriView {
 }
 
 /// The electromagnet holding the ball.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum MagnetState {
     /// Not known (device silent or not connected).
@@ -371,7 +409,7 @@ pub enum MagnetState {
 }
 
 /// Timing of the control loop.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct LoopTiming {
     /// Duration of the last control step, microseconds.
     pub step_us: f64,
@@ -382,23 +420,30 @@ pub struct LoopTiming {
     /// Longest period between steps over the last window, microseconds.
     pub period_max_us: f64,
     /// Steps that missed their deadline, since start.
+    #[ts(type = "number")]
     pub deadline_misses: u64,
 }
 
 /// Counters of the control side, since start.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
 pub struct Counters {
     /// Control steps run.
+    #[ts(type = "number")]
     pub steps: u64,
     /// Camera measurements folded into the filter.
+    #[ts(type = "number")]
     pub measurements: u64,
     /// Camera measurements lost because their ring was full.
+    #[ts(type = "number")]
     pub measurement_overflows: u64,
     /// Commands the guard limited or refused.
+    #[ts(type = "number")]
     pub guard_interventions: u64,
     /// Joint limit violations detected.
+    #[ts(type = "number")]
     pub limit_violations: u64,
     /// Trials finished (with a result or aborted).
+    #[ts(type = "number")]
     pub trials: u64,
     /// Trials stopped because no operator heartbeat came within the dead-man time.
     pub operator_timeouts: u64,
@@ -410,15 +455,18 @@ pub struct Counters {
 /// point are projected into the same image ([`CameraView::project_lateral`]).
 /// The streamed frames may be downscaled: scale by their width / `width_px`.
 /// `width_px == 0`: no camera (nothing to overlay).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct CameraView {
     /// Width of the camera image the pixel coordinates refer to.
     pub width_px: u32,
     /// Height of the camera image the pixel coordinates refer to.
     pub height_px: u32,
     /// Number of the latest processed frame.
+    #[ts(type = "number")]
     pub frame: u64,
     /// Its capture time, control clock, seconds.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub t_s: f64,
     /// Whether the detector found the ball in it.
     pub found: bool,
@@ -426,10 +474,16 @@ pub struct CameraView {
     /// (a ball-like blob where the tracked ball cannot be).
     pub rejected: u64,
     /// Ball centre, image column, pixels (pixel centres at integers).
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub x_px: f64,
     /// Ball centre, image row, pixels.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub y_px: f64,
     /// Apparent ball radius, pixels.
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
     pub r_px: f64,
     /// Focal length along columns, pixels.
     pub fx_px: f64,
@@ -444,10 +498,16 @@ pub struct CameraView {
     /// Radial distortion, r^4 term.
     pub k2: f64,
     /// The ball's rest position (the intercept point), camera frame, metres.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub rest_c_m: [f64; 3],
     /// The lateral axis (robot base +y), camera frame, unit.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub lateral_c: [f64; 3],
     /// Up (robot base +z), camera frame, unit.
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
     pub up_c: [f64; 3],
 }
 
@@ -506,13 +566,15 @@ impl CameraView {
 }
 
 /// Everything the dashboard shows, as of one control step. `Copy`, no heap.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
 pub struct Snapshot {
     /// Control clock, seconds since the lab started.
     pub t_s: f64,
     /// Control step number (increases by one per step).
+    #[ts(type = "number")]
     pub seq: u64,
     /// The trial this step belongs to (0: none).
+    #[ts(type = "number")]
     pub trial_id: u64,
     /// Trial state.
     pub trial_state: TrialState,
@@ -537,7 +599,7 @@ pub struct Snapshot {
 }
 
 /// Why a trial was aborted.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum AbortReason {
     /// The operator pressed stop.
@@ -598,7 +660,7 @@ impl AbortReason {
 
 /// The result of a finished trial (CONTRACT.md definitions, judged on ground truth
 /// in the simulated lab).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct TrialResult {
     /// Position and timing within tolerance, no limit violation or abort.
     pub success: bool,
@@ -617,11 +679,12 @@ pub struct TrialResult {
     /// Filter's predicted crossing time minus the truth, at motion start, milliseconds.
     pub prediction_time_error_ms: f64,
     /// Joint limit violations during the trial.
+    #[ts(type = "number")]
     pub limit_violations: u64,
 }
 
 /// Something that happened, as the control thread reports it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Event {
     /// The trial state changed.
@@ -644,11 +707,12 @@ pub enum Event {
 }
 
 /// An [`Event`] with its time and trial.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct EventRecord {
     /// Control clock, seconds.
     pub t_s: f64,
     /// The trial concerned (0: none).
+    #[ts(type = "number")]
     pub trial_id: u64,
     /// What happened.
     pub event: Event,
@@ -693,7 +757,7 @@ impl Command {
 }
 
 /// Why the control thread refused a command.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Refusal {
     /// A trial or its preparation runs.

@@ -82,20 +82,49 @@ impl Moments {
     }
 }
 
+/// The two-sided 95% normal quantile, `z` with `P(|Z| < z) = 0.95` (1.95996...).
+pub fn z95() -> f64 {
+    use statrs::distribution::{ContinuousCDF, Normal};
+    Normal::standard().inverse_cdf(0.975)
+}
+
 /// The Wilson score 95% confidence interval `[lo, hi]` of a success rate with
-/// `successes` out of `trials` (`[0, 1]` when there are no trials).
+/// `successes` out of `trials` (`[0, 1]` when there are no trials). (`statrs`
+/// has no binomial interval; the normal quantile comes from it.)
 pub fn wilson_ci95(successes: usize, trials: usize) -> [f64; 2] {
     if trials == 0 {
         return [0.0, 1.0];
     }
-    const Z: f64 = 1.959_963_984_540_054;
+    let z = z95();
     let n = trials as f64;
     let p = successes.min(trials) as f64 / n;
-    let z2 = Z * Z;
+    let z2 = z * z;
     let denom = 1.0 + z2 / n;
     let centre = (p + z2 / (2.0 * n)) / denom;
-    let half = Z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt() / denom;
-    [(centre - half).max(0.0), (centre + half).min(1.0)]
+    let half = z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt() / denom;
+    // No successes: the lower end is 0; all: the upper end is 1 (exactly).
+    let lo = if successes == 0 {
+        0.0
+    } else {
+        (centre - half).max(0.0)
+    };
+    let hi = if successes >= trials {
+        1.0
+    } else {
+        (centre + half).min(1.0)
+    };
+    [lo, hi]
+}
+
+/// The two-sided 95% interval `[lo, hi]` of a chi-square variable with `dof`
+/// degrees of freedom (its 2.5% and 97.5% quantiles, `statrs`); NaN for a
+/// `dof` that is not positive and finite.
+pub fn chi_square_interval_95(dof: f64) -> [f64; 2] {
+    use statrs::distribution::{ChiSquared, ContinuousCDF};
+    match ChiSquared::new(dof) {
+        Ok(d) if dof.is_finite() => [d.inverse_cdf(0.025), d.inverse_cdf(0.975)],
+        _ => [f64::NAN, f64::NAN],
+    }
 }
 
 #[cfg(test)]
@@ -135,5 +164,22 @@ mod tests {
         // Zero successes: lower end 0.
         assert_eq!(wilson_ci95(0, 10)[0], 0.0);
         assert_eq!(wilson_ci95(0, 0), [0.0, 1.0]);
+    }
+
+    #[test]
+    fn chi_square_interval_matches_tables() {
+        // chi2(100): 2.5% and 97.5% quantiles 74.222 and 129.561; chi2(3): 0.2158 and 9.3484.
+        let [lo, hi] = chi_square_interval_95(100.0);
+        assert!(
+            (lo - 74.222).abs() < 1e-3 && (hi - 129.561).abs() < 1e-3,
+            "{lo} {hi}"
+        );
+        let [lo, hi] = chi_square_interval_95(3.0);
+        assert!(
+            (lo - 0.2158).abs() < 1e-4 && (hi - 9.3484).abs() < 1e-4,
+            "{lo} {hi}"
+        );
+        assert!(chi_square_interval_95(0.0)[0].is_nan());
+        assert!((z95() - 1.959_964).abs() < 1e-6);
     }
 }

@@ -3,6 +3,7 @@
 //! Run `cargo test -p rt-core ekf -- --nocapture` to see the measured numbers.
 
 use super::*;
+use crate::control::stats::chi_square_interval_95;
 use crate::pendulum::PendulumSim;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -255,12 +256,6 @@ fn converges_from_an_angle_ten_degrees_off_within_one_swing() {
     assert!(worst_after_swing[1] < 0.01);
 }
 
-/// Chi-square quantile by Wilson-Hilferty (good to < 1% for dof >= 30).
-fn chi2_quantile(dof: f64, z: f64) -> f64 {
-    let a = 2.0 / (9.0 * dof);
-    dof * (1.0 - a + z * a.sqrt()).powi(3)
-}
-
 #[test]
 fn consistent_nees_and_nis_over_100_monte_carlo_runs() {
     // The truth carries exactly the noise the filter assumes: white angular
@@ -310,10 +305,13 @@ fn consistent_nees_and_nis_over_100_monte_carlo_runs() {
     }
     let n = runs as f64;
     let (nees_lo, nees_hi) = (
-        chi2_quantile(3.0 * n, -1.96) / n,
-        chi2_quantile(3.0 * n, 1.96) / n,
+        chi_square_interval_95(3.0 * n)[0] / n,
+        chi_square_interval_95(3.0 * n)[1] / n,
     );
-    let (nis_lo, nis_hi) = (chi2_quantile(n, -1.96) / n, chi2_quantile(n, 1.96) / n);
+    let (nis_lo, nis_hi) = (
+        chi_square_interval_95(n)[0] / n,
+        chi_square_interval_95(n)[1] / n,
+    );
     let mut inside_nees = 0;
     let mut inside_nis = 0;
     let (mut sum_nees, mut sum_nis) = (0.0, 0.0);
@@ -952,7 +950,10 @@ fn pass_time_std_is_calibrated_when_the_truth_carries_the_assumed_noise() {
     }
     let n = runs as f64;
     let mean_sq = sum_sq / n;
-    let (lo, hi) = (chi2_quantile(n, -1.96) / n, chi2_quantile(n, 1.96) / n);
+    let (lo, hi) = (
+        chi_square_interval_95(n)[0] / n,
+        chi_square_interval_95(n)[1] / n,
+    );
     eprintln!(
         "pass-time std calibration: mean squared normalised error {mean_sq:.3} \
          (bounds [{lo:.3}, {hi:.3}]), reported std p50 {:.2} ms",

@@ -6,6 +6,7 @@ pub mod doctor;
 pub mod framing;
 pub mod guard;
 pub mod net;
+pub mod priority;
 pub mod proto;
 pub mod session;
 pub mod stats;

@@ -93,7 +93,10 @@ impl<C: ControlStep + Send + 'static> FriSession<C> {
         let thread_stop = Arc::clone(&stop);
         let handle = std::thread::Builder::new()
             .name("isochron-fri".into())
-            .spawn(move || run(socket, client, control, &params, &thread_stop))?;
+            .spawn(move || {
+                let _realtime = super::priority::raise_current_thread("isochron-fri");
+                run(socket, client, control, &params, &thread_stop)
+            })?;
         Ok(Self {
             stop,
             stats,

@@ -15,8 +15,8 @@ pub use fri_step::FriLoopStep;
 pub use loop_step::LoopStep;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub use runtime::{
-    CameraLink, FRI_PRIORITY, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs, LoopReport,
-    MagnetLink, RuntimeError, SourceFactory, raise_fri_priority, run_loop,
+    CameraLink, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs, LoopReport, MagnetLink,
+    RuntimeError, SourceFactory, run_loop,
 };
 pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
 pub use trial::{TrialDraw, draw_trial};

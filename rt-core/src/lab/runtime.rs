@@ -22,7 +22,6 @@
 //!   magnet reports off.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::thread::JoinHandle;
@@ -234,49 +233,6 @@ pub struct IoStats {
     pub magnet_failures: AtomicU64,
     /// Times the simulated controller was asked to command again.
     pub commanding_requests: AtomicU64,
-    /// FRI threads (`isochron-fri`, `isochron-fri-sim`) running with
-    /// real-time priority (`SCHED_FIFO`).
-    pub realtime_threads: AtomicU64,
-}
-
-/// Real-time priority of the FRI threads (`SCHED_FIFO`, 1..99).
-pub const FRI_PRIORITY: u8 = 20;
-
-/// Gives the threads of this process named `isochron-fri` or
-/// `isochron-fri-sim` the `SCHED_FIFO` priority [`FRI_PRIORITY`] (through
-/// util-linux's `chrt`, as `unsafe` code is not allowed here); returns how
-/// many now have it. Without the privilege (or `chrt`) they keep the normal
-/// policy: the lab runs, but other load on the machine can delay the FRI
-/// cycle (watch the late replies).
-pub fn raise_fri_priority() -> u64 {
-    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
-        return 0;
-    };
-    let mut n = 0;
-    for task in tasks.flatten() {
-        let comm = std::fs::read_to_string(task.path().join("comm")).unwrap_or_default();
-        // (`comm` holds at most 15 bytes: `isochron-fri-si`.)
-        if !matches!(
-            comm.trim(),
-            "isochron-fri" | "isochron-fri-si" | "isochron-fri-sim"
-        ) {
-            continue;
-        }
-        let sched = std::fs::read_to_string(task.path().join("sched")).unwrap_or_default();
-        let already = sched
-            .lines()
-            .any(|l| l.starts_with("policy") && l.trim_end().ends_with(" 1"));
-        let tid = task.file_name().to_string_lossy().into_owned();
-        let ok = already
-            || std::process::Command::new("chrt")
-                .args(["-f", "-p", &FRI_PRIORITY.to_string(), &tid])
-                .stdout(std::process::Stdio::null())
-                .stderr(std::process::Stdio::null())
-                .status()
-                .is_ok_and(|s| s.success());
-        n += u64::from(ok);
-    }
-    n
 }
 
 /// The running real-time lab; dropping it stops every thread.
@@ -287,6 +243,8 @@ pub struct LabRuntime {
     vision: Option<VisionLoop>,
     magnet: MagnetHandle,
     fake: Option<FakeDevice>,
+    /// Holds the fake board's link; removed after `fake` stops (field order).
+    _fake_dir: Option<tempfile::TempDir>,
     io: Option<JoinHandle<()>>,
     io_stats: Arc<IoStats>,
     stop_io: Arc<AtomicBool>,
@@ -304,10 +262,12 @@ impl std::fmt::Debug for LabRuntime {
 }
 
 /// A unique path for the fake magnet board's pty link.
-fn fake_port_path() -> PathBuf {
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let n = NEXT.fetch_add(1, Ordering::Relaxed);
-    std::env::temp_dir().join(format!("isochron-magnet-{}-{n}", std::process::id()))
+/// A private directory for the fake magnet board's link (`tempfile`), removed
+/// with the lab.
+fn fake_port_dir() -> std::io::Result<tempfile::TempDir> {
+    tempfile::Builder::new()
+        .prefix("isochron-magnet-")
+        .tempdir()
 }
 
 impl LabRuntime {
@@ -340,13 +300,14 @@ impl LabRuntime {
 
         // The magnet: driver thread, its events to the control thread.
         let (mut note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
-        let (fake, params) = match magnet {
+        let (fake, fake_dir, params) = match magnet {
             MagnetLink::Fake => {
-                let dev = FakeDevice::start(fake_port_path())?;
+                let dir = fake_port_dir()?;
+                let dev = FakeDevice::start(dir.path().join("tty"))?;
                 let p = MagnetParams::for_port(dev.path().display().to_string());
-                (Some(dev), p)
+                (Some(dev), Some(dir), p)
             }
-            MagnetLink::Port(p) => (None, p),
+            MagnetLink::Port(p) => (None, None, p),
         };
         let hook = Box::new(move |e: &crate::magnet::MagnetEvent| {
             let on = match e.kind {
@@ -497,6 +458,7 @@ impl LabRuntime {
             vision: Some(vision),
             magnet,
             fake,
+            _fake_dir: fake_dir,
             io: Some(io),
             io_stats,
             stop_io,
@@ -657,17 +619,6 @@ struct Io {
 
 impl Io {
     fn run(&mut self, stop: &AtomicBool) {
-        // The FRI threads run first when the machine is busy (a browser, a build).
-        let want = if self.sim.is_some() { 2 } else { 1 };
-        let until = Instant::now() + Duration::from_secs(1);
-        loop {
-            let n = raise_fri_priority();
-            self.stats.realtime_threads.store(n, Ordering::Relaxed);
-            if n >= want || Instant::now() > until || stop.load(Ordering::Relaxed) {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
         let mut next_check = Instant::now();
         while !stop.load(Ordering::Relaxed) {
             while let Ok(req) = self.requests.pop() {

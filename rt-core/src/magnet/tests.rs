@@ -14,10 +14,14 @@ use super::{
 };
 use crate::sim::magnet::{FakeDevice, FirmwareModel};
 
+/// A path for the fake device's link in a fresh private directory (`tempfile`).
 fn link_path(tag: &str) -> PathBuf {
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let n = NEXT.fetch_add(1, Ordering::Relaxed);
-    std::env::temp_dir().join(format!("isochron-fake-{tag}-{}-{n}", std::process::id()))
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-fake-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
+        .join("tty")
 }
 
 fn fast_params(path: &std::path::Path) -> MagnetParams {

@@ -78,14 +78,20 @@ impl Series {
     /// dynamics. Rows without a measurement (`measured_valid` 0) are skipped; a
     /// measurement that is not a finite number is an error naming the line.
     pub fn from_csv(text: &str) -> Result<Self, TuneError> {
-        let mut lines = text
-            .lines()
-            .enumerate()
-            .filter(|(_, l)| !l.trim().is_empty() && !l.starts_with('#'));
-        let (_, header) = lines
-            .next()
-            .ok_or_else(|| TuneError::Format("empty file".into()))?;
-        let names: Vec<&str> = header.split(',').map(str::trim).collect();
+        let mut reader = csv::ReaderBuilder::new()
+            .comment(Some(b'#'))
+            .trim(csv::Trim::All)
+            .flexible(true)
+            .from_reader(text.as_bytes());
+        let names: Vec<String> = reader
+            .headers()
+            .map_err(|e| TuneError::Format(e.to_string()))?
+            .iter()
+            .map(str::to_owned)
+            .collect();
+        if names.iter().all(String::is_empty) {
+            return Err(TuneError::Format("empty file".into()));
+        }
         let find = |n: &str| names.iter().position(|h| *h == n);
         let (ti, zi, vi, si) = match (find("measured_t_s"), find("measured_x_m")) {
             (Some(t), Some(z)) => (t, z, find("measured_valid"), find("trial_state")),
@@ -105,32 +111,31 @@ impl Series {
         // Trial recordings: the release time, once a row is past `armed`.
         let mut released_at: Option<f64> = None;
         let mut saw_state = false;
-        for (no, line) in lines {
-            let cells: Vec<&str> = line.split(',').map(str::trim).collect();
+        for row in reader.records() {
+            let cells = row.map_err(|e| TuneError::Format(e.to_string()))?;
+            let no = cells.position().map_or(0, |p| p.line());
             let cell = |i: usize| -> Result<f64, TuneError> {
-                let raw = cells.get(i).ok_or_else(|| {
-                    TuneError::Format(format!("line {}: too few columns", no + 1))
-                })?;
+                let raw = cells
+                    .get(i)
+                    .ok_or_else(|| TuneError::Format(format!("line {no}: too few columns")))?;
                 let v = raw.parse::<f64>().map_err(|_| {
                     TuneError::Format(format!(
-                        "line {}: column {:?} = {raw:?} is not a number",
-                        no + 1,
-                        names.get(i).copied().unwrap_or("?")
+                        "line {no}: column {:?} = {raw:?} is not a number",
+                        names.get(i).map_or("?", String::as_str)
                     ))
                 })?;
                 if v.is_finite() {
                     Ok(v)
                 } else {
                     Err(TuneError::Format(format!(
-                        "line {}: column {:?} = {raw:?} is not a finite number",
-                        no + 1,
-                        names.get(i).copied().unwrap_or("?")
+                        "line {no}: column {:?} = {raw:?} is not a finite number",
+                        names.get(i).map_or("?", String::as_str)
                     )))
                 }
             };
             if let Some(si) = si {
                 saw_state = true;
-                let state = cells.get(si).copied().unwrap_or("");
+                let state = cells.get(si).unwrap_or("");
                 if released_at.is_none() && RELEASED_STATES.contains(&state) {
                     // The first row after the release: its step time, or failing
                     // that the measurement it carries.
@@ -141,7 +146,7 @@ impl Series {
                 }
             }
             if let Some(v) = vi {
-                let valid = cells.get(v).copied().unwrap_or("");
+                let valid = cells.get(v).unwrap_or("");
                 if matches!(valid, "0" | "false" | "") {
                     continue;
                 }
@@ -158,8 +163,7 @@ impl Series {
                 Some(&last) if t == last => continue, // repeated until the next frame
                 Some(&last) if t < last => {
                     return Err(TuneError::Format(format!(
-                        "line {}: capture time {t} goes back before {last}",
-                        no + 1
+                        "line {no}: capture time {t} goes back before {last}"
                     )));
                 }
                 _ => {}
@@ -285,17 +289,14 @@ pub struct TuneReport {
     pub evaluations: usize,
 }
 
-/// Two-sided 95% bounds of the mean of `n` chi-square(1) samples (Wilson-Hilferty).
+/// Two-sided 95% bounds of the mean of `n` chi-square(1) samples: the sum is
+/// chi-square(n), so its 2.5% and 97.5% quantiles divided by `n`.
 pub fn nis_bounds_95(n: usize) -> [f64; 2] {
     if n == 0 {
         return [f64::NAN, f64::NAN];
     }
-    // The sum of n chi-square(1) samples is chi-square(n); its quantiles by
-    // Wilson-Hilferty, divided by n for the mean.
-    let c = 2.0 / (9.0 * n as f64);
-    let z = 1.959_963_984_540_054;
-    let at = |zz: f64| (1.0 - c + zz * c.sqrt()).powi(3);
-    [at(-z), at(z)]
+    let [lo, hi] = crate::control::stats::chi_square_interval_95(n as f64);
+    [lo / n as f64, hi / n as f64]
 }
 
 /// Sums over the innovations of one or more filter passes.

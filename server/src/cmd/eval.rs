@@ -19,7 +19,7 @@ use rt_core::{
 };
 use serde_json::Value;
 
-use crate::svg::{self, Bar, Series, Style};
+use crate::plot::{self, Bar, Series, Style};
 
 /// Arguments of `isochron eval`.
 #[derive(Debug, clap::Args)]
@@ -334,13 +334,13 @@ pub fn write_report(
         .collect();
     figs.push((
         "success_by_distance.svg",
-        svg::bar_chart(
+        plot::bar_chart(
             "Success rate with 95% CI by movement time and distance band",
             "movement time, distance band (m)",
             "precisely timed",
             &bars,
             (0.0, 1.0),
-        ),
+        )?,
         "Success rate (Wilson 95% interval) per cell; the paper reached 93% at 0.70 m in 1.5 s.",
     ));
     let all_te: Vec<f64> = cells
@@ -350,7 +350,7 @@ pub fn write_report(
         .collect();
     figs.push((
         "timing_error_histogram.svg",
-        svg::histogram("Timing error |arrival - t*|", "ms", &all_te, 30),
+        plot::histogram("Timing error |arrival - t*|", "ms", &all_te, 30)?,
         "Timing error of every judged trial.",
     ));
     let series: Vec<Series> = times
@@ -358,7 +358,7 @@ pub fn write_report(
         .enumerate()
         .map(|(i, &t)| Series {
             name: format!("planned {t} s"),
-            color: svg::COLORS[i % svg::COLORS.len()],
+            color: plot::COLORS[i % plot::COLORS.len()],
             style: Style::Dots,
             points: cells
                 .iter()
@@ -372,13 +372,13 @@ pub fn write_report(
     let hl: Vec<(f64, &str)> = refs.iter().map(|(t, s)| (*t, s.as_str())).collect();
     figs.push((
         "isochrony.svg",
-        svg::xy_chart(
+        plot::xy_chart(
             "Isochrony: measured movement time against distance",
             "distance (m)",
             "movement time (s)",
             &series,
             &hl,
-        ),
+        )?,
         "Movement time (fit of the ideal profile to the tool's measured progress) against the distance: flat lines are isochrony.",
     ));
     let (d, t) = (0.70, 1.5);
@@ -392,7 +392,7 @@ pub fn write_report(
     };
     figs.push((
         "profiles.svg",
-        svg::xy_chart(
+        plot::xy_chart(
             "Path speed for 0.70 m in 1.5 s: Hopf against minimum jerk",
             "time (s)",
             "path speed (m/s)",
@@ -402,7 +402,7 @@ pub fn write_report(
                         "Hopf: R_h (1 - cos wt), peak {:.3} m/s",
                         ProfileKind::Hopf.peak_velocity() * d / t
                     ),
-                    color: svg::COLORS[0],
+                    color: plot::COLORS[0],
                     style: Style::Line,
                     points: prof(ProfileKind::Hopf),
                 },
@@ -411,13 +411,13 @@ pub fn write_report(
                         "minimum jerk, peak {:.3} m/s",
                         ProfileKind::MinJerk.peak_velocity() * d / t
                     ),
-                    color: svg::COLORS[1],
+                    color: plot::COLORS[1],
                     style: Style::Dashed,
                     points: prof(ProfileKind::MinJerk),
                 },
             ],
             &[],
-        ),
+        )?,
         "The two velocity profiles of the same duration (the paper's Hopf profile and Flash and Hogan's minimum jerk).",
     ));
     let _ = writeln!(md, "\n## Figures\n");
@@ -461,13 +461,13 @@ mod tests {
 
     #[test]
     fn the_report_counts_what_the_trials_said() {
-        let dir = std::env::temp_dir().join(format!("isochron-eval-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let cells = [
             cell(1.5, (0.35, 0.55), &[(true, 0.4, 1.0), (true, 0.5, 2.0)]),
             cell(1.5, (0.55, 0.80), &[(true, 0.6, 3.0), (false, 0.79, 25.0)]),
         ];
-        let path = write_report(&dir, &Scenario::default(), &cells, 7).unwrap();
+        let path = write_report(dir, &Scenario::default(), &cells, 7).unwrap();
         let md = std::fs::read_to_string(path).unwrap();
         assert!(
             md.contains("| isochron (simulated) | 1.5 s | 0.35..0.80 m | 4 | 75.0% |"),

@@ -298,10 +298,11 @@ mod tests {
     fn args(n: usize, per_trial: Option<PathBuf>) -> TrialsArgs {
         // One directory per call: the tests run in parallel and must not read
         // each other's half-written scenario.
-        static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-        let k = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let dir = std::env::temp_dir().join(format!("isochron-trials-{}-{k}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = tempfile::Builder::new()
+            .prefix("isochron-trials-")
+            .tempdir()
+            .expect("a temporary directory")
+            .keep();
         let scenario = dir.join("model.toml");
         std::fs::write(
             &scenario,
@@ -323,8 +324,8 @@ mod tests {
 
     #[test]
     fn the_json_summary_and_per_trial_lines_follow_the_contract() {
-        let lines =
-            std::env::temp_dir().join(format!("isochron-trials-{}.jsonl", std::process::id()));
+        let tmp = tempfile::tempdir().unwrap();
+        let lines = tmp.path().join("trials.jsonl");
         let out = run(&args(2, Some(lines.clone()))).unwrap();
         let v: serde_json::Value = serde_json::from_str(&out).unwrap();
         assert_eq!(v["scenario"], "model");

@@ -86,7 +86,7 @@ pub fn run(args: TuneArgs) -> anyhow::Result<String> {
         report.estimate.process_noise
     );
     let params_text = tuning::params_toml(&base, &report);
-    let svg = figure::fig4_svg(&data, &title);
+    let svg = crate::plot::fig4(&data, &title)?;
     let out = args.out.unwrap_or_else(|| beside(&first, ".ekf.toml"));
     let fig_path = args.figure.unwrap_or_else(|| beside(&first, ".fig4.svg"));
     std::fs::write(&out, params_text).with_context(|| format!("cannot write {}", out.display()))?;
@@ -137,8 +137,8 @@ mod tests {
     /// is the file's, and a bad file costs hits (the file is honoured).
     #[test]
     fn trials_run_with_the_params_file() {
-        let dir = std::env::temp_dir().join(format!("isochron-tune-params-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let scenario = dir.join("lab.toml");
         std::fs::write(
             &scenario,

@@ -275,12 +275,11 @@ pub fn start_lab(records: Option<Arc<Records>>, options: LabOptions) -> (TestLab
 
 /// A fresh temporary directory.
 pub fn temp_dir(tag: &str) -> PathBuf {
-    static NEXT: AtomicU64 = AtomicU64::new(0);
-    let n = NEXT.fetch_add(1, Ordering::Relaxed);
-    let dir = std::env::temp_dir().join(format!("isochron-{tag}-{}-{n}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    tempfile::Builder::new()
+        .prefix(&format!("isochron-{tag}-"))
+        .tempdir()
+        .expect("a temporary directory")
+        .keep()
 }
 
 /// The service on a real port.

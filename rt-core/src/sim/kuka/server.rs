@@ -85,7 +85,10 @@ impl SimServer {
         let flags = (Arc::clone(&command), Arc::clone(&close), Arc::clone(&pause));
         let handle = std::thread::Builder::new()
             .name("isochron-fri-sim".into())
-            .spawn(move || run(socket, client, sim, opts, &flags.0, &flags.1, &flags.2))?;
+            .spawn(move || {
+                let _realtime = crate::fri::priority::raise_current_thread("isochron-fri-sim");
+                run(socket, client, sim, opts, &flags.0, &flags.1, &flags.2)
+            })?;
         Ok(Self {
             stats,
             local,

@@ -1,0 +1,669 @@
+// Generated from the Rust types by ts-rs (server/src/typescript.rs): do not edit.
+// Regenerate with `make types`; `cargo test -p server --lib typescript` fails while stale.
+// A number that may be NaN in Rust is `null` here (serde_json writes NaN as null).
+
+export type TrialState = "idle" | "arming" | "armed" | "released" | "tracking" | "intercepting" | "holding" | "returning" | "done" | "aborted";
+
+export type Measurement = { 
+/**
+ * False until a measurement arrived (then the other fields are meaningless).
+ */
+valid: boolean, 
+/**
+ * Capture time, control clock, seconds.
+ */
+t_s: number, 
+/**
+ * Lateral ball position x = l sin(phi), metres (+y of the robot base).
+ */
+x_m: number, };
+
+export type HorizonPoint = { 
+/**
+ * Time, control clock, seconds.
+ */
+t_s: number, 
+/**
+ * Predicted lateral position, metres.
+ */
+x_m: number, 
+/**
+ * One standard deviation of `x_m`, metres.
+ */
+sigma_m: number, };
+
+export type PendulumView = { 
+/**
+ * Last measurement.
+ */
+measured: Measurement, 
+/**
+ * Estimated angle from the vertical, radians (positive towards +y).
+ */
+phi_rad: number, 
+/**
+ * Estimated angular velocity, rad/s.
+ */
+dphi_radps: number, 
+/**
+ * One standard deviation of `phi_rad`.
+ */
+sigma_phi_rad: number | null, 
+/**
+ * One standard deviation of `dphi_radps`.
+ */
+sigma_dphi_radps: number | null, 
+/**
+ * Estimated lateral position l sin(phi), metres.
+ */
+x_m: number, 
+/**
+ * One standard deviation of `x_m`, metres.
+ */
+sigma_x_m: number | null, 
+/**
+ * Estimated ball centre in the robot base frame, metres.
+ */
+ball_m: (number | null)[], 
+/**
+ * True ball centre (simulated lab only; NaN, shown as null, otherwise).
+ */
+truth_ball_m: (number | null)[], 
+/**
+ * Predicted time the ball next crosses the intercept point, seconds (NaN if none).
+ */
+crossing_t_s: number | null, 
+/**
+ * One standard deviation of `crossing_t_s`, seconds.
+ */
+crossing_sigma_s: number | null, 
+/**
+ * The predicted horizon; only the first `horizon_len` points are meaningful.
+ */
+horizon: Array<HorizonPoint>, };
+
+export type HopfView = { 
+/**
+ * True while the timing system drives a motion.
+ */
+active: boolean, 
+/**
+ * Oscillator state a.
+ */
+a: number, 
+/**
+ * Oscillator state b.
+ */
+b: number, 
+/**
+ * Activation of the initial-posture neuron.
+ */
+u_init: number, 
+/**
+ * Activation of the Hopf (moving) neuron.
+ */
+u_hopf: number, 
+/**
+ * Activation of the final-posture neuron.
+ */
+u_final: number, };
+
+export type PathView = { 
+/**
+ * Planned tool speed along the path now, m/s.
+ */
+speed_planned_mps: number, 
+/**
+ * Executed (measured) tool speed along the path now, m/s.
+ */
+speed_executed_mps: number, 
+/**
+ * Planned progress along the path, 0..1.
+ */
+progress_planned: number, 
+/**
+ * Executed progress along the path, 0..1.
+ */
+progress_executed: number, 
+/**
+ * Path length, metres.
+ */
+length_m: number, 
+/**
+ * Motion start, control clock, seconds (NaN before a motion).
+ */
+start_t_s: number | null, 
+/**
+ * Planned arrival at the intercept point, control clock, seconds (NaN before a motion).
+ */
+arrival_t_s: number | null, 
+/**
+ * Planned movement time, seconds.
+ */
+movement_time_s: number | null, 
+/**
+ * Intercept point, robot base frame, metres.
+ */
+intercept_m: (number | null)[], };
+
+export type RobotView = { 
+/**
+ * Measured joint angles, radians.
+ */
+q_rad: [number, number, number, number, number, number, number], 
+/**
+ * Commanded joint angles, radians.
+ */
+q_cmd_rad: [number, number, number, number, number, number, number], 
+/**
+ * Symmetric position limits |q| <= limit, radians.
+ */
+q_limit_rad: [number, number, number, number, number, number, number], 
+/**
+ * Tool point, robot base frame, metres.
+ */
+tool_m: (number | null)[], 
+/**
+ * Estimated command-to-motion latency of the robot, milliseconds.
+ */
+actuation_latency_ms: number | null, };
+
+export type FriSessionState = "disconnected" | "monitoring_wait" | "monitoring_ready" | "commanding_wait" | "commanding_active" | "idle";
+
+export type FriQuality = "unknown" | "poor" | "fair" | "good" | "excellent";
+
+export type FriView = { 
+/**
+ * Session state.
+ */
+session: FriSessionState, 
+/**
+ * Connection quality.
+ */
+quality: FriQuality, 
+/**
+ * Controller send period, milliseconds.
+ */
+period_ms: number | null, 
+/**
+ * Message receive -> reply sent of the last cycle, microseconds.
+ */
+reply_latency_us: number | null, 
+/**
+ * Replies sent after their deadline, since start.
+ */
+late_replies: number, 
+/**
+ * Controller messages not answered, since start.
+ */
+missed_cycles: number, 
+/**
+ * Times the controller went silent (the client's safe reaction ran), since start.
+ */
+silences: number, 
+/**
+ * Times the controller left commanding (abort, quality drop), since start.
+ */
+commanding_lost: number, };
+
+export type MagnetState = "unknown" | "on" | "off" | "fault";
+
+export type LoopTiming = { 
+/**
+ * Duration of the last control step, microseconds.
+ */
+step_us: number, 
+/**
+ * Longest control step since start, microseconds.
+ */
+step_max_us: number, 
+/**
+ * Mean period between steps over the last window, microseconds.
+ */
+period_mean_us: number, 
+/**
+ * Longest period between steps over the last window, microseconds.
+ */
+period_max_us: number, 
+/**
+ * Steps that missed their deadline, since start.
+ */
+deadline_misses: number, };
+
+export type Counters = { 
+/**
+ * Control steps run.
+ */
+steps: number, 
+/**
+ * Camera measurements folded into the filter.
+ */
+measurements: number, 
+/**
+ * Camera measurements lost because their ring was full.
+ */
+measurement_overflows: number, 
+/**
+ * Commands the guard limited or refused.
+ */
+guard_interventions: number, 
+/**
+ * Joint limit violations detected.
+ */
+limit_violations: number, 
+/**
+ * Trials finished (with a result or aborted).
+ */
+trials: number, };
+
+export type CameraView = { 
+/**
+ * Width of the camera image the pixel coordinates refer to.
+ */
+width_px: number, 
+/**
+ * Height of the camera image the pixel coordinates refer to.
+ */
+height_px: number, 
+/**
+ * Number of the latest processed frame.
+ */
+frame: number, 
+/**
+ * Its capture time, control clock, seconds.
+ */
+t_s: number | null, 
+/**
+ * Whether the detector found the ball in it.
+ */
+found: boolean, 
+/**
+ * Ball centre, image column, pixels (pixel centres at integers).
+ */
+x_px: number | null, 
+/**
+ * Ball centre, image row, pixels.
+ */
+y_px: number | null, 
+/**
+ * Apparent ball radius, pixels.
+ */
+r_px: number | null, 
+/**
+ * Focal length along columns, pixels.
+ */
+fx_px: number, 
+/**
+ * Focal length along rows, pixels.
+ */
+fy_px: number, 
+/**
+ * Principal point, column, pixels.
+ */
+cx_px: number, 
+/**
+ * Principal point, row, pixels.
+ */
+cy_px: number, 
+/**
+ * Radial distortion, r^2 term.
+ */
+k1: number, 
+/**
+ * Radial distortion, r^4 term.
+ */
+k2: number, 
+/**
+ * The ball's rest position (the intercept point), camera frame, metres.
+ */
+rest_c_m: (number | null)[], 
+/**
+ * The lateral axis (robot base +y), camera frame, unit.
+ */
+lateral_c: (number | null)[], 
+/**
+ * Up (robot base +z), camera frame, unit.
+ */
+up_c: (number | null)[], };
+
+export type Snapshot = { 
+/**
+ * Control clock, seconds since the lab started.
+ */
+t_s: number, 
+/**
+ * Control step number (increases by one per step).
+ */
+seq: number, 
+/**
+ * The trial this step belongs to (0: none).
+ */
+trial_id: number, 
+/**
+ * Trial state.
+ */
+trial_state: TrialState, 
+/**
+ * Pendulum: measured, estimated, predicted.
+ */
+pendulum: PendulumView, 
+/**
+ * Hopf oscillator and neurons.
+ */
+hopf: HopfView, 
+/**
+ * Path and speed profile.
+ */
+path: PathView, 
+/**
+ * Joints and tool.
+ */
+robot: RobotView, 
+/**
+ * FRI link.
+ */
+fri: FriView, 
+/**
+ * Electromagnet.
+ */
+magnet: MagnetState, 
+/**
+ * Loop timing.
+ */
+timing: LoopTiming, 
+/**
+ * Counters.
+ */
+counters: Counters, 
+/**
+ * The camera's latest detection and calibration, for the overlays.
+ */
+camera: CameraView, };
+
+export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal";
+
+export type TrialResult = { 
+/**
+ * Position and timing within tolerance, no limit violation or abort.
+ */
+success: boolean, 
+/**
+ * |arrival - t*|, milliseconds.
+ */
+timing_error_ms: number, 
+/**
+ * Tool point to ball centre at t*, metres.
+ */
+position_error_m: number, 
+/**
+ * Arrival - start of the fitted profile, seconds.
+ */
+movement_time_s: number, 
+/**
+ * Robot base axis -> intercept point, horizontal, metres.
+ */
+distance_m: number, 
+/**
+ * When the ball centre passed the intercept point, control clock, seconds.
+ */
+t_star_s: number, 
+/**
+ * Fitted arrival time of the tool, control clock, seconds.
+ */
+arrival_t_s: number, 
+/**
+ * Filter's predicted crossing time minus the truth, at motion start, milliseconds.
+ */
+prediction_time_error_ms: number, 
+/**
+ * Joint limit violations during the trial.
+ */
+limit_violations: number, };
+
+export type Event = { "kind": "state_changed", 
+/**
+ * Before.
+ */
+from: TrialState, 
+/**
+ * After.
+ */
+to: TrialState, } | { "kind": "aborted", 
+/**
+ * Why.
+ */
+reason: AbortReason, } | { "kind": "trial_finished", 
+/**
+ * The result.
+ */
+result: TrialResult, };
+
+export type EventRecord = { 
+/**
+ * Control clock, seconds.
+ */
+t_s: number, 
+/**
+ * The trial concerned (0: none).
+ */
+trial_id: number, 
+/**
+ * What happened.
+ */
+event: Event, };
+
+export type BridgeCounters = { 
+/**
+ * Snapshots published by the control thread.
+ */
+published: number, 
+/**
+ * Snapshots the recorder lost (telemetry ring full).
+ */
+telemetry_overflows: number, 
+/**
+ * Events lost (event ring full).
+ */
+event_overflows: number, 
+/**
+ * Commands refused because the command ring was full.
+ */
+command_overflows: number, 
+/**
+ * Acknowledgements lost (ack ring full).
+ */
+ack_overflows: number, 
+/**
+ * Camera frames dropped (frame ring full).
+ */
+frame_overflows: number, 
+/**
+ * Emergency stops requested.
+ */
+stop_requests: number, };
+
+export type StreamCounters = { 
+/**
+ * Clients connected now.
+ */
+clients: number, 
+/**
+ * State messages produced.
+ */
+state_messages: number, 
+/**
+ * Messages slow clients skipped.
+ */
+skipped: number, 
+/**
+ * Clients dropped because they stalled.
+ */
+dropped_clients: number, 
+/**
+ * Camera frames forwarded.
+ */
+frames: number, };
+
+export type StateMessage = { 
+/**
+ * Always `state`.
+ */
+type: "state", 
+/**
+ * Bridge hand-off counters.
+ */
+bridge: BridgeCounters, 
+/**
+ * WebSocket stream counters.
+ */
+stream: StreamCounters, 
+/**
+ * Control clock, seconds since the lab started.
+ */
+t_s: number, 
+/**
+ * Control step number (increases by one per step).
+ */
+seq: number, 
+/**
+ * The trial this step belongs to (0: none).
+ */
+trial_id: number, 
+/**
+ * Trial state.
+ */
+trial_state: TrialState, 
+/**
+ * Pendulum: measured, estimated, predicted.
+ */
+pendulum: PendulumView, 
+/**
+ * Hopf oscillator and neurons.
+ */
+hopf: HopfView, 
+/**
+ * Path and speed profile.
+ */
+path: PathView, 
+/**
+ * Joints and tool.
+ */
+robot: RobotView, 
+/**
+ * FRI link.
+ */
+fri: FriView, 
+/**
+ * Electromagnet.
+ */
+magnet: MagnetState, 
+/**
+ * Loop timing.
+ */
+timing: LoopTiming, 
+/**
+ * Counters.
+ */
+counters: Counters, 
+/**
+ * The camera's latest detection and calibration, for the overlays.
+ */
+camera: CameraView, };
+
+export type EventMessage = { 
+/**
+ * Always `event`.
+ */
+type: "event", 
+/**
+ * A sentence for people, for aborts.
+ */
+message?: string, 
+/**
+ * Control clock, seconds.
+ */
+t_s: number, 
+/**
+ * The trial concerned (0: none).
+ */
+trial_id: number, 
+/**
+ * What happened.
+ */
+event: Event, };
+
+export type Hello = { 
+/**
+ * Always `hello`.
+ */
+type: "hello", 
+/**
+ * The latest state's time, control clock, seconds.
+ */
+t_s: number, 
+/**
+ * The service's version.
+ */
+version: string, 
+/**
+ * State messages per second.
+ */
+state_hz: number, 
+/**
+ * Whether commands need a bearer token.
+ */
+token_required: boolean, };
+
+export type TrialRecord = { 
+/**
+ * Trial id (> 0).
+ */
+id: number, 
+/**
+ * `running`, `done`, `aborted` or `interrupted` (the service stopped mid-trial).
+ */
+status: string, 
+/**
+ * Unix time the trial was started, seconds.
+ */
+started_unix_s: number, 
+/**
+ * Unix time it ended, seconds.
+ */
+finished_unix_s: number | null, 
+/**
+ * Hit within the tolerances (only for `done`).
+ */
+success: boolean | null, 
+/**
+ * |arrival - t*|, milliseconds.
+ */
+timing_error_ms: number | null, 
+/**
+ * Tool point to ball centre at t*, metres.
+ */
+position_error_m: number | null, 
+/**
+ * Fitted movement time, seconds.
+ */
+movement_time_s: number | null, 
+/**
+ * Distance of the intercept point, metres.
+ */
+distance_m: number | null, 
+/**
+ * Predicted minus true crossing time at motion start, milliseconds.
+ */
+prediction_time_error_ms: number | null, 
+/**
+ * Joint limit violations.
+ */
+limit_violations: number | null, 
+/**
+ * Why it was aborted (snake_case reason).
+ */
+abort_reason: string | null, 
+/**
+ * Rows in the recording.
+ */
+samples: number, };
