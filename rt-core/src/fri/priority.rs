@@ -1,7 +1,10 @@
 //! Real-time priority (`SCHED_FIFO`) for the threads that carry the FRI cycle:
 //! the client session (`isochron-fri`) and the simulated controller
-//! (`isochron-fri-sim`). Each raises itself when it starts (`thread-priority`,
-//! i.e. `pthread_setschedparam`; no `chrt` child process).
+//! (`isochron-fri-sim`). Once the process has asked for it ([`enable`], done by
+//! the lab runtime that `serve` and `bench` start) each raises itself when it
+//! starts (`thread-priority`, i.e. `pthread_setschedparam`; no `chrt` child
+//! process). Other users of the session and the simulated controller (tests,
+//! `fri-sim`) keep the normal policy, as before.
 //!
 //! Without the privilege (`CAP_SYS_NICE` or an `rtprio` limit) the thread keeps
 //! the normal policy and the lab runs: other load on the machine can then delay
@@ -22,6 +25,13 @@ pub const FRI_PRIORITY: u8 = 20;
 static RAISED: AtomicU64 = AtomicU64::new(0);
 /// Whether a refusal was already said.
 static REFUSAL_SAID: AtomicBool = AtomicBool::new(false);
+/// Whether FRI threads of this process ask for real-time priority.
+static ENABLED: AtomicBool = AtomicBool::new(false);
+
+/// From now on, FRI threads started in this process ask for `SCHED_FIFO`.
+pub fn enable() {
+    ENABLED.store(true, Ordering::Relaxed);
+}
 
 /// Held by a thread for as long as it runs: counts it in [`realtime_threads`]
 /// while it has real-time priority.
@@ -45,11 +55,18 @@ impl Drop for RealtimeGuard {
     }
 }
 
-/// Gives the calling thread `SCHED_FIFO` at [`FRI_PRIORITY`] when allowed
-/// (never fails: without the privilege the thread keeps its policy, and the
+/// Once [`enable`]d, gives the calling thread `SCHED_FIFO` at [`FRI_PRIORITY`]
+/// when allowed (never fails: without the privilege the thread keeps its policy, and the
 /// first refusal in the process is said once on standard error). `thread`
 /// names the caller in that message. Keep the guard for the thread's life.
 pub fn raise_current_thread(thread: &str) -> RealtimeGuard {
+    if !ENABLED.load(Ordering::Relaxed) {
+        return RealtimeGuard { raised: false };
+    }
+    raise(thread)
+}
+
+fn raise(thread: &str) -> RealtimeGuard {
     let result = ThreadPriorityValue::try_from(FRI_PRIORITY)
         .map_err(|e| e.to_string())
         .and_then(|value| {
@@ -91,7 +108,7 @@ mod tests {
         std::thread::Builder::new()
             .name("isochron-prio-test".into())
             .spawn(|| {
-                let guard = raise_current_thread("test");
+                let guard = raise("test");
                 // Whether it is allowed depends on the machine; the thread's policy
                 // and the count must agree with the answer (other tests' FRI
                 // threads may be counted too).

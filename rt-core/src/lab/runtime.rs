@@ -291,6 +291,8 @@ impl LabRuntime {
         } = setup;
         scenario.validate()?;
         video.validate()?;
+        // The FRI threads started from here on run first when the machine is busy.
+        crate::fri::priority::enable();
         let epoch = Instant::now();
         control.set_epoch(epoch);
         let clock = Clock::new(epoch);
