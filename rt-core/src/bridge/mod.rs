@@ -106,6 +106,7 @@ pub struct BridgeCounters {
     #[ts(type = "number")]
     pub stop_requests: u64,
     /// Operator heartbeats received.
+    #[ts(type = "number")]
     pub heartbeats: u64,
 }
 

@@ -446,6 +446,7 @@ pub struct Counters {
     #[ts(type = "number")]
     pub trials: u64,
     /// Trials stopped because no operator heartbeat came within the dead-man time.
+    #[ts(type = "number")]
     pub operator_timeouts: u64,
 }
 

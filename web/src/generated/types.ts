@@ -254,7 +254,11 @@ limit_violations: number,
 /**
  * Trials finished (with a result or aborted).
  */
-trials: number, };
+trials: number, 
+/**
+ * Trials stopped because no operator heartbeat came within the dead-man time.
+ */
+operator_timeouts: number, };
 
 export type CameraView = { 
 /**
@@ -480,7 +484,11 @@ frame_overflows: number,
 /**
  * Emergency stops requested.
  */
-stop_requests: number, };
+stop_requests: number, 
+/**
+ * Operator heartbeats received.
+ */
+heartbeats: number, };
 
 export type StreamCounters = { 
 /**
@@ -666,4 +674,12 @@ abort_reason: string | null,
 /**
  * Rows in the recording.
  */
-samples: number, };
+samples: number, 
+/**
+ * The scenario that ran (null for trials recorded before it was stored).
+ */
+scenario: string | null, 
+/**
+ * The software revision that ran it.
+ */
+revision: string | null, };
