@@ -473,6 +473,7 @@ pub struct CameraView {
     pub found: bool,
     /// Detections dropped so far as inconsistent with the track and shape
     /// (a ball-like blob where the tracked ball cannot be).
+    #[ts(type = "number")]
     pub rejected: u64,
     /// Ball centre, image column, pixels (pixel centres at integers).
     #[ts(type = "number | null")]

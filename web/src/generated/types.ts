@@ -282,6 +282,11 @@ t_s: number | null,
  */
 found: boolean, 
 /**
+ * Detections dropped so far as inconsistent with the track and shape
+ * (a ball-like blob where the tracked ball cannot be).
+ */
+rejected: number, 
+/**
  * Ball centre, image column, pixels (pixel centres at integers).
  */
 x_px: number | null, 
