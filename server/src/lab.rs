@@ -440,7 +440,7 @@ impl Pump {
 
     fn handle_event(&mut self, e: &EventRecord) {
         let message = match e.event {
-            Event::Aborted { reason } => Some(reason.message()),
+            Event::Aborted { reason, .. } => Some(reason.message()),
             _ => None,
         };
         let msg = EventMessage {
@@ -456,7 +456,7 @@ impl Pump {
         }
         let end = match e.event {
             Event::TrialFinished { result } => TrialEnd::Done(result),
-            Event::Aborted { reason } => TrialEnd::Aborted(reason.as_str()),
+            Event::Aborted { reason, detail } => TrialEnd::Aborted(reason, detail),
             Event::StateChanged { .. } => return,
         };
         if e.trial_id == 0 {

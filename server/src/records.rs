@@ -39,11 +39,15 @@ pub struct TrialRecord {
     pub id: u64,
     /// `running`, `done`, `aborted` or `interrupted` (the service stopped mid-trial).
     pub status: String,
+    /// Why it ended so, a sentence (null while running): the abort's reason
+    /// and what the lab saw, `not judged: ...` for a trial whose outcome
+    /// could not be judged (then `success` is null), or the judge's verdict.
+    pub reason: Option<String>,
     /// Unix time the trial was started, seconds.
     pub started_unix_s: f64,
     /// Unix time it ended, seconds.
     pub finished_unix_s: Option<f64>,
-    /// Hit within the tolerances (only for `done`).
+    /// Hit within the tolerances (`done` and judged; null when not judged).
     pub success: Option<bool>,
     /// |arrival - t*|, milliseconds.
     pub timing_error_ms: Option<f64>,
@@ -74,8 +78,8 @@ pub struct TrialRecord {
 pub enum TrialEnd {
     /// With a result.
     Done(TrialResult),
-    /// Aborted, with the reason's snake_case name.
-    Aborted(&'static str),
+    /// Aborted: why, and what the lab saw (may be empty).
+    Aborted(rt_core::bridge::AbortReason, &'static str),
 }
 
 /// The trial database and the recordings folder.
@@ -106,10 +110,11 @@ CREATE TABLE IF NOT EXISTS trials (
 );";
 
 /// Columns added after the first schema (older databases get them on open).
-const ADDED_COLUMNS: [(&str, &str); 3] = [
+const ADDED_COLUMNS: [(&str, &str); 4] = [
     ("scenario", "TEXT"),
     ("params_toml", "TEXT"),
     ("revision", "TEXT"),
+    ("reason", "TEXT"),
 ];
 
 /// What produced a trial: stored in its row when it starts.
@@ -145,7 +150,9 @@ impl Records {
             }
         }
         let interrupted = db.execute(
-            "UPDATE trials SET status = 'interrupted' WHERE status = 'running'",
+            "UPDATE trials SET status = 'interrupted',
+               reason = 'interrupted: the service stopped while the trial ran'
+             WHERE status = 'running'",
             [],
         )?;
         if interrupted > 0 {
@@ -212,26 +219,33 @@ impl Records {
                 "UPDATE trials SET status = 'done', finished_unix_s = ?2, success = ?3,
                    timing_error_ms = ?4, position_error_m = ?5, movement_time_s = ?6,
                    distance_m = ?7, prediction_time_error_ms = ?8, limit_violations = ?9,
-                   samples = ?10
+                   samples = ?10, reason = ?11
                  WHERE id = ?1 AND status = 'running'",
                 params![
                     id as i64,
                     unix_now_s(),
-                    r.success,
+                    r.not_judged.is_none().then_some(r.success),
                     finite(r.timing_error_ms),
                     finite(r.position_error_m),
                     finite(r.movement_time_s),
                     finite(r.distance_m),
                     finite(r.prediction_time_error_ms),
                     r.limit_violations as i64,
-                    samples as i64
+                    samples as i64,
+                    done_reason(&r)
                 ],
             )?,
-            TrialEnd::Aborted(reason) => db.execute(
+            TrialEnd::Aborted(reason, detail) => db.execute(
                 "UPDATE trials SET status = 'aborted', finished_unix_s = ?2, success = 0,
-                   abort_reason = ?3, samples = ?4
+                   abort_reason = ?3, samples = ?4, reason = ?5
                  WHERE id = ?1 AND status = 'running'",
-                params![id as i64, unix_now_s(), reason, samples as i64],
+                params![
+                    id as i64,
+                    unix_now_s(),
+                    reason.as_str(),
+                    samples as i64,
+                    abort_sentence(reason, detail)
+                ],
             )?,
         };
         Ok(n > 0)
@@ -269,13 +283,33 @@ impl Records {
     }
 }
 
+/// A done trial's `reason`: why it was not judged, or the verdict.
+fn done_reason(r: &TrialResult) -> String {
+    match r.not_judged {
+        Some(why) => why.to_owned(),
+        None if r.success => "judged: a hit within the tolerances".to_owned(),
+        None if r.limit_violations > 0 => "judged: a miss (joint limit violated)".to_owned(),
+        None => "judged: a miss (outside the tolerances)".to_owned(),
+    }
+}
+
+/// An aborted trial's `reason`: `aborted (REASON): MESSAGE[: DETAIL]`.
+pub fn abort_sentence(reason: rt_core::bridge::AbortReason, detail: &str) -> String {
+    let mut s = format!("aborted ({}): {}", reason.as_str(), reason.message());
+    if !detail.is_empty() {
+        s.push_str(": ");
+        s.push_str(detail);
+    }
+    s
+}
+
 fn finite(v: f64) -> Option<f64> {
     v.is_finite().then_some(v)
 }
 
 const SELECT: &str = "SELECT id, status, started_unix_s, finished_unix_s, success, timing_error_ms,
     position_error_m, movement_time_s, distance_m, prediction_time_error_ms, limit_violations,
-    abort_reason, samples, scenario, revision FROM trials";
+    abort_reason, samples, scenario, revision, reason FROM trials";
 
 fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
     Ok(TrialRecord {
@@ -294,6 +328,7 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
         samples: r.get::<_, i64>(12)? as u64,
         scenario: r.get(13)?,
         revision: r.get(14)?,
+        reason: r.get(15)?,
     })
 }
 
@@ -583,15 +618,27 @@ mod tests {
             let a = r.create_trial(&TrialOrigin::default()).unwrap();
             let b = r.create_trial(&TrialOrigin::default()).unwrap();
             assert!(b > a);
-            assert!(r.finish_trial(a, TrialEnd::Aborted("stop"), 7).unwrap());
-            assert!(!r.finish_trial(a, TrialEnd::Aborted("stop"), 7).unwrap());
+            let stop = TrialEnd::Aborted(rt_core::bridge::AbortReason::Stop, "");
+            assert!(r.finish_trial(a, stop, 7).unwrap());
+            assert!(!r.finish_trial(a, stop, 7).unwrap());
         }
         let r = Records::open(&dir).unwrap();
         let list = r.list(10).unwrap();
         assert_eq!(list.len(), 2);
         assert_eq!(list[0].status, "interrupted");
+        assert!(
+            list[0]
+                .reason
+                .as_deref()
+                .unwrap()
+                .starts_with("interrupted")
+        );
         assert_eq!(list[1].status, "aborted");
         assert_eq!(list[1].abort_reason.as_deref(), Some("stop"));
+        assert_eq!(
+            list[1].reason.as_deref(),
+            Some("aborted (stop): emergency stop")
+        );
         assert_eq!(list[1].samples, 7);
         assert_eq!(r.get(999).unwrap(), None);
     }

@@ -7,7 +7,7 @@
 //! typescript`); the test fails while the committed file is stale.
 
 use rt_core::bridge::{
-    AbortReason, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
+    AbortReason, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
     FriSessionState, FriView, HopfView, HorizonPoint, LoopTiming, MagnetState, Measurement,
     PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
 };
@@ -39,8 +39,9 @@ pub fn declarations() -> String {
         LoopTiming::decl(),
         Counters::decl(),
         CameraView::decl(),
-        Snapshot::decl(),
         AbortReason::decl(),
+        AbortView::decl(),
+        Snapshot::decl(),
         TrialResult::decl(),
         Event::decl(),
         EventRecord::decl(),

@@ -657,9 +657,13 @@ impl Foxglove {
                     result.insert(k.to_owned(), v);
                 }
             }
-            Some(crate::records::TrialEnd::Aborted(reason)) => {
+            Some(crate::records::TrialEnd::Aborted(reason, detail)) => {
                 result.insert("status".to_owned(), "aborted".to_owned());
-                result.insert("abort_reason".to_owned(), (*reason).to_owned());
+                result.insert("abort_reason".to_owned(), reason.as_str().to_owned());
+                result.insert(
+                    "reason".to_owned(),
+                    crate::records::abort_sentence(*reason, detail),
+                );
             }
             None => {
                 result.insert("status".to_owned(), "interrupted".to_owned());

@@ -50,7 +50,7 @@ export async function call<T>(method: string, path: string, body?: unknown): Pro
 export type { TrialRecord } from "./generated/types";
 
 /** The verdict of a trial: `hit`, `miss` (aborted counts as a miss) or `null` while unfinished. */
-export function verdict(t: Pick<TrialRecord, "id" | "status"> & { success?: boolean | null }): "hit" | "miss" | null {
+export function verdict(t: Pick<TrialRecord, "id" | "status"> & { success?: boolean | null; reason?: string | null }): "hit" | "miss" | null {
   if (t.status === "running" || t.status === "interrupted") return null;
   if (t.status === "aborted") return "miss";
   return typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : null;

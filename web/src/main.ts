@@ -9,7 +9,7 @@ import { FriPanel } from "./fri";
 import { fmt } from "./stats";
 import { TrialsView } from "./trials";
 import { DEFAULT_GEOMETRY, Twin } from "./twin";
-import type { ServerMessage, StateMessage } from "./types";
+import { trialStateText, type ServerMessage, type StateMessage } from "./types";
 
 const $ = <T extends HTMLElement>(id: string) => document.getElementById(id) as T;
 
@@ -78,7 +78,7 @@ function set(id: string, text: string): void {
 }
 
 function status(s: StateMessage): void {
-  set("st-trial", s.trial_state);
+  set("st-trial", trialStateText(s));
   const st = $("st-trial");
   if (st.dataset.state !== s.trial_state) st.dataset.state = s.trial_state;
   set("st-fri", `${s.fri.session} · ${s.fri.quality}`);

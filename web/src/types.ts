@@ -5,7 +5,7 @@
  * (`cargo test` fails while the file is stale). A number that may be NaN in
  * Rust is `null` in JSON.
  */
-import type { CameraView, EventMessage, Hello, StateMessage } from "./generated/types";
+import type { AbortView, CameraView, EventMessage, Hello, StateMessage } from "./generated/types";
 
 export type {
   EventMessage,
@@ -27,6 +27,19 @@ export type {
 export type CameraInfo = CameraView;
 
 export type HelloMessage = Hello;
+
+/** Why the last trial was aborted (`Snapshot.abort`): `reason` null while none was. */
+export type AbortInfo = AbortView;
+
+/** The trial state as the dashboard shows it: an abort says why. */
+export function trialStateText(s: {
+  trial_state: string;
+  abort?: Pick<AbortInfo, "message" | "detail"> & { reason: string | null };
+}): string {
+  const a = s.abort;
+  if (s.trial_state !== "aborted" || !a || !a.reason) return s.trial_state;
+  return `aborted: ${a.reason} (${a.message}${a.detail ? `: ${a.detail}` : ""})`;
+}
 
 export type ServerMessage = StateMessage | EventMessage | HelloMessage;
 

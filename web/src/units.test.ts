@@ -2,7 +2,7 @@ import { describe, expect, it } from "vitest";
 import { SeriesWindow } from "./series";
 import { fmt, pct, wilson } from "./stats";
 import { parseCsv } from "./trials";
-import { num, parseMessage } from "./types";
+import { num, parseMessage, trialStateText } from "./types";
 import { trialList } from "./api";
 
 describe("series window", () => {
@@ -98,5 +98,15 @@ describe("trial verdicts", () => {
     expect(verdict({ id: 1, status: "aborted", success: false })).toBe("miss");
     expect(verdict({ id: 1, status: "done", success: true })).toBe("hit");
     expect(verdict({ id: 1, status: "done", success: false })).toBe("miss");
+    expect(verdict({ id: 1, status: "done", success: null, reason: "not judged: real lab" })).toBeNull();
+  });
+  it("shows why a trial was aborted, not only that it was", () => {
+    const abort = { trial_id: 3, reason: "fri_lost", message: "the FRI link to the robot was lost", detail: "the robot controller fell silent (no FRI message)" };
+    expect(trialStateText({ trial_state: "aborted", abort })).toBe(
+      "aborted: fri_lost (the FRI link to the robot was lost: the robot controller fell silent (no FRI message))",
+    );
+    expect(trialStateText({ trial_state: "aborted", abort: { ...abort, detail: "" } })).toBe("aborted: fri_lost (the FRI link to the robot was lost)");
+    expect(trialStateText({ trial_state: "idle", abort })).toBe("idle");
+    expect(trialStateText({ trial_state: "aborted" })).toBe("aborted");
   });
 });

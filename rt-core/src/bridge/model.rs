@@ -598,6 +598,22 @@ pub struct Snapshot {
     pub counters: Counters,
     /// The camera's latest detection and calibration, for the overlays.
     pub camera: CameraView,
+    /// Why the last trial was aborted (kept until the next trial starts).
+    pub abort: AbortView,
+}
+
+/// Why the last trial was aborted, as `/api/state` and the dashboard show it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
+pub struct AbortView {
+    /// The trial aborted (0: none since the lab started, or a new trial runs).
+    #[ts(type = "number")]
+    pub trial_id: u64,
+    /// Why (`null` while no trial was aborted).
+    pub reason: Option<AbortReason>,
+    /// The reason as a sentence (empty while none).
+    pub message: &'static str,
+    /// What the lab saw, when more is known (e.g. how the FRI link was lost; else empty).
+    pub detail: &'static str,
 }
 
 /// Why a trial was aborted.
@@ -683,6 +699,9 @@ pub struct TrialResult {
     /// Joint limit violations during the trial.
     #[ts(type = "number")]
     pub limit_violations: u64,
+    /// Why the outcome could not be judged (`null`: judged; then `success`
+    /// is the verdict). A real lab, or a trial with no motion to judge.
+    pub not_judged: Option<&'static str>,
 }
 
 /// Something that happened, as the control thread reports it.
@@ -700,6 +719,9 @@ pub enum Event {
     Aborted {
         /// Why.
         reason: AbortReason,
+        /// What the lab saw, when more is known (else empty), e.g. how the
+        /// FRI link was lost.
+        detail: &'static str,
     },
     /// A trial finished with a result.
     TrialFinished {
@@ -774,6 +796,9 @@ pub enum Refusal {
     Infeasible,
     /// The device needed is not connected or silent.
     DeviceUnavailable,
+    /// The robot's FRI session is not COMMANDING_ACTIVE (not yet after
+    /// start-up, or the controller is silent or dropped out).
+    RobotNotCommanding,
     /// The command makes no sense here (e.g. trial id 0).
     Invalid,
 }
@@ -788,6 +813,7 @@ impl Refusal {
             Self::ChecksFailed => "checks_failed",
             Self::Infeasible => "infeasible",
             Self::DeviceUnavailable => "device_unavailable",
+            Self::RobotNotCommanding => "robot_not_commanding",
             Self::Invalid => "invalid",
         }
     }
@@ -801,6 +827,9 @@ impl Refusal {
             Self::ChecksFailed => "a pre-motion check failed",
             Self::Infeasible => "the motion is not feasible within the joint limits",
             Self::DeviceUnavailable => "a device needed for this is not available",
+            Self::RobotNotCommanding => {
+                "the robot is not commanding (its FRI session is not COMMANDING_ACTIVE); wait for it"
+            }
             Self::Invalid => "the command is not valid here",
         }
     }

@@ -238,11 +238,13 @@ fn snapshot_json_uses_snake_case_and_null_for_unknown() {
         trial_id: 1,
         event: Event::Aborted {
             reason: AbortReason::CameraLost,
+            detail: "no frame for 0.5 s",
         },
     };
     let j = serde_json::to_value(ev).unwrap();
     assert_eq!(j["event"]["kind"], "aborted");
     assert_eq!(j["event"]["reason"], "camera_lost");
+    assert_eq!(j["event"]["detail"], "no frame for 0.5 s");
 }
 
 #[test]

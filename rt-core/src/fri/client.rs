@@ -152,6 +152,14 @@ pub trait ControlStep {
     fn stop(&mut self, reason: StopReason) {
         let _ = reason;
     }
+
+    /// No controller message came within a receive timeout (the session's
+    /// thread calls it then, at least every few tens of milliseconds while
+    /// there is no link; `now_ns` on the session's clock): time-driven work
+    /// that must not wait for the next message (on the same thread).
+    fn idle(&mut self, now_ns: u64) {
+        let _ = now_ns;
+    }
 }
 
 /// A control that holds the position the controller handed over.

@@ -159,6 +159,7 @@ fn run<C: ControlStep>(
         };
         if !wait_readable(&socket, timeout)? {
             client.poll(now_ns(), &mut control);
+            control.idle(now_ns());
             continue;
         }
         match socket.recv_from(&mut buf) {

@@ -726,8 +726,8 @@ mod tests {
                     Event::StateChanged { to, .. } if result.is_none() => states.push(to),
                     Event::StateChanged { .. } => {}
                     Event::TrialFinished { result: r } => result = Some(r),
-                    Event::Aborted { reason } if e.trial_id != 0 => panic!(
-                        "aborted: {reason:?} after {states:?}: {:?}",
+                    Event::Aborted { reason, detail } if e.trial_id != 0 => panic!(
+                        "aborted: {reason:?} ({detail}) after {states:?}: {:?}",
                         lab.sim_stats().unwrap().report()
                     ),
                     Event::Aborted { .. } => {}

@@ -18,8 +18,8 @@ use super::fri_step::FriLoopStep;
 use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
-    self, AbortReason as BridgeAbort, Command, ControlEnd, Event, EventRecord, FriQuality,
-    FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
+    self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
+    FriQuality, FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
 };
 use crate::control::{
     AbortReason, ArmPlan, Controller, JudgeScratch, Judgement, Measurement, PlannedMotion,
@@ -47,6 +47,23 @@ pub const AFTER_DONE_S: f64 = 0.3;
 pub const TRIAL_TIMEOUT_S: f64 = 40.0;
 /// True passes of the ball through the intercept point kept per trial.
 const MAX_PASSES: usize = 64;
+/// How long the robot controller may fall silent before a running trial
+/// counts the FRI link as lost, seconds. The FRI client calls a silence after
+/// a few periods (`fri::FriClientParams::silence_periods`), which a busy
+/// machine's scheduler can cause on its own; a controller that keeps
+/// commanding through the gap continues the trial (a controller that dropped
+/// out says so when it comes back: `StopReason::LeftCommanding`).
+pub const FRI_LOST_AFTER_S: f64 = 0.3;
+/// What a real lab's trial record says until it has a measured judge.
+pub const NOT_JUDGED_REAL: &str =
+    "not judged: this lab has no ground truth and no measured judge (the real lab)";
+/// An abort's detail when the magnet board stopped answering mid-trial.
+pub const MAGNET_LOST: &str =
+    "the magnet board stopped answering (serial link lost) while it held the ball";
+/// A finished motion the judge could not fit.
+pub const NOT_JUDGED_TRACE: &str = "not judged: the recorded motion could not be judged";
+/// A trial that ended without a committed motion.
+pub const NOT_JUDGED_NO_MOTION: &str = "not judged: there was no motion to judge";
 
 /// The control clock of a lab.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -305,6 +322,11 @@ pub struct LabStep {
     pending: Option<(u64, bool)>,
     /// When the operator last commanded a trial (counts as a heartbeat), control clock, s.
     operator_since_s: f64,
+    /// The robot controller fell silent at this time (the last message),
+    /// control clock, s; cleared by its next message.
+    silent_since: Option<f64>,
+    /// How the FRI link was last lost (for the abort's detail).
+    abort_detail: &'static str,
 }
 
 impl std::fmt::Debug for LabStep {
@@ -403,7 +425,137 @@ impl LabStep {
             magnet_failures: 0,
             pending: None,
             operator_since_s: f64::NEG_INFINITY,
+            silent_since: None,
+            abort_detail: "",
         }
+    }
+
+    /// The FRI session commands now (COMMANDING_ACTIVE, not silent): a trial
+    /// may start.
+    fn commanding(&self) -> bool {
+        self.session == SessionState::CommandingActive && self.silent_since.is_none()
+    }
+
+    /// The magnet board does not answer (its driver reports the link lost).
+    fn magnet_lost(&self) -> bool {
+        #[cfg(feature = "serial")]
+        if let Some(v) = self.p.magnet.as_ref().and_then(MagnetHandle::try_view) {
+            return v.link == view::LinkState::Lost;
+        }
+        false
+    }
+
+    /// The FRI link is lost for the trial: the closed loop stops (aborting
+    /// a running trial as `fri_lost`) and the trial's end is reported now,
+    /// whether or not the controller's messages come back.
+    fn lose_link(&mut self, reason: StopReason) {
+        self.abort_detail = stop_detail(reason);
+        self.inner.stop(reason);
+        let t = self.t_s;
+        self.settle(t, true);
+    }
+
+    /// Reports a state change and ends a trial that is over: an aborted one
+    /// at once; a done one after `AFTER_DONE_S` of trace, or now when `now`
+    /// (no more messages will come to record it).
+    fn settle(&mut self, t: f64, now: bool) {
+        self.emit_state(t);
+        let Some(trial) = self.trial.as_mut() else {
+            return;
+        };
+        match self.inner.controller().state() {
+            TrialState::Abort(_) => self.conclude(t),
+            TrialState::Done => {
+                let since = *trial.done_at.get_or_insert(t);
+                if now || t - since >= AFTER_DONE_S {
+                    self.conclude(t);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// Between controller messages, when none came for a while (the session
+    /// thread calls it on its receive timeouts): declares the link lost after
+    /// `FRI_LOST_AFTER_S` of silence, answers the operator's commands (a
+    /// trial is refused while the robot does not command), ends the trial
+    /// that is over and publishes the snapshot. Nothing allocates.
+    fn between_messages(&mut self, t: f64) {
+        if let Some(since) = self.silent_since
+            && t - since > FRI_LOST_AFTER_S
+        {
+            self.silent_since = None;
+            self.lose_link(StopReason::ControllerSilent);
+            self.session = SessionState::Idle;
+        }
+        if self.p.bridge.take_stop_request() {
+            let at = self.t_s;
+            self.controller().abort(at, AbortReason::StopRequested);
+            if let Some(p) = self.pending.as_mut() {
+                p.1 = true;
+            }
+        }
+        while let Ok(reply) = self.p.io_replies.pop() {
+            self.io_reply(t, reply);
+        }
+        while let Some(env) = self.p.bridge.next_command() {
+            self.handle(t, env.id, env.command);
+        }
+        self.follow_magnet();
+        // The trial's time-out runs without messages too (as in `follow_trial`).
+        let state = self.inner.controller().state();
+        let timed_out = !matches!(
+            state,
+            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+        ) && self.trial.as_ref().is_some_and(|tr| {
+            (tr.auto_release || state != TrialState::Armed) && t - tr.t0 > TRIAL_TIMEOUT_S
+        });
+        if timed_out {
+            self.controller().abort(t, AbortReason::PredictionTimeout);
+        }
+        self.settle(t, false);
+        self.snap.t_s = self.snap.t_s.max(t);
+        self.snap.seq += 1;
+        self.snap.trial_state = map_state(self.inner.controller().state());
+        self.p.bridge.publish(&self.snap);
+    }
+
+    /// Reports the controller's state change (and an abort's reason).
+    fn emit_state(&mut self, t: f64) {
+        let state = self.inner.controller().state();
+        if state == self.last_state {
+            return;
+        }
+        let trial_id = self.trial.as_ref().map_or(0, |tr| tr.id);
+        self.p.bridge.emit(EventRecord {
+            t_s: t,
+            trial_id,
+            event: Event::StateChanged {
+                from: map_state(self.last_state),
+                to: map_state(state),
+            },
+        });
+        if let TrialState::Abort(r) = state {
+            let reason = map_abort(r);
+            let detail = match reason {
+                _ if !self.abort_detail.is_empty() => self.abort_detail,
+                BridgeAbort::FriLost => session_detail(self.session),
+                _ => "",
+            };
+            self.p.bridge.emit(EventRecord {
+                t_s: t,
+                trial_id,
+                event: Event::Aborted { reason, detail },
+            });
+            self.snap.abort = AbortView {
+                trial_id,
+                reason: Some(reason),
+                message: reason.message(),
+                detail,
+            };
+            self.snap.counters.trials += 1;
+        }
+        self.last_state = state;
     }
 
     /// Steps whose computation took longer than the FRI period.
@@ -533,6 +685,19 @@ impl LabStep {
             {
                 tr.magnet_was_on = true;
             }
+            // The board holding the ball stopped answering: the trial cannot
+            // release it as planned (after the release it no longer matters).
+            let state = self.inner.controller().state();
+            if v.link == view::LinkState::Lost
+                && self.trial.as_ref().is_some_and(|tr| !tr.released)
+                && matches!(state, TrialState::Arming | TrialState::Armed)
+            {
+                self.abort_detail = MAGNET_LOST;
+                let t = self.t_s;
+                self.inner
+                    .controller_mut()
+                    .abort(t, AbortReason::MagnetFault);
+            }
         }
         while let Ok(note) = self.p.magnet_notes.pop() {
             let Some(tr) = self.trial.as_mut() else {
@@ -596,6 +761,12 @@ impl LabStep {
                 (Ok(()), None)
             }
             Command::Arm | Command::RunTrial { .. } if busy => (Err(Refusal::Busy), None),
+            Command::Arm | Command::RunTrial { .. } if !self.commanding() => {
+                (Err(Refusal::RobotNotCommanding), None)
+            }
+            Command::Arm | Command::RunTrial { .. } if self.magnet_lost() => {
+                (Err(Refusal::DeviceUnavailable), None)
+            }
             Command::RunTrial { trial_id: 0 } => (Err(Refusal::Invalid), None),
             Command::Arm => {
                 self.operator_since_s = t;
@@ -731,6 +902,10 @@ impl LabStep {
         draw: TrialDraw,
         plan: ArmPlan,
     ) -> Result<(), Refusal> {
+        if !self.commanding() {
+            // The session dropped out while the trial was planned.
+            return Err(Refusal::RobotNotCommanding);
+        }
         let _ = self.controller().reset(t);
         // The trial starts now on the operator's command: the dead-man counts from here.
         self.operator_since_s = t;
@@ -804,6 +979,8 @@ impl LabStep {
             });
         }
         self.inner.clear_stop();
+        self.abort_detail = "";
+        self.snap.abort = AbortView::default();
         self.trace.clear();
         self.passes.clear();
         self.world_trace.clear();
@@ -835,29 +1012,8 @@ impl LabStep {
 
     /// After the closed loop's step: truth, trace, trial progress, events.
     fn follow_trial(&mut self, t: f64) {
+        self.emit_state(t);
         let state = self.inner.controller().state();
-        if state != self.last_state {
-            let trial_id = self.trial.as_ref().map_or(0, |tr| tr.id);
-            self.p.bridge.emit(EventRecord {
-                t_s: t,
-                trial_id,
-                event: Event::StateChanged {
-                    from: map_state(self.last_state),
-                    to: map_state(state),
-                },
-            });
-            if let TrialState::Abort(r) = state {
-                self.p.bridge.emit(EventRecord {
-                    t_s: t,
-                    trial_id,
-                    event: Event::Aborted {
-                        reason: map_abort(r),
-                    },
-                });
-                self.snap.counters.trials += 1;
-            }
-            self.last_state = state;
-        }
         // The robot's true joints where the simulator tells them (the judge's
         // tool point), else the measured ones.
         let q_true = self.q_true.unwrap_or(self.q);
@@ -1047,6 +1203,15 @@ impl LabStep {
             return;
         }
         let j = o.judgement;
+        let not_judged = if o.physical.is_some() || (o.physical_error.is_none() && j.is_some()) {
+            None
+        } else if trial.ball.is_none() {
+            Some(NOT_JUDGED_REAL)
+        } else if no_motion(&o) {
+            Some(NOT_JUDGED_NO_MOTION)
+        } else {
+            Some(NOT_JUDGED_TRACE)
+        };
         let result = TrialResult {
             success: o.succeeded(&self.p.scenario.success),
             timing_error_ms: j.map_or(f64::NAN, |j| j.timing_error_ms),
@@ -1057,6 +1222,7 @@ impl LabStep {
             arrival_t_s: j.map_or(f64::NAN, |j| j.arrival_s),
             prediction_time_error_ms: o.prediction_crossing_time_error_ms.unwrap_or(f64::NAN),
             limit_violations: o.limit_violations,
+            not_judged,
         };
         self.snap.counters.trials += 1;
         self.p.bridge.emit(EventRecord {
@@ -1267,6 +1433,12 @@ impl ControlStep for LabStep {
             LabClock::Virtual => input.now_ns,
         };
         let t = now_ns as f64 * 1e-9;
+        if let Some(since) = self.silent_since.take()
+            && t - since > FRI_LOST_AFTER_S
+        {
+            // The controller came back after the link counted as lost.
+            self.lose_link(StopReason::ControllerSilent);
+        }
         self.t_s = t;
         let m = input.monitoring;
         self.session = m.session_state;
@@ -1301,8 +1473,21 @@ impl ControlStep for LabStep {
         self.p.bridge.publish(&self.snap);
     }
 
+    fn idle(&mut self, now_ns: u64) {
+        let t = match self.p.clock {
+            LabClock::Wall(epoch) => epoch.elapsed().as_secs_f64(),
+            LabClock::Virtual => now_ns as f64 * 1e-9,
+        };
+        self.between_messages(t);
+    }
+
     fn stop(&mut self, reason: StopReason) {
-        self.inner.stop(reason);
+        if reason == StopReason::ControllerSilent {
+            // A gap, not yet a lost link (`FRI_LOST_AFTER_S`).
+            self.silent_since.get_or_insert(self.t_s);
+        } else {
+            self.lose_link(reason);
+        }
         if !matches!(reason, StopReason::LeftCommanding(_)) {
             self.session = SessionState::Idle;
             self.snap.fri.session = FriSessionState::Disconnected;
@@ -1332,6 +1517,35 @@ impl TrialOutcome {
                 j.timing_error_ms <= tol.timing_tolerance_ms
                     && j.position_error_m <= tol.position_tolerance_m
             })
+    }
+}
+
+/// No committed motion in the trial (nothing for the judge).
+fn no_motion(o: &TrialOutcome) -> bool {
+    o.judgement.is_none() && o.judge_error.is_none() && o.physical_error.is_none()
+}
+
+/// How the FRI link was lost, for an abort's detail.
+const fn stop_detail(reason: StopReason) -> &'static str {
+    match reason {
+        StopReason::ControllerSilent => "the robot controller fell silent (no FRI message)",
+        StopReason::SessionClosed => "the robot controller closed the FRI session (IDLE)",
+        StopReason::LeftCommanding(s) => match s {
+            SessionState::MonitoringWait => "the FRI session left commanding for MONITORING_WAIT",
+            SessionState::MonitoringReady => "the FRI session left commanding for MONITORING_READY",
+            _ => "the FRI session left commanding",
+        },
+    }
+}
+
+/// The session state a trial saw when it lost commanding without a stop event.
+const fn session_detail(s: SessionState) -> &'static str {
+    match s {
+        SessionState::CommandingActive => "",
+        SessionState::CommandingWait => "the FRI session was COMMANDING_WAIT, not commanding",
+        SessionState::MonitoringReady => "the FRI session was MONITORING_READY, not commanding",
+        SessionState::MonitoringWait => "the FRI session was MONITORING_WAIT, not commanding",
+        SessionState::Idle => "the FRI session was closed (IDLE)",
     }
 }
 

@@ -34,7 +34,7 @@ use super::trial::TrialDraw;
 use super::truth::{TruthUpdate, TruthView};
 use crate::bridge::{self, Command, ServerEnd};
 use crate::control::{ArmPlan, ControlError, Controller, TrialRecord, TrialState};
-use crate::fri::client::{FriClient, FriClientParams, LinkState};
+use crate::fri::client::{ControlStep, FriClient, FriClientParams, LinkState};
 use crate::fri::codec::MAX_DATAGRAM_BYTES;
 use crate::fri::proto::SessionState;
 use crate::kinematics::iiwa7::JOINTS;
@@ -214,6 +214,23 @@ pub struct VirtualLab {
     /// measurements handed to it) is appended (tests: the controller cannot
     /// read the world).
     pub input_log: Option<Vec<u8>>,
+    /// When `Some`, the simulated robot falls silent once (its process
+    /// stalled or died): from the first message on which the trial is in
+    /// `RobotPause::in_state`, for `RobotPause::for_s`. Meanwhile the FRI
+    /// client's silence check and the driver's between-messages call run as
+    /// the session thread runs them on its receive timeouts.
+    pub robot_pause: Option<RobotPause>,
+}
+
+/// A one-time silence of the simulated robot ([`VirtualLab::robot_pause`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RobotPause {
+    /// The silence starts at the first message in this trial state.
+    pub in_state: TrialState,
+    /// How long the robot sends nothing, seconds.
+    pub for_s: f64,
+    /// When it started (set by the lab), virtual seconds.
+    pub started_s: Option<f64>,
 }
 
 impl std::fmt::Debug for VirtualLab {
@@ -337,6 +354,7 @@ impl VirtualLab {
             world_session: None,
             world_view: None,
             input_log: None,
+            robot_pause: None,
         };
         lab.ensure_commanding()?;
         Ok(lab)
@@ -575,6 +593,25 @@ impl VirtualLab {
             }
         }
         self.t_ns = now;
+        let silent = match self.robot_pause.as_mut() {
+            Some(p) => {
+                if p.started_s.is_none() && self.step.inner().controller().state() == p.in_state {
+                    p.started_s = Some(t_next);
+                }
+                p.started_s.is_some_and(|t0| t_next < t0 + p.for_s)
+            }
+            None => false,
+        };
+        if silent {
+            // The session thread's receive timeout: the silence check, then
+            // the driver between messages.
+            self.client.poll(now, &mut self.step);
+            ControlStep::idle(&mut self.step, now);
+            self.serve_requests(t_next);
+            while self.server.events.pop().is_some() {}
+            while self.server.telemetry.pop().is_some() {}
+            return;
+        }
         let Self {
             client,
             robot,
@@ -1035,6 +1072,55 @@ mod tests {
             let (tp, p) = lab.lab_step().passes()[0];
             assert!(tp > 0.0 && p.y.abs() < 1e-9, "{tp} {p}");
         }
+    }
+
+    #[test]
+    fn a_short_robot_silence_is_not_a_lost_link_and_a_long_one_ends_the_trial_at_once() {
+        let s = model_lab();
+        let mut lab = VirtualLab::new(&s, 3).unwrap();
+        // 100 ms without a message while tracking (a stalled cabinet process,
+        // or this PC's scheduler): a silence for the FRI client, not a lost
+        // link; the controller still commands and the trial goes on.
+        lab.robot_pause = Some(RobotPause {
+            in_state: TrialState::Tracking,
+            for_s: 0.1,
+            started_s: None,
+        });
+        let r = lab.run_trial(0);
+        assert!(lab.robot_pause.unwrap().started_s.is_some());
+        assert!(lab.client().stats().snapshot().silences >= 1);
+        assert_eq!(r.final_state, "done", "{r:?}");
+        assert!(r.success, "{r:?}");
+        // 5 s without a message: the link is lost after FRI_LOST_AFTER_S and
+        // the trial ends then, while the robot is still silent, as fri_lost.
+        lab.robot_pause = Some(RobotPause {
+            in_state: TrialState::Tracking,
+            for_s: 5.0,
+            started_s: None,
+        });
+        let r = lab.run_trial(1);
+        let t0 = lab.robot_pause.unwrap().started_s.unwrap();
+        assert_eq!(r.final_state, "abort", "{r:?}");
+        let why = r.abort_reason.as_deref().unwrap();
+        assert!(why.starts_with("fri_lost"), "{why}");
+        assert!(why.contains("fell silent"), "{why}");
+        // (Counted from the last message, up to one FRI period before the
+        // pause began.)
+        let ended_after = lab.t_s() - t0;
+        let period_s = f64::from(s.robot.fri_period_ms) * 1e-3;
+        assert!(
+            ended_after > super::super::step::FRI_LOST_AFTER_S - period_s - 1e-9
+                && ended_after < 0.5,
+            "the trial ended {ended_after} s into the silence"
+        );
+        let snap = lab.lab_step().snapshot();
+        assert_eq!(snap.abort.reason, Some(crate::bridge::AbortReason::FriLost));
+        assert_eq!(snap.abort.trial_id, 2);
+        assert!(
+            snap.abort.detail.contains("fell silent"),
+            "{:?}",
+            snap.abort
+        );
     }
 
     #[test]

@@ -84,7 +84,7 @@ impl Machine {
             self.control.emit(EventRecord {
                 t_s: self.snap.t_s,
                 trial_id: self.trial,
-                event: Event::Aborted { reason },
+                event: Event::Aborted { reason, detail: "" },
             });
             self.set_state(TrialState::Aborted);
         }
@@ -169,6 +169,7 @@ impl Machine {
                                 arrival_t_s: t + 0.0015,
                                 prediction_time_error_ms: 0.7,
                                 limit_violations: 0,
+                                not_judged: None,
                             },
                         },
                     });

@@ -335,6 +335,26 @@ lateral_c: (number | null)[],
  */
 up_c: (number | null)[], };
 
+export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal";
+
+export type AbortView = { 
+/**
+ * The trial aborted (0: none since the lab started, or a new trial runs).
+ */
+trial_id: number, 
+/**
+ * Why (`null` while no trial was aborted).
+ */
+reason: AbortReason | null, 
+/**
+ * The reason as a sentence (empty while none).
+ */
+message: string, 
+/**
+ * What the lab saw, when more is known (e.g. how the FRI link was lost; else empty).
+ */
+detail: string, };
+
 export type Snapshot = { 
 /**
  * Control clock, seconds since the lab started.
@@ -387,9 +407,11 @@ counters: Counters,
 /**
  * The camera's latest detection and calibration, for the overlays.
  */
-camera: CameraView, };
-
-export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal";
+camera: CameraView, 
+/**
+ * Why the last trial was aborted (kept until the next trial starts).
+ */
+abort: AbortView, };
 
 export type TrialResult = { 
 /**
@@ -427,7 +449,12 @@ prediction_time_error_ms: number,
 /**
  * Joint limit violations during the trial.
  */
-limit_violations: number, };
+limit_violations: number, 
+/**
+ * Why the outcome could not be judged (`null`: judged; then `success`
+ * is the verdict). A real lab, or a trial with no motion to judge.
+ */
+not_judged: string | null, };
 
 export type Event = { "kind": "state_changed", 
 /**
@@ -441,7 +468,12 @@ to: TrialState, } | { "kind": "aborted",
 /**
  * Why.
  */
-reason: AbortReason, } | { "kind": "trial_finished", 
+reason: AbortReason, 
+/**
+ * What the lab saw, when more is known (else empty), e.g. how the
+ * FRI link was lost.
+ */
+detail: string, } | { "kind": "trial_finished", 
 /**
  * The result.
  */
@@ -581,7 +613,11 @@ counters: Counters,
 /**
  * The camera's latest detection and calibration, for the overlays.
  */
-camera: CameraView, };
+camera: CameraView, 
+/**
+ * Why the last trial was aborted (kept until the next trial starts).
+ */
+abort: AbortView, };
 
 export type EventMessage = { 
 /**
@@ -637,6 +673,12 @@ id: number,
  */
 status: string, 
 /**
+ * Why it ended so, a sentence (null while running): the abort's reason
+ * and what the lab saw, `not judged: ...` for a trial whose outcome
+ * could not be judged (then `success` is null), or the judge's verdict.
+ */
+reason: string | null, 
+/**
  * Unix time the trial was started, seconds.
  */
 started_unix_s: number, 
@@ -645,7 +687,7 @@ started_unix_s: number,
  */
 finished_unix_s: number | null, 
 /**
- * Hit within the tolerances (only for `done`).
+ * Hit within the tolerances (`done` and judged; null when not judged).
  */
 success: boolean | null, 
 /**
