@@ -3,6 +3,7 @@
 pub mod cost;
 pub mod judge;
 pub mod latency;
+pub mod measured;
 pub mod report;
 pub mod state;
 pub mod stats;
