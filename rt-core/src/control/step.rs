@@ -58,6 +58,22 @@ pub struct ControlParams {
     /// distance of its final point (the reality lab's physical judge, 0.002).
     /// The motion is timed so that this arrival meets the ball's pass, metres.
     pub arrival_settle_m: f64,
+    /// Carry the filter's estimate of the pendulum's frequency (`k = g/l`,
+    /// with `ekf.estimate_frequency`) from trial to trial within a session: each
+    /// trial's filter starts from what the earlier ones learned.
+    pub learn_frequency: bool,
+    /// Track the camera's time offset per session from the magnet releases: the
+    /// filter's swing, carried back, turns at rest `delta + d` after the coil
+    /// went off (`delta`: the stamps' error, `d`: the magnet's release delay);
+    /// the motion starts `delta` earlier.
+    pub camera_offset_from_release: bool,
+    /// The magnet's release delay believed (coil off -> ball falls), mean, ms.
+    pub release_delay_prior_ms: f64,
+    /// Its trial-to-trial standard deviation, ms.
+    pub release_delay_std_ms: f64,
+    /// Prior standard deviation of the camera's time offset, ms (how much the
+    /// first releases of a session may move it).
+    pub camera_offset_std_ms: f64,
 }
 
 impl Default for ControlParams {
@@ -76,6 +92,11 @@ impl Default for ControlParams {
             guard_speed_ratio: 1.0,
             retime: false,
             arrival_settle_m: 0.0,
+            learn_frequency: false,
+            camera_offset_from_release: false,
+            release_delay_prior_ms: 0.0,
+            release_delay_std_ms: 5.0,
+            camera_offset_std_ms: 10.0,
         }
     }
 }
@@ -118,7 +139,25 @@ impl ControlParams {
             0.05,
             1.0,
         )?;
-        check::within("control.arrival_settle_m", self.arrival_settle_m, 0.0, 0.05)
+        check::within("control.arrival_settle_m", self.arrival_settle_m, 0.0, 0.05)?;
+        check::within(
+            "control.release_delay_prior_ms",
+            self.release_delay_prior_ms,
+            0.0,
+            500.0,
+        )?;
+        check::within(
+            "control.release_delay_std_ms",
+            self.release_delay_std_ms,
+            0.01,
+            500.0,
+        )?;
+        check::within(
+            "control.camera_offset_std_ms",
+            self.camera_offset_std_ms,
+            0.01,
+            500.0,
+        )
     }
 }
 
@@ -263,8 +302,10 @@ pub struct Commit {
     pub predicted_pass_std_s: f64,
     /// Predicted ball centre at the pass, metres.
     pub predicted_ball_m: Vector3<f64>,
-    /// The latency compensated, seconds.
+    /// The latency compensated (the robot's), seconds.
     pub latency_s: f64,
+    /// The camera time offset compensated (stamps late by this), seconds.
+    pub camera_offset_s: f64,
     /// The generator's arrival offset compensated, seconds.
     pub arrival_offset_s: f64,
     /// Direction of the committed pass (sign of the lateral velocity).
@@ -284,6 +325,27 @@ struct PredictionCache {
     duration_s: f64,
     latency_s: f64,
     start_s: f64,
+}
+
+/// What a session (a reboot of the lab) has taught so far.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SessionMemory {
+    /// `k = g/l` and its variance, 1/s^2 and 1/s^4 (`learn_frequency`).
+    pub k: Option<(f64, f64)>,
+    /// Sum of the camera offsets the releases of this session showed, seconds.
+    pub offset_sum_s: f64,
+    /// How many releases.
+    pub offset_n: u32,
+}
+
+/// What the running trial shows (folded into the session at its end).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct TrialLearning {
+    /// Posterior time the snapshot was taken from, seconds.
+    posterior_t_s: f64,
+    k: Option<(f64, f64)>,
+    /// `t_turn - t_release - d`: this release's camera offset, seconds.
+    offset_s: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -334,6 +396,8 @@ pub struct Controller {
     prediction: Option<PredictionCache>,
     counters: ControlCounters,
     abort_reason: Option<AbortReason>,
+    session: SessionMemory,
+    learning: TrialLearning,
 }
 
 impl Controller {
@@ -378,6 +442,8 @@ impl Controller {
             prediction: None,
             counters: ControlCounters::default(),
             abort_reason: None,
+            session: SessionMemory::default(),
+            learning: TrialLearning::default(),
         })
     }
 
@@ -492,6 +558,111 @@ impl Controller {
         self.abort_reason
     }
 
+    /// What this session has learned so far.
+    pub fn session_memory(&self) -> &SessionMemory {
+        &self.session
+    }
+
+    /// A new session began (the lab was rebooted: the camera's clock offset,
+    /// the robot's latency and the pendulum may have changed): forgets what
+    /// the earlier trials taught (`learn_frequency`, `camera_offset_from_release`).
+    pub fn new_session(&mut self) {
+        self.session = SessionMemory::default();
+        self.learning = TrialLearning::default();
+    }
+
+    /// The camera time offset to compensate: the session's releases and this
+    /// trial's, each `t_turn - t_release - d_prior` with variance `sigma_d^2`,
+    /// shrunk towards 0 by the prior `sigma_delta` (0 when off), seconds.
+    pub fn camera_offset_s(&self) -> f64 {
+        if !self.params.camera_offset_from_release {
+            return 0.0;
+        }
+        let (mut sum, mut n) = (self.session.offset_sum_s, f64::from(self.session.offset_n));
+        if let Some(o) = self.learning.offset_s {
+            sum += o;
+            n += 1.0;
+        }
+        let sd = self.params.release_delay_std_ms;
+        let sp = self.params.camera_offset_std_ms;
+        sum / (n + (sd * sd) / (sp * sp))
+    }
+
+    /// Takes what the filter shows about the constants of the session (its
+    /// frequency, and the release's turning time against the coil's switch).
+    /// Not real-time critical but allocation-free: three predictions.
+    fn learn_from_filter(&mut self) {
+        if !self.params.learn_frequency && !self.params.camera_offset_from_release {
+            return;
+        }
+        let Some(ekf) = self.ekf.as_ref() else {
+            return;
+        };
+        let Some((t_post, x, p)) = ekf.posterior() else {
+            return;
+        };
+        if t_post == self.learning.posterior_t_s {
+            return;
+        }
+        if ekf.params().estimate_frequency {
+            let (k, var) = (
+                x[crate::ekf::model::K],
+                p[(crate::ekf::model::K, crate::ekf::model::K)],
+            );
+            if k.is_finite() && k > 0.0 && var.is_finite() && var > 0.0 {
+                self.learning.k = Some((k, var));
+            }
+        }
+        if self.params.camera_offset_from_release {
+            // Newton on phi'(t) = 0 from the believed drop time.
+            let d = self.params.release_delay_prior_ms * 1e-3;
+            let mut t = self.t_release + d;
+            let mut pred = crate::ekf::Prediction::default();
+            let mut found = None;
+            for _ in 0..4 {
+                if ekf.predict_at(t, &mut pred).is_err() {
+                    break;
+                }
+                let s = pred.state;
+                let acc =
+                    -s[crate::ekf::model::K] * s[0].sin() - s[crate::ekf::model::ALPHA] * s[1];
+                if !acc.is_finite() || acc.abs() < 1e-9 {
+                    break;
+                }
+                let step = s[1] / acc;
+                t -= step;
+                if step.abs() < 1e-5 {
+                    found = Some(t);
+                    break;
+                }
+            }
+            if let Some(t_turn) = found {
+                let o = t_turn - self.t_release - d;
+                // A turning point far from the release is not this release's.
+                if o.abs() < 0.1 {
+                    self.learning.offset_s = Some(o);
+                }
+            }
+        }
+        self.learning.posterior_t_s = t_post;
+    }
+
+    /// Folds the finished trial's lessons into the session's memory.
+    fn end_trial_learning(&mut self) {
+        if self.commit.is_some() {
+            if let Some((k, var)) = self.learning.k {
+                // A little forgetting: 0.02% of k per trial.
+                let drift = 2e-4 * k;
+                self.session.k = Some((k, var + drift * drift));
+            }
+            if let Some(o) = self.learning.offset_s {
+                self.session.offset_sum_s += o;
+                self.session.offset_n += 1;
+            }
+        }
+        self.learning = TrialLearning::default();
+    }
+
     /// The tool this controller plans with.
     pub fn tool(&self) -> &Tool {
         &self.tool
@@ -534,8 +705,12 @@ impl Controller {
             plan.distance_m,
             self.scenario.task.intercept_height_m,
         )?;
-        let ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
+        let mut ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
             .map_err(|e| ControlError::Setup(e.to_string()))?;
+        if self.params.learn_frequency {
+            ekf.set_constant_priors(self.session.k, None)
+                .map_err(|e| ControlError::Setup(e.to_string()))?;
+        }
         let q0 = if self.have_cmd {
             self.q_cmd
         } else {
@@ -598,6 +773,7 @@ impl Controller {
             })?;
         self.t_state = t_s;
         self.jmove = None;
+        self.end_trial_learning();
         Ok(())
     }
 
@@ -669,6 +845,7 @@ impl Controller {
             TrialState::Tracking => {
                 self.check_camera(t);
                 if self.machine.state() == TrialState::Tracking {
+                    self.learn_from_filter();
                     self.try_commit(t, dt);
                 }
             }
@@ -769,7 +946,10 @@ impl Controller {
         let (Some(ekf), Some(plan)) = (self.ekf.as_ref(), self.plan.as_ref()) else {
             return;
         };
-        let latency_s = self.latency.latency_s();
+        let robot_latency_s = self.latency.latency_s();
+        let camera_offset_s = self.camera_offset_s();
+        // Stamps late by the camera offset put the predicted pass as late.
+        let latency_s = (robot_latency_s + camera_offset_s).max(0.0);
         let duration_s = (plan.duration_s + plan.arrival_offset_s).max(0.0);
         let filter = ekf.counters();
         let posterior = ekf.posterior();
@@ -836,7 +1016,8 @@ impl Controller {
             predicted_pass_s: mp.pass.t_s,
             predicted_pass_std_s: mp.pass.time_std_s,
             predicted_ball_m: mp.pass.ball_m,
-            latency_s,
+            latency_s: robot_latency_s,
+            camera_offset_s,
             direction_positive: mp.pass.lateral_velocity_mps > 0.0,
         });
         self.go(t, TrialState::Intercepting);
@@ -856,8 +1037,11 @@ impl Controller {
         let from = (c.predicted_pass_s - 0.3).max(t);
         match ekf.crossings(from, 0.0, dir, &mut buf) {
             Ok(1) if (buf[0].t_s - c.predicted_pass_s).abs() < 0.2 => {
-                let arrival =
-                    buf[0].t_s - self.latency.latency_s() - c.motion_start_s - c.arrival_offset_s;
+                let arrival = buf[0].t_s
+                    - self.latency.latency_s()
+                    - c.camera_offset_s
+                    - c.motion_start_s
+                    - c.arrival_offset_s;
                 if (arrival - self.motion.arrival_time_s()).abs() > 1e-5
                     && self.motion.retime(arrival).is_ok()
                 {
@@ -875,8 +1059,20 @@ impl Controller {
         if t <= c.motion_start_s {
             return Some(plan.posture.q_home);
         }
-        if self.params.retime && self.machine.state() == TrialState::Intercepting {
-            self.refine(t);
+        if self.machine.state() == TrialState::Intercepting {
+            // The swing until shortly before the pass (then the tool may touch
+            // the ball) still teaches the session's constants.
+            let before_pass = self
+                .ekf
+                .as_ref()
+                .and_then(Ekf::posterior)
+                .is_some_and(|(tp, _, _)| tp < c.predicted_pass_s - 0.2);
+            if before_pass {
+                self.learn_from_filter();
+            }
+            if self.params.retime {
+                self.refine(t);
+            }
         }
         let h = (t - c.motion_start_s).min(dt);
         if self.motion.step(h, None, &mut self.sample).is_err() {
@@ -1030,6 +1226,114 @@ mod tests {
         fast.control.allow_shortest_feasible = true;
         let plan = Controller::plan(&fast, 0.8).unwrap();
         assert!(plan.duration_s > 1.3, "{plan:?}");
+    }
+
+    /// Arms `c` with a perfect robot (measured = commanded) until `Armed`;
+    /// returns the time and the joints.
+    fn arm_perfectly(c: &mut Controller, plan: &ArmPlan) -> (f64, [f64; JOINTS]) {
+        let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];
+        let mut out = StepOutput::default();
+        let mut t = 0.0;
+        let input = |t, q| StepInput {
+            t_s: t,
+            q_measured_rad: q,
+            commanding: true,
+        };
+        c.step(&input(t, q), std::iter::empty(), &mut out);
+        c.arm(t, plan).unwrap();
+        while c.state() != TrialState::Armed && t < 20.0 {
+            t += 0.005;
+            c.step(&input(t, q), std::iter::empty(), &mut out);
+            q = out.q_command_rad;
+        }
+        assert_eq!(c.state(), TrialState::Armed);
+        (t, q)
+    }
+
+    /// Releases the ball (the coil goes off at the returned time; the ball
+    /// falls `delay_s` later) and runs 2.4 s with frames whose stamps are
+    /// `offset_s` late.
+    fn release_and_track(c: &mut Controller, s: &Scenario, delay_s: f64, offset_s: f64) {
+        let (mut t, mut q) = arm_perfectly(c, &Controller::plan(s, 0.6).unwrap());
+        let model = PendulumModel::from_params(&s.pendulum).unwrap();
+        let geometry =
+            PendulumGeometry::new(model.length_m, 0.6, s.task.intercept_height_m).unwrap();
+        let mut truth =
+            crate::pendulum::PendulumSim::held_at(model, geometry, 25f64.to_radians(), t).unwrap();
+        let t_pin = t;
+        c.release(t_pin).unwrap();
+        let held = truth.lateral_m();
+        truth.release(t_pin + delay_s).unwrap();
+        let mut out = StepOutput::default();
+        let mut next_frame = t_pin + 0.01;
+        let mut frames: Vec<(f64, Measurement)> = Vec::new();
+        while t < t_pin + 2.4 {
+            t += 0.005;
+            while next_frame <= t {
+                let lateral_m = if next_frame < t_pin + delay_s {
+                    held
+                } else {
+                    truth.advance_to(next_frame).unwrap();
+                    truth.lateral_m()
+                };
+                frames.push((
+                    next_frame + 0.035,
+                    Measurement {
+                        t_capture_s: next_frame + offset_s,
+                        lateral_m,
+                    },
+                ));
+                next_frame += 1.0 / 30.0;
+            }
+            let ready: Vec<Measurement> = frames
+                .iter()
+                .filter(|(avail, _)| *avail <= t)
+                .map(|(_, m)| *m)
+                .collect();
+            frames.retain(|(avail, _)| *avail > t);
+            let input = StepInput {
+                t_s: t,
+                q_measured_rad: q,
+                commanding: true,
+            };
+            c.step(&input, ready, &mut out);
+            q = out.q_command_rad;
+        }
+    }
+
+    #[test]
+    fn the_camera_offset_is_read_from_the_release_and_forgotten_at_a_new_session() {
+        let mut s = Scenario::default();
+        s.control.camera_offset_from_release = true;
+        s.control.release_delay_prior_ms = 15.0;
+        // Trust the releases (a tight release delay) to read the offset itself.
+        s.control.release_delay_std_ms = 0.5;
+        s.control.learn_frequency = true;
+        s.ekf.estimate_frequency = true;
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        // The ball falls 20 ms after the coil (5 ms more than believed); the
+        // stamps are 8 ms late: the release shows 13 ms.
+        release_and_track(&mut c, &s, 0.020, 0.008);
+        let got = c.camera_offset_s();
+        assert!((got - 0.013).abs() < 0.002, "{got}");
+        // Committed with it: the motion starts that much earlier.
+        let commit = c.commit().copied().expect("committed within 2.4 s");
+        assert!((commit.camera_offset_s - got).abs() < 0.002);
+        // The trial's end folds it (and the frequency) into the session.
+        c.abort(10.0, AbortReason::StopRequested);
+        c.reset(10.0).unwrap();
+        assert_eq!(c.session_memory().offset_n, 1);
+        assert!(c.session_memory().k.is_some());
+        assert!((c.camera_offset_s() - got).abs() < 0.002);
+        c.new_session();
+        assert_eq!(c.camera_offset_s(), 0.0);
+        assert_eq!(c.session_memory(), &SessionMemory::default());
+        // Off: nothing compensated whatever the releases show.
+        s.control.camera_offset_from_release = false;
+        let mut off = Controller::new(&s, 0.005).unwrap();
+        release_and_track(&mut off, &s, 0.020, 0.008);
+        assert_eq!(off.camera_offset_s(), 0.0);
+        assert_eq!(off.commit().map(|c| c.camera_offset_s), Some(0.0));
     }
 
     #[test]

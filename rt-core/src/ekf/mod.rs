@@ -3,9 +3,9 @@
 pub mod model;
 mod predict;
 
-use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+use model::{ALPHA, B, K};
 pub use model::{ProcessModel, ProcessNoiseModel, StateCov, StateVec};
 pub use predict::{Crossing, Doubt, MotionPlan, MotionRequest, PassDirection, Prediction};
 
@@ -51,6 +51,18 @@ pub struct EkfParams {
     pub damping_std_per_s: f64,
     /// Spectral density of the random walk of `alpha`, 1/s^3.
     pub damping_psd_per_s3: f64,
+    /// Estimate the pendulum's frequency online: the state gains `k = g/l`
+    /// (a string that stretched, a ball centre off the tape's reading).
+    pub estimate_frequency: bool,
+    /// Prior standard deviation of the effective length around the believed
+    /// `pendulum.length_m` (sets `k`'s prior: `sigma_k = k sigma_l / l`), metres.
+    pub length_std_m: f64,
+    /// Estimate the lateral offset `b` of the measured rest point (camera pose,
+    /// rest point off its belief): `z = l sin(phi) + b`; passes are predicted
+    /// through the estimated rest.
+    pub estimate_offset: bool,
+    /// Prior standard deviation of `b`, metres.
+    pub offset_std_m: f64,
     /// Prior standard deviation of `phi` when the state is set by hand, degrees.
     pub initial_angle_std_deg: f64,
     /// Prior standard deviation of `phi'` when the state is set by hand, degrees/s.
@@ -84,6 +96,10 @@ impl Default for EkfParams {
             estimate_damping: true,
             damping_std_per_s: 0.03,
             damping_psd_per_s3: 1e-7,
+            estimate_frequency: false,
+            length_std_m: 0.02,
+            estimate_offset: false,
+            offset_std_m: 0.01,
             initial_angle_std_deg: 10.0,
             initial_rate_std_degps: 30.0,
             max_init_gap_s: 0.2,
@@ -111,6 +127,8 @@ impl EkfParams {
         check::within("ekf.accel_var_rad2ps4", self.accel_var_rad2ps4, 0.0, 1e4)?;
         check::within("ekf.damping_std_per_s", self.damping_std_per_s, 0.0, 5.0)?;
         check::within("ekf.damping_psd_per_s3", self.damping_psd_per_s3, 0.0, 1.0)?;
+        check::within("ekf.length_std_m", self.length_std_m, 0.0, 1.0)?;
+        check::within("ekf.offset_std_m", self.offset_std_m, 0.0, 0.5)?;
         check::within(
             "ekf.initial_angle_std_deg",
             self.initial_angle_std_deg,
@@ -239,8 +257,8 @@ const EMPTY_ENTRY: Entry = Entry {
     t: 0.0,
     z: 0.0,
     kind: EntryKind::Init,
-    x: Vector3::new(0.0, 0.0, 0.0),
-    p: Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    x: StateVec::from_array_storage(nalgebra::ArrayStorage([[0.0; model::N]])),
+    p: StateCov::from_array_storage(nalgebra::ArrayStorage([[0.0; model::N]; model::N])),
 };
 
 /// Fixed-capacity ring of entries in capture-time order (oldest first).
@@ -334,6 +352,10 @@ pub struct Ekf {
     consecutive_rejections: u32,
     fused_since_init: u32,
     counters: EkfCounters,
+    /// Priors of `k` and `b` (mean, variance) set by [`Ekf::set_constant_priors`]
+    /// (what earlier trials learned); `None`: from the model and the parameters.
+    k_prior: Option<(f64, f64)>,
+    b_prior: Option<(f64, f64)>,
 }
 
 impl Ekf {
@@ -372,6 +394,8 @@ impl Ekf {
             consecutive_rejections: 0,
             fused_since_init: 0,
             counters: EkfCounters::default(),
+            k_prior: None,
+            b_prior: None,
         })
     }
 
@@ -440,28 +464,82 @@ impl Ekf {
     }
 
     /// Sets the state by hand at time `t_s` with angle and rate; the covariance comes
-    /// from `initial_angle_std_deg`, `initial_rate_std_degps` and `damping_std_per_s`,
-    /// and `alpha` starts at the model's damping.
+    /// from `initial_angle_std_deg`, `initial_rate_std_degps` and the priors of the
+    /// estimated constants; `alpha`, `k` and `b` start at the model's values.
     pub fn initialise(&mut self, t_s: f64, phi_rad: f64, rate_radps: f64) -> Result<(), EkfError> {
         finite("t_s", t_s)?;
         finite("phi_rad", phi_rad)?;
         finite("rate_radps", rate_radps)?;
         let sa = self.params.initial_angle_std_deg.to_radians();
         let sr = self.params.initial_rate_std_degps.to_radians();
-        let x = Vector3::new(phi_rad, rate_radps, self.model.damping_per_s);
-        let p = Matrix3::from_diagonal(&Vector3::new(sa * sa, sr * sr, self.alpha_var()));
+        let x = self.prior_state(phi_rad, rate_radps);
+        let mut p = self.prior_cov();
+        p[(0, 0)] = sa * sa;
+        p[(1, 1)] = sr * sr;
         self.start_running(t_s, x, p);
         // A state set by hand is not suspected of coming from an outlier.
         self.fused_since_init = YOUNG_FILTER_FUSED;
         Ok(())
     }
 
-    fn alpha_var(&self) -> f64 {
-        if self.params.estimate_damping {
-            self.params.damping_std_per_s * self.params.damping_std_per_s
-        } else {
-            0.0
+    /// Replaces the priors of `k = g/l` and of the rest offset `b` (mean,
+    /// variance) for the next initialisation, e.g. with what the earlier trials
+    /// of a session learned; a constant whose switch is off keeps its model
+    /// value. Non-finite or negative values are refused and change nothing.
+    pub fn set_constant_priors(
+        &mut self,
+        k: Option<(f64, f64)>,
+        b: Option<(f64, f64)>,
+    ) -> Result<(), EkfError> {
+        for (what, v) in [("k prior", k), ("b prior", b)] {
+            if let Some((m, var)) = v {
+                finite(what, m)?;
+                finite(what, var)?;
+                if var < 0.0 || (what == "k prior" && m <= 0.0) {
+                    return Err(EkfError::OutOfRange {
+                        what,
+                        value: if var < 0.0 { var } else { m },
+                        bound: "variance >= 0 and k > 0",
+                    });
+                }
+            }
         }
+        self.k_prior = k;
+        self.b_prior = b;
+        Ok(())
+    }
+
+    /// A state with the prior constants.
+    fn prior_state(&self, phi: f64, rate: f64) -> StateVec {
+        let k = match (self.params.estimate_frequency, self.k_prior) {
+            (true, Some((m, _))) => m,
+            _ => self.model.omega0_sq(),
+        };
+        let b = match (self.params.estimate_offset, self.b_prior) {
+            (true, Some((m, _))) => m,
+            _ => 0.0,
+        };
+        model::state(phi, rate, self.model.damping_per_s, k, b)
+    }
+
+    /// The priors of the constants (`alpha`, `k`, `b`) on the diagonal; zero for
+    /// a constant that is not estimated.
+    fn prior_cov(&self) -> StateCov {
+        let mut p = StateCov::zeros();
+        if self.params.estimate_damping {
+            p[(ALPHA, ALPHA)] = self.params.damping_std_per_s * self.params.damping_std_per_s;
+        }
+        if self.params.estimate_frequency {
+            let sk = self.model.omega0_sq() * self.params.length_std_m / self.model.length_m;
+            p[(K, K)] = self.k_prior.map_or(sk * sk, |(_, v)| v);
+        }
+        if self.params.estimate_offset {
+            p[(B, B)] = self.b_prior.map_or(
+                self.params.offset_std_m * self.params.offset_std_m,
+                |(_, v)| v,
+            );
+        }
+        p
     }
 
     fn start_running(&mut self, t: f64, x: StateVec, p: StateCov) {
@@ -533,10 +611,11 @@ impl Ekf {
     /// (taken at the midpoint and carried to `t2` with the model's acceleration).
     fn init_from_pair(&mut self, t1: f64, z1: f64, t2: f64, z2: f64) {
         let l = self.model.length_m;
-        let k = self.model.omega0_sq();
+        let prior = self.prior_state(0.0, 0.0);
+        let (k, b0) = (prior[K], prior[B]);
         let alpha = self.model.damping_per_s;
-        let p1 = (z1 / l).asin();
-        let p2 = (z2 / l).asin();
+        let p1 = ((z1 - b0) / l).clamp(-1.0, 1.0).asin();
+        let p2 = ((z2 - b0) / l).clamp(-1.0, 1.0).asin();
         let dt = t2 - t1;
         let w_mid = (p2 - p1) / dt;
         let w2 = w_mid + 0.5 * dt * (-k * p2.sin() - alpha * w_mid);
@@ -547,18 +626,20 @@ impl Ekf {
         // Rate variance from the difference, plus a floor for the model's error.
         let var_w = (var1 + var2) / (dt * dt) + (0.05 * k * dt).powi(2);
         let cov_pw = var2 / dt;
-        let p = Matrix3::new(
-            var2,
-            cov_pw,
-            0.0,
-            cov_pw,
-            var_w,
-            0.0,
-            0.0,
-            0.0,
-            self.alpha_var(),
-        );
-        self.start_running(t2, Vector3::new(p2, w2, alpha), p);
+        let mut p = self.prior_cov();
+        p[(0, 0)] = var2;
+        p[(0, 1)] = cov_pw;
+        p[(1, 0)] = cov_pw;
+        p[(1, 1)] = var_w;
+        if self.params.estimate_offset {
+            // The angle was read with b = 0: it carries b's uncertainty
+            // (d phi / d b = -1 / (l cos phi); the rate's cancels in the difference).
+            let vb = p[(B, B)];
+            p[(0, 0)] += vb / (c2 * c2);
+            p[(0, B)] = -vb / c2;
+            p[(B, 0)] = -vb / c2;
+        }
+        self.start_running(t2, self.prior_state(p2, w2), p);
         self.counters.initialisations += 1;
     }
 
@@ -651,7 +732,7 @@ impl Ekf {
                 && e.p.iter().all(|v| v.is_finite())
                 && e.p[(0, 0)] > 0.0
                 && e.p[(1, 1)] > 0.0
-                && e.p[(2, 2)] >= 0.0
+                && (2..model::N).all(|i| e.p[(i, i)] >= 0.0)
         })
     }
 
@@ -697,7 +778,7 @@ impl Ekf {
             }
         }
         let k = p * c_i.transpose() / s_i;
-        let ikc = Matrix3::identity() - k * c_i;
+        let ikc = StateCov::identity() - k * c_i;
         let pn = ikc * p * ikc.transpose() + k * k.transpose() * self.r;
         entry.x = xi;
         entry.p = (pn + pn.transpose()) * 0.5;
@@ -717,7 +798,7 @@ impl Ekf {
         let q = self.q(h);
         // `n` is a whole number >= 1 bounded by the finite time span.
         for _ in 0..(n as u64) {
-            let (xn, f) = model::step(self.params.process_model, self.model.omega0_sq(), &x, h);
+            let (xn, f) = model::step(self.params.process_model, &x, h);
             x = xn;
             p = f * p * f.transpose() + q;
         }

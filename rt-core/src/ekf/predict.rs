@@ -14,7 +14,7 @@ pub const MAX_PLAN_PASSES: usize = 8;
 pub struct Prediction {
     /// Time of the prediction, seconds.
     pub t_s: f64,
-    /// `[phi_rad, phi_dot_radps, alpha_per_s]`.
+    /// `[phi_rad, phi_dot_radps, alpha_per_s, k_per_s2, b_m]`.
     pub state: StateVec,
     /// Covariance of `state`.
     pub cov: StateCov,
@@ -55,7 +55,7 @@ pub struct Crossing {
     pub ball_m: Vector3<f64>,
     /// Ball centre velocity at the pass, robot base frame, m/s.
     pub ball_velocity_mps: Vector3<f64>,
-    /// Predicted `[phi, phi', alpha]` at the pass.
+    /// Predicted `[phi, phi', alpha, k, b]` at the pass.
     pub state: StateVec,
 }
 
@@ -130,8 +130,11 @@ impl Ekf {
         out.t_s = t_s;
         out.state = *x;
         out.cov = *p;
-        out.lateral_m = g.lateral_m(x[0]);
-        out.lateral_std_m = jac.y.abs() * var_phi.sqrt();
+        // What the camera would measure: the model's lateral plus the estimated
+        // rest offset `b` (0 unless `estimate_offset`).
+        let (z, c) = model::measure(g.length_m, x);
+        out.lateral_m = z;
+        out.lateral_std_m = (c * p * c.transpose())[0].max(0.0).sqrt();
         out.ball_m = g.ball_position_m(x[0]);
         out.ball_std_m = jac.abs() * var_phi.sqrt();
         out.ball_velocity_mps = g.ball_velocity_mps(x[0], x[1]);
@@ -186,7 +189,8 @@ impl Ekf {
     }
 
     /// The next passes of the ball centre through lateral position `lateral_m`
-    /// (`|lateral_m| < l`) at or after `t_from_s`, up to `horizon_s` after it, written
+    /// (`|lateral_m| < l`; relative to the estimated rest point, i.e. `l sin(phi)`
+    /// without the offset `b`: 0 is the bottom) at or after `t_from_s`, up to `horizon_s` after it, written
     /// into `out` in time order; returns how many were found (at most `out.len()`).
     pub fn crossings(
         &self,
@@ -210,7 +214,6 @@ impl Ekf {
             return Ok(0);
         }
         let l = self.model.length_m;
-        let k = self.model.omega0_sq();
         let pm = self.params.process_model;
         let gfun = |x: &StateVec| l * x[0].sin() - lateral_m;
         let h = self.params.max_step_s;
@@ -220,7 +223,7 @@ impl Ekf {
         let mut g0 = gfun(&x);
         let mut n = 0;
         while t < t_end && n < out.len() {
-            let (x1, f) = model::step(pm, k, &x, h);
+            let (x1, f) = model::step(pm, &x, h);
             let g1 = gfun(&x1);
             if (g0 < 0.0) != (g1 < 0.0) {
                 // Newton on the sub-step length, from a linear guess.
@@ -230,7 +233,7 @@ impl Ekf {
                     0.5 * h
                 };
                 for _ in 0..4 {
-                    let (xt, _) = model::step(pm, k, &x, tau);
+                    let (xt, _) = model::step(pm, &x, tau);
                     let dg = l * xt[0].cos() * xt[1];
                     if dg == 0.0 || !dg.is_finite() {
                         break;
@@ -238,7 +241,7 @@ impl Ekf {
                     tau = (tau - gfun(&xt) / dg).clamp(0.0, h);
                 }
                 let tc = t + tau;
-                let (xc, fc) = model::step(pm, k, &x, tau);
+                let (xc, fc) = model::step(pm, &x, tau);
                 let vy = l * xc[0].cos() * xc[1];
                 let wanted = match direction {
                     PassDirection::Any => true,

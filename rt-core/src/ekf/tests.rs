@@ -5,6 +5,7 @@
 use super::*;
 use crate::control::stats::chi_square_interval_95;
 use crate::pendulum::PendulumSim;
+use nalgebra::Vector3;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -95,21 +96,21 @@ fn lab_camera() -> Camera {
 #[test]
 fn jacobians_match_finite_differences() {
     let k = 9.81 / L;
-    let x = Vector3::new(0.4, -0.7, 0.05);
+    let x = model::state(0.4, -0.7, 0.05, k, 0.01);
     for (name, f) in [
         (
             "rk4",
-            model::rk4_step as fn(f64, &StateVec, f64) -> (StateVec, Matrix3<f64>),
+            model::rk4_step as fn(&StateVec, f64) -> (StateVec, model::StateJac),
         ),
         ("paper", model::paper_step),
     ] {
         for h in [0.001, 0.033, 0.05, -0.02] {
-            let (_, jac) = f(k, &x, h);
-            for j in 0..3 {
-                let mut e = Vector3::zeros();
+            let (_, jac) = f(&x, h);
+            for j in 0..model::N {
+                let mut e = StateVec::zeros();
                 e[j] = 1e-6;
-                let fd = (f(k, &(x + e), h).0 - f(k, &(x - e), h).0) / 2e-6;
-                for i in 0..3 {
+                let fd = (f(&(x + e), h).0 - f(&(x - e), h).0) / 2e-6;
+                for i in 0..model::N {
                     assert!(
                         (jac[(i, j)] - fd[i]).abs() < 1e-7,
                         "{name} h={h} ({i},{j}): {} vs {}",
@@ -120,11 +121,12 @@ fn jacobians_match_finite_differences() {
             }
         }
     }
-    // C = [l cos(phi), 0, 0] (the paper's C lacks the factor l).
+    // C = [l cos(phi), 0, 0, 0, 1] (the paper's C lacks the factor l; b adds).
     let (z, c) = model::measure(L, &x);
-    assert!((z - L * 0.4f64.sin()).abs() < 1e-15);
+    assert!((z - L * 0.4f64.sin() - 0.01).abs() < 1e-15);
     let fd = (L * (0.4f64 + 1e-6).sin() - L * (0.4f64 - 1e-6).sin()) / 2e-6;
-    assert!((c[0] - fd).abs() < 1e-8 && c[1] == 0.0 && c[2] == 0.0);
+    assert!((c[0] - fd).abs() < 1e-8 && c[1] == 0.0 && c[2] == 0.0 && c[3] == 0.0);
+    assert_eq!(c[4], 1.0);
 }
 
 #[test]
@@ -143,7 +145,8 @@ fn paper_process_noise_is_gd_gd_t_sigma() {
     // Q(2h) = F Q(h) F^T + Q(h) with F = [[1, h], [0, 1]].
     let h = 0.02;
     let qc = |h| model::process_noise(ProcessNoiseModel::Continuous, 0.3, 0.0, h);
-    let f = Matrix3::new(1.0, h, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0);
+    let mut f = model::StateJac::identity();
+    f[(0, 1)] = h;
     let two = f * qc(h) * f.transpose() + qc(h);
     assert!((two - qc(2.0 * h)).norm() < 1e-15);
 }
@@ -154,11 +157,11 @@ fn paper_discrete_model_gains_energy_rk4_does_not() {
     // det(A) = 1 + (g/l) T^2 / 2 > 1 and pumps energy into the swing.
     let k = 9.81 / L;
     let t = 1.0 / 30.0;
-    let x0 = Vector3::new(0.4, 0.0, 0.0);
+    let x0 = model::state(0.4, 0.0, 0.0, k, 0.0);
     let (mut xp, mut xr) = (x0, x0);
     for _ in 0..90 {
-        xp = model::paper_step(k, &xp, t).0;
-        xr = model::rk4_mean(k, &xr, t);
+        xp = model::paper_step(&xp, t).0;
+        xr = model::rk4_mean(&xr, t);
     }
     let e = |x: &StateVec| 0.5 * x[1] * x[1] + k * (1.0 - x[0].cos());
     let gain_paper = e(&xp) / e(&x0) - 1.0;
@@ -290,6 +293,9 @@ fn consistent_nees_and_nis_over_100_monte_carlo_runs() {
             match ekf.measure(t, z).unwrap() {
                 MeasureOutcome::Fused { nis: v } | MeasureOutcome::Rejected { nis: v } => {
                     let (_, x, p) = ekf.posterior().unwrap();
+                    // The estimated states: phi, phi', alpha.
+                    let x: Vector3<f64> = x.fixed_rows::<3>(0).into();
+                    let p: nalgebra::Matrix3<f64> = p.fixed_view::<3, 3>(0, 0).into();
                     let xt = Vector3::new(truth.state()[0], truth.state()[1], alpha);
                     let e = x - xt;
                     let pinv = p.try_inverse().unwrap();
@@ -1014,4 +1020,88 @@ fn recovers_when_it_initialised_from_an_outlier() {
     // Recently restarted: a plan is not confident yet right after the restart.
     let t0 = ekf.initialised_at_s().unwrap();
     assert!(t0 < 0.15, "restarted at {t0}");
+}
+
+// ------------------------------------------------- frequency and rest offset
+
+/// Pass-time errors (s) of `params` against a truth `dl_m` longer than believed
+/// whose camera reads `b_m` off, observed for 1.5..2 s, the bottom pass 1.5 s ahead.
+fn pass_errors_with_wrong_beliefs(params: &EkfParams, dl_m: f64, b_m: f64) -> Vec<f64> {
+    let believed = model(0.03);
+    let true_model = PendulumModel {
+        length_m: L + dl_m,
+        ..believed
+    };
+    let true_geom = PendulumGeometry::new(L + dl_m, 0.6, 0.3).unwrap();
+    let mut errs = Vec::new();
+    for trial in 0..20u64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(900 + trial);
+        let angle: f64 = rng.random_range(15.0..35.0);
+        let now = 1.5 + rng.random_range(0.0..0.5);
+        let mut truth =
+            PendulumSim::held_at(true_model, true_geom, angle.to_radians(), 0.0).unwrap();
+        truth.release(0.0).unwrap();
+        let mut meas = observe(&mut truth, lab_camera(), now, &mut rng);
+        for m in &mut meas {
+            m.z += b_m;
+        }
+        let mut ekf = Ekf::new(params.clone(), believed, geom()).unwrap();
+        feed_in_arrival_order(&mut ekf, &meas, now);
+        let mut pass = [Crossing::default(); 1];
+        assert_eq!(
+            ekf.crossings(now + 1.5, 0.0, PassDirection::Any, &mut pass)
+                .unwrap(),
+            1
+        );
+        let mut t_sim = truth.clone();
+        t_sim.advance_to(pass[0].t_s - 0.5).unwrap();
+        let t_true = t_sim.next_crossing_s(0.0, 1.0).unwrap();
+        errs.push(pass[0].t_s - t_true);
+    }
+    errs
+}
+
+#[test]
+fn estimating_frequency_and_rest_offset_removes_a_wrong_length_and_a_camera_offset() {
+    let off = EkfParams::default();
+    let on = EkfParams {
+        estimate_frequency: true,
+        estimate_offset: true,
+        ..EkfParams::default()
+    };
+    let worst = |e: &[f64]| e.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+    // String 2 cm longer than the tape said (the period 0.5% longer).
+    let fixed = pass_errors_with_wrong_beliefs(&off, 0.02, 0.0);
+    let est = pass_errors_with_wrong_beliefs(&on, 0.02, 0.0);
+    eprintln!(
+        "length +2 cm: worst pass-time error {:.2} ms fixed, {:.2} ms estimated",
+        worst(&fixed) * 1e3,
+        worst(&est) * 1e3
+    );
+    // The fixed model runs early (its swing is faster) by several ms; the
+    // estimate is unbiased, its spread what 1.5..2 s of swing tell about k
+    // (~0.2%, reported by the pass-time std the commit threshold checks).
+    let mean = |e: &[f64]| e.iter().sum::<f64>() / e.len() as f64;
+    assert!(fixed.iter().all(|e| *e < -0.003), "{fixed:?}");
+    assert!(worst(&est) < 0.5 * worst(&fixed), "{est:?}");
+    assert!(mean(&est).abs() < 0.002, "{est:?}");
+    // The camera reading 8 mm off the believed rest point.
+    let fixed = pass_errors_with_wrong_beliefs(&off, 0.0, 0.008);
+    let offset_only = EkfParams {
+        estimate_offset: true,
+        ..EkfParams::default()
+    };
+    let est = pass_errors_with_wrong_beliefs(&offset_only, 0.0, 0.008);
+    eprintln!(
+        "rest offset 8 mm: worst pass-time error {:.2} ms fixed, {:.2} ms estimated",
+        worst(&fixed) * 1e3,
+        worst(&est) * 1e3
+    );
+    assert!(mean(&fixed) > 0.002, "{fixed:?}");
+    assert!(worst(&est) < 0.5 * worst(&fixed), "{est:?}");
+    assert!(mean(&est).abs() < 0.002, "{est:?}");
+    // Both switches off is the three-state filter: alpha's prior only.
+    let ekf = Ekf::new(off, model(0.03), geom()).unwrap();
+    assert_eq!(ekf.prior_cov()[(model::K, model::K)], 0.0);
+    assert_eq!(ekf.prior_cov()[(model::B, model::B)], 0.0);
 }

@@ -752,6 +752,8 @@ impl VirtualLab {
             return;
         }
         self.world_session = Some(world.session.session);
+        // The controller is told of the reboot (not what changed).
+        self.step.inner_mut().controller_mut().new_session();
         let Some(w) = self.scenario.world.as_ref() else {
             return;
         };
