@@ -187,4 +187,4 @@ types:
 ## The binary is where cargo put it (CARGO_TARGET_DIR, default ./target).
 EVAL_N ?= 20
 eval: release
-	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --out reports/eval --n $(EVAL_N) --seed 1
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --out reports/eval --n $(EVAL_N) --seed 1 --reality scenarios/reality.toml

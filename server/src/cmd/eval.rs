@@ -46,6 +46,55 @@ pub struct EvalArgs {
         default_value = "0.35,0.45,0.55,0.65,0.75,0.80"
     )]
     pub distance_edges_m: Vec<f64>,
+    /// A reality lab (a scenario with `[world]`, e.g. scenarios/reality.toml):
+    /// adds its section (per band and movement time, the paper's condition,
+    /// the ablation table, the signed timing-error histogram).
+    #[arg(long)]
+    pub reality: Option<PathBuf>,
+}
+
+/// Runs `isochron trials` (`exe`) on `sc` (written to `dir/cells/NAME.toml`):
+/// its `--json` summary, its `--per-trial` lines and the command line.
+pub fn run_cell(
+    exe: &Path,
+    dir: &Path,
+    sc: &Scenario,
+    n: usize,
+    seed: u64,
+) -> anyhow::Result<(Value, Vec<Value>, String)> {
+    let file = dir.join("cells").join(format!("{}.toml", sc.name));
+    std::fs::write(&file, sc.to_toml_string())?;
+    let per_trial = file.with_extension("jsonl");
+    let out = Command::new(exe)
+        .arg("trials")
+        .arg("--scenario")
+        .arg(&file)
+        .args(["--n", &n.to_string(), "--seed", &seed.to_string()])
+        .arg("--json")
+        .arg("--per-trial")
+        .arg(&per_trial)
+        .stderr(std::process::Stdio::null())
+        .output()
+        .context("cannot run isochron trials")?;
+    if !out.status.success() {
+        bail!(
+            "isochron trials failed for {}: {}",
+            file.display(),
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    let summary: Value =
+        serde_json::from_slice(&out.stdout).context("trials printed no JSON summary")?;
+    let trials = std::fs::read_to_string(&per_trial)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let command = format!(
+        "isochron trials --scenario cells/{}.toml --n {n} --seed {seed} --json",
+        sc.name
+    );
+    Ok((summary, trials, command))
 }
 
 /// One cell's outcome.
@@ -124,9 +173,6 @@ pub fn run(args: EvalArgs) -> anyhow::Result<String> {
             sc.task.movement_time_s = t;
             sc.task.distance_m = RangeParam::new(band[0], band[1]);
             sc.validate()?;
-            let file = args.out.join("cells").join(format!("{}.toml", sc.name));
-            std::fs::write(&file, sc.to_toml_string())?;
-            let per_trial = file.with_extension("jsonl");
             eprintln!(
                 "eval: cell {}/{total}: T = {t} s, d = {:.2}..{:.2} m, {} trials",
                 cells.len() + 1,
@@ -134,44 +180,39 @@ pub fn run(args: EvalArgs) -> anyhow::Result<String> {
                 band[1],
                 args.n
             );
-            let out = Command::new(&exe)
-                .arg("trials")
-                .arg("--scenario")
-                .arg(&file)
-                .args(["--n", &args.n.to_string(), "--seed", &args.seed.to_string()])
-                .arg("--json")
-                .arg("--per-trial")
-                .arg(&per_trial)
-                .stderr(std::process::Stdio::null())
-                .output()
-                .context("cannot run isochron trials")?;
-            if !out.status.success() {
-                bail!(
-                    "isochron trials failed for {}: {}",
-                    file.display(),
-                    String::from_utf8_lossy(&out.stderr).trim()
-                );
-            }
-            let summary: Value =
-                serde_json::from_slice(&out.stdout).context("trials printed no JSON summary")?;
-            let trials = std::fs::read_to_string(&per_trial)
-                .unwrap_or_default()
-                .lines()
-                .filter_map(|l| serde_json::from_str(l).ok())
-                .collect();
+            let (summary, trials, command) = run_cell(&exe, &args.out, &sc, args.n, args.seed)?;
             cells.push(Cell {
                 movement_time_s: t,
                 band_m: (band[0], band[1]),
                 summary,
                 trials,
-                command: format!(
-                    "isochron trials --scenario cells/{}.toml --n {} --seed {} --json",
-                    sc.name, args.n, args.seed
-                ),
+                command,
             });
         }
     }
-    let report = write_report(&args.out, &base, &cells, args.seed)?;
+    let reality = match &args.reality {
+        Some(p) => {
+            let r = Scenario::from_file(p)?;
+            let rows = super::eval_reality::run_reality(
+                &exe,
+                &args.out,
+                &r,
+                args.n,
+                args.seed,
+                &args.movement_times_s,
+                &args.distance_edges_m,
+            )?;
+            Some((r, rows))
+        }
+        None => None,
+    };
+    let report = write_report(
+        &args.out,
+        &base,
+        &cells,
+        args.seed,
+        reality.as_ref().map(|(r, rows)| (r, rows.as_slice())),
+    )?;
     Ok(format!("report: {}", report.display()))
 }
 
@@ -189,6 +230,7 @@ pub fn write_report(
     base: &Scenario,
     cells: &[Cell],
     seed: u64,
+    reality: Option<(&Scenario, &[super::eval_reality::RealityRow])>,
 ) -> anyhow::Result<PathBuf> {
     let mut md = String::new();
     let times: Vec<f64> = {
@@ -198,7 +240,10 @@ pub fn write_report(
     };
     let _ = writeln!(
         md,
-        "# isochron evaluation: {}\n\nSimulated lab `{}` (pendulum {} m, camera {} fps with {} ms latency, \
+        "# isochron evaluation: {}\n\nEverything before the section *Reality lab* is a \
+         **truthful-world** figure: the simulated lab and the controller share the pendulum \
+         model, the timestamps, the geometry and the robot's model. \
+         Simulated lab `{}` (pendulum {} m, camera {} fps with {} ms latency, \
          FRI period {} ms, robot latency {} ms unknown to the controller), seed {seed}. \
          Success: tool within {} m of the ball centre when it passes the intercept point, \
          and arrival within {} ms of that moment (CONTRACT.md).\n",
@@ -427,10 +472,13 @@ pub fn write_report(
     }
     let _ = writeln!(
         md,
-        "## Reproduce\n\nEvery number above comes from these commands (run in this folder):\n"
+        "## Reproduce\n\nEvery truthful-world number above comes from these commands (run in this folder):\n"
     );
     for c in cells {
         let _ = writeln!(md, "    {}", c.command);
+    }
+    if let Some((r, rows)) = reality {
+        super::eval_reality::write_reality(&mut md, dir, r, rows)?;
     }
     let path = dir.join("report.md");
     std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
@@ -467,7 +515,7 @@ mod tests {
             cell(1.5, (0.35, 0.55), &[(true, 0.4, 1.0), (true, 0.5, 2.0)]),
             cell(1.5, (0.55, 0.80), &[(true, 0.6, 3.0), (false, 0.79, 25.0)]),
         ];
-        let path = write_report(dir, &Scenario::default(), &cells, 7).unwrap();
+        let path = write_report(dir, &Scenario::default(), &cells, 7, None).unwrap();
         let md = std::fs::read_to_string(path).unwrap();
         assert!(
             md.contains("| isochron (simulated) | 1.5 s | 0.35..0.80 m | 4 | 75.0% |"),
@@ -500,6 +548,7 @@ mod tests {
             seed: 1,
             movement_times_s: vec![1.5],
             distance_edges_m: vec![0.35, 0.8],
+            reality: None,
         };
         assert!(check_args(&ok).is_ok());
         let bad = [
@@ -530,6 +579,7 @@ mod tests {
             seed: a.seed,
             movement_times_s: a.movement_times_s.clone(),
             distance_edges_m: a.distance_edges_m.clone(),
+            reality: a.reality.clone(),
         }
     }
 }

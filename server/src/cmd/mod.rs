@@ -4,6 +4,7 @@ pub mod bench;
 pub mod calibrate;
 pub mod detect;
 pub mod eval;
+pub mod eval_reality;
 pub mod fri_doctor;
 pub mod fri_sim;
 pub mod kin;
