@@ -176,3 +176,97 @@ fn the_reports_numbers_are_what_isochron_trials_prints_for_the_same_seeds() {
         );
     }
 }
+
+/// `isochron eval --reality`: the reality lab's section (smallest size: one
+/// trial per row, model camera) has its tables, says its figures are
+/// reality-lab figures, and its paper row is what `isochron trials` prints.
+#[test]
+fn the_reality_section_reports_its_rows_as_reality_lab_figures() {
+    let Some(bin) = isochron() else { return };
+    let dir = std::env::temp_dir().join(format!("isochron-evalreal-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let reality = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
+    let text = std::fs::read_to_string(&reality).unwrap();
+    let lab = dir.join("reality.toml");
+    std::fs::write(&lab, format!("{text}\n[camera]\nvision = \"model\"\n")).unwrap();
+    let truthful = dir.join("lab.toml");
+    std::fs::write(&truthful, "name = \"t\"\n[camera]\nvision = \"model\"\n").unwrap();
+    let out = Command::new(&bin)
+        .arg("eval")
+        .arg("--scenario")
+        .arg(&truthful)
+        .arg("--reality")
+        .arg(&lab)
+        .arg("--out")
+        .arg(&dir)
+        .args([
+            "--n",
+            "1",
+            "--seed",
+            "3",
+            "--movement-times-s",
+            "1.5",
+            "--distance-edges-m",
+            "0.35,0.8",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let md = std::fs::read_to_string(dir.join("report.md")).unwrap();
+    let section = md
+        .split("## Reality lab")
+        .nth(1)
+        .expect("a reality section");
+    assert!(section.contains("every figure in this section is a reality-lab figure"));
+    assert!(md.contains("**truthful-world**"));
+    for table in [
+        "By distance band",
+        "By movement time",
+        "The paper's condition",
+        "Ablation",
+    ] {
+        assert!(section.contains(table), "{table}");
+    }
+    for row in [
+        "| pendulum effects alone |",
+        "| camera effects alone |",
+        "| robot effects alone |",
+        "| geometry effects alone |",
+        "| all effects |",
+        "| all effects, online estimation off |",
+        "| no world effect (truthful world) |",
+    ] {
+        assert!(section.contains(row), "{row}");
+    }
+    assert!(dir.join("reality_signed_timing_error.svg").exists());
+    // The paper's row is what its command prints again.
+    let row = section
+        .lines()
+        .find(|l| l.starts_with("| 0.70 m, 1.5 s (the paper's condition) |"))
+        .unwrap();
+    let c = cells(row);
+    let paper = section
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("isochron trials"))
+        .nth(2)
+        .unwrap();
+    let args: Vec<&str> = paper.split_whitespace().skip(1).collect();
+    let summary = run_json(&bin, &dir, &args);
+    assert_eq!(
+        c[1],
+        summary["trials"].as_u64().unwrap().to_string(),
+        "{row}"
+    );
+    assert_eq!(
+        c[2],
+        summary["successes"].as_u64().unwrap().to_string(),
+        "{row}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -40,6 +40,14 @@ pub struct TrialRecord {
     pub prediction_position_error_m: Option<f64>,
     /// The latency the interception compensated, milliseconds.
     pub latency_estimate_ms: f64,
+    /// The camera time offset the interception compensated
+    /// (`control.camera_offset_from_release`), milliseconds.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub camera_offset_estimate_ms: Option<f64>,
+    /// The pendulum's effective length `g/k` the filter had learned shortly
+    /// before the pass (`ekf.estimate_frequency`), metres.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub length_estimate_m: Option<f64>,
     /// Commands the guard had to refuse or clamp, plus measured joints beyond a limit.
     pub limit_violations: u64,
     /// Control steps whose own computation (thread CPU time) took longer
@@ -248,6 +256,8 @@ mod tests {
             prediction_crossing_time_error_ms: Some(-2.0),
             prediction_position_error_m: Some(0.001),
             latency_estimate_ms: 8.0,
+            camera_offset_estimate_ms: None,
+            length_estimate_m: None,
             limit_violations: 0,
             deadline_misses: 0,
             preempted_steps: 0,

@@ -558,6 +558,12 @@ impl Controller {
         self.abort_reason
     }
 
+    /// The pendulum's effective length `g/k` this trial's filter showed
+    /// before the pass (`ekf.estimate_frequency` with `learn_frequency`), metres.
+    pub fn trial_length_estimate_m(&self) -> Option<f64> {
+        self.learning.k.map(|(k, _)| self.model.gravity_mps2 / k)
+    }
+
     /// What this session has learned so far.
     pub fn session_memory(&self) -> &SessionMemory {
         &self.session

@@ -105,6 +105,10 @@ pub struct TrialOutcome {
     pub prediction_position_error_m: Option<f64>,
     /// The latency the interception compensated (at commit), milliseconds.
     pub latency_estimate_ms: f64,
+    /// The camera time offset compensated (at commit), milliseconds.
+    pub camera_offset_estimate_ms: Option<f64>,
+    /// The pendulum length the filter had learned before the pass, metres.
+    pub length_estimate_m: Option<f64>,
     /// The controller's limit violations during the trial.
     pub limit_violations: u64,
     /// Control steps over the period (own computation) during the trial.
@@ -1161,6 +1165,8 @@ impl LabStep {
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: c.latency().latency_s() * 1e3,
+            camera_offset_estimate_ms: None,
+            length_estimate_m: c.trial_length_estimate_m(),
             limit_violations: c.counters().limit_violations().saturating_sub(v0),
             deadline_misses: self.inner.step.deadline_misses.saturating_sub(m0),
             preempted_steps: self.inner.step.preempted_steps.saturating_sub(p0),
@@ -1168,6 +1174,7 @@ impl LabStep {
         };
         if let Some(commit) = c.commit().copied() {
             o.latency_estimate_ms = commit.latency_s * 1e3;
+            o.camera_offset_estimate_ms = Some(commit.camera_offset_s * 1e3);
             if trial.ball.is_some() {
                 let motion = PlannedMotion {
                     start_m: c.home_m(),

@@ -463,6 +463,8 @@ impl VirtualLab {
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: self.controller().latency().latency_s() * 1e3,
+            camera_offset_estimate_ms: None,
+            length_estimate_m: None,
             limit_violations: 0,
             deadline_misses: 0,
             preempted_steps: 0,
@@ -539,6 +541,8 @@ impl VirtualLab {
         let fri = self.fri_counts();
         rec.planned_movement_time_s = o.planned_movement_time_s;
         rec.latency_estimate_ms = o.latency_estimate_ms;
+        rec.camera_offset_estimate_ms = o.camera_offset_estimate_ms;
+        rec.length_estimate_m = o.length_estimate_m;
         rec.limit_violations = o.limit_violations + (fri.violations - fri_before.violations);
         rec.deadline_misses = o.deadline_misses;
         rec.preempted_steps = o.preempted_steps;

@@ -4,6 +4,7 @@
 //! Every cell is run by this same binary's `trials` command with a scenario file
 //! written for it, so the report's numbers are exactly what `isochron trials` prints
 //! for the same scenario and seed (the command lines are in the report).
+//! `--reality FILE` adds the reality lab's section (`eval_reality.rs`).
 
 use std::{
     fmt::Write as _,
