@@ -5,6 +5,8 @@
 //! Each returns a [`ParamError`] that names the field (as a dotted path such as
 //! `pendulum.length_m`), the offending value and the bound it broke.
 
+use serde::{Deserialize, Serialize};
+
 /// A parameter that was refused, naming the field, the value and the bound.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
@@ -132,5 +134,76 @@ pub fn out_of_range(field: &str, value: f64, bound: &str) -> ParamError {
         field: field.to_owned(),
         value: value.to_string(),
         bound: bound.to_owned(),
+    }
+}
+
+/// A closed interval `[lo, hi]` from which a value is drawn per trial.
+///
+/// In TOML it is written `[lo, hi]` or as a single number (then `lo == hi`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(into = "[f64; 2]")]
+pub struct RangeParam {
+    /// Lower end (inclusive).
+    pub lo: f64,
+    /// Upper end (inclusive).
+    pub hi: f64,
+}
+
+impl RangeParam {
+    /// A range from `lo` to `hi`.
+    pub const fn new(lo: f64, hi: f64) -> Self {
+        Self { lo, hi }
+    }
+
+    /// A range holding one value.
+    pub const fn fixed(v: f64) -> Self {
+        Self { lo: v, hi: v }
+    }
+
+    /// Checks both ends with `each` and that the range is not reversed.
+    pub fn validate_with(
+        &self,
+        field: &str,
+        each: impl Fn(&str, f64) -> Result<(), ParamError>,
+    ) -> Result<(), ParamError> {
+        each(field, self.lo)?;
+        each(field, self.hi)?;
+        if self.lo > self.hi {
+            return Err(ParamError::Reversed {
+                field: field.to_owned(),
+                lo: self.lo,
+                hi: self.hi,
+            });
+        }
+        Ok(())
+    }
+
+    /// The point at fraction `u` in `[0, 1]` of the range.
+    pub fn lerp(&self, u: f64) -> f64 {
+        self.lo + (self.hi - self.lo) * u
+    }
+}
+
+impl From<RangeParam> for [f64; 2] {
+    fn from(r: RangeParam) -> Self {
+        [r.lo, r.hi]
+    }
+}
+
+impl<'de> Deserialize<'de> for RangeParam {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Repr {
+            One(f64),
+            Two([f64; 2]),
+        }
+        match Repr::deserialize(d) {
+            Ok(Repr::One(v)) => Ok(Self::fixed(v)),
+            Ok(Repr::Two([lo, hi])) => Ok(Self::new(lo, hi)),
+            Err(_) => Err(serde::de::Error::custom(
+                "expected a number or a two-element array [lo, hi]",
+            )),
+        }
     }
 }

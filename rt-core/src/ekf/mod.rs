@@ -10,8 +10,7 @@ pub use model::{ProcessModel, ProcessNoiseModel, StateCov, StateVec};
 pub use predict::{Crossing, Doubt, MotionPlan, MotionRequest, PassDirection, Prediction};
 
 use crate::check::{self, ParamError};
-use crate::params::PendulumParams;
-use crate::pendulum::{PendulumGeometry, PendulumModel};
+use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumParams};
 
 /// How many past measurements (with the posterior after each) the filter keeps, so
 /// that a measurement arriving out of order is fused at its capture time.

@@ -3,124 +3,16 @@
 // `ParamError` and the `check` helpers live in the leaf module `crate::check`
 // (every part may use it; it imports nothing of the crate).
 pub use crate::check;
-pub use crate::check::ParamError;
+pub use crate::check::{ParamError, RangeParam};
+// The sections owned by their parts (no back-imports into `params`).
+pub use crate::pendulum::PendulumParams;
+
+pub mod world;
 
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-/// A closed interval `[lo, hi]` from which a value is drawn per trial.
-///
-/// In TOML it is written `[lo, hi]` or as a single number (then `lo == hi`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-#[serde(into = "[f64; 2]")]
-pub struct RangeParam {
-    /// Lower end (inclusive).
-    pub lo: f64,
-    /// Upper end (inclusive).
-    pub hi: f64,
-}
-
-impl RangeParam {
-    /// A range from `lo` to `hi`.
-    pub const fn new(lo: f64, hi: f64) -> Self {
-        Self { lo, hi }
-    }
-
-    /// A range holding one value.
-    pub const fn fixed(v: f64) -> Self {
-        Self { lo: v, hi: v }
-    }
-
-    /// Checks both ends with `each` and that the range is not reversed.
-    pub fn validate_with(
-        &self,
-        field: &str,
-        each: impl Fn(&str, f64) -> Result<(), ParamError>,
-    ) -> Result<(), ParamError> {
-        each(field, self.lo)?;
-        each(field, self.hi)?;
-        if self.lo > self.hi {
-            return Err(ParamError::Reversed {
-                field: field.to_owned(),
-                lo: self.lo,
-                hi: self.hi,
-            });
-        }
-        Ok(())
-    }
-
-    /// The point at fraction `u` in `[0, 1]` of the range.
-    pub fn lerp(&self, u: f64) -> f64 {
-        self.lo + (self.hi - self.lo) * u
-    }
-}
-
-impl From<RangeParam> for [f64; 2] {
-    fn from(r: RangeParam) -> Self {
-        [r.lo, r.hi]
-    }
-}
-
-impl<'de> Deserialize<'de> for RangeParam {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        #[derive(Deserialize)]
-        #[serde(untagged)]
-        enum Repr {
-            One(f64),
-            Two([f64; 2]),
-        }
-        match Repr::deserialize(d) {
-            Ok(Repr::One(v)) => Ok(Self::fixed(v)),
-            Ok(Repr::Two([lo, hi])) => Ok(Self::new(lo, hi)),
-            Err(_) => Err(serde::de::Error::custom(
-                "expected a number or a two-element array [lo, hi]",
-            )),
-        }
-    }
-}
-
-/// The pendulum: `[pendulum]` in a scenario.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PendulumParams {
-    /// Pivot to ball centre, metres (paper: 1.93 m).
-    pub length_m: f64,
-    /// Viscous damping alpha in phi'' = -(g/l) sin(phi) - alpha phi', 1/s.
-    pub damping_per_s: f64,
-    /// Gravity, m/s^2.
-    pub gravity_mps2: f64,
-    /// Ball radius, metres (tennis ball: 0.0335 m).
-    pub ball_radius_m: f64,
-    /// Release angle drawn uniformly per trial, degrees from the vertical.
-    pub release_angle_deg: RangeParam,
-}
-
-impl Default for PendulumParams {
-    fn default() -> Self {
-        Self {
-            length_m: 1.93,
-            damping_per_s: 0.03,
-            gravity_mps2: 9.81,
-            ball_radius_m: 0.0335,
-            release_angle_deg: RangeParam::new(15.0, 35.0),
-        }
-    }
-}
-
-impl PendulumParams {
-    /// Checks every field; the error names the first bad one.
-    pub fn validate(&self) -> Result<(), ParamError> {
-        check::within("pendulum.length_m", self.length_m, 0.1, 10.0)?;
-        check::within("pendulum.damping_per_s", self.damping_per_s, 0.0, 5.0)?;
-        check::within("pendulum.gravity_mps2", self.gravity_mps2, 0.1, 100.0)?;
-        check::within("pendulum.ball_radius_m", self.ball_radius_m, 0.005, 0.2)?;
-        self.release_angle_deg
-            .validate_with("pendulum.release_angle_deg", |f, v| {
-                check::within(f, v, 1.0, 60.0)
-            })
-    }
-}
 
 /// The interception task: `[task]` in a scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -326,7 +218,7 @@ pub struct Scenario {
     /// The simulated lab as it really is (`[world]`; read only by the
     /// simulators, never by the controller). `None`: a truthful world.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub world: Option<crate::sim::world::WorldParams>,
+    pub world: Option<world::WorldParams>,
 }
 
 impl Default for Scenario {

@@ -3,7 +3,9 @@
 use nalgebra::{Vector2, Vector3};
 
 use crate::check::{self, ParamError};
-use crate::params::PendulumParams;
+
+mod params;
+pub use params::PendulumParams;
 
 /// Pendulum state `[phi_rad, phi_dot_radps]`: angle from the vertical and its rate.
 pub type PendulumState = Vector2<f64>;

@@ -4,7 +4,8 @@ pub mod camera;
 pub mod dynamics;
 pub mod geometry;
 pub mod judge;
-pub mod params;
+/// `[world]`, parsed with the rest of the scenario (`params::world`).
+pub use crate::params::world as params;
 pub mod pendulum;
 pub mod robot;
 

@@ -1,5 +1,8 @@
 //! `[world]`: what the simulated lab *is* (CONTRACT.md, "`[world]`"), and the
-//! per-session / per-trial draws of its values.
+//! per-session / per-trial draws of its values. A scenario section like the
+//! others, parsed here; read only by the simulators (`sim::world`, which
+//! re-exports it): the controller is built from [`super::Scenario::beliefs`],
+//! which has none.
 //!
 //! Every key is optional; the default of every key is the truthful value (the
 //! world equals the beliefs), so `[world]` with no keys is a truthful world.
@@ -10,7 +13,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::params::{ParamError, RangeParam, check};
+use super::{ParamError, RangeParam, check};
 
 /// `[world.sessions]`: how trials are grouped into sessions ("reboots").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
