@@ -10,8 +10,20 @@
 //! the normal policy and the lab runs: other load on the machine can then delay
 //! the FRI cycle (watch the late replies). The first refusal in a process is
 //! said once on standard error; later ones are silent.
+//!
+//! Beyond the priority, a process can [`configure`] the rest of what real-time
+//! Linux users do ([`RtTuning`]; `serve` and `bench` turn all of it on, tests
+//! keep only the priority): the FRI threads pinned to one CPU (the last of the
+//! process's CPUs), every other thread of the process kept off that CPU when
+//! there is another one, and the process's memory locked (`mlockall`, pages
+//! locked as they are first touched) so the FRI thread never waits for a page
+//! to come back from swap. Each is asked for once, when the lab starts; a
+//! refusal is said once and the lab runs without it.
 
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+
+use rustix::thread::{CpuSet, Pid};
 
 use thread_priority::{
     RealtimeThreadSchedulePolicy, ThreadPriority, ThreadPriorityValue, ThreadSchedulePolicy,
@@ -28,9 +40,230 @@ static REFUSAL_SAID: AtomicBool = AtomicBool::new(false);
 /// Whether FRI threads of this process ask for real-time priority.
 static ENABLED: AtomicBool = AtomicBool::new(false);
 
-/// From now on, FRI threads started in this process ask for `SCHED_FIFO`.
-pub fn enable() {
-    ENABLED.store(true, Ordering::Relaxed);
+/// Which real-time measures a process takes when its lab starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RtTuning {
+    /// `SCHED_FIFO` for the FRI threads.
+    pub fifo: bool,
+    /// The FRI threads pinned to one CPU (the last of the process's CPUs).
+    pub pin: bool,
+    /// Every other thread of the process kept off the FRI CPU (needs `pin` and
+    /// at least two CPUs).
+    pub isolate: bool,
+    /// `mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`.
+    pub mlock: bool,
+}
+
+impl RtTuning {
+    /// Every measure (`serve`, `bench`).
+    pub const ALL: Self = Self {
+        fifo: true,
+        pin: true,
+        isolate: true,
+        mlock: true,
+    };
+    /// The priority only (the default: tests, `fri-sim`).
+    pub const FIFO: Self = Self {
+        fifo: true,
+        pin: false,
+        isolate: false,
+        mlock: false,
+    };
+    /// None at all.
+    pub const NONE: Self = Self {
+        fifo: false,
+        pin: false,
+        isolate: false,
+        mlock: false,
+    };
+
+    /// Parses `all`, `none` or a comma-separated list of `fifo`, `pin`,
+    /// `isolate`, `mlock` (`isolate` implies `pin`).
+    pub fn parse(text: &str) -> Result<Self, String> {
+        match text.trim() {
+            "all" => return Ok(Self::ALL),
+            "none" => return Ok(Self::NONE),
+            _ => {}
+        }
+        let mut t = Self::NONE;
+        for word in text.split(',').map(str::trim) {
+            match word {
+                "fifo" => t.fifo = true,
+                "pin" => t.pin = true,
+                "isolate" => {
+                    t.pin = true;
+                    t.isolate = true;
+                }
+                "mlock" => t.mlock = true,
+                other => {
+                    return Err(format!(
+                        "unknown real-time measure {other:?}: expected all, none or a \
+                         comma-separated list of fifo, pin, isolate, mlock"
+                    ));
+                }
+            }
+        }
+        Ok(t)
+    }
+
+    /// The measures as `parse` reads them (`all`, `none` or a list).
+    pub fn label(&self) -> String {
+        if *self == Self::ALL {
+            return "all".into();
+        }
+        let words: Vec<&str> = [
+            (self.fifo, "fifo"),
+            (self.pin && !self.isolate, "pin"),
+            (self.isolate, "isolate"),
+            (self.mlock, "mlock"),
+        ]
+        .into_iter()
+        .filter_map(|(on, w)| on.then_some(w))
+        .collect();
+        if words.is_empty() {
+            "none".into()
+        } else {
+            words.join(",")
+        }
+    }
+}
+
+impl Default for RtTuning {
+    fn default() -> Self {
+        Self::FIFO
+    }
+}
+
+impl serde::Serialize for RtTuning {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&self.label())
+    }
+}
+
+/// What this process's lab will ask for ([`configure`]; default [`RtTuning::FIFO`]).
+static TUNING: Mutex<RtTuning> = Mutex::new(RtTuning::FIFO);
+/// The CPU the FRI threads are pinned to, plus one (0: not pinned).
+static FRI_CPU: AtomicUsize = AtomicUsize::new(0);
+
+/// Sets the measures the next [`enable`] takes (before the lab starts).
+pub fn configure(tuning: RtTuning) {
+    *TUNING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner) = tuning;
+}
+
+/// The measures configured for this process.
+pub fn configured() -> RtTuning {
+    *TUNING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// What [`enable`] got, for the reports.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RtStatus {
+    /// The measures asked for (`all`, `none` or a list).
+    pub asked: RtTuning,
+    /// The CPU the FRI threads run on, when pinned.
+    pub fri_cpu: Option<usize>,
+    /// Threads moved off the FRI CPU.
+    pub isolated_threads: usize,
+    /// Whether the memory is locked.
+    pub memory_locked: bool,
+}
+
+/// From now on, FRI threads started in this process take the [`configure`]d
+/// measures (called by the lab runtime when it starts, off the FRI threads).
+/// Memory locking and moving the process's other threads off the FRI CPU
+/// happen here, once.
+pub fn enable() -> RtStatus {
+    let tuning = configured();
+    ENABLED.store(tuning.fifo, Ordering::Relaxed);
+    let mut status = RtStatus {
+        asked: tuning,
+        ..RtStatus::default()
+    };
+    if tuning.mlock {
+        use rustix::mm::{MlockAllFlags, mlockall};
+        use rustix::process::{Resource, getrlimit};
+        // With a finite lock limit, MCL_FUTURE would make later allocations fail
+        // once the limit is reached: lock only when the limit cannot be reached
+        // (`ulimit -l unlimited`; root has CAP_IPC_LOCK and no limit either way).
+        let limit = getrlimit(Resource::Memlock);
+        let unlimited = limit.current.is_none() || rustix::process::geteuid().is_root();
+        if !unlimited {
+            say_once("memory not locked (the memlock limit is finite: ulimit -l)");
+        } else {
+            match mlockall(MlockAllFlags::CURRENT | MlockAllFlags::FUTURE | MlockAllFlags::ONFAULT)
+            {
+                Ok(()) => status.memory_locked = true,
+                Err(e) => say_once(&format!("memory not locked (mlockall: {e})")),
+            }
+        }
+    }
+    if tuning.pin {
+        match rustix::thread::sched_getaffinity(None) {
+            Ok(mask) => {
+                let cpus: Vec<usize> = (0..CpuSet::MAX_CPU).filter(|&c| mask.is_set(c)).collect();
+                if let Some(&fri) = cpus.last() {
+                    FRI_CPU.store(fri + 1, Ordering::Relaxed);
+                    status.fri_cpu = Some(fri);
+                    if tuning.isolate && cpus.len() >= 2 {
+                        let mut others = mask;
+                        others.unset(fri);
+                        status.isolated_threads = keep_threads_off(&others);
+                    }
+                }
+            }
+            Err(e) => say_once(&format!("FRI threads not pinned (sched_getaffinity: {e})")),
+        }
+    } else {
+        FRI_CPU.store(0, Ordering::Relaxed);
+    }
+    status
+}
+
+/// Moves every thread of the process to `others` (threads started later
+/// inherit the mask of the thread that starts them); FRI threads pin
+/// themselves back when they start. Returns the threads moved.
+fn keep_threads_off(others: &CpuSet) -> usize {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return 0;
+    };
+    let mut moved = 0;
+    for t in tasks.flatten() {
+        let Some(tid) = t
+            .file_name()
+            .to_str()
+            .and_then(|s| s.parse::<i32>().ok())
+            .and_then(Pid::from_raw)
+        else {
+            continue;
+        };
+        if rustix::thread::sched_setaffinity(Some(tid), others).is_ok() {
+            moved += 1;
+        }
+    }
+    moved
+}
+
+fn say_once(what: &str) {
+    if !REFUSAL_SAID.swap(true, Ordering::Relaxed) {
+        eprintln!("isochron: {what}; the lab runs without it. Said once.");
+    }
+}
+
+/// Pins the calling thread to the FRI CPU when the process asked for it.
+fn pin_current_thread() {
+    let cpu = FRI_CPU.load(Ordering::Relaxed);
+    if cpu == 0 {
+        return;
+    }
+    let mut set = CpuSet::new();
+    set.set(cpu - 1);
+    if let Err(e) = rustix::thread::sched_setaffinity(None, &set) {
+        say_once(&format!("FRI thread not pinned to CPU {} ({e})", cpu - 1));
+    }
 }
 
 /// Held by a thread for as long as it runs: counts it in [`realtime_threads`]
@@ -60,6 +293,7 @@ impl Drop for RealtimeGuard {
 /// first refusal in the process is said once on standard error). `thread`
 /// names the caller in that message. Keep the guard for the thread's life.
 pub fn raise_current_thread(thread: &str) -> RealtimeGuard {
+    pin_current_thread();
     if !ENABLED.load(Ordering::Relaxed) {
         return RealtimeGuard { raised: false };
     }

@@ -5,15 +5,27 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
 use serde::Serialize;
 
-/// Sub-buckets per power of two (relative resolution 2^(1/4) - 1, about 19%).
-const SUB: usize = 4;
-/// Powers of two covered: 1 ns .. 2^40 ns (about 18 minutes).
-const OCTAVES: usize = 40;
-const BUCKETS: usize = SUB * OCTAVES + 1;
+/// Bits of the sub-bucket index: each power of two is cut into `2^SUB_BITS`
+/// equal sub-buckets (the layout of an HDR histogram with 2-3 significant digits).
+const SUB_BITS: u32 = 7;
+/// Sub-buckets per power of two (128): a bucket is at most 1/128 (0.78%) of its
+/// lower edge wide, so its midpoint is within 0.4% of any value in it.
+const SUB: usize = 1 << SUB_BITS;
+/// Largest power of two covered: 2^40 ns (about 18 minutes); longer samples go
+/// to the last bucket (the maximum stays exact).
+const MAX_OCTAVE: usize = 40;
+/// Values below `SUB` ns have a bucket each; every octave from `SUB_BITS` to
+/// `MAX_OCTAVE` has `SUB` buckets.
+const BUCKETS: usize = SUB + (MAX_OCTAVE + 1 - SUB_BITS as usize) * SUB;
 
-/// A log-scale histogram of durations in nanoseconds, recorded and read without
-/// locks or allocation. Quantiles are reported as the upper edge of their bucket
-/// (at most ~19% above the true value); the maximum is exact.
+/// A histogram of durations in nanoseconds with the layout of an HDR histogram
+/// (log-linear: 128 linear sub-buckets per power of two), recorded and read
+/// without locks or allocation: one writer (a real-time thread), any number of
+/// readers. Quantiles are the midpoint of their bucket, capped at the exact
+/// maximum: within 0.4% of the true order statistic (exact below 128 ns).
+/// (The `hdrhistogram` crate records through `&mut self`; sharing it between the
+/// FRI thread and readers would need a lock or its channel-based `SyncHistogram`,
+/// which allocates: neither belongs on the real-time thread.)
 #[derive(Debug)]
 pub struct LatencyHistogram {
     buckets: [AtomicU64; BUCKETS],
@@ -43,27 +55,27 @@ pub struct LatencySummary {
 }
 
 fn bucket_of(ns: u64) -> usize {
-    if ns < 2 {
+    if ns < SUB as u64 {
         return ns as usize;
     }
-    let octave = 63 - ns.leading_zeros() as usize; // floor(log2)
-    let frac = if octave >= 2 {
-        ((ns >> (octave - 2)) & 3) as usize
-    } else {
-        ((ns << (2 - octave)) & 3) as usize
-    };
-    (octave * SUB + frac + 1).min(BUCKETS - 1)
+    let octave = 63 - ns.leading_zeros() as usize; // floor(log2), >= SUB_BITS
+    if octave > MAX_OCTAVE {
+        return BUCKETS - 1;
+    }
+    // The SUB_BITS bits below the leading one.
+    let sub = ((ns >> (octave - SUB_BITS as usize)) as usize) & (SUB - 1);
+    SUB + (octave - SUB_BITS as usize) * SUB + sub
 }
 
-fn bucket_upper_ns(b: usize) -> u64 {
-    if b < 2 {
-        return b as u64;
+/// The bucket's lower edge and width, ns.
+fn bucket_span_ns(b: usize) -> (u64, u64) {
+    if b < SUB {
+        return (b as u64, 1);
     }
-    let octave = (b - 1) / SUB;
-    let frac = ((b - 1) % SUB) as u64;
-    // Upper edge: 2^octave * (1 + (frac + 1) / 4).
-    let base = 1u64 << octave.min(62);
-    base + (base * (frac + 1)) / SUB as u64
+    let octave = (b - SUB) / SUB + SUB_BITS as usize;
+    let sub = ((b - SUB) % SUB) as u64;
+    let width = 1u64 << (octave - SUB_BITS as usize);
+    ((1u64 << octave) + sub * width, width)
 }
 
 impl LatencyHistogram {
@@ -93,8 +105,8 @@ impl LatencyHistogram {
         self.max_ns.load(Relaxed)
     }
 
-    /// The `q`-quantile (0..1), ns (upper edge of its bucket, capped at the max);
-    /// 0 when empty.
+    /// The `q`-quantile (0..1), ns: the midpoint of its bucket (exact below
+    /// 128 ns), capped at the maximum; 0 when empty.
     pub fn quantile_ns(&self, q: f64) -> u64 {
         let total = self.count();
         if total == 0 {
@@ -105,7 +117,8 @@ impl LatencyHistogram {
         for (b, c) in self.buckets.iter().enumerate() {
             seen += c.load(Relaxed);
             if seen >= rank {
-                return bucket_upper_ns(b).min(self.max_ns());
+                let (lo, width) = bucket_span_ns(b);
+                return (lo + width / 2).min(self.max_ns());
             }
         }
         self.max_ns()

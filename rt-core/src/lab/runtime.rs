@@ -85,6 +85,8 @@ pub struct LoopReport {
     pub ws_clients: u64,
     /// State messages the service produced per second while measuring.
     pub ws_state_messages_per_s: f64,
+    /// The real-time measures the lab took ([`crate::fri::priority::enable`]).
+    pub rt: crate::fri::priority::RtStatus,
 }
 
 /// Errors of the real-time runtime.
@@ -250,6 +252,7 @@ pub struct LabRuntime {
     stop_io: Arc<AtomicBool>,
     epoch: Instant,
     period_ms: u32,
+    rt: crate::fri::priority::RtStatus,
 }
 
 impl std::fmt::Debug for LabRuntime {
@@ -292,7 +295,7 @@ impl LabRuntime {
         scenario.validate()?;
         video.validate()?;
         // The FRI threads started from here on run first when the machine is busy.
-        crate::fri::priority::enable();
+        let rt = crate::fri::priority::enable();
         let epoch = Instant::now();
         control.set_epoch(epoch);
         let clock = Clock::new(epoch);
@@ -466,6 +469,7 @@ impl LabRuntime {
             stop_io,
             epoch,
             period_ms,
+            rt,
         })
     }
 
@@ -575,6 +579,7 @@ impl LabRuntime {
             client_missed_cycles: c1.1 - c0.1,
             ws_clients: 0,
             ws_state_messages_per_s: 0.0,
+            rt: self.rt,
         }
     }
 

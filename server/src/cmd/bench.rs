@@ -6,6 +6,7 @@ use std::sync::{
 };
 use std::time::{Duration, Instant};
 
+use anyhow::Context;
 use nalgebra::UnitQuaternion;
 use rt_core::control::stats::quantile_sorted;
 use rt_core::control::{Controller, StepClock, StepTimings, TrialState};
@@ -37,6 +38,25 @@ pub struct BenchArgs {
     /// channel while the real-time loop is measured.
     #[arg(long)]
     pub foxglove_client: bool,
+    /// Seconds each FRI client of the `fri_client` section (isochron's alone, and
+    /// the `--kuka-client` application) answers the simulated controller at 1 ms.
+    #[arg(long, default_value_t = 5.0)]
+    pub fri_client_s: f64,
+    /// An external FRI client application to measure beside isochron's in the same
+    /// run, e.g. KUKA's client SDK example `LBRJointSineOverlayApp` (built from
+    /// KUKA's public sources outside this repository). Started without arguments,
+    /// it must bind 0.0.0.0:30200 and answer whoever sends, as KUKA's examples do.
+    #[arg(long, value_name = "PATH")]
+    pub kuka_client: Option<std::path::PathBuf>,
+    /// Rendered 1280x720 frames the detector is timed on (full frame and tracking).
+    #[arg(long, default_value_t = 200)]
+    pub vision_frames: usize,
+    /// The real-time measures of the `loop` and `fri_client` runs: `all`,
+    /// `none`, or a comma-separated list of `fifo` (SCHED_FIFO for the FRI
+    /// threads), `pin` (the FRI threads on the last CPU), `isolate` (the other
+    /// threads off that CPU), `mlock` (memory locked).
+    #[arg(long, default_value = "all")]
+    pub rt_tuning: String,
 }
 
 #[derive(Debug, Serialize)]
@@ -71,12 +91,44 @@ struct Bench {
     control_step_cpu_us: P4,
     /// How the control steps were measured, and their cost per phase.
     control_step: ControlBench,
-    /// Not measured here until the vision module is in the build.
-    vision_frame_ms: Option<P2>,
+    /// The ball detector on rendered 1280x720 frames of a swing: `p50`/`p99` of a
+    /// full-frame search, and `tracking` (the window around the last detection).
+    vision_frame_ms: VisionBench,
+    /// FRI clients alone against the simulated controller at 1 ms (no lab).
+    fri_client: FriClientBench,
     #[serde(rename = "loop")]
     loop_: LoopReport,
     /// The Foxglove client during the loop (`--foxglove-client`).
     foxglove: Option<FoxgloveLoad>,
+}
+
+/// `vision_frame_ms`.
+#[derive(Debug, Serialize)]
+struct VisionBench {
+    /// Full-frame search, ms.
+    p50: f64,
+    p99: f64,
+    /// Tracking-window search on consecutive frames, ms.
+    tracking: P2,
+    /// Frames timed (each way).
+    frames: usize,
+    /// Frames the full-frame search found the ball in.
+    found: usize,
+}
+
+/// `fri_client`: FRI clients alone against the simulated controller at 1 ms, in
+/// the same run: isochron's client session (holding position), and the external
+/// `--kuka-client` application when given. The figures are the simulated
+/// controller's own (send -> reply received).
+#[derive(Debug, Serialize)]
+struct FriClientBench {
+    period_ms: u32,
+    /// isochron's FRI client session alone.
+    isochron: rt_core::sim::kuka::SimReport,
+    /// The `--kuka-client` application, when given.
+    kuka: Option<rt_core::sim::kuka::SimReport>,
+    /// isochron's reply latency p99 over the external client's (same run).
+    p99_ratio: Option<f64>,
 }
 
 /// What the Foxglove client received while the loop was measured.
@@ -431,6 +483,158 @@ fn loop_with_clients(
     result
 }
 
+/// The ball's centre and velocity on a 25-degree swing of the paper's pendulum.
+fn swing_state(t: f64) -> rt_core::sim::camera::BallState {
+    let l = 1.93;
+    let w = (9.81f64 / l).sqrt();
+    let a = 25f64.to_radians();
+    let phi = a * (w * t).cos();
+    let dphi = -a * w * (w * t).sin();
+    let pivot = nalgebra::Vector3::new(0.6, 0.0, 0.30 + l);
+    rt_core::sim::camera::BallState {
+        centre_m: pivot + l * nalgebra::Vector3::new(0.0, phi.sin(), -phi.cos()),
+        velocity_mps: l * dphi * nalgebra::Vector3::new(0.0, phi.cos(), phi.sin()),
+    }
+}
+
+/// `vision_frame_ms`: renders `frames` frames of a swing at 30 fps (1280x720,
+/// motion blur and noise as the simulated camera draws them), then times the
+/// detector on each: a full-frame search (reset before each), and tracking
+/// (consecutive frames, each searched in the window around the last detection).
+fn vision_ms(s: &Scenario, frames: usize) -> anyhow::Result<VisionBench> {
+    use rt_core::sim::camera::{SimCamera, SimCameraParams};
+    use rt_core::vision::{Detector, DetectorParams};
+    let mut cam = SimCamera::new(
+        &s.camera,
+        &SimCameraParams::default(),
+        s.pendulum.ball_radius_m,
+        1,
+    )?;
+    let images = (0..frames)
+        .map(|i| {
+            cam.render(Some(&swing_state(i as f64 / 30.0)))
+                .map(Clone::clone)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut det = Detector::new(DetectorParams::default())?;
+    let mut full = Vec::with_capacity(frames);
+    let mut found = 0;
+    for img in &images {
+        det.reset();
+        let t0 = Instant::now();
+        let d = det.detect(img, 0.0)?;
+        full.push(t0.elapsed().as_secs_f64() * 1e3);
+        found += usize::from(d.is_some());
+    }
+    det.reset();
+    let mut tracking = Vec::with_capacity(frames);
+    for (i, img) in images.iter().enumerate() {
+        let t0 = Instant::now();
+        let d = det.detect(img, i as f64 / 30.0)?;
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        if d.is_some_and(|d| d.tracked) {
+            tracking.push(ms);
+        }
+    }
+    if tracking.is_empty() {
+        anyhow::bail!("the detector never tracked the ball over {frames} rendered frames");
+    }
+    full.sort_by(f64::total_cmp);
+    tracking.sort_by(f64::total_cmp);
+    let q = quantile_sorted;
+    Ok(VisionBench {
+        p50: q(&full, 0.5),
+        p99: q(&full, 0.99),
+        tracking: P2 {
+            p50: q(&tracking, 0.5),
+            p99: q(&tracking, 0.99),
+        },
+        frames,
+        found,
+    })
+}
+
+/// The simulated controller at 1 ms sending to `client` for `window`, asking for
+/// commanding as soon as it can; its report.
+fn controller_against(
+    client: std::net::SocketAddr,
+    window: Duration,
+) -> anyhow::Result<rt_core::sim::kuka::SimReport> {
+    use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
+    let server = SimServer::spawn(
+        FriSimParams {
+            fri_period_ms: 1,
+            ..FriSimParams::default()
+        },
+        std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+        client,
+        SimRunOptions {
+            auto_command: true,
+            duration: Some(window),
+        },
+    )?;
+    Ok(server.wait(window + Duration::from_secs(5))?)
+}
+
+/// `fri_client`: isochron's FRI client session alone (holding position), then
+/// the external application at `kuka` (if any), each answering the simulated
+/// controller for `window`.
+fn fri_clients(window: Duration, kuka: Option<&std::path::Path>) -> anyhow::Result<FriClientBench> {
+    use rt_core::fri::{FriClientParams, FriSession, FriSessionParams, HoldPosition};
+    let session = FriSession::spawn(
+        FriSessionParams {
+            bind: std::net::SocketAddr::from(([127, 0, 0, 1], 0)),
+            controller: None,
+            exit_on_idle: false,
+            client: FriClientParams::default(),
+        },
+        HoldPosition,
+    )?;
+    let isochron = controller_against(session.local_addr(), window)?;
+    drop(session);
+    let kuka = match kuka {
+        None => None,
+        Some(path) => {
+            let mut child = std::process::Command::new(path)
+                .stdin(std::process::Stdio::null())
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .with_context(|| format!("cannot start --kuka-client {}", path.display()))?;
+            // The application binds its port after start-up: wait until the
+            // port is taken (a probe bind fails), at most 5 s.
+            let port = std::net::SocketAddr::from(([127, 0, 0, 1], 30200));
+            let deadline = Instant::now() + Duration::from_secs(5);
+            while std::net::UdpSocket::bind(std::net::SocketAddr::from(([0, 0, 0, 0], 30200)))
+                .is_ok()
+            {
+                if Instant::now() > deadline || child.try_wait()?.is_some() {
+                    let _ = child.kill();
+                    anyhow::bail!(
+                        "--kuka-client {} did not bind port 30200 within 5 s",
+                        path.display()
+                    );
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            let report = controller_against(port, window);
+            let _ = child.kill();
+            let _ = child.wait();
+            Some(report?)
+        }
+    };
+    let p99_ratio = kuka
+        .as_ref()
+        .filter(|k| k.rtt_us.p99 > 0.0)
+        .map(|k| isochron.rtt_us.p99 / k.rtt_us.p99);
+    Ok(FriClientBench {
+        period_ms: 1,
+        isochron,
+        kuka,
+        p99_ratio,
+    })
+}
+
 /// Runs the benches; returns the text for stdout.
 pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     if !(args.loop_s.is_finite() && args.loop_s > 0.0 && args.loop_s <= 600.0) {
@@ -439,6 +643,26 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
             args.loop_s
         );
     }
+    if !(args.fri_client_s.is_finite() && args.fri_client_s > 0.0 && args.fri_client_s <= 600.0) {
+        anyhow::bail!(
+            "--fri-client-s = {} is out of range: must be in (0, 600]",
+            args.fri_client_s
+        );
+    }
+    if !(1..=10_000).contains(&args.vision_frames) {
+        anyhow::bail!(
+            "--vision-frames = {} is out of range: must be in 1..=10000",
+            args.vision_frames
+        );
+    }
+    if let Some(k) = &args.kuka_client
+        && !k.is_file()
+    {
+        anyhow::bail!("--kuka-client {}: no such file", k.display());
+    }
+    let tuning = rt_core::fri::priority::RtTuning::parse(&args.rt_tuning)
+        .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?;
+    rt_core::fri::priority::configure(tuning);
     let s = Scenario::default();
     let e = ekf_ns(&s)?;
     let h = hopf_ns(&s)?;
@@ -456,6 +680,11 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
             args.ws_clients
         );
     }
+    let vision = vision_ms(&s, args.vision_frames)?;
+    let fri = fri_clients(
+        Duration::from_secs_f64(args.fri_client_s),
+        args.kuka_client.as_deref(),
+    )?;
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
     let (lp, fox) = loop_with_clients(
@@ -482,7 +711,8 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         control_step_us: p4(&c),
         control_step_cpu_us: p4(&c_cpu),
         control_step: control,
-        vision_frame_ms: None,
+        vision_frame_ms: vision,
+        fri_client: fri,
         loop_: lp,
         foxglove: fox,
     };
@@ -496,8 +726,11 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (wall clock)\n\
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (thread CPU time)\n\
          control steps   {} over {} trials at {} ms: {} deadline misses (CPU time > period), {} preempted (wall clock only); load average {}\n\
+         vision frame    full p50 {:.3} ms, p99 {:.3} ms; tracking p50 {:.3} ms, p99 {:.3} ms ({} frames, found in {})\n\
+         fri client      isochron alone: reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing; {}\n\
          loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us; \
-         {} WebSocket clients at {:.0} state messages/s; {}",
+         {} WebSocket clients at {:.0} state messages/s; {}\n\
+         real time       asked {}: FRI threads on CPU {}, {} other threads kept off it, memory {}",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
         b.hopf_step_ns.p50,
@@ -522,6 +755,29 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
             || "unknown".to_owned(),
             |l| format!("{:.2} {:.2} {:.2}", l[0], l[1], l[2])
         ),
+        b.vision_frame_ms.p50,
+        b.vision_frame_ms.p99,
+        b.vision_frame_ms.tracking.p50,
+        b.vision_frame_ms.tracking.p99,
+        b.vision_frame_ms.frames,
+        b.vision_frame_ms.found,
+        b.fri_client.isochron.rtt_us.p50,
+        b.fri_client.isochron.rtt_us.p99,
+        b.fri_client.isochron.rtt_us.p999,
+        b.fri_client.isochron.late_replies,
+        b.fri_client.isochron.missing_replies,
+        b.fri_client.kuka.as_ref().map_or_else(
+            || "no --kuka-client".to_owned(),
+            |k| format!(
+                "--kuka-client: p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing (p99 ratio {:.2})",
+                k.rtt_us.p50,
+                k.rtt_us.p99,
+                k.rtt_us.p999,
+                k.late_replies,
+                k.missing_replies,
+                b.fri_client.p99_ratio.unwrap_or(f64::NAN)
+            )
+        ),
         lp.period_ms,
         lp.cycles,
         lp.late_replies,
@@ -539,5 +795,81 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
                 f.channels, f.messages_per_s
             )
         ),
+        lp.rt.asked.label(),
+        lp.rt
+            .fri_cpu
+            .map_or_else(|| "any".to_owned(), |c| c.to_string()),
+        lp.rt.isolated_threads,
+        if lp.rt.memory_locked {
+            "locked"
+        } else {
+            "not locked"
+        },
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args() -> BenchArgs {
+        BenchArgs {
+            json: true,
+            loop_s: 1.0,
+            ws_clients: 0,
+            control_trials: 1,
+            foxglove_client: false,
+            fri_client_s: 0.5,
+            kuka_client: None,
+            vision_frames: 4,
+            rt_tuning: "all".into(),
+        }
+    }
+
+    #[test]
+    fn vision_is_measured_on_rendered_frames_in_both_modes() {
+        let v = vision_ms(&Scenario::default(), 6).unwrap();
+        assert_eq!((v.frames, v.found), (6, 6));
+        for ms in [v.p50, v.p99, v.tracking.p50, v.tracking.p99] {
+            assert!(ms.is_finite() && ms > 0.0, "{v:?}");
+        }
+        assert!(v.p50 <= v.p99 && v.tracking.p50 <= v.tracking.p99, "{v:?}");
+    }
+
+    #[test]
+    fn the_fri_client_alone_answers_the_simulated_controller_while_commanding() {
+        let f = fri_clients(Duration::from_millis(600), None).unwrap();
+        let r = &f.isochron;
+        assert!(
+            r.states_reached.contains(&"COMMANDING_ACTIVE"),
+            "{:?}",
+            r.states_reached
+        );
+        // Every reply in time is timed (a stale one, answering an older message, is not).
+        assert!(
+            r.replies > 300 && r.rtt_us.count + r.stale_replies == r.replies,
+            "{r:?}"
+        );
+        assert!(r.rtt_us.p50 > 0.0 && r.rtt_us.p50 <= r.rtt_us.p99, "{r:?}");
+        assert!(f.kuka.is_none() && f.p99_ratio.is_none());
+    }
+
+    #[test]
+    fn bad_arguments_are_refused_before_anything_runs() {
+        let bad = |f: fn(&mut BenchArgs), needle: &str| {
+            let mut a = args();
+            f(&mut a);
+            let e = run(&a).unwrap_err().to_string();
+            assert!(e.contains(needle), "{e}");
+        };
+        bad(|a| a.fri_client_s = f64::NAN, "--fri-client-s");
+        bad(|a| a.fri_client_s = 0.0, "--fri-client-s");
+        bad(|a| a.vision_frames = 0, "--vision-frames");
+        bad(|a| a.loop_s = -1.0, "--loop-s");
+        bad(|a| a.rt_tuning = "fifo,fast".into(), "--rt-tuning");
+        bad(
+            |a| a.kuka_client = Some("/nonexistent/kuka-client".into()),
+            "--kuka-client",
+        );
+    }
 }
