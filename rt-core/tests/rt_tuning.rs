@@ -87,7 +87,12 @@ fn the_fri_thread_has_its_cpu_and_the_others_keep_off_it() {
         let me = allowed_here();
         assert!(!me.contains(&fri_cpu), "{me:?} {status:?}");
         // A thread started now inherits the mask.
-        let child = std::thread::spawn(allowed_here).join().unwrap();
+        let child = std::thread::Builder::new()
+            .name("isochron-rt-test".into())
+            .spawn(allowed_here)
+            .unwrap()
+            .join()
+            .unwrap();
         assert!(!child.contains(&fri_cpu), "{child:?}");
         assert!(!fri.is_empty());
     }

@@ -511,10 +511,7 @@ fn vision_ms(s: &Scenario, frames: usize) -> anyhow::Result<VisionBench> {
         1,
     )?;
     let images = (0..frames)
-        .map(|i| {
-            cam.render(Some(&swing_state(i as f64 / 30.0)))
-                .map(Clone::clone)
-        })
+        .map(|i| cam.render(Some(&swing_state(i as f64 / 30.0))).cloned())
         .collect::<Result<Vec<_>, _>>()?;
     let mut det = Detector::new(DetectorParams::default())?;
     let mut full = Vec::with_capacity(frames);
