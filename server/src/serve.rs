@@ -51,9 +51,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .or_else(|| cfg.server.token.clone())
         .filter(|t| !t.is_empty());
     check_bind(bind, token.as_deref())?;
-    // The lab's FRI threads: SCHED_FIFO, pinned to their own CPU with the other
-    // threads kept off it, memory locked (each refused measure is said once).
-    rt_core::fri::priority::configure(rt_core::fri::priority::RtTuning::ALL);
+    // The lab's FRI threads: SCHED_FIFO and memory locked; with cores to spare
+    // also pinned to their own CPU with the other threads kept off it (each
+    // refused measure is said once).
+    rt_core::fri::priority::configure(rt_core::fri::priority::RtTuning::auto());
     if let Some(addr) = args.foxglove {
         crate::viz::check_addr(addr)?;
     }

@@ -12,8 +12,9 @@
 //! said once on standard error; later ones are silent.
 //!
 //! Beyond the priority, a process can [`configure`] the rest of what real-time
-//! Linux users do ([`RtTuning`]; `serve` and `bench` turn all of it on, tests
-//! keep only the priority): the FRI threads pinned to one CPU (the last of the
+//! Linux users do ([`RtTuning`]; `serve` and `bench` take [`RtTuning::auto`]:
+//! all of it with three or more CPUs, the priority and locked memory on two;
+//! tests keep only the priority): the FRI threads pinned to one CPU (the last of the
 //! process's CPUs), every other thread of the process kept off that CPU when
 //! there is another one, and the process's memory locked (`mlockall`, pages
 //! locked as they are first touched) so the FRI thread never waits for a page
@@ -77,10 +78,26 @@ impl RtTuning {
         mlock: false,
     };
 
-    /// Parses `all`, `none` or a comma-separated list of `fifo`, `pin`,
+    /// What suits this machine (`serve`, and `bench` unless told): the
+    /// priority and locked memory always; the FRI threads on a CPU of their
+    /// own only when there are cores to spare (three or more CPUs: on two,
+    /// keeping every other thread on one CPU starves the camera and the
+    /// dashboard's host more than it helps the FRI cycle).
+    pub fn auto() -> Self {
+        let cpus = rustix::thread::sched_getaffinity(None)
+            .map_or(1, |m| (0..CpuSet::MAX_CPU).filter(|&c| m.is_set(c)).count());
+        Self {
+            pin: cpus >= 3,
+            isolate: cpus >= 3,
+            ..Self::ALL
+        }
+    }
+
+    /// Parses `auto`, `all`, `none` or a comma-separated list of `fifo`, `pin`,
     /// `isolate`, `mlock` (`isolate` implies `pin`).
     pub fn parse(text: &str) -> Result<Self, String> {
         match text.trim() {
+            "auto" => return Ok(Self::auto()),
             "all" => return Ok(Self::ALL),
             "none" => return Ok(Self::NONE),
             _ => {}
@@ -97,7 +114,7 @@ impl RtTuning {
                 "mlock" => t.mlock = true,
                 other => {
                     return Err(format!(
-                        "unknown real-time measure {other:?}: expected all, none or a \
+                        "unknown real-time measure {other:?}: expected auto, all, none or a \
                          comma-separated list of fifo, pin, isolate, mlock"
                     ));
                 }

@@ -51,11 +51,12 @@ pub struct BenchArgs {
     /// Rendered 1280x720 frames the detector is timed on (full frame and tracking).
     #[arg(long, default_value_t = 200)]
     pub vision_frames: usize,
-    /// The real-time measures of the `loop` and `fri_client` runs: `all`,
-    /// `none`, or a comma-separated list of `fifo` (SCHED_FIFO for the FRI
-    /// threads), `pin` (the FRI threads on the last CPU), `isolate` (the other
-    /// threads off that CPU), `mlock` (memory locked).
-    #[arg(long, default_value = "all")]
+    /// The real-time measures of the `loop` run: `auto` (as `serve`: all of
+    /// them with three or more CPUs, `fifo,mlock` on two), `all`, `none`, or a
+    /// comma-separated list of `fifo` (SCHED_FIFO for the FRI threads), `pin`
+    /// (the FRI threads on the last CPU), `isolate` (the other threads off that
+    /// CPU), `mlock` (memory locked).
+    #[arg(long, default_value = "auto")]
     pub rt_tuning: String,
 }
 
