@@ -793,7 +793,7 @@ fn ws_doc() {}
 
 /// Documents the camera stream (upgrade with `GET /ws/camera`).
 #[utoipa::path(get, path = "/ws/camera", tag = "streams",
-    responses((status = 101, description = "WebSocket: one binary message per camera frame (JPEG); slow clients get the newest frame only")))]
+    responses((status = 101, description = "WebSocket: one binary message per camera frame (JPEG, its first segment a COM comment `isochron frame=N t_us=T`: N is the camera.frame of its detection in the state stream, T its capture time on the control clock in microseconds); slow clients get the newest frame only")))]
 #[allow(dead_code)]
 fn ws_camera_doc() {}
 

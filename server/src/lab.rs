@@ -496,7 +496,8 @@ impl Pump {
                 &f.jpeg,
                 crate::viz::jpeg_width(&f.jpeg),
             );
-            let _ = self.lab.frame_tx.send(Bytes::from(f.jpeg));
+            let tagged = crate::viz::jpeg_tagged(&f.jpeg, f.frame, f.t_us);
+            let _ = self.lab.frame_tx.send(Bytes::from(tagged));
         }
     }
 

@@ -719,6 +719,32 @@ pub fn jpeg_width(jpeg: &[u8]) -> Option<u32> {
     None
 }
 
+/// The text of the comment segment `/ws/camera` puts in each JPEG: the frame's
+/// number (the `camera.frame` of its detection in the state stream) and its
+/// capture time on the control clock.
+pub fn frame_tag(frame: u64, t_us: u64) -> String {
+    format!("isochron frame={frame} t_us={t_us}")
+}
+
+/// `jpeg` with a COM segment (0xFFFE) carrying [`frame_tag`] right after its
+/// start-of-image marker: still a valid JPEG (decoders skip comments), and the
+/// dashboard pairs the picture with its own detection instead of guessing by
+/// arrival time. Bytes that do not start with SOI are passed through unchanged.
+pub fn jpeg_tagged(jpeg: &[u8], frame: u64, t_us: u64) -> Vec<u8> {
+    if jpeg.len() < 2 || jpeg[..2] != [0xFF, 0xD8] {
+        return jpeg.to_vec();
+    }
+    let text = frame_tag(frame, t_us);
+    // The length counts itself (2 bytes) and the text; the text is < 64 bytes.
+    let len = (text.len() + 2) as u16;
+    let mut out = Vec::with_capacity(jpeg.len() + 4 + text.len());
+    out.extend_from_slice(&[0xFF, 0xD8, 0xFF, 0xFE]);
+    out.extend_from_slice(&len.to_be_bytes());
+    out.extend_from_slice(text.as_bytes());
+    out.extend_from_slice(&jpeg[2..]);
+    out
+}
+
 /// Refuses a Foxglove address that is not loopback: the Foxglove WebSocket
 /// protocol carries no credentials, so the service's bearer token cannot guard
 /// it, and the service's rule is loopback-only without a token.

@@ -116,6 +116,20 @@ fn delta(a: [u64; 6], b: [u64; 6]) -> [u64; 6] {
     std::array::from_fn(|i| b[i] - a[i])
 }
 
+/// The frame number and capture time in a `/ws/camera` JPEG's leading COM
+/// segment, and where the original JPEG's segments resume.
+fn frame_tag(b: &[u8]) -> (u64, u64, usize) {
+    assert_eq!(&b[..4], &[0xff, 0xd8, 0xff, 0xfe], "SOI, then a comment");
+    let len = usize::from(u16::from_be_bytes([b[4], b[5]]));
+    let text = std::str::from_utf8(&b[6..4 + len]).unwrap();
+    let field = |k: &str| -> u64 {
+        let v = text.split(' ').find_map(|w| w.strip_prefix(k)).unwrap();
+        v.parse().unwrap()
+    };
+    assert!(text.starts_with("isochron "), "{text}");
+    (field("frame="), field("t_us="), 4 + len)
+}
+
 fn states(msgs: &[Value]) -> Vec<&Value> {
     msgs.iter().filter(|m| m["type"] == "state").collect()
 }
@@ -330,6 +344,30 @@ async fn the_camera_stream_carries_jpeg_frames_of_the_simulated_camera_showing_t
     // A frame decodes as a JPEG image and the detector finds the ball in it.
     let jpeg = frames.last().unwrap();
     assert_eq!(&jpeg[..2], &[0xff, 0xd8]);
+    // Each frame names its detection: the state stream carried a camera detection
+    // of the same number and capture time (the dashboard's overlay pairs them).
+    let st = states(&msgs);
+    let paired = frames
+        .iter()
+        .filter(|f| {
+            let (n, t_us, _) = frame_tag(f);
+            st.iter().any(|s| {
+                s["camera"]["frame"].as_u64() == Some(n)
+                    && s["camera"]["t_s"]
+                        .as_f64()
+                        .is_some_and(|t| (t * 1e6 - t_us as f64).abs() <= 1.0)
+            })
+        })
+        .count();
+    println!(
+        "frames paired with their detection in the state stream: {paired} of {}",
+        frames.len()
+    );
+    assert!(
+        paired * 10 >= frames.len() * 9,
+        "{paired} of {}",
+        frames.len()
+    );
     let img =
         imgcodecs::imdecode(&Vector::<u8>::from_slice(jpeg), imgcodecs::IMREAD_COLOR).unwrap();
     assert_eq!((img.cols(), img.rows()), (640, 360));
@@ -415,7 +453,11 @@ async fn camera_frames_arrive_on_their_own_endpoint_without_delaying_state() {
                     let mut jpeg = vec![0u8; 200_000];
                     jpeg[..2].copy_from_slice(&[0xff, 0xd8]);
                     jpeg[2..10].copy_from_slice(&i.to_le_bytes());
-                    frames_tx.send(Frame { t_us: i, jpeg });
+                    frames_tx.send(Frame {
+                        frame: i,
+                        t_us: i,
+                        jpeg,
+                    });
                     i += 1;
                     std::thread::sleep(Duration::from_millis(33));
                 }
@@ -428,9 +470,12 @@ async fn camera_frames_arrive_on_their_own_endpoint_without_delaying_state() {
         let mut seen = Vec::new();
         while let Ok(Some(Ok(m))) = tokio::time::timeout_at(end, cam.next()).await {
             if let Message::Binary(b) = m {
-                assert_eq!(b.len(), 200_000);
-                assert_eq!(&b[..2], &[0xff, 0xd8]);
-                seen.push(u64::from_le_bytes(b[2..10].try_into().unwrap()));
+                let (n, t_us, rest) = frame_tag(&b);
+                assert_eq!(n, t_us);
+                // The original bytes follow the comment unchanged.
+                assert_eq!(b.len() - rest, 200_000 - 2);
+                assert_eq!(u64::from_le_bytes(b[rest..rest + 8].try_into().unwrap()), n);
+                seen.push(n);
             }
         }
         seen

@@ -257,7 +257,9 @@ try {
       decode_errors: last.cam.decodeErrors,
     };
     assert(fps >= 5, `camera at ${fps.toFixed(1)} fps`);
-    assert(med.d <= Math.max(med.r, 4), `ball overlay ${med.d.toFixed(1)} px off the ball (radius ${med.r.toFixed(1)} px)`);
+    // Each frame carries its number, so the overlay is its own detection: off by
+    // the detector's error (~1 px), not by the ball's travel between frames.
+    assert(med.d <= 3, `ball overlay ${med.d.toFixed(1)} px off the ball (radius ${med.r.toFixed(1)} px)`);
     assert(last.cam.drawn.intercept !== null, "no intercept point drawn");
     assert(samples.some((x) => x.cam.drawn.predicted > 0), "no predicted positions drawn");
   });
@@ -335,7 +337,13 @@ try {
     await page.click("#btn-trial");
     await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });
     await page.keyboard.press("Escape");
-    await page.waitForFunction(() => ["aborted", "idle"].includes(window.__isochron.state()), null, { timeout: 2_000 });
+    try {
+      await page.waitForFunction(() => ["aborted", "idle"].includes(window.__isochron.state()), null, { timeout: 2_000 });
+    } catch (e) {
+      // Say where it stood: still moving, or ended by itself before the key (a race).
+      const now = await api("GET", "/api/state");
+      throw new Error(`${e.message}: the page shows ${await page.evaluate(() => window.__isochron.state())}, the lab ${now.json.trial_state}`);
+    }
     const st = await api("GET", "/api/state");
     assert(st.json.trial_state !== "intercepting", `still intercepting: ${st.json.trial_state}`);
   });

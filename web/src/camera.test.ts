@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import { projectLateral, RateMeter } from "./camera";
+import { frameTag, projectLateral, RateMeter } from "./camera";
 import type { CameraInfo } from "./types";
 
 // A camera 2 m in front of the rest position, looking along base +x: the image's
@@ -41,5 +41,23 @@ describe("rate meter", () => {
     expect(m.rate(end)).toBeCloseTo(12, 0);
     expect(m.rate(end + 5000)).toBe(0);
     expect(new RateMeter().rate(0)).toBe(0);
+  });
+});
+
+describe("frame tag", () => {
+  const tagged = (text: string, rest = [0xff, 0xdb, 0x00, 0x43]): Uint8Array => {
+    const t = [...text].map((c) => c.charCodeAt(0));
+    const len = t.length + 2;
+    return Uint8Array.from([0xff, 0xd8, 0xff, 0xfe, len >> 8, len & 0xff, ...t, ...rest]);
+  };
+  it("reads the frame number and capture time the service writes", () => {
+    expect(frameTag(tagged("isochron frame=1234 t_us=98765432"))).toEqual({ frame: 1234, t_us: 98765432 });
+  });
+  it("returns null for a JPEG without it, another comment, or a length past the bytes", () => {
+    expect(frameTag(Uint8Array.from([0xff, 0xd8, 0xff, 0xdb, 0x00, 0x43]))).toBeNull();
+    expect(frameTag(tagged("made by a camera"))).toBeNull();
+    const cut = tagged("isochron frame=1 t_us=2").subarray(0, 12);
+    expect(frameTag(cut)).toBeNull();
+    expect(frameTag(new Uint8Array(0))).toBeNull();
   });
 });

@@ -50,8 +50,25 @@ export class RateMeter {
   }
 }
 
-/** How much later than its frame a detection may arrive and still be matched to it, ms. */
+/** How much later than its frame a detection may arrive and still be matched to it, ms
+ * (frames without the server's tag only). */
 const MATCH_MS = 20;
+/** How long a tagged frame waits for its own detection before the nearest one is drawn, ms. */
+const WAIT_MS = 200;
+
+/**
+ * The frame number and capture time (control clock, µs) the service writes into
+ * each `/ws/camera` JPEG as a leading COM segment (`isochron frame=N t_us=T`),
+ * or null for a JPEG without it.
+ */
+export function frameTag(bytes: Uint8Array): { frame: number; t_us: number } | null {
+  if (bytes.length < 6 || bytes[0] !== 0xff || bytes[1] !== 0xd8 || bytes[2] !== 0xff || bytes[3] !== 0xfe) return null;
+  const len = (bytes[4] << 8) | bytes[5];
+  if (len < 2 || len > 256 || 4 + len > bytes.length) return null;
+  const text = String.fromCharCode(...bytes.subarray(6, 4 + len));
+  const m = /^isochron frame=(\d+) t_us=(\d+)$/.exec(text);
+  return m ? { frame: Number(m[1]), t_us: Number(m[2]) } : null;
+}
 
 /** What the overlay drew last, in the frame's pixels (the browser test reads it). */
 export interface OverlayDrawn {
@@ -74,15 +91,16 @@ export class CameraView {
   private readonly host: HTMLElement;
   private readonly link: Link;
   private bitmap: ImageBitmap | null = null;
-  private pending: { blob: Blob; at: number } | null = null;
+  private pending: { blob: Blob; at: number; tag: number | null } | null = null;
   private decoding = false;
   private imageDirty = false;
   private overlayDirty = true;
   private latest: StateMessage | null = null;
   /** Recent detections (one per processed camera frame) and when their state arrived. */
   private readonly detections: { at: number; cam: CameraInfo }[] = [];
-  /** When the shown frame arrived. */
+  /** When the shown frame arrived, and its number (null: the frame carried none). */
   private shownAt = Number.NaN;
+  private shownTag: number | null = null;
   private readonly meter = new RateMeter();
   private lastFrameAt = Number.NaN;
   private infoAt = 0;
@@ -104,7 +122,7 @@ export class CameraView {
       wsUrl("/ws/camera"),
       () => {},
       (s) => host.classList.toggle("offline", s !== "open"),
-      (blob) => this.receive(blob),
+      (data) => this.receive(data),
     );
     this.link.start();
   }
@@ -114,23 +132,26 @@ export class CameraView {
     return this.meter.rate(now);
   }
 
-  private receive(blob: Blob): void {
+  private receive(data: ArrayBuffer): void {
     this.received += 1;
     const at = performance.now();
+    const tag = frameTag(new Uint8Array(data, 0, Math.min(data.byteLength, 64)))?.frame ?? null;
+    const blob = new Blob([data], { type: "image/jpeg" });
     if (this.decoding) {
-      this.pending = { blob, at }; // an older waiting frame is dropped
+      this.pending = { blob, at, tag }; // an older waiting frame is dropped
       return;
     }
-    this.decode(blob, at);
+    this.decode(blob, at, tag);
   }
 
-  private decode(blob: Blob, at: number): void {
+  private decode(blob: Blob, at: number, tag: number | null): void {
     this.decoding = true;
-    createImageBitmap(blob.type ? blob : new Blob([blob], { type: "image/jpeg" }))
+    createImageBitmap(blob)
       .then((bmp) => {
         this.bitmap?.close();
         this.bitmap = bmp;
         this.shownAt = at;
+        this.shownTag = tag;
         this.imageDirty = true;
         this.overlayDirty = true;
         this.frames += 1;
@@ -145,7 +166,7 @@ export class CameraView {
         this.decoding = false;
         const next = this.pending;
         this.pending = null;
-        if (next) this.decode(next.blob, next.at);
+        if (next) this.decode(next.blob, next.at, next.tag);
       });
   }
 
@@ -162,11 +183,24 @@ export class CameraView {
   }
 
   /**
-   * The detection of the shown frame: a frame and its detection leave the lab in
-   * the same tick but on two sockets, so take the newest detection that arrived
-   * no later than shortly after the frame.
+   * The detection of the shown frame. A tagged frame (the service names each
+   * frame's number) takes the detection of that number; `undefined` while it may
+   * still arrive (a frame and its detection leave the lab in the same tick but on
+   * two sockets), after `WAIT_MS` the nearest number. An untagged frame takes the
+   * newest detection that arrived no later than shortly after it.
    */
-  private detectionOfShown(): CameraInfo | null {
+  private detectionOfShown(now: number): CameraInfo | null | undefined {
+    const tag = this.shownTag;
+    if (tag !== null) {
+      let nearest: CameraInfo | null = null;
+      for (const d of this.detections) {
+        if (d.cam.frame === tag) return d.cam;
+        if (!nearest || Math.abs(d.cam.frame - tag) < Math.abs(nearest.frame - tag)) nearest = d.cam;
+      }
+      const newest = this.detections[this.detections.length - 1]?.cam.frame ?? -1;
+      if (newest < tag && now - this.shownAt < WAIT_MS) return undefined;
+      return nearest;
+    }
     for (let i = this.detections.length - 1; i >= 0; i--) {
       if (this.detections[i].at <= this.shownAt + MATCH_MS) return this.detections[i].cam;
     }
@@ -189,8 +223,11 @@ export class CameraView {
       this.host.classList.remove("waiting");
     }
     if (this.overlayDirty && bmp) {
-      this.overlayDirty = false;
-      this.drawOverlay(bmp.width, bmp.height);
+      const d = this.detectionOfShown(now);
+      if (d !== undefined) {
+        this.overlayDirty = false;
+        this.drawOverlay(bmp.width, bmp.height, d);
+      }
     }
     if (this.info && now - this.infoAt > 250) {
       this.infoAt = now;
@@ -201,7 +238,7 @@ export class CameraView {
     }
   }
 
-  private drawOverlay(w: number, h: number): void {
+  private drawOverlay(w: number, h: number, d: CameraInfo | null): void {
     const ctx = this.overlay.getContext("2d");
     if (!ctx) return;
     ctx.clearRect(0, 0, w, h);
@@ -255,7 +292,6 @@ export class CameraView {
       this.drawn.intercept = [x, y];
     }
     // The detected ball, as of the shown frame.
-    const d = this.detectionOfShown();
     if (d && d.found && Number.isFinite(num(d.x_px)) && Number.isFinite(num(d.y_px))) {
       const [x, y] = [num(d.x_px) * k, num(d.y_px) * k];
       const r = Math.max(5, num(d.r_px) * k + 3);

@@ -21,7 +21,7 @@ export class Link {
     private readonly url: string,
     private readonly onMessage: (m: ServerMessage) => void,
     private readonly onStatus: (s: LinkStatus) => void,
-    private readonly binary?: (data: Blob) => void,
+    private readonly binary?: (data: ArrayBuffer) => void,
   ) {}
 
   start(): void {
@@ -38,7 +38,7 @@ export class Link {
   private open(): void {
     this.onStatus("connecting");
     const ws = new WebSocket(this.url);
-    ws.binaryType = "blob";
+    ws.binaryType = "arraybuffer";
     this.ws = ws;
     ws.onopen = () => {
       this.retryMs = 500;
@@ -50,7 +50,7 @@ export class Link {
         const m = parseMessage(ev.data);
         if (m) this.onMessage(m);
         else this.malformed += 1;
-      } else if (this.binary && ev.data instanceof Blob) {
+      } else if (this.binary && ev.data instanceof ArrayBuffer) {
         this.binary(ev.data);
       }
     };

@@ -72,7 +72,9 @@ export class Twin {
   constructor(private readonly host: HTMLElement) {
     let renderer: THREE.WebGLRenderer | null = null;
     try {
-      renderer = new THREE.WebGLRenderer({ antialias: true });
+      // Multisampling on a software renderer (SwiftShader: no GPU) costs the page a
+      // third of its frames; edges there stay aliased.
+      renderer = new THREE.WebGLRenderer({ antialias: !softwareWebGl() });
     } catch {
       host.textContent = "3D view unavailable (no WebGL in this browser)";
     }
@@ -288,4 +290,14 @@ function changed(shown: Shown, s: StateMessage): boolean {
 
 function remember(shown: Shown, s: StateMessage): void {
   visible(s, shown);
+}
+
+/** True when WebGL is drawn by the CPU (Chromium's SwiftShader, Mesa's llvmpipe). */
+function softwareWebGl(): boolean {
+  const gl = document.createElement("canvas").getContext("webgl");
+  if (!gl) return false;
+  const info = gl.getExtension("WEBGL_debug_renderer_info");
+  const name = String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
+  gl.getExtension("WEBGL_lose_context")?.loseContext();
+  return /swiftshader|llvmpipe|software/i.test(name);
 }

@@ -406,6 +406,9 @@ impl AckReader {
 /// A camera frame for the dashboard (from the vision thread, not the control thread).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Frame {
+    /// Its number: the `frame` of the vision measurement made from it (and of the
+    /// state's camera detection), so the dashboard draws the overlay of this frame.
+    pub frame: u64,
     /// Capture time, control clock, microseconds.
     pub t_us: u64,
     /// JPEG bytes.

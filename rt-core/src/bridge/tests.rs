@@ -188,6 +188,7 @@ fn frames_drop_when_full_and_are_counted() {
     let (mut tx, mut rx) = frame_channel(2, Arc::clone(&stats));
     for i in 0..4u64 {
         tx.send(Frame {
+            frame: i + 1,
             t_us: i,
             jpeg: vec![0xff, 0xd8],
         });

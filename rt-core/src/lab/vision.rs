@@ -227,6 +227,7 @@ fn run(
                     .store(((clock.now_s() - e0) * 1e6) as u64, Ordering::Relaxed);
                 video.last_bytes.store(jpeg.len() as u64, Ordering::Relaxed);
                 let f = VideoFrame {
+                    frame: m.frame,
                     t_us: (frame.t_capture_s.max(0.0) * 1e6) as u64,
                     jpeg: jpeg.as_slice().to_vec(),
                 };
