@@ -336,13 +336,26 @@ try {
   await check("operator: the emergency stop key stops a running motion", async () => {
     await page.click("#btn-trial");
     await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });
+    // Every state the page shows from the key on (a short "aborted" followed by
+    // the return home must not slip between two polls).
+    await page.evaluate(() => {
+      window.__seen = [];
+      const watch = () => {
+        const s = window.__isochron.state();
+        if (window.__seen[window.__seen.length - 1] !== s) window.__seen.push(s);
+        window.__seenTimer = requestAnimationFrame(watch);
+      };
+      watch();
+    });
     await page.keyboard.press("Escape");
     try {
-      await page.waitForFunction(() => ["aborted", "idle"].includes(window.__isochron.state()), null, { timeout: 2_000 });
+      await page.waitForFunction(() => window.__seen.some((s) => s === "aborted" || s === "idle"), null, { timeout: 3_000 });
     } catch (e) {
       // Say where it stood: still moving, or ended by itself before the key (a race).
       const now = await api("GET", "/api/state");
-      throw new Error(`${e.message}: the page shows ${await page.evaluate(() => window.__isochron.state())}, the lab ${now.json.trial_state}`);
+      throw new Error(`${e.message}: the page showed ${JSON.stringify(await page.evaluate(() => window.__seen))}, the lab ${now.json.trial_state}`);
+    } finally {
+      await page.evaluate(() => cancelAnimationFrame(window.__seenTimer));
     }
     const st = await api("GET", "/api/state");
     assert(st.json.trial_state !== "intercepting", `still intercepting: ${st.json.trial_state}`);
