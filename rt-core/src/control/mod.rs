@@ -8,6 +8,7 @@ pub mod report;
 pub mod state;
 pub mod stats;
 pub mod step;
+pub mod success;
 
 pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
 pub use judge::{JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into};
@@ -18,3 +19,4 @@ pub use step::{
     ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Measurement,
     StepInput, StepOutput,
 };
+pub use success::SuccessParams;

@@ -4,7 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use super::judge::Judgement;
 use super::stats::{Moments, Percentiles, wilson_ci95};
-use crate::params::SuccessParams;
+use super::success::SuccessParams;
 
 /// One trial's numbers (a line of `--per-trial`; `isochron merge` reads them back).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -1509,7 +1509,7 @@ impl TrialOutcome {
     /// The success rule of [`crate::control::TrialRecord::decide`] on what
     /// the control thread knows (no abort, no limit violation, both errors
     /// within tolerance), without building the record.
-    pub fn succeeded(&self, tol: &crate::params::SuccessParams) -> bool {
+    pub fn succeeded(&self, tol: &crate::control::SuccessParams) -> bool {
         if let Some(p) = &self.physical {
             // The reality lab: the physical judge decides (as
             // `TrialRecord::decide`).

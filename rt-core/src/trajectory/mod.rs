@@ -3,6 +3,7 @@
 pub mod path;
 pub mod plan;
 pub mod profile;
+pub mod task;
 
 #[cfg(test)]
 mod tests;
@@ -12,3 +13,4 @@ pub use plan::{
     Binding, ElbowPolicy, LimitKind, MotionPlan, PlanError, PlanSummary, Posture, TrajectoryParams,
     evaluate, plan,
 };
+pub use task::TaskParams;

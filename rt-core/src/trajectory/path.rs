@@ -3,8 +3,8 @@
 use nalgebra::{Rotation3, Translation3, Vector3};
 
 use super::profile::ProfileKind;
+use super::task::TaskParams;
 use crate::kinematics::{Pose, Tool};
-use crate::params::TaskParams;
 
 /// The tool orientation "pointing down, tilted by `tilt_rad` about the base y axis":
 /// `Ry(pi + tilt)`. The tool's z axis is `(-sin tilt, 0, -cos tilt)`, so a positive

@@ -6,7 +6,6 @@ use super::*;
 use crate::kinematics::iiwa7::{JOINT_NAMES, JOINTS, VELOCITY_LIMIT_RADPS};
 use crate::kinematics::numeric::rotation_error;
 use crate::kinematics::{Joints, tool_pose, within_limits};
-use crate::params::TaskParams;
 
 fn lab(d: f64) -> MotionRequest {
     MotionRequest::interception(&TaskParams::default(), d)
