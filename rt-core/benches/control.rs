@@ -10,7 +10,7 @@ use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
 
 fn benches(c: &mut Criterion) {
-    let s = Scenario::default();
+    let s = Scenario::default().beliefs();
     c.bench_function("control/plan_0.7m", |b| {
         b.iter(|| Controller::plan(std::hint::black_box(&s), 0.7));
     });

@@ -1,5 +1,6 @@
 #![doc = include_str!("README.md")]
 
+pub mod beliefs;
 pub mod cost;
 pub mod judge;
 pub mod latency;
@@ -10,6 +11,7 @@ pub mod stats;
 pub mod step;
 pub mod success;
 
+pub use beliefs::Beliefs;
 pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
 pub use judge::{JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into};
 pub use latency::{LatencyEstimator, LatencyReport};

@@ -7,6 +7,7 @@
 use nalgebra::{UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+use super::beliefs::Beliefs;
 use super::latency::LatencyEstimator;
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::check::{self, ParamError};
@@ -15,7 +16,6 @@ use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
 };
 use crate::kinematics::{Joints, Tool, tool_pose};
-use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel};
 use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;
@@ -371,7 +371,8 @@ impl JointMove {
 #[derive(Debug, Clone)]
 pub struct Controller {
     params: ControlParams,
-    scenario: Scenario,
+    /// `task.intercept_height_m` of the beliefs (the pendulum's geometry at arming).
+    intercept_height_m: f64,
     ekf_params: EkfParams,
     model: PendulumModel,
     tool: Tool,
@@ -401,22 +402,22 @@ pub struct Controller {
 }
 
 impl Controller {
-    /// A controller for `scenario`'s lab (its `[control]`, `[ekf]` and
-    /// `[timing]` sections) with an FRI period of `period_s`.
-    pub fn new(scenario: &Scenario, period_s: f64) -> Result<Self, ControlError> {
-        scenario.validate()?;
-        let params = &scenario.control;
-        let ekf = &scenario.ekf;
-        let timing = &scenario.timing;
-        let model = PendulumModel::from_params(&scenario.pendulum)?;
+    /// A controller for the lab `beliefs` describe (`params::Scenario::beliefs`)
+    /// with an FRI period of `period_s`.
+    pub fn new(beliefs: &Beliefs, period_s: f64) -> Result<Self, ControlError> {
+        beliefs.validate()?;
+        let params = &beliefs.control;
+        let ekf = &beliefs.ekf;
+        let timing = &beliefs.timing;
+        let model = PendulumModel::from_params(&beliefs.pendulum)?;
         let motion = TimedMotion::new(timing.clone())?;
-        let [hx, hy, hz] = scenario.task.home_m;
+        let [hx, hy, hz] = beliefs.task.home_m;
         Ok(Self {
             params: params.clone(),
-            scenario: scenario.clone(),
+            intercept_height_m: beliefs.task.intercept_height_m,
             ekf_params: ekf.clone(),
             model,
-            tool: Tool::along_z(scenario.task.tool_length_m),
+            tool: Tool::along_z(beliefs.task.tool_length_m),
             machine: TrialMachine::new(),
             ekf: None,
             motion,
@@ -449,11 +450,11 @@ impl Controller {
 
     /// Plans a trial's motion to the intercept point at `distance_m` (not
     /// real-time: run it off the control thread, then hand it to [`Self::arm`]).
-    pub fn plan(scenario: &Scenario, distance_m: f64) -> Result<ArmPlan, ControlError> {
-        let params = &scenario.control;
-        let timing = &scenario.timing;
+    pub fn plan(beliefs: &Beliefs, distance_m: f64) -> Result<ArmPlan, ControlError> {
+        let params = &beliefs.control;
+        let timing = &beliefs.timing;
         check::within("task.distance_m", distance_m, 0.1, 1.2)?;
-        let task = &scenario.task;
+        let task = &beliefs.task;
         let home = Vector3::from(task.home_m);
         let intercept = Vector3::new(distance_m, 0.0, task.intercept_height_m);
         // The posture planner of `trajectory` (the same one `isochron kin plan`
@@ -484,7 +485,7 @@ impl Controller {
         }
         let posture = mp.posture();
         let duration = req.movement_time_s;
-        let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
+        let period_s = f64::from(beliefs.fri_period_ms) * 1e-3;
         let arrival_offset_s = generator_arrival_offset(
             timing,
             &home,
@@ -492,7 +493,7 @@ impl Controller {
             &posture,
             duration,
             period_s,
-            scenario.control.arrival_settle_m,
+            params.arrival_settle_m,
         )?;
         Ok(ArmPlan {
             distance_m,
@@ -709,7 +710,7 @@ impl Controller {
         let geometry = PendulumGeometry::new(
             self.model.length_m,
             plan.distance_m,
-            self.scenario.task.intercept_height_m,
+            self.intercept_height_m,
         )?;
         let mut ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
             .map_err(|e| ControlError::Setup(e.to_string()))?;
@@ -1202,20 +1203,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_new_scenario_sections_are_validated_by_name() {
-        let field = |text: &str| Scenario::from_toml_str(text).unwrap_err().to_string();
-        assert!(field("[control]\nguard_margin_deg = 100").contains("control.guard_margin_deg"));
-        assert!(field("[ekf]\nmeasurement_noise_m = -1").contains("ekf.measurement_noise_m"));
-        assert!(field("[timing]\nbogus = 1").contains("bogus"));
-        let s = Scenario::from_toml_str("[control]\nhold_time_s = 0.5").unwrap();
-        assert_eq!(s.control.hold_time_s, 0.5);
-        let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
-        assert_eq!(again, s);
-    }
-
-    #[test]
     fn planning_finds_the_generators_arrival_and_refuses_what_cannot_be_reached() {
-        let s = Scenario::default();
+        let s = Beliefs::default();
         let plan = Controller::plan(&s, 0.6).unwrap();
         assert_eq!(plan.duration_s, 1.5);
         // The Hopf generator's best-fitting ideal profile ends a few ms early.
@@ -1224,7 +1213,7 @@ mod tests {
         let err = Controller::plan(&s, 1.1).unwrap_err();
         assert!(matches!(err, ControlError::Infeasible(_)), "{err}");
         // Too fast without the shortest-feasible fallback: refused, naming the joint.
-        let mut fast = Scenario::default();
+        let mut fast = Beliefs::default();
         fast.task.movement_time_s = 0.8;
         fast.control.allow_shortest_feasible = false;
         let err = Controller::plan(&fast, 0.8).unwrap_err().to_string();
@@ -1259,7 +1248,7 @@ mod tests {
     /// Releases the ball (the coil goes off at the returned time; the ball
     /// falls `delay_s` later) and runs 2.4 s with frames whose stamps are
     /// `offset_s` late.
-    fn release_and_track(c: &mut Controller, s: &Scenario, delay_s: f64, offset_s: f64) {
+    fn release_and_track(c: &mut Controller, s: &Beliefs, delay_s: f64, offset_s: f64) {
         let (mut t, mut q) = arm_perfectly(c, &Controller::plan(s, 0.6).unwrap());
         let model = PendulumModel::from_params(&s.pendulum).unwrap();
         let geometry =
@@ -1309,7 +1298,7 @@ mod tests {
 
     #[test]
     fn the_camera_offset_is_read_from_the_release_and_forgotten_at_a_new_session() {
-        let mut s = Scenario::default();
+        let mut s = Beliefs::default();
         s.control.camera_offset_from_release = true;
         s.control.release_delay_prior_ms = 15.0;
         // Trust the releases (a tight release delay) to read the offset itself.
@@ -1344,7 +1333,7 @@ mod tests {
 
     #[test]
     fn arming_moves_home_and_a_stop_decelerates_to_rest() {
-        let s = Scenario::default();
+        let s = Beliefs::default();
         let mut c = Controller::new(&s, 0.005).unwrap();
         let plan = Controller::plan(&s, 0.5).unwrap();
         let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];

@@ -150,7 +150,7 @@ mod tests {
             let mut s = Scenario::default();
             s.robot.fri_period_ms = 5;
             s.camera.vision = crate::params::VisionMode::Model;
-            let controller = Controller::new(&s, 0.005).unwrap();
+            let controller = Controller::new(&s.beliefs(), 0.005).unwrap();
             let mut p = FriSimParams::from_robot(&s.robot);
             p.seed = 7;
             let mut sim = SimController::new(p, 0).unwrap();
@@ -202,7 +202,7 @@ mod tests {
                 s.camera.vision = crate::params::VisionMode::Model;
                 s
             };
-            let plan = Controller::plan(&s, 0.5).unwrap();
+            let plan = Controller::plan(&s.beliefs(), 0.5).unwrap();
             let t = self.ctl.last_t_s();
             self.ctl.controller_mut().arm(t, &plan).unwrap();
             self.until(4000, |r| r.ctl.controller().state() == TrialState::Armed);
@@ -246,7 +246,7 @@ mod tests {
     fn a_session_that_leaves_commanding_aborts_the_running_trial() {
         let mut r = Rig::new();
         r.commanding();
-        let plan = Controller::plan(&Scenario::default(), 0.5).unwrap();
+        let plan = Controller::plan(&Scenario::default().beliefs(), 0.5).unwrap();
         let t = r.ctl.last_t_s();
         r.ctl.controller_mut().arm(t, &plan).unwrap();
         for _ in 0..20 {
@@ -281,7 +281,7 @@ mod tests {
     fn a_silent_controller_aborts_and_an_idle_controller_is_not_a_trial_abort() {
         let mut r = Rig::new();
         r.commanding();
-        let plan = Controller::plan(&Scenario::default(), 0.5).unwrap();
+        let plan = Controller::plan(&Scenario::default().beliefs(), 0.5).unwrap();
         let t = r.ctl.last_t_s();
         r.ctl.controller_mut().arm(t, &plan).unwrap();
         r.tick();

@@ -22,8 +22,8 @@ use crate::bridge::{
     FriQuality, FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
 };
 use crate::control::{
-    AbortReason, ArmPlan, Controller, JudgeScratch, Judgement, Measurement, PlannedMotion,
-    TrialState, TrialTrace, judge_into,
+    AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, Measurement,
+    PlannedMotion, TrialState, TrialTrace, judge_into,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
@@ -1588,7 +1588,11 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
         IoRequest::Params { ack, scenario: new } => {
             let period = f64::from(new.robot.fri_period_ms) * 1e-3;
             let same_period = new.robot.fri_period_ms == scenario.robot.fri_period_ms;
-            match Controller::new(&new.beliefs(), period) {
+            let controller = new
+                .validate_but_world()
+                .map_err(ControlError::from)
+                .and_then(|()| Controller::new(&new.beliefs(), period));
+            match controller {
                 Ok(c) if same_period => {
                     *scenario = (*new).clone();
                     IoReply::Params {

@@ -260,6 +260,9 @@ impl VirtualLab {
         let period_ms = robot.fri_period_ms * robot.receive_multiplier;
         let period_s = f64::from(period_ms) * 1e-3;
         // The controller is built from the beliefs only: it never holds `[world]`.
+        // Every believed section is checked, `[camera]` and `[success]` too
+        // (the controller checks only those it reads).
+        scenario.validate_but_world().map_err(ControlError::from)?;
         let controller = Controller::new(&scenario.beliefs(), period_s)?;
         let robot_period_ns = robot.period_ns();
         let robot =

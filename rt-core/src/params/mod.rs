@@ -94,7 +94,7 @@ pub struct RobotParams {
 impl Default for RobotParams {
     fn default() -> Self {
         Self {
-            fri_period_ms: 5,
+            fri_period_ms: crate::control::beliefs::FRI_PERIOD_MS_DEFAULT,
             latency_ms: 8.0,
             latency_jitter_ms: 2.0,
         }
@@ -104,7 +104,7 @@ impl Default for RobotParams {
 impl RobotParams {
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), ParamError> {
-        check::within_u32("robot.fri_period_ms", self.fri_period_ms, 1, 100)?;
+        crate::control::beliefs::validate_fri_period_ms("robot.fri_period_ms", self.fri_period_ms)?;
         check::within("robot.latency_ms", self.latency_ms, 0.0, 200.0)?;
         check::within("robot.latency_jitter_ms", self.latency_jitter_ms, 0.0, 50.0)
     }
@@ -158,6 +158,16 @@ impl Default for Scenario {
 impl Scenario {
     /// Checks every section; the error names the first bad field.
     pub fn validate(&self) -> Result<(), ParamError> {
+        self.validate_but_world()?;
+        if let Some(w) = &self.world {
+            w.validate()?;
+        }
+        Ok(())
+    }
+
+    /// Checks every section but `[world]` (what the lab believes; the
+    /// controller checks its own part again, `control::Beliefs::validate`).
+    pub fn validate_but_world(&self) -> Result<(), ParamError> {
         if self.name.is_empty() || self.name.len() > 64 {
             return Err(ParamError::OutOfRange {
                 field: "name".to_owned(),
@@ -172,19 +182,20 @@ impl Scenario {
         self.success.validate()?;
         self.ekf.validate()?;
         self.timing.validate()?;
-        self.control.validate()?;
-        if let Some(w) = &self.world {
-            w.validate()?;
-        }
-        Ok(())
+        self.control.validate()
     }
 
-    /// What the lab believes: this scenario without `[world]` (the only view
-    /// the controller is given).
-    pub fn beliefs(&self) -> Self {
-        Self {
-            world: None,
-            ..self.clone()
+    /// What the controller is given (its only view of the lab): the sections
+    /// it reads, never `[world]`, `[camera]`, `[success]` or the robot's true
+    /// latency. `control` owns the type; `params` builds it (never the reverse).
+    pub fn beliefs(&self) -> crate::control::Beliefs {
+        crate::control::Beliefs {
+            pendulum: self.pendulum.clone(),
+            task: self.task.clone(),
+            fri_period_ms: self.robot.fri_period_ms,
+            ekf: self.ekf.clone(),
+            timing: self.timing.clone(),
+            control: self.control.clone(),
         }
     }
 

@@ -140,3 +140,54 @@ fn missing_file_is_a_clear_error() {
     let e = Scenario::from_file(Path::new("/nonexistent/x.toml")).unwrap_err();
     assert!(e.to_string().contains("/nonexistent/x.toml"));
 }
+
+#[test]
+fn the_new_scenario_sections_are_validated_by_name() {
+    let field = |text: &str| Scenario::from_toml_str(text).unwrap_err().to_string();
+    assert!(field("[control]\nguard_margin_deg = 100").contains("control.guard_margin_deg"));
+    assert!(field("[ekf]\nmeasurement_noise_m = -1").contains("ekf.measurement_noise_m"));
+    assert!(field("[timing]\nbogus = 1").contains("bogus"));
+    let s = Scenario::from_toml_str("[control]\nhold_time_s = 0.5").unwrap();
+    assert_eq!(s.control.hold_time_s, 0.5);
+    let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
+    assert_eq!(again, s);
+}
+
+#[test]
+fn the_controllers_beliefs_are_its_sections_and_refused_by_the_same_names() {
+    // The default beliefs are the default scenario's.
+    assert_eq!(
+        Scenario::default().beliefs(),
+        crate::control::Beliefs::default()
+    );
+    let mut s = Scenario::default();
+    s.robot.fri_period_ms = 7;
+    s.control.hold_time_s = 0.5;
+    s.world = Some(world::WorldParams::default());
+    let b = s.beliefs();
+    assert_eq!(b.fri_period_ms, 7);
+    assert_eq!(b.control, s.control);
+    assert_eq!(
+        (&b.pendulum, &b.task, &b.ekf, &b.timing),
+        (&s.pendulum, &s.task, &s.ekf, &s.timing)
+    );
+    // A bad section the controller reads: the same error as the scenario's.
+    for text in [
+        "[pendulum]\nlength_m = -1",
+        "[task]\nintercept_height_m = 9",
+        "[robot]\nfri_period_ms = 0",
+        "[robot]\nfri_period_ms = 101",
+        "[ekf]\nmeasurement_noise_m = -1",
+        "[control]\nhold_time_s = -1",
+    ] {
+        let s: Scenario = toml::from_str(text).unwrap();
+        let whole = s.validate().unwrap_err().to_string();
+        assert_eq!(
+            s.beliefs().validate().unwrap_err().to_string(),
+            whole,
+            "{text}"
+        );
+        let c = crate::control::Controller::new(&s.beliefs(), 0.005).unwrap_err();
+        assert_eq!(c.to_string(), whole, "{text}");
+    }
+}

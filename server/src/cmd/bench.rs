@@ -234,7 +234,7 @@ fn hopf_ns(s: &Scenario) -> anyhow::Result<Vec<f64>> {
 }
 
 fn ik_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
-    let plan = Controller::plan(s, 0.7)?;
+    let plan = Controller::plan(&s.beliefs(), 0.7)?;
     let a = nalgebra::Vector3::from(s.task.home_m);
     let mut out = Vec::with_capacity(10_000);
     let mut q = plan.posture.q_home;
