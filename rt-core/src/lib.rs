@@ -40,3 +40,6 @@ pub mod timing;
 pub mod trajectory;
 pub mod tuning;
 pub mod vision;
+
+#[cfg(test)]
+mod layering;
