@@ -88,3 +88,18 @@ fn the_whole_fri_cycle_never_allocates_in_a_trial() {
         );
     }
 }
+
+#[test]
+fn the_reality_lab_trial_driver_never_allocates_either() {
+    // The world's contact, the measured judge's recording and its verdict
+    // at the trial's end run in the FRI cycle too.
+    let mut s = Scenario::from_toml_str(include_str!("../../scenarios/reality.toml")).unwrap();
+    s.camera.vision = VisionMode::Model;
+    let c = count(&s, 1, 2);
+    assert!(c.per_state.iter().all(|&n| n > 0), "{c:?}");
+    assert_eq!(
+        c.allocations, 0,
+        "{} allocations over {} messages: {:?}",
+        c.allocations, c.messages, c.where_
+    );
+}

@@ -20,6 +20,7 @@ use std::{
 
 use anyhow::{Context, anyhow};
 use rt_core::bridge::{Snapshot, TrialResult};
+use rt_core::control::measured::MeasuredJudgement;
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::Serialize;
 use utoipa::ToSchema;
@@ -71,6 +72,11 @@ pub struct TrialRecord {
     pub scenario: Option<String>,
     /// The software revision that ran it.
     pub revision: Option<String>,
+    /// The measured judge's verdict (camera detections, measured joints,
+    /// FRI's external torques; never the ground truth), when the trial had a
+    /// committed motion: the real lab's judgement (then `success` is its
+    /// verdict), beside the true one in a simulated lab.
+    pub measured: Option<MeasuredJudgement>,
 }
 
 /// How a trial ended.
@@ -110,11 +116,13 @@ CREATE TABLE IF NOT EXISTS trials (
 );";
 
 /// Columns added after the first schema (older databases get them on open).
-const ADDED_COLUMNS: [(&str, &str); 4] = [
+const ADDED_COLUMNS: [(&str, &str); 5] = [
     ("scenario", "TEXT"),
     ("params_toml", "TEXT"),
     ("revision", "TEXT"),
     ("reason", "TEXT"),
+    // The measured judge's verdict as JSON (`MeasuredJudgement`).
+    ("measured", "TEXT"),
 ];
 
 /// What produced a trial: stored in its row when it starts.
@@ -219,7 +227,7 @@ impl Records {
                 "UPDATE trials SET status = 'done', finished_unix_s = ?2, success = ?3,
                    timing_error_ms = ?4, position_error_m = ?5, movement_time_s = ?6,
                    distance_m = ?7, prediction_time_error_ms = ?8, limit_violations = ?9,
-                   samples = ?10, reason = ?11
+                   samples = ?10, reason = ?11, measured = ?12
                  WHERE id = ?1 AND status = 'running'",
                 params![
                     id as i64,
@@ -232,7 +240,8 @@ impl Records {
                     finite(r.prediction_time_error_ms),
                     r.limit_violations as i64,
                     samples as i64,
-                    done_reason(&r)
+                    done_reason(&r),
+                    r.measured.and_then(|m| serde_json::to_string(&m).ok())
                 ],
             )?,
             TrialEnd::Aborted(reason, detail) => db.execute(
@@ -285,8 +294,22 @@ impl Records {
 
 /// A done trial's `reason`: why it was not judged, or the verdict.
 fn done_reason(r: &TrialResult) -> String {
+    // The real lab's verdict is the measured judge's (it has no ground
+    // truth, so no position error).
+    let measured = r.measured.filter(|_| r.position_error_m.is_nan());
     match r.not_judged {
         Some(why) => why.to_owned(),
+        None if measured.is_some() && r.success => {
+            "judged (measured): a hit within the tolerances".to_owned()
+        }
+        None if r.limit_violations > 0 => "judged: a miss (joint limit violated)".to_owned(),
+        None if measured.is_some_and(|m| !m.contact) => {
+            "judged (measured): a miss (no contact seen in the external joint torques)".to_owned()
+        }
+        None if measured.is_some() => format!(
+            "judged (measured): a miss (timing error {:+.1} ms outside the tolerance)",
+            measured.and_then(|m| m.timing_error_ms).unwrap_or(f64::NAN)
+        ),
         None if r.success => "judged: a hit within the tolerances".to_owned(),
         None if r.limit_violations > 0 => "judged: a miss (joint limit violated)".to_owned(),
         None => "judged: a miss (outside the tolerances)".to_owned(),
@@ -309,7 +332,7 @@ fn finite(v: f64) -> Option<f64> {
 
 const SELECT: &str = "SELECT id, status, started_unix_s, finished_unix_s, success, timing_error_ms,
     position_error_m, movement_time_s, distance_m, prediction_time_error_ms, limit_violations,
-    abort_reason, samples, scenario, revision, reason FROM trials";
+    abort_reason, samples, scenario, revision, reason, measured FROM trials";
 
 fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
     Ok(TrialRecord {
@@ -329,6 +352,9 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
         scenario: r.get(13)?,
         revision: r.get(14)?,
         reason: r.get(15)?,
+        measured: r
+            .get::<_, Option<String>>(16)?
+            .and_then(|j| serde_json::from_str(&j).ok()),
     })
 }
 

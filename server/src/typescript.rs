@@ -11,6 +11,7 @@ use rt_core::bridge::{
     FriSessionState, FriView, HopfView, HorizonPoint, LoopTiming, MagnetState, Measurement,
     PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
 };
+use rt_core::control::measured::MeasuredJudgement;
 use ts_rs::TS;
 
 use crate::{
@@ -42,6 +43,7 @@ pub fn declarations() -> String {
         AbortReason::decl(),
         AbortView::decl(),
         Snapshot::decl(),
+        MeasuredJudgement::decl(),
         TrialResult::decl(),
         Event::decl(),
         EventRecord::decl(),

@@ -12,9 +12,11 @@
 //!
 //! What a video-backed real lab can and cannot judge: the ball in a recorded
 //! video does not drop when the magnet lets go (it swings as filmed, looped),
-//! and the real lab has no ground truth, so whether the arm met the ball is
-//! not judged: a trial that finishes says `success: null` and a reason
-//! starting `not judged:`. What is tested is the lab's plumbing and its
+//! and the real lab has no ground truth: the measured judge (camera, measured
+//! joints, FRI's external torques) decides, and with no contact in the
+//! cabinet's external torques a trial that finishes is a measured miss
+//! (`success: false`, reason `judged (measured): a miss ...`, a `measured`
+//! object). What is tested is the lab's plumbing and its
 //! honesty: every trial's record finishes (done or aborted, with a reason;
 //! a trial asked for before the robot commands is refused with a clear
 //! error), the first trial after start-up runs, and killing the robot
@@ -285,9 +287,18 @@ fn assert_finished(r: &Value) {
     match status {
         "done" => {
             // A video does not drop the ball and the real lab has no ground
-            // truth: the outcome is not judged, and says so.
-            assert!(r["success"].is_null(), "{r}");
-            assert!(reason.starts_with("not judged:"), "{r}");
+            // truth: the measured judge decides, and the filmed ball never
+            // meets the tool (the cabinet reports no external torque): a
+            // miss, no contact seen. A trial without a committed motion is
+            // not judged, and says so.
+            if r["measured"].is_null() {
+                assert!(r["success"].is_null(), "{r}");
+                assert!(reason.starts_with("not judged:"), "{r}");
+            } else {
+                assert_eq!(r["measured"]["contact"], false, "{r}");
+                assert_eq!(r["success"], false, "{r}");
+                assert!(reason.starts_with("judged (measured): a miss"), "{r}");
+            }
         }
         "aborted" => {
             assert_eq!(r["success"], false, "{r}");

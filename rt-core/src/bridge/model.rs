@@ -702,6 +702,10 @@ pub struct TrialResult {
     /// Why the outcome could not be judged (`null`: judged; then `success`
     /// is the verdict). A real lab, or a trial with no motion to judge.
     pub not_judged: Option<&'static str>,
+    /// The measured judge's verdict (camera, measured joints, external
+    /// torques; no ground truth), when there was a committed motion. The
+    /// real lab's judgement; beside the true one in the simulated lab.
+    pub measured: Option<crate::control::measured::MeasuredJudgement>,
 }
 
 /// Something that happened, as the control thread reports it.

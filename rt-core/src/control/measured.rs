@@ -127,6 +127,406 @@ pub fn torque_contact(
         .map(|k| t_s[k])
 }
 
+/// The pass through `x0_m` nearest `near_s` from the detections within
+/// `half_window_s` of `near_s` and before `before_s` (those after a contact
+/// show the stopped ball): the pendulum's swing near its bottom,
+/// `x - x0 = a sin(w (t - near)) + c cos(w (t - near))` (`w` its angular
+/// frequency; the amplitude's and the angle's nonlinearity enter at fifth
+/// order in the time from the pass), fitted by least squares; the pass is
+/// the fit's root nearest `near_s`, its standard deviation by the delta
+/// method from the detections' noise `sigma_x_m`. Works on one side of the
+/// pass (a ball the tool stopped) as on both. The laterals are fitted as
+/// arcs, `l asin(x / l)` (`l = g / w^2`), so the sine of the angle does not
+/// bend the fit. `None` with fewer than
+/// `min_used` detections, a singular fit or a root more than a quarter
+/// period away.
+#[allow(clippy::too_many_arguments)]
+pub fn measured_pass_sine(
+    sightings: &[Sighting],
+    x0_m: f64,
+    near_s: f64,
+    before_s: f64,
+    omega_radps: f64,
+    half_window_s: f64,
+    sigma_x_m: f64,
+    min_used: usize,
+) -> Option<MeasuredPass> {
+    let w = omega_radps;
+    let f = fit_swing(
+        sightings,
+        x0_m,
+        near_s,
+        before_s,
+        w,
+        half_window_s,
+        min_used,
+    )?;
+    let (a, c, ss, sc, cc, det, n) = (f.a, f.c, f.ss, f.sc, f.cc, f.det, f.n);
+    // a sin(w tau) + c cos(w tau) = 0 nearest tau = 0.
+    let tau = (-c / a).atan() / w;
+    let (st, ct) = (w * tau).sin_cos();
+    let speed = w * (a * ct - c * st);
+    if speed == 0.0 || !speed.is_finite() {
+        return None;
+    }
+    // var(f) = sigma^2 g' (A'A)^-1 g with g = [sin, cos] at the root.
+    let gag = (cc * st * st - 2.0 * sc * st * ct + ss * ct * ct) / det;
+    let var = sigma_x_m * sigma_x_m * gag / (speed * speed);
+    Some(MeasuredPass {
+        t_s: near_s + tau,
+        std_s: var.max(0.0).sqrt(),
+        speed_m_s: speed,
+        used: n,
+    })
+}
+
+/// The lateral `x` (from the rest) as the arc `l asin(x / l)` of a pendulum
+/// of frequency `w` (`l = g / w^2`): the angle, not its sine, swings as a
+/// sine near the bottom.
+fn arc(x: f64, w: f64) -> f64 {
+    let l = 9.81 / (w * w);
+    l * (x / l).clamp(-1.0, 1.0).asin()
+}
+
+/// A least-squares fit of the swing near its bottom (see [`measured_pass_sine`]).
+#[derive(Debug, Clone, Copy)]
+struct SwingFit {
+    a: f64,
+    c: f64,
+    ss: f64,
+    sc: f64,
+    cc: f64,
+    det: f64,
+    n: usize,
+}
+
+fn fit_swing(
+    sightings: &[Sighting],
+    x0_m: f64,
+    near_s: f64,
+    before_s: f64,
+    w: f64,
+    half_window_s: f64,
+    min_used: usize,
+) -> Option<SwingFit> {
+    if w.is_nan() || w <= 0.0 {
+        return None;
+    }
+    // Normal equations of [sin, cos] -> x - x0.
+    let (mut ss, mut sc, mut cc, mut sx, mut cx, mut n) = (0.0, 0.0, 0.0, 0.0, 0.0, 0usize);
+    for s in sightings
+        .iter()
+        .filter(|s| (s.t_s - near_s).abs() <= half_window_s && s.t_s < before_s)
+    {
+        let (si, ci) = (w * (s.t_s - near_s)).sin_cos();
+        let x = arc(s.x_m - x0_m, w);
+        ss += si * si;
+        sc += si * ci;
+        cc += ci * ci;
+        sx += si * x;
+        cx += ci * x;
+        n += 1;
+    }
+    let det = ss * cc - sc * sc;
+    if n < min_used.max(3) || det <= 1e-12 * (ss * cc).max(1e-300) {
+        return None;
+    }
+    let a = (cc * sx - sc * cx) / det;
+    let c = (ss * cx - sc * sx) / det;
+    if a == 0.0 || !a.is_finite() || !c.is_finite() {
+        return None;
+    }
+    Some(SwingFit {
+        a,
+        c,
+        ss,
+        sc,
+        cc,
+        det,
+        n,
+    })
+}
+
+/// The time the fitted swing (as [`measured_pass_sine`] fits it) is at
+/// `x_m`, on the branch of the pass nearest `near_s`: the root of
+/// `a sin(w tau) + c cos(w tau) = x - x0` nearest the pass.
+#[allow(clippy::too_many_arguments)]
+pub fn swing_time_at(
+    sightings: &[Sighting],
+    x0_m: f64,
+    x_m: f64,
+    near_s: f64,
+    before_s: f64,
+    omega_radps: f64,
+    half_window_s: f64,
+    min_used: usize,
+) -> Option<f64> {
+    let w = omega_radps;
+    let f = fit_swing(
+        sightings,
+        x0_m,
+        near_s,
+        before_s,
+        w,
+        half_window_s,
+        min_used,
+    )?;
+    let r = f.a.hypot(f.c);
+    let level = arc(x_m - x0_m, w) / r;
+    if level.is_nan() || level.abs() >= 1.0 {
+        return None;
+    }
+    // R sin(w tau + phi) = x - x0, phi = atan2(c, a); the pass is w tau = -phi (mod pi).
+    let phi = f.c.atan2(f.a);
+    let pass = (-f.c / f.a).atan();
+    // The branch of the pass: the same sign of the slope as at the pass.
+    let wrap = |v: f64| {
+        let t = std::f64::consts::TAU;
+        v - t * ((v - pass) / t).round()
+    };
+    let (c1, c2) = (
+        wrap(level.asin() - phi),
+        wrap(std::f64::consts::PI - level.asin() - phi),
+    );
+    let slope = |u: f64| f.a * u.cos() - f.c * u.sin();
+    let same = |u: f64| slope(u).signum() == slope(pass).signum();
+    let u = [c1, c2]
+        .into_iter()
+        .filter(|&u| same(u))
+        .min_by(|x, y| (x - pass).abs().total_cmp(&(y - pass).abs()))?;
+    Some(near_s + u / w)
+}
+
+/// The measured arrival: the first time after which the measured tool point
+/// (`tool[k]` at `t_s[k]`) stays within `settle_m` of its final point, the
+/// event interpolated between the last sample outside and the next one
+/// (the physical judge's rule, `sim::world::judge`, on measurements).
+pub fn measured_arrival(t_s: &[f64], tool_m: &[[f64; 3]], settle_m: f64) -> Option<f64> {
+    let n = t_s.len().min(tool_m.len());
+    let last = *tool_m[..n].last()?;
+    let dist = |p: &[f64; 3]| {
+        ((p[0] - last[0]).powi(2) + (p[1] - last[1]).powi(2) + (p[2] - last[2]).powi(2)).sqrt()
+    };
+    Some(match tool_m[..n].iter().rposition(|p| dist(p) > settle_m) {
+        None => t_s[0],
+        Some(i) if i + 1 >= n => t_s[i],
+        Some(i) => {
+            let (da, db) = (dist(&tool_m[i]), dist(&tool_m[i + 1]));
+            let f = if da > db {
+                (da - settle_m) / (da - db)
+            } else {
+                1.0
+            };
+            t_s[i] + f.clamp(0.0, 1.0) * (t_s[i + 1] - t_s[i])
+        }
+    })
+}
+
+/// The measured judge's verdict on one trial (issue #26): from the camera's
+/// detections, the measured joint positions through the believed kinematics
+/// and tool, and FRI's external joint torques; never the ground truth.
+#[derive(
+    Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, ts_rs::TS, utoipa::ToSchema,
+)]
+pub struct MeasuredJudgement {
+    /// The ball's measured pass through the intercept point (the filter's
+    /// rest point), control clock, s.
+    pub pass_t_s: Option<f64>,
+    /// The measured arrival: the measured tool settled within the settling
+    /// radius of its final point, control clock, s.
+    pub arrival_t_s: Option<f64>,
+    /// `arrival - pass`, ms (negative: early).
+    pub timing_error_ms: Option<f64>,
+    /// Its standard deviation (the measured pass's: the camera's noise and,
+    /// anchored on a contact, the torque samples' period), ms.
+    pub timing_std_ms: Option<f64>,
+    /// Whether the external joint torques showed a contact in the pass's window.
+    pub contact: bool,
+    /// When, control clock, s.
+    pub contact_t_s: Option<f64>,
+    /// Contact seen and `|timing error|` within the tolerance.
+    pub success: bool,
+}
+
+impl MeasuredJudgement {
+    /// Whether the measurements decide the trial: a timing error was
+    /// measured, or no contact was seen (a miss whatever the timing).
+    pub fn judged(&self) -> bool {
+        self.timing_error_ms.is_some() || !self.contact
+    }
+}
+
+/// What the measured judge needs of one trial (recorded by the trial
+/// driver without allocating).
+#[derive(Debug, Clone, Copy)]
+pub struct MeasuredInputs<'a> {
+    /// Camera detections, times already moved by the camera offset the
+    /// controller compensated (ascending).
+    pub sightings: &'a [Sighting],
+    /// The measured lateral position of the ball at rest (the filter's rest
+    /// offset; 0 when not estimated), m.
+    pub rest_lateral_m: f64,
+    /// One detection's noise (the filter's belief), m.
+    pub sigma_x_m: f64,
+    /// The pendulum's angular frequency (believed or learned), rad/s.
+    pub omega_radps: f64,
+    /// The committed pass's predicted time on the control clock (camera
+    /// offset removed), s.
+    pub predicted_pass_s: f64,
+    /// Times of the measured tool points, s.
+    pub tool_t_s: &'a [f64],
+    /// Measured tool points (believed kinematics and tool), m.
+    pub tool_m: &'a [[f64; 3]],
+    /// Times of the external torque samples, s.
+    pub torque_t_s: &'a [f64],
+    /// External joint torques, N m.
+    pub torques_nm: &'a [[f64; 7]],
+    /// Settling radius of the arrival, m.
+    pub settle_m: f64,
+    /// Timing tolerance, ms.
+    pub tolerance_ms: f64,
+    /// The mean delay from a contact's beginning to its first external
+    /// torque sample (a belief about the robot's torque sensing), s.
+    pub contact_delay_s: f64,
+    /// The torque samples' period (the contact falls anywhere within one), s.
+    pub contact_period_s: f64,
+}
+
+/// Settling radius of the measured arrival (the physical judge's), m.
+pub const ARRIVAL_SETTLE_M: f64 = 0.002;
+/// Contact threshold on the external torques' departure (Euclidean norm
+/// over the joints), N m: about 5.5 standard deviations of the norm of
+/// seven joints' noise of 0.2 N m each.
+pub const CONTACT_THRESHOLD_NM: f64 = 1.5;
+/// Detections used for the pass: within this of the predicted pass, s.
+pub const PASS_HALF_WINDOW_S: f64 = 0.35;
+/// Detections this long before a seen contact are the last ones used (the
+/// contact is seen up to an FRI period late, and a frame's exposure and
+/// rolling readout span tens of ms), s.
+pub const BEFORE_CONTACT_S: f64 = 0.03;
+
+/// The measured judge: contact in the committed pass's window (a quarter
+/// period either side of the predicted pass), the ball's pass from the
+/// detections before the contact (or around the pass without one), the
+/// tool's measured arrival; success = contact seen and the timing error
+/// within the tolerance.
+pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
+    let quarter = if m.omega_radps > 0.0 {
+        0.5 * std::f64::consts::PI / m.omega_radps
+    } else {
+        0.7
+    };
+    let lo = m.predicted_pass_s - quarter;
+    let hi = m.predicted_pass_s + quarter;
+    let contact_t_s =
+        torque_contact(m.torque_t_s, m.torques_nm, lo, CONTACT_THRESHOLD_NM).filter(|&t| t <= hi);
+    // When the contact began (its first torque sample lags it).
+    let began = contact_t_s.map(|t| t - m.contact_delay_s);
+    let before = began.map_or(f64::INFINITY, |t| t - BEFORE_CONTACT_S);
+    let camera_pass = measured_pass_sine(
+        m.sightings,
+        m.rest_lateral_m,
+        m.predicted_pass_s,
+        before,
+        m.omega_radps,
+        PASS_HALF_WINDOW_S,
+        m.sigma_x_m,
+        4,
+    );
+    // A contact anchors the pass to the robot's clock: the camera's clock is
+    // only as good as the offset the controller learned for it.
+    let pass = match (began, camera_pass) {
+        (Some(tc), Some(p)) => anchored_pass(m, tc, &p, before).or(camera_pass),
+        _ => camera_pass,
+    };
+    let arrival_t_s = measured_arrival(m.tool_t_s, m.tool_m, m.settle_m);
+    let timing_error_ms = match (pass, arrival_t_s) {
+        (Some(p), Some(a)) => Some((a - p.t_s) * 1e3),
+        _ => None,
+    };
+    MeasuredJudgement {
+        pass_t_s: pass.map(|p| p.t_s),
+        arrival_t_s,
+        timing_error_ms,
+        timing_std_ms: pass
+            .filter(|_| timing_error_ms.is_some())
+            .map(|p| p.std_s * 1e3),
+        contact: contact_t_s.is_some(),
+        contact_t_s,
+        success: contact_t_s.is_some()
+            && timing_error_ms.is_some_and(|e| e.abs() <= m.tolerance_ms),
+    }
+}
+
+/// Detections of the ball stopped against the tool: from this long after
+/// the contact began (the camera's clock may be off by tens of ms) ...
+pub const STOPPED_FROM_S: f64 = 0.06;
+/// ... until this long after it, s.
+pub const STOPPED_UNTIL_S: f64 = 0.3;
+/// Largest spread of those detections of a ball at rest against the tool, m.
+pub const STOPPED_SPREAD_M: f64 = 0.01;
+
+/// The pass on the robot's clock from a contact that began at `began_s`:
+/// the ball stopped against the tool at `x_stop` (the median of the
+/// detections [`STOPPED_FROM_S`]..[`STOPPED_UNTIL_S`] after the contact);
+/// the fitted swing reaches `x_stop` at `t_stop` and the rest point at
+/// the camera's pass `p`, both on the camera's clock: the pass is
+/// `began + (p - t_stop)`, whatever the camera's clock offset. Its
+/// standard deviation: the contact's time within a torque sample's period
+/// (uniform) and `x_stop`'s noise over the speed.
+fn anchored_pass(
+    m: &MeasuredInputs<'_>,
+    began_s: f64,
+    p: &MeasuredPass,
+    before_s: f64,
+) -> Option<MeasuredPass> {
+    let mut xs = [0.0f64; 16];
+    let mut n = 0;
+    for s in m
+        .sightings
+        .iter()
+        .filter(|s| s.t_s >= began_s + STOPPED_FROM_S && s.t_s <= began_s + STOPPED_UNTIL_S)
+    {
+        if n < xs.len() {
+            xs[n] = s.x_m;
+            n += 1;
+        }
+    }
+    if n < 3 {
+        return None;
+    }
+    let xs = &mut xs[..n];
+    xs.sort_unstable_by(f64::total_cmp);
+    let x_stop = xs[n / 2];
+    // A ball that did not stay against the tool (a glancing contact, a tool
+    // still moving) anchors nothing.
+    if xs[n - 1] - xs[0] > STOPPED_SPREAD_M.max(6.0 * m.sigma_x_m) {
+        return None;
+    }
+    let t_stop = swing_time_at(
+        m.sightings,
+        m.rest_lateral_m,
+        x_stop,
+        m.predicted_pass_s,
+        before_s,
+        m.omega_radps,
+        PASS_HALF_WINDOW_S,
+        4,
+    )?;
+    let lead = p.t_s - t_stop;
+    if lead.is_nan() || lead.abs() >= 0.2 || p.speed_m_s == 0.0 {
+        return None;
+    }
+    let var = m.contact_period_s.powi(2) / 12.0
+        + (m.sigma_x_m * m.sigma_x_m / n as f64) / (p.speed_m_s * p.speed_m_s);
+    Some(MeasuredPass {
+        t_s: began_s + lead,
+        std_s: var.sqrt(),
+        speed_m_s: p.speed_m_s,
+        used: p.used,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use rand::{RngExt, SeedableRng};
@@ -206,5 +606,134 @@ mod tests {
         assert_eq!(torque_contact(&t, &hit, 0.5, 1.0), Some(t[300]));
         // No baseline before `from_s`: nothing is claimed.
         assert_eq!(torque_contact(&t, &hit, 0.0, 1.0), None);
+    }
+
+    /// The angle of a pendulum (`phi'' = -w^2 sin phi`) of amplitude
+    /// `amp` at `tau` after its pass through the bottom (RK4, 0.1 ms steps).
+    fn swing_angle(w: f64, amp: f64, tau: f64) -> f64 {
+        // Speed at the bottom from the energy: phi'^2 = 2 w^2 (1 - cos amp).
+        let mut x = [0.0, (2.0 * w * w * (1.0 - amp.cos())).sqrt()];
+        let f = |x: [f64; 2]| [x[1], -w * w * x[0].sin()];
+        let n = (tau.abs() / 1e-4).ceil().max(1.0) as usize;
+        let h = tau / n as f64;
+        for _ in 0..n {
+            let k1 = f(x);
+            let k2 = f([x[0] + 0.5 * h * k1[0], x[1] + 0.5 * h * k1[1]]);
+            let k3 = f([x[0] + 0.5 * h * k2[0], x[1] + 0.5 * h * k2[1]]);
+            let k4 = f([x[0] + h * k3[0], x[1] + h * k3[1]]);
+            x[0] += h / 6.0 * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]);
+            x[1] += h / 6.0 * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1]);
+        }
+        x[0]
+    }
+
+    /// The swing of a 1.93 m pendulum through `x0 + 0.02` (its rest) at
+    /// `t_pass`, seen at 30 fps from `t0` with `sigma` noise.
+    fn pendulum(t_pass: f64, sigma: f64, seed: u64, t0: f64) -> Vec<Sighting> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let w = (9.81f64 / 1.93).sqrt();
+        (0..60)
+            .map(|k| {
+                let t = t0 + k as f64 / 30.0;
+                let noise: f64 = (0..12).map(|_| rng.random::<f64>()).sum::<f64>() - 6.0;
+                // The pendulum's angle (phi'' = -w^2 sin phi, a large
+                // swing: 0.35 rad), its lateral l sin(phi).
+                let phi = swing_angle(w, 0.35, t - t_pass);
+                Sighting {
+                    t_s: t,
+                    x_m: 0.02 + 1.93 * phi.sin() + sigma * noise,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_sine_fit_finds_the_pass_from_one_side_within_its_uncertainty() {
+        let sigma = 0.002;
+        let w = (9.81f64 / 1.93).sqrt();
+        let (mut z2, runs) = (0.0, 200);
+        for seed in 0..runs {
+            let t_pass = 1.0 + 0.0137 * (seed % 7) as f64;
+            let s = pendulum(t_pass, sigma, seed, 0.0);
+            // Both sides, and only the detections before the pass minus 40 ms
+            // (a ball the tool stopped).
+            let both =
+                measured_pass_sine(&s, 0.02, 1.01, f64::INFINITY, w, 0.35, sigma, 4).unwrap();
+            let one = measured_pass_sine(&s, 0.02, 1.01, t_pass - 0.04, w, 0.35, sigma, 4).unwrap();
+            assert!(both.used > one.used && one.used >= 8, "{both:?} {one:?}");
+            assert!(both.std_s < 1.5e-3 && one.std_s < 3e-3, "{both:?} {one:?}");
+            for p in [both, one] {
+                let z = (p.t_s - t_pass) / p.std_s;
+                assert!(z.abs() < 5.0, "seed {seed}: {p:?} vs {t_pass}");
+            }
+            let z = (one.t_s - t_pass) / one.std_s;
+            z2 += z * z;
+        }
+        let nees = z2 / runs as f64;
+        assert!((0.6..1.6).contains(&nees), "{nees}");
+        // Too few detections: none.
+        let s = pendulum(1.0, sigma, 1, 0.0);
+        assert_eq!(
+            measured_pass_sine(&s, 0.02, 1.0, 0.75, w, 0.35, sigma, 4),
+            None
+        );
+    }
+
+    #[test]
+    fn the_arrival_is_where_the_tool_settles() {
+        let t: Vec<f64> = (0..200).map(|k| k as f64 * 0.005).collect();
+        let tool: Vec<[f64; 3]> = t
+            .iter()
+            .map(|&t| [0.5 + 0.1 * (t / 0.5).min(1.0), 0.0, 0.6])
+            .collect();
+        let a = measured_arrival(&t, &tool, 0.002).unwrap();
+        // 0.1 m over 0.5 s: within 2 mm 10 ms before the end of the ramp.
+        assert!((a - 0.49).abs() < 1e-9, "{a}");
+        assert_eq!(measured_arrival(&[], &[], 0.002), None);
+    }
+
+    #[test]
+    fn the_measured_judge_needs_contact_and_timing() {
+        let w = (9.81f64 / 1.93).sqrt();
+        let t_pass = 1.5;
+        let sightings = pendulum(t_pass, 0.002, 5, 0.5);
+        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        // The tool settles within 2 mm 2 ms early (0.1 m over 0.5 s).
+        let tool: Vec<[f64; 3]> = t
+            .iter()
+            .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
+            .collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let quiet: Vec<[f64; 7]> = t
+            .iter()
+            .map(|_| std::array::from_fn(|_| 0.2 * (rng.random::<f64>() - 0.5)))
+            .collect();
+        let mut hit = quiet.clone();
+        hit[302][1] += 4.0;
+        let m = |torques: &[[f64; 7]]| {
+            judge_measured(&MeasuredInputs {
+                sightings: &sightings,
+                rest_lateral_m: 0.02,
+                sigma_x_m: 0.002,
+                omega_radps: w,
+                predicted_pass_s: 1.49,
+                tool_t_s: &t,
+                tool_m: &tool,
+                torque_t_s: &t,
+                torques_nm: torques,
+                settle_m: 0.002,
+                tolerance_ms: 20.0,
+                contact_delay_s: 0.0,
+                contact_period_s: 0.005,
+            })
+        };
+        let j = m(&hit);
+        assert!(j.contact && j.success && j.judged(), "{j:?}");
+        assert_eq!(j.contact_t_s, Some(t[302]));
+        let e = j.timing_error_ms.unwrap();
+        assert!((e - (1.498 - t_pass) * 1e3).abs() < 5.0, "{j:?}");
+        let miss = m(&quiet);
+        assert!(!miss.contact && !miss.success && miss.judged(), "{miss:?}");
+        assert!(miss.timing_error_ms.is_some());
     }
 }

@@ -3,6 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::judge::Judgement;
+use super::measured::MeasuredJudgement;
 use super::stats::{Moments, Percentiles, wilson_ci95};
 use super::success::SuccessParams;
 
@@ -34,6 +35,11 @@ pub struct TrialRecord {
     /// only); then it decides success.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub physical: Option<PhysicalJudgement>,
+    /// The measured judge's verdict (camera detections, measured joints,
+    /// external torques; never the truth), when there was a committed
+    /// motion: the real lab's judgement; beside the true one in a simulated lab.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub measured: Option<MeasuredJudgement>,
     /// At the motion's start: predicted pass time minus the true one, milliseconds.
     pub prediction_crossing_time_error_ms: Option<f64>,
     /// At the motion's start: predicted ball position at the pass to the true one, metres.
@@ -93,6 +99,20 @@ impl TrialRecord {
                 ))
             } else {
                 None
+            }
+        } else if let Some(m) = self.measured.filter(MeasuredJudgement::judged) {
+            // No truth (the real lab): the measured judge decides.
+            if !m.contact {
+                Some("measured: no contact seen in the external torques".to_owned())
+            } else {
+                m.timing_error_ms
+                    .filter(|e| e.abs() > tol.timing_tolerance_ms)
+                    .map(|e| {
+                        format!(
+                            "measured timing_error {e:+.1} ms beyond {} ms",
+                            tol.timing_tolerance_ms
+                        )
+                    })
             }
         } else if self.failure.is_none() {
             Some("no motion to judge".to_owned())
@@ -168,6 +188,80 @@ pub struct Summary {
     /// How the camera measurements were produced (`"model"` or `"full"`), when known.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vision: Option<String>,
+    /// The measured judge against the physical one (reality-lab scenarios).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub measured: Option<MeasuredSummary>,
+}
+
+/// How the measured judge agrees with the physical judge (the truth) over
+/// the trials both judged.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct MeasuredSummary {
+    /// Trials with both verdicts.
+    pub trials: usize,
+    /// Trials whose measured success equals the true success.
+    pub agree: usize,
+    /// `agree / trials`.
+    pub agreement: f64,
+    /// |measured - true timing error| over trials with both, milliseconds.
+    pub timing_difference_ms: P50P95,
+    /// Trials with both timing errors.
+    pub timed: usize,
+    /// Trials in which the true ball touched the tool in the committed pass.
+    pub hits: usize,
+    /// Of those, the ones whose external torques showed the contact.
+    pub contact_in_hits: usize,
+    /// Trials in which it did not.
+    pub misses: usize,
+    /// Of those, the ones with a contact claimed anyway.
+    pub contact_in_misses: usize,
+}
+
+impl MeasuredSummary {
+    /// Over `records` carrying both a measured and a physical verdict;
+    /// `None` when none does.
+    pub fn of(records: &[TrialRecord]) -> Option<Self> {
+        let both: Vec<(&TrialRecord, &MeasuredJudgement, &PhysicalJudgement)> = records
+            .iter()
+            .filter_map(|r| Some((r, r.measured.as_ref()?, r.physical.as_ref()?)))
+            .collect();
+        if both.is_empty() {
+            return None;
+        }
+        let agree = both
+            .iter()
+            .filter(|(r, m, _)| r.measured_success(m) == r.success)
+            .count();
+        let diffs: Vec<f64> = both
+            .iter()
+            .filter_map(|(_, m, p)| Some((m.timing_error_ms? - p.timing_error_ms).abs()))
+            .collect();
+        let d = Percentiles::of(&diffs);
+        let hits = both.iter().filter(|(_, _, p)| p.contact_s.is_some());
+        let misses = both.iter().filter(|(_, _, p)| p.contact_s.is_none());
+        Some(Self {
+            trials: both.len(),
+            agree,
+            agreement: agree as f64 / both.len() as f64,
+            timing_difference_ms: P50P95 {
+                p50: d.p50,
+                p95: d.p95,
+            },
+            timed: diffs.len(),
+            hits: hits.clone().count(),
+            contact_in_hits: hits.filter(|(_, m, _)| m.contact).count(),
+            misses: misses.clone().count(),
+            contact_in_misses: misses.filter(|(_, m, _)| m.contact).count(),
+        })
+    }
+}
+
+impl TrialRecord {
+    /// The success rule on the measured verdict `m`: no abort, no limit
+    /// violation, the measured judge's success.
+    pub fn measured_success(&self, m: &MeasuredJudgement) -> bool {
+        self.abort_reason.is_none() && self.limit_violations == 0 && m.success
+    }
 }
 
 impl Summary {
@@ -224,6 +318,7 @@ impl Summary {
             preempted_steps: records.iter().map(|r| r.preempted_steps).sum(),
             wall_s,
             vision: None,
+            measured: MeasuredSummary::of(records),
         }
     }
 }
@@ -253,6 +348,7 @@ mod tests {
                 fit_rms_m: 0.0,
             }),
             physical: None,
+            measured: None,
             prediction_crossing_time_error_ms: Some(-2.0),
             prediction_position_error_m: Some(0.001),
             latency_estimate_ms: 8.0,

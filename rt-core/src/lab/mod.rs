@@ -2,6 +2,7 @@
 
 pub mod fri_step;
 pub mod loop_step;
+mod measured;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
 pub mod step;

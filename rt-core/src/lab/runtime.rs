@@ -373,6 +373,7 @@ impl LabRuntime {
                     calibrations: cal_tx,
                     camera: model,
                     world: false,
+                    contacts: None,
                     joints: None,
                 };
                 (Box::new(src), cal, Some(truth), Some(cal_rx))

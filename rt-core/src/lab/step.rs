@@ -15,12 +15,14 @@ use nalgebra::Vector3;
 use rtrb::{Consumer, Producer};
 
 use super::fri_step::FriLoopStep;
+use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
     FriQuality, FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
 };
+use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
     AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, Measurement,
     PlannedMotion, TrialState, TrialTrace, judge_into,
@@ -35,7 +37,7 @@ use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use crate::sim::world::judge::PhysicalJudgeError;
 use crate::sim::world::{
-    Disc, PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical,
+    Contact, Disc, PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical,
 };
 
 use crate::trajectory::profile::ProfileKind;
@@ -60,6 +62,9 @@ pub const NOT_JUDGED_REAL: &str =
 /// An abort's detail when the magnet board stopped answering mid-trial.
 pub const MAGNET_LOST: &str =
     "the magnet board stopped answering (serial link lost) while it held the ball";
+/// A real lab's trial whose measurements could not decide it.
+pub const NOT_JUDGED_MEASURED: &str =
+    "not judged: the measured judge saw a contact but no pass of the ball to time it";
 /// A finished motion the judge could not fit.
 pub const NOT_JUDGED_TRACE: &str = "not judged: the recorded motion could not be judged";
 /// A trial that ended without a committed motion.
@@ -99,6 +104,9 @@ pub struct TrialOutcome {
     pub physical: Option<PhysicalJudgement>,
     /// Why the physical judge could not judge the trial, when it could not.
     pub physical_error: Option<PhysicalJudgeError>,
+    /// The measured judge's verdict (every lab; the real lab's judgement),
+    /// when there was a committed motion.
+    pub measured: Option<MeasuredJudgement>,
     /// At commit: predicted pass time minus the nearest true pass, milliseconds.
     pub prediction_crossing_time_error_ms: Option<f64>,
     /// At commit: predicted ball centre to the true one at the predicted time, metres.
@@ -194,6 +202,9 @@ pub(crate) struct Truth {
     /// The simulated robot's true joint angles at each message (the virtual
     /// lab; `None`: the measured ones stand for them).
     pub joints: Option<Arc<crate::fri::stats::AtomicJoints>>,
+    /// The reality lab's contacts of ball and tool, for the simulated
+    /// robot's external torques (`None`: no world robot to tell).
+    pub contacts: Option<Producer<crate::sim::world::Contact>>,
 }
 
 /// The true pendulum of a simulated trial (inline: a trial starts without
@@ -301,6 +312,8 @@ pub struct LabStep {
     /// the passes' times, for the physical judge.
     world_trace: Vec<WorldSample>,
     pass_times: Vec<f64>,
+    /// What the measured judge needs (detections, measured tool, external torques).
+    measured: MeasuredTrace,
     /// The simulated robot's true joints at this message (virtual lab).
     q_true: Option<Joints>,
     outcome: Option<TrialOutcome>,
@@ -393,6 +406,8 @@ impl LabStep {
     pub(crate) fn new(controller: Controller, p: LabParts) -> Self {
         let period_s = f64::from(p.scenario.robot.fri_period_ms) * 1e-3;
         let trace_len = (TRIAL_TIMEOUT_S / period_s) as usize + 1000;
+        let sightings_len =
+            (TRIAL_TIMEOUT_S * p.scenario.camera.fps.clamp(1.0, 500.0)) as usize + 64;
         let mut snap = Snapshot::default();
         let cam = &p.scenario.camera;
         snap.camera
@@ -410,6 +425,7 @@ impl LabStep {
             passes: Vec::with_capacity(MAX_PASSES),
             world_trace: Vec::with_capacity(trace_len),
             pass_times: Vec::with_capacity(MAX_PASSES),
+            measured: MeasuredTrace::with_capacity(sightings_len, trace_len),
             q_true: None,
             outcome: None,
             snap,
@@ -627,6 +643,9 @@ impl LabStep {
             self.snap.camera.set_frame(&m);
             if !m.found {
                 continue;
+            }
+            if self.trial.is_some() {
+                self.measured.sighting(m.t_capture_s, m.lateral_m);
             }
             let inbox = &mut self.inner.step.inbox;
             if inbox.len() < inbox.capacity() {
@@ -988,6 +1007,7 @@ impl LabStep {
         self.trace.clear();
         self.passes.clear();
         self.world_trace.clear();
+        self.measured.clear();
         self.outcome = None;
         self.snap.trial_id = id;
         let counters_at_start = (
@@ -1023,6 +1043,9 @@ impl LabStep {
         let q_true = self.q_true.unwrap_or(self.q);
         let tool = self.inner.controller().tool_point(&q_true);
         let commit = self.inner.controller().commit().copied();
+        if self.trial.is_some() {
+            self.record_measured(t, commit.as_ref());
+        }
         let Some(trial) = self.trial.as_mut() else {
             return;
         };
@@ -1090,11 +1113,28 @@ impl LabStep {
                     (disc.centre_m - d.centre_m) / self.period_s
                 });
                 w.last_disc = Some(disc);
+                let v_before = w.ball.ball_velocity_mps();
                 if w.ball.collide(&disc, &v_disc, 0.0)
                     && let Some(truth) = self.p.truth.as_mut()
                 {
                     // The camera sees the ball where the tool stopped it.
                     let _ = truth.to_camera.push(TruthUpdate::World(w.ball.clone()));
+                    // The robot feels the impulse that stopped it.
+                    if let Some(contacts) = truth.contacts.as_mut() {
+                        let mass_kg = self
+                            .p
+                            .scenario
+                            .world
+                            .as_ref()
+                            .map_or(0.0, |pw| pw.pendulum.ball_mass_kg);
+                        let ball_m = w.ball.ball_position_m();
+                        let (_, n) = disc.distance(&ball_m);
+                        let _ = contacts.push(Contact {
+                            t_s: t,
+                            point_m: ball_m - n * w.world.pendulum.ball_radius_m,
+                            impulse_ns: (v_before - w.ball.ball_velocity_mps()) * mass_kg,
+                        });
+                    }
                 }
                 self.trace.push(t, tool, w.ball.ball_position_m());
                 if self.world_trace.len() < self.world_trace.capacity() {
@@ -1143,6 +1183,26 @@ impl LabStep {
         }
     }
 
+    /// The measured judge's samples of this step: the measured tool point
+    /// (the controller's kinematics and believed tool) and, until shortly
+    /// before the committed pass, the filter's rest offset and frequency.
+    fn record_measured(&mut self, t: f64, commit: Option<&crate::control::Commit>) {
+        let c = self.inner.controller();
+        let p = c.tool_point(&self.q);
+        self.measured.tool(t, [p.x, p.y, p.z]);
+        if let Some((tp, x, _)) = c.ekf().and_then(crate::ekf::Ekf::posterior)
+            && commit.is_none_or(|cm| tp < cm.predicted_pass_s - 0.2)
+        {
+            if self.p.scenario.ekf.estimate_offset {
+                self.measured.rest_lateral_m = x[crate::ekf::model::B];
+            }
+            if let Some(l) = c.trial_length_estimate_m().filter(|l| *l > 0.0) {
+                self.measured.omega_radps =
+                    Some((self.p.scenario.pendulum.gravity_mps2 / l).sqrt());
+            }
+        }
+    }
+
     /// Ends the trial: judges it on ground truth (when the lab knows the
     /// truth), keeps its [`TrialOutcome`] and, when it finished, reports it.
     fn conclude(&mut self, t: f64) {
@@ -1162,6 +1222,7 @@ impl LabStep {
             judge_error: None,
             physical: None,
             physical_error: None,
+            measured: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: c.latency().latency_s() * 1e3,
@@ -1173,6 +1234,16 @@ impl LabStep {
             t_end_s: t,
         };
         if let Some(commit) = c.commit().copied() {
+            let pendulum = &self.p.scenario.pendulum;
+            o.measured = self.measured.judge(&MeasuredBeliefs {
+                predicted_pass_s: commit.predicted_pass_s,
+                camera_offset_s: commit.camera_offset_s,
+                sigma_x_m: self.p.scenario.ekf.measurement_noise_m,
+                omega_radps: (pendulum.gravity_mps2 / pendulum.length_m.max(1e-3)).sqrt(),
+                settle_m: ARRIVAL_SETTLE_M,
+                tolerance_ms: self.p.scenario.success.timing_tolerance_ms,
+                period_s: self.period_s,
+            });
             o.latency_estimate_ms = commit.latency_s * 1e3;
             o.camera_offset_estimate_ms = Some(commit.camera_offset_s * 1e3);
             if trial.ball.is_some() {
@@ -1209,9 +1280,26 @@ impl LabStep {
             // Aborted: reported by the state change (`Aborted`).
             return;
         }
-        let j = o.judgement;
+        let mj = o.measured.filter(|m| m.judged());
+        let j = o.judgement.or_else(|| {
+            // The real lab: the measured judge's figures.
+            let m = mj.filter(|_| trial.ball.is_none())?;
+            Some(Judgement {
+                t_star_s: m.pass_t_s.unwrap_or(f64::NAN),
+                start_s: f64::NAN,
+                arrival_s: m.arrival_t_s.unwrap_or(f64::NAN),
+                timing_error_ms: m.timing_error_ms.map_or(f64::NAN, f64::abs),
+                position_error_m: f64::NAN,
+                movement_time_s: f64::NAN,
+                fit_rms_m: f64::NAN,
+            })
+        });
         let not_judged = if o.physical.is_some() || (o.physical_error.is_none() && j.is_some()) {
             None
+        } else if trial.ball.is_none() && o.measured.is_some() {
+            Some(NOT_JUDGED_MEASURED)
+        } else if trial.ball.is_none() && no_motion(&o) {
+            Some(NOT_JUDGED_NO_MOTION)
         } else if trial.ball.is_none() {
             Some(NOT_JUDGED_REAL)
         } else if no_motion(&o) {
@@ -1230,6 +1318,7 @@ impl LabStep {
             prediction_time_error_ms: o.prediction_crossing_time_error_ms.unwrap_or(f64::NAN),
             limit_violations: o.limit_violations,
             not_judged,
+            measured: o.measured,
         };
         self.snap.counters.trials += 1;
         self.p.bridge.emit(EventRecord {
@@ -1453,6 +1542,11 @@ impl ControlStep for LabStep {
         if let Some(q) = m.measured_joint_position_rad {
             self.q = q;
         }
+        if self.trial.is_some()
+            && let Some(tau) = m.external_torque_nm
+        {
+            self.measured.torques(t, tau);
+        }
         if let Some(q) = self.p.truth.as_ref().and_then(|t| t.joints.as_ref()) {
             let q = q.load();
             self.q_true = q.iter().all(|v| v.is_finite()).then_some(q);
@@ -1510,6 +1604,13 @@ impl TrialOutcome {
     /// the control thread knows (no abort, no limit violation, both errors
     /// within tolerance), without building the record.
     pub fn succeeded(&self, tol: &crate::control::SuccessParams) -> bool {
+        if self.physical.is_none()
+            && self.judgement.is_none()
+            && let Some(m) = self.measured.filter(MeasuredJudgement::judged)
+        {
+            // The real lab: the measured judge decides.
+            return self.final_state == TrialState::Done && self.limit_violations == 0 && m.success;
+        }
         if let Some(p) = &self.physical {
             // The reality lab: the physical judge decides (as
             // `TrialRecord::decide`).

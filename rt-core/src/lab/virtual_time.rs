@@ -45,7 +45,7 @@ use crate::sim::camera::{SimCamera, SimVision};
 use crate::sim::kuka::controller::WorldRobot;
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::sim::magnet::{Switch, VirtualMagnet};
-use crate::sim::world::{LatencyModel, World, WorldCamera, WorldJoints};
+use crate::sim::world::{Contact, LatencyModel, World, WorldCamera, WorldJoints};
 #[cfg(feature = "opencv")]
 use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
@@ -190,6 +190,8 @@ pub struct VirtualLab {
     t_ns: u64,
     seed: u64,
     truth: TruthView,
+    /// Contacts of ball and tool from the trial driver, for the robot.
+    contacts: rtrb::Consumer<Contact>,
     calibrations: Consumer<SwingPlaneCalibration>,
     camera: Camera,
     measurements: Producer<Measurement>,
@@ -299,6 +301,7 @@ impl VirtualLab {
         let (req_tx, req_rx) = rtrb::RingBuffer::<IoRequest>::new(16);
         let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
         let (truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
+        let (contact_tx, contact_rx) = rtrb::RingBuffer::<Contact>::new(64);
         let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
         let true_joints = std::sync::Arc::new(crate::fri::stats::AtomicJoints::default());
         let session = client.stats().clone();
@@ -325,6 +328,7 @@ impl VirtualLab {
                     camera: model,
                     world: scenario.world.is_some(),
                     joints: Some(std::sync::Arc::clone(&true_joints)),
+                    contacts: Some(contact_tx),
                 }),
                 calibration,
                 // No operator in virtual time: no dead-man.
@@ -341,6 +345,7 @@ impl VirtualLab {
             t_ns: 0,
             seed,
             truth: TruthView::new(truth_rx),
+            contacts: contact_rx,
             calibrations: cal_rx,
             camera,
             measurements: meas_tx,
@@ -463,6 +468,7 @@ impl VirtualLab {
             planned_movement_time_s: self.scenario.task.movement_time_s,
             judgement: None,
             physical: None,
+            measured: None,
             prediction_crossing_time_error_ms: None,
             prediction_position_error_m: None,
             latency_estimate_ms: self.controller().latency().latency_s() * 1e3,
@@ -572,6 +578,7 @@ impl VirtualLab {
             rec.failure = Some(format!("not judged: {e}"));
         }
         rec.physical = o.physical;
+        rec.measured = o.measured;
         if let Some(e) = o.physical_error
             && rec.failure.is_none()
         {
@@ -625,9 +632,15 @@ impl VirtualLab {
             step,
             true_joints,
             input_log,
+            contacts,
             ..
         } = self;
         client.poll(now, step);
+        // The contacts of the trial driver's last step (the reality lab's
+        // ball against the tool) reach the robot's torque sensing.
+        while let Ok(c) = contacts.pop() {
+            robot.contact(c);
+        }
         let mut datagram = [0u8; MAX_DATAGRAM_BYTES];
         let received = robot.tick(now).map(|b| {
             let n = b.len().min(MAX_DATAGRAM_BYTES);
@@ -775,10 +788,11 @@ impl VirtualLab {
             self.seed ^ world.session.session.wrapping_mul(0x9E37_79B9_7F4A_7C15),
         );
         joints.set_interpolation_s(self.period_ns as f64 * 1e-9);
-        self.robot.set_world(Some(WorldRobot {
-            latency: LatencyModel::from_session(&world.session, self.t_s()),
+        self.robot.set_world(Some(WorldRobot::new(
+            LatencyModel::from_session(&world.session, self.t_s()),
             joints,
-        }));
+            self.seed ^ world.session.session.wrapping_mul(0xD1B5_4A32_D192_ED03),
+        )));
     }
 
     /// A trial's own random streams (camera, magnet) from its seed, and the
@@ -1197,5 +1211,87 @@ mod tests {
         robot.latency_ms = 500.0;
         let e = VirtualLab::with_robot(&s, 1, robot).unwrap_err();
         assert!(e.to_string().contains("fri_sim.latency_ms"), "{e}");
+    }
+
+    /// The reality lab's scenario, camera measurements from the model.
+    fn reality_lab() -> Scenario {
+        let mut s =
+            Scenario::from_toml_str(include_str!("../../../scenarios/reality.toml")).unwrap();
+        s.camera.vision = crate::params::VisionMode::Model;
+        s
+    }
+
+    #[test]
+    fn the_measured_judge_agrees_with_the_physical_one_in_the_reality_lab() {
+        // Twenty trials as the lab runs them, then four whose true intercept
+        // point is 6 cm off the believed one in height (the ball passes
+        // above the tool: misses by construction).
+        let s = reality_lab();
+        let mut lab = VirtualLab::new(&s, 1).unwrap();
+        let mut recs: Vec<TrialRecord> = (0..20).map(|i| lab.run_trial(i)).collect();
+        let mut off = reality_lab();
+        if let Some(w) = off.world.as_mut() {
+            w.geometry.intercept_error_m = crate::params::RangeParam::fixed(0.06);
+        }
+        let mut lab = VirtualLab::new(&off, 2).unwrap();
+        let misses: Vec<TrialRecord> = (0..4).map(|i| lab.run_trial(i)).collect();
+        let (mut agree, mut close, mut hits, mut seen) = (0, 0, 0, 0);
+        for r in &recs {
+            let (Some(m), Some(p)) = (r.measured, r.physical) else {
+                panic!("a trial without both verdicts: {r:?}");
+            };
+            agree += usize::from(r.measured_success(&m) == r.success);
+            if let Some(e) = m.timing_error_ms
+                && (e - p.timing_error_ms).abs() <= 3.0
+            {
+                close += 1;
+            }
+            if p.contact_s.is_some() {
+                hits += 1;
+                seen += usize::from(m.contact);
+            } else {
+                assert!(!m.contact, "a contact claimed in a miss: {r:?}");
+            }
+            // The torques show the contact after it began, within a few periods.
+            if let (Some(tm), Some(tp)) = (m.contact_t_s, p.contact_s) {
+                assert!(tm >= tp - 1e-9 && tm < tp + 0.02, "{tm} vs {tp}: {r:?}");
+            }
+        }
+        let table: String = recs
+            .iter()
+            .filter_map(|r| Some((r, r.measured?, r.physical?)))
+            .map(|(r, m, p)| {
+                format!(
+                    "\n{}: true {:+.2} ms contact {:?} | measured {:?} +- {:?} ms contact {:?} \
+                     pass {:?} vs t* {:.4} | offset {:?}",
+                    r.trial,
+                    p.timing_error_ms,
+                    p.contact_s,
+                    m.timing_error_ms,
+                    m.timing_std_ms,
+                    m.contact_t_s,
+                    m.pass_t_s,
+                    p.t_star_s,
+                    r.camera_offset_estimate_ms,
+                )
+            })
+            .collect();
+        assert!(agree >= 19, "success agrees in {agree} of 20: {table}");
+        assert!(close >= 14, "timing within 3 ms in {close} of 20: {table}");
+        assert!(
+            hits >= 10 && seen == hits,
+            "contact seen in {seen} of {hits} hits"
+        );
+        for r in &misses {
+            let (Some(m), Some(p)) = (r.measured, r.physical) else {
+                panic!("a trial without both verdicts: {r:?}");
+            };
+            assert!(p.contact_s.is_none(), "not a miss: {r:?}");
+            assert!(!m.contact && !m.success && !r.success, "{r:?}");
+        }
+        recs.extend(misses);
+        let sum = crate::control::report::MeasuredSummary::of(&recs).unwrap();
+        assert_eq!(sum.trials, 24);
+        assert_eq!(sum.contact_in_misses, 0);
     }
 }

@@ -170,6 +170,7 @@ impl Machine {
                                 prediction_time_error_ms: 0.7,
                                 limit_violations: 0,
                                 not_judged: None,
+                                measured: None,
                             },
                         },
                     });

@@ -413,6 +413,39 @@ camera: CameraView,
  */
 abort: AbortView, };
 
+export type MeasuredJudgement = { 
+/**
+ * The ball's measured pass through the intercept point (the filter's
+ * rest point), control clock, s.
+ */
+pass_t_s: number | null, 
+/**
+ * The measured arrival: the measured tool settled within the settling
+ * radius of its final point, control clock, s.
+ */
+arrival_t_s: number | null, 
+/**
+ * `arrival - pass`, ms (negative: early).
+ */
+timing_error_ms: number | null, 
+/**
+ * Its standard deviation (the measured pass's: the camera's noise and,
+ * anchored on a contact, the torque samples' period), ms.
+ */
+timing_std_ms: number | null, 
+/**
+ * Whether the external joint torques showed a contact in the pass's window.
+ */
+contact: boolean, 
+/**
+ * When, control clock, s.
+ */
+contact_t_s: number | null, 
+/**
+ * Contact seen and `|timing error|` within the tolerance.
+ */
+success: boolean, };
+
 export type TrialResult = { 
 /**
  * Position and timing within tolerance, no limit violation or abort.
@@ -454,7 +487,13 @@ limit_violations: number,
  * Why the outcome could not be judged (`null`: judged; then `success`
  * is the verdict). A real lab, or a trial with no motion to judge.
  */
-not_judged: string | null, };
+not_judged: string | null, 
+/**
+ * The measured judge's verdict (camera, measured joints, external
+ * torques; no ground truth), when there was a committed motion. The
+ * real lab's judgement; beside the true one in the simulated lab.
+ */
+measured: MeasuredJudgement | null, };
 
 export type Event = { "kind": "state_changed", 
 /**
@@ -729,4 +768,11 @@ scenario: string | null,
 /**
  * The software revision that ran it.
  */
-revision: string | null, };
+revision: string | null, 
+/**
+ * The measured judge's verdict (camera detections, measured joints,
+ * FRI's external torques; never the ground truth), when the trial had a
+ * committed motion: the real lab's judgement (then `success` is its
+ * verdict), beside the true one in a simulated lab.
+ */
+measured: MeasuredJudgement | null, };

@@ -619,6 +619,50 @@ pub struct WorldRobot {
     pub latency: crate::sim::world::LatencyModel,
     /// The true joints.
     pub joints: crate::sim::world::WorldJoints,
+    /// The latest contact of ball and tool (its force pulse), if any.
+    contact: Option<crate::sim::world::Contact>,
+    /// When the previous monitoring message left, ns (the period the
+    /// external torques average over).
+    last_tick_ns: Option<u64>,
+    /// The external torques' sensing noise.
+    torque_rng: ChaCha8Rng,
+}
+
+impl WorldRobot {
+    /// The reality lab's robot: `latency`, `joints`, and the external
+    /// torques' noise drawn from `seed`.
+    pub fn new(
+        latency: crate::sim::world::LatencyModel,
+        joints: crate::sim::world::WorldJoints,
+        seed: u64,
+    ) -> Self {
+        Self {
+            latency,
+            joints,
+            contact: None,
+            last_tick_ns: None,
+            torque_rng: ChaCha8Rng::seed_from_u64(seed),
+        }
+    }
+
+    /// The external joint torques of the message leaving at `now_ns` for
+    /// joint angles `q` (`sim::world::contact`).
+    fn external_torques(&mut self, q: &Joints, now_ns: u64) -> Joints {
+        let b = now_ns as f64 * 1e-9;
+        let a = self.last_tick_ns.map_or(b, |t| t as f64 * 1e-9);
+        self.last_tick_ns = Some(now_ns);
+        let tau = crate::sim::world::contact::external_torques(
+            q,
+            self.contact.as_ref(),
+            a,
+            b,
+            &mut self.torque_rng,
+        );
+        if self.contact.is_some_and(|c| c.over_by(a)) {
+            self.contact = None;
+        }
+        tau
+    }
 }
 
 impl SimController {
@@ -793,6 +837,15 @@ impl SimController {
         self.world.as_ref()
     }
 
+    /// The ball met the tool (the reality lab): the contact's force pulse
+    /// shows in the external torques of the next messages. Ignored without
+    /// the reality lab's robot.
+    pub fn contact(&mut self, contact: crate::sim::world::Contact) {
+        if let Some(w) = self.world.as_mut() {
+            w.contact = Some(contact);
+        }
+    }
+
     fn integrate(&mut self, dt_ns: u64) {
         if let Some(w) = self.world.as_mut() {
             let trip = w.joints.integrate(&self.setpoint, dt_ns as f64 * 1e-9);
@@ -923,6 +976,11 @@ impl SimController {
                 *v += self.rng.random_range(-noise..=noise);
             }
         }
+        let q_true = self.q;
+        let external: Joints = match self.world.as_mut() {
+            Some(w) => w.external_torques(&q_true, now_ns),
+            None => [0.0; JOINTS],
+        };
         let torque: Joints = std::array::from_fn(|i| {
             (SERVO_STIFFNESS_NM_PER_RAD * (self.setpoint[i] - self.q[i]))
                 .clamp(-TORQUE_LIMIT_NM[i], TORQUE_LIMIT_NM[i])
@@ -947,8 +1005,9 @@ impl SimController {
             measured_torque_nm: Some(torque),
             commanded_joint_position_rad: Some(self.setpoint),
             commanded_torque_nm: Some(torque),
-            external_torque_nm: Some([0.0; JOINTS]),
-            // FRI 2.7's estimated external force: no contact is simulated
+            // The reality lab's contact and sensing noise; zero otherwise.
+            external_torque_nm: Some(external),
+            // FRI 2.7's estimated external force (Cartesian): not simulated
             // (the encoder writes it for 2.7 only).
             external_force: Some([0.0; 6]),
             timestamp: Some(UnixTime::from_ns(self.epoch_unix_ns + now_ns)),

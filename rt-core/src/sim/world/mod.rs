@@ -1,6 +1,7 @@
 #![doc = include_str!("README.md")]
 
 pub mod camera;
+pub mod contact;
 pub mod dynamics;
 pub mod geometry;
 pub mod judge;
@@ -10,6 +11,7 @@ pub mod pendulum;
 pub mod robot;
 
 pub use camera::{FrameTiming, Sighting, WorldCamera};
+pub use contact::Contact;
 pub use dynamics::{ArmDynamics, TorqueTrip, check_torques};
 pub use geometry::{TrueArm, true_intercept_m};
 pub use judge::{PhysicalJudgement, WorldSample, judge_physical};
