@@ -127,9 +127,28 @@ pub fn torque_contact(
         .map(|k| t_s[k])
 }
 
-/// The pass through `x0_m` nearest `near_s` from the detections within
-/// `half_window_s` of `near_s` and before `before_s` (those after a contact
-/// show the stopped ball): the pendulum's swing near its bottom,
+/// Which detections a swing fit takes and how: those within `half_window_s`
+/// of `near_s` and before `before_s` (those after a contact show the stopped
+/// ball), around the rest lateral `x0_m`, at the angular frequency
+/// `omega_radps`; at least `min_used` of them (and 3).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SwingWindow {
+    /// The rest lateral the pass goes through, metres.
+    pub x0_m: f64,
+    /// The time the pass is expected near, seconds.
+    pub near_s: f64,
+    /// Detections at or after this time are left out, seconds.
+    pub before_s: f64,
+    /// The pendulum's angular frequency, rad/s.
+    pub omega_radps: f64,
+    /// Half the window around `near_s`, seconds.
+    pub half_window_s: f64,
+    /// Fewest detections fitted.
+    pub min_used: usize,
+}
+
+/// The pass through `x0_m` nearest `near_s` from the detections of the
+/// window `win` ([`SwingWindow`]): the pendulum's swing near its bottom,
 /// `x - x0 = a sin(w (t - near)) + c cos(w (t - near))` (`w` its angular
 /// frequency; the amplitude's and the angle's nonlinearity enter at fifth
 /// order in the time from the pass), fitted by least squares; the pass is
@@ -140,27 +159,13 @@ pub fn torque_contact(
 /// bend the fit. `None` with fewer than
 /// `min_used` detections, a singular fit or a root more than a quarter
 /// period away.
-#[allow(clippy::too_many_arguments)]
 pub fn measured_pass_sine(
     sightings: &[Sighting],
-    x0_m: f64,
-    near_s: f64,
-    before_s: f64,
-    omega_radps: f64,
-    half_window_s: f64,
+    win: &SwingWindow,
     sigma_x_m: f64,
-    min_used: usize,
 ) -> Option<MeasuredPass> {
-    let w = omega_radps;
-    let f = fit_swing(
-        sightings,
-        x0_m,
-        near_s,
-        before_s,
-        w,
-        half_window_s,
-        min_used,
-    )?;
+    let w = win.omega_radps;
+    let f = fit_swing(sightings, win)?;
     let (a, c, ss, sc, cc, det, n) = (f.a, f.c, f.ss, f.sc, f.cc, f.det, f.n);
     // a sin(w tau) + c cos(w tau) = 0 nearest tau = 0.
     let tau = (-c / a).atan() / w;
@@ -173,7 +178,7 @@ pub fn measured_pass_sine(
     let gag = (cc * st * st - 2.0 * sc * st * ct + ss * ct * ct) / det;
     let var = sigma_x_m * sigma_x_m * gag / (speed * speed);
     Some(MeasuredPass {
-        t_s: near_s + tau,
+        t_s: win.near_s + tau,
         std_s: var.max(0.0).sqrt(),
         speed_m_s: speed,
         used: n,
@@ -200,15 +205,15 @@ struct SwingFit {
     n: usize,
 }
 
-fn fit_swing(
-    sightings: &[Sighting],
-    x0_m: f64,
-    near_s: f64,
-    before_s: f64,
-    w: f64,
-    half_window_s: f64,
-    min_used: usize,
-) -> Option<SwingFit> {
+fn fit_swing(sightings: &[Sighting], win: &SwingWindow) -> Option<SwingFit> {
+    let SwingWindow {
+        x0_m,
+        near_s,
+        before_s,
+        omega_radps: w,
+        half_window_s,
+        min_used,
+    } = *win;
     if w.is_nan() || w <= 0.0 {
         return None;
     }
@@ -250,27 +255,9 @@ fn fit_swing(
 /// The time the fitted swing (as [`measured_pass_sine`] fits it) is at
 /// `x_m`, on the branch of the pass nearest `near_s`: the root of
 /// `a sin(w tau) + c cos(w tau) = x - x0` nearest the pass.
-#[allow(clippy::too_many_arguments)]
-pub fn swing_time_at(
-    sightings: &[Sighting],
-    x0_m: f64,
-    x_m: f64,
-    near_s: f64,
-    before_s: f64,
-    omega_radps: f64,
-    half_window_s: f64,
-    min_used: usize,
-) -> Option<f64> {
-    let w = omega_radps;
-    let f = fit_swing(
-        sightings,
-        x0_m,
-        near_s,
-        before_s,
-        w,
-        half_window_s,
-        min_used,
-    )?;
+pub fn swing_time_at(sightings: &[Sighting], win: &SwingWindow, x_m: f64) -> Option<f64> {
+    let (w, x0_m) = (win.omega_radps, win.x0_m);
+    let f = fit_swing(sightings, win)?;
     let r = f.a.hypot(f.c);
     let level = arc(x_m - x0_m, w) / r;
     if level.is_nan() || level.abs() >= 1.0 {
@@ -294,7 +281,7 @@ pub fn swing_time_at(
         .into_iter()
         .filter(|&u| same(u))
         .min_by(|x, y| (x - pass).abs().total_cmp(&(y - pass).abs()))?;
-    Some(near_s + u / w)
+    Some(win.near_s + u / w)
 }
 
 /// The measured arrival: the first time after which the measured tool point
@@ -405,6 +392,19 @@ pub const PASS_HALF_WINDOW_S: f64 = 0.35;
 /// rolling readout span tens of ms), s.
 pub const BEFORE_CONTACT_S: f64 = 0.03;
 
+/// The detections the judge fits the pass to: around the predicted pass, at the
+/// believed frequency, before `before_s`, at least 4.
+fn pass_window(m: &MeasuredInputs<'_>, before_s: f64) -> SwingWindow {
+    SwingWindow {
+        x0_m: m.rest_lateral_m,
+        near_s: m.predicted_pass_s,
+        before_s,
+        omega_radps: m.omega_radps,
+        half_window_s: PASS_HALF_WINDOW_S,
+        min_used: 4,
+    }
+}
+
 /// The measured judge: contact in the committed pass's window (a quarter
 /// period either side of the predicted pass), the ball's pass from the
 /// detections before the contact (or around the pass without one), the
@@ -423,16 +423,7 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
     // When the contact began (its first torque sample lags it).
     let began = contact_t_s.map(|t| t - m.contact_delay_s);
     let before = began.map_or(f64::INFINITY, |t| t - BEFORE_CONTACT_S);
-    let camera_pass = measured_pass_sine(
-        m.sightings,
-        m.rest_lateral_m,
-        m.predicted_pass_s,
-        before,
-        m.omega_radps,
-        PASS_HALF_WINDOW_S,
-        m.sigma_x_m,
-        4,
-    );
+    let camera_pass = measured_pass_sine(m.sightings, &pass_window(m, before), m.sigma_x_m);
     // A contact anchors the pass to the robot's clock: the camera's clock is
     // only as good as the offset the controller learned for it.
     let pass = match (began, camera_pass) {
@@ -503,16 +494,7 @@ fn anchored_pass(
     if xs[n - 1] - xs[0] > STOPPED_SPREAD_M.max(6.0 * m.sigma_x_m) {
         return None;
     }
-    let t_stop = swing_time_at(
-        m.sightings,
-        m.rest_lateral_m,
-        x_stop,
-        m.predicted_pass_s,
-        before_s,
-        m.omega_radps,
-        PASS_HALF_WINDOW_S,
-        4,
-    )?;
+    let t_stop = swing_time_at(m.sightings, &pass_window(m, before_s), x_stop)?;
     let lead = p.t_s - t_stop;
     if lead.is_nan() || lead.abs() >= 0.2 || p.speed_m_s == 0.0 {
         return None;
@@ -651,15 +633,22 @@ mod tests {
     fn the_sine_fit_finds_the_pass_from_one_side_within_its_uncertainty() {
         let sigma = 0.002;
         let w = (9.81f64 / 1.93).sqrt();
+        let window = |near_s: f64, before_s: f64| SwingWindow {
+            x0_m: 0.02,
+            near_s,
+            before_s,
+            omega_radps: w,
+            half_window_s: 0.35,
+            min_used: 4,
+        };
         let (mut z2, runs) = (0.0, 200);
         for seed in 0..runs {
             let t_pass = 1.0 + 0.0137 * (seed % 7) as f64;
             let s = pendulum(t_pass, sigma, seed, 0.0);
             // Both sides, and only the detections before the pass minus 40 ms
             // (a ball the tool stopped).
-            let both =
-                measured_pass_sine(&s, 0.02, 1.01, f64::INFINITY, w, 0.35, sigma, 4).unwrap();
-            let one = measured_pass_sine(&s, 0.02, 1.01, t_pass - 0.04, w, 0.35, sigma, 4).unwrap();
+            let both = measured_pass_sine(&s, &window(1.01, f64::INFINITY), sigma).unwrap();
+            let one = measured_pass_sine(&s, &window(1.01, t_pass - 0.04), sigma).unwrap();
             assert!(both.used > one.used && one.used >= 8, "{both:?} {one:?}");
             assert!(both.std_s < 1.5e-3 && one.std_s < 3e-3, "{both:?} {one:?}");
             for p in [both, one] {
@@ -673,10 +662,7 @@ mod tests {
         assert!((0.6..1.6).contains(&nees), "{nees}");
         // Too few detections: none.
         let s = pendulum(1.0, sigma, 1, 0.0);
-        assert_eq!(
-            measured_pass_sine(&s, 0.02, 1.0, 0.75, w, 0.35, sigma, 4),
-            None
-        );
+        assert_eq!(measured_pass_sine(&s, &window(1.0, 0.75), sigma), None);
     }
 
     #[test]
