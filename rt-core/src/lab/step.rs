@@ -20,7 +20,7 @@ use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
-    FriQuality, FriSessionState, HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult,
+    FriQuality, FriSessionState, HorizonPoint, Refusal, Snapshot, TrialResult,
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
@@ -698,10 +698,10 @@ impl LabStep {
         #[cfg(feature = "serial")]
         if let Some(v) = self.p.magnet.as_ref().and_then(MagnetHandle::try_view) {
             self.snap.magnet = match (v.link, v.magnet) {
-                (view::LinkState::Lost, _) => MagnetState::Fault,
-                (_, view::MagnetState::On) => MagnetState::On,
-                (_, view::MagnetState::Off) => MagnetState::Off,
-                (_, view::MagnetState::Unknown) => MagnetState::Unknown,
+                (view::LinkState::Lost, _) => bridge::MagnetState::Fault,
+                (_, view::MagnetState::On) => bridge::MagnetState::On,
+                (_, view::MagnetState::Off) => bridge::MagnetState::Off,
+                (_, view::MagnetState::Unknown) => bridge::MagnetState::Unknown,
             };
             if let Some(tr) = self.trial.as_mut()
                 && v.magnet == view::MagnetState::On
