@@ -19,7 +19,7 @@ use std::{
 };
 
 use anyhow::{Context, anyhow};
-use rt_core::bridge::{Snapshot, TrialResult};
+use rt_core::bridge::{JudgedBy, Snapshot, TrialResult};
 use rt_core::control::measured::MeasuredJudgement;
 use rusqlite::{Connection, OptionalExtension, params};
 use serde::Serialize;
@@ -77,6 +77,13 @@ pub struct TrialRecord {
     /// committed motion: the real lab's judgement (then `success` is its
     /// verdict), beside the true one in a simulated lab.
     pub measured: Option<MeasuredJudgement>,
+    /// Which judge gave `success` and the figures above: `truth` (a truthful
+    /// simulated world's ground truth), `physical` (the reality lab's true
+    /// world) or `measured` (the measured judge: a real lab; then
+    /// `timing_error_ms` is `|measured.timing_error_ms|` and
+    /// `position_error_m` null). Null while running, when aborted or not
+    /// judged, and for trials recorded before it was stored.
+    pub judged_by: Option<JudgedBy>,
 }
 
 /// How a trial ended.
@@ -116,13 +123,15 @@ CREATE TABLE IF NOT EXISTS trials (
 );";
 
 /// Columns added after the first schema (older databases get them on open).
-const ADDED_COLUMNS: [(&str, &str); 5] = [
+const ADDED_COLUMNS: [(&str, &str); 6] = [
     ("scenario", "TEXT"),
     ("params_toml", "TEXT"),
     ("revision", "TEXT"),
     ("reason", "TEXT"),
     // The measured judge's verdict as JSON (`MeasuredJudgement`).
     ("measured", "TEXT"),
+    // Which judge gave the verdict (`JudgedBy::as_str`).
+    ("judged_by", "TEXT"),
 ];
 
 /// What produced a trial: stored in its row when it starts.
@@ -227,7 +236,7 @@ impl Records {
                 "UPDATE trials SET status = 'done', finished_unix_s = ?2, success = ?3,
                    timing_error_ms = ?4, position_error_m = ?5, movement_time_s = ?6,
                    distance_m = ?7, prediction_time_error_ms = ?8, limit_violations = ?9,
-                   samples = ?10, reason = ?11, measured = ?12
+                   samples = ?10, reason = ?11, measured = ?12, judged_by = ?13
                  WHERE id = ?1 AND status = 'running'",
                 params![
                     id as i64,
@@ -241,7 +250,8 @@ impl Records {
                     r.limit_violations as i64,
                     samples as i64,
                     done_reason(&r),
-                    r.measured.and_then(|m| serde_json::to_string(&m).ok())
+                    r.measured.and_then(|m| serde_json::to_string(&m).ok()),
+                    r.judged_by.map(JudgedBy::as_str)
                 ],
             )?,
             TrialEnd::Aborted(reason, detail) => db.execute(
@@ -292,11 +302,20 @@ impl Records {
     }
 }
 
+/// A finished trial's `reason`, as its record stores it.
+pub fn end_reason(end: &TrialEnd) -> String {
+    match end {
+        TrialEnd::Done(r) => done_reason(r),
+        TrialEnd::Aborted(reason, detail) => abort_sentence(*reason, detail),
+    }
+}
+
 /// A done trial's `reason`: why it was not judged, or the verdict.
 fn done_reason(r: &TrialResult) -> String {
-    // The real lab's verdict is the measured judge's (it has no ground
-    // truth, so no position error).
-    let measured = r.measured.filter(|_| r.position_error_m.is_nan());
+    // The real lab's verdict is the measured judge's (it has no ground truth).
+    let measured = r
+        .measured
+        .filter(|_| r.judged_by == Some(JudgedBy::Measured));
     match r.not_judged {
         Some(why) => why.to_owned(),
         None if measured.is_some() && r.success => {
@@ -332,7 +351,7 @@ fn finite(v: f64) -> Option<f64> {
 
 const SELECT: &str = "SELECT id, status, started_unix_s, finished_unix_s, success, timing_error_ms,
     position_error_m, movement_time_s, distance_m, prediction_time_error_ms, limit_violations,
-    abort_reason, samples, scenario, revision, reason, measured FROM trials";
+    abort_reason, samples, scenario, revision, reason, measured, judged_by FROM trials";
 
 fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
     Ok(TrialRecord {
@@ -355,6 +374,10 @@ fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<TrialRecord> {
         measured: r
             .get::<_, Option<String>>(16)?
             .and_then(|j| serde_json::from_str(&j).ok()),
+        judged_by: r
+            .get::<_, Option<String>>(17)?
+            .as_deref()
+            .and_then(JudgedBy::parse),
     })
 }
 
@@ -667,6 +690,95 @@ mod tests {
         );
         assert_eq!(list[1].samples, 7);
         assert_eq!(r.get(999).unwrap(), None);
+    }
+
+    fn result(judged_by: Option<JudgedBy>, measured: Option<MeasuredJudgement>) -> TrialResult {
+        TrialResult {
+            success: false,
+            timing_error_ms: 31.0,
+            position_error_m: 0.004,
+            movement_time_s: 1.5,
+            distance_m: 0.6,
+            t_star_s: 10.0,
+            arrival_t_s: 10.031,
+            prediction_time_error_ms: 0.5,
+            limit_violations: 0,
+            not_judged: None,
+            measured,
+            judged_by,
+        }
+    }
+
+    #[test]
+    fn the_verdicts_judge_is_stored_and_an_older_database_gains_its_column() {
+        let dir = tmp("judged_by");
+        std::fs::create_dir_all(&dir).unwrap();
+        // A database from before `judged_by` (the schema and the columns
+        // added up to `measured`), with a done trial in it.
+        {
+            let db = Connection::open(dir.join("trials.sqlite")).unwrap();
+            db.execute_batch(SCHEMA).unwrap();
+            for (name, ty) in &ADDED_COLUMNS[3..5] {
+                db.execute_batch(&format!("ALTER TABLE trials ADD COLUMN {name} {ty}"))
+                    .unwrap();
+            }
+            db.execute_batch(
+                "INSERT INTO trials (status, started_unix_s, success, reason)
+                 VALUES ('done', 1.0, 1, 'judged: a hit within the tolerances')",
+            )
+            .unwrap();
+        }
+        let r = Records::open(&dir).unwrap();
+        let old = r.get(1).unwrap().unwrap();
+        assert_eq!((old.success, old.judged_by), (Some(true), None));
+        let m = MeasuredJudgement {
+            pass_t_s: Some(10.0),
+            arrival_t_s: Some(10.031),
+            timing_error_ms: Some(31.0),
+            timing_std_ms: Some(0.8),
+            contact: true,
+            contact_t_s: Some(10.01),
+            success: false,
+            torque_signal: true,
+        };
+        // The measured judge's verdict is read from `judged_by`, not from
+        // a missing position error: a finite one does not hide it.
+        let cases = [
+            (
+                Some(JudgedBy::Measured),
+                "judged (measured): a miss (timing error +31.0 ms outside the tolerance)",
+            ),
+            (
+                Some(JudgedBy::Truth),
+                "judged: a miss (outside the tolerances)",
+            ),
+            (
+                Some(JudgedBy::Physical),
+                "judged: a miss (outside the tolerances)",
+            ),
+        ];
+        for (judged_by, reason) in cases {
+            let id = r.create_trial(&TrialOrigin::default()).unwrap();
+            let end = TrialEnd::Done(result(judged_by, Some(m)));
+            assert!(r.finish_trial(id, end, 3).unwrap());
+            let rec = r.get(id).unwrap().unwrap();
+            assert_eq!(rec.judged_by, judged_by);
+            assert_eq!(rec.reason.as_deref(), Some(reason));
+            assert_eq!(rec.measured, Some(m));
+            let json = serde_json::to_value(&rec).unwrap();
+            assert_eq!(
+                json["judged_by"],
+                serde_json::json!(judged_by.map(JudgedBy::as_str))
+            );
+        }
+        // Not judged: no judge, `success` null.
+        let id = r.create_trial(&TrialOrigin::default()).unwrap();
+        let mut nj = result(None, Some(m));
+        nj.not_judged = Some("not judged: because");
+        r.finish_trial(id, TrialEnd::Done(nj), 3).unwrap();
+        let rec = r.get(id).unwrap().unwrap();
+        assert_eq!((rec.success, rec.judged_by), (None, None));
+        assert_eq!(rec.reason.as_deref(), Some("not judged: because"));
     }
 
     #[test]

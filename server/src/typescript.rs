@@ -8,8 +8,8 @@
 
 use rt_core::bridge::{
     AbortReason, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
-    FriSessionState, FriView, HopfView, HorizonPoint, LoopTiming, MagnetState, Measurement,
-    PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
+    FriSessionState, FriView, HopfView, HorizonPoint, JudgedBy, LoopTiming, MagnetState,
+    Measurement, PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
 };
 use rt_core::control::measured::MeasuredJudgement;
 use ts_rs::TS;
@@ -44,6 +44,7 @@ pub fn declarations() -> String {
         AbortView::decl(),
         Snapshot::decl(),
         MeasuredJudgement::decl(),
+        JudgedBy::decl(),
         TrialResult::decl(),
         Event::decl(),
         EventRecord::decl(),

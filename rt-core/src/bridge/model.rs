@@ -706,6 +706,43 @@ pub struct TrialResult {
     /// torques; no ground truth), when there was a committed motion. The
     /// real lab's judgement; beside the true one in the simulated lab.
     pub measured: Option<crate::control::measured::MeasuredJudgement>,
+    /// Which judge's verdict `success` and the figures above are (`null`:
+    /// not judged, `not_judged` says why).
+    pub judged_by: Option<JudgedBy>,
+}
+
+/// The judge whose verdict a trial's result carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize, TS, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum JudgedBy {
+    /// The ground-truth judge of a truthful simulated world: the true ball's
+    /// pass and the fitted arrival of the tool (CONTRACT.md definitions).
+    Truth,
+    /// The physical judge of the reality lab (a scenario's `[world]`): the
+    /// true ball meeting the true tool's contact disc.
+    Physical,
+    /// The measured judge (a real lab, no ground truth): the camera's
+    /// detections, the measured joints and FRI's external joint torques
+    /// (`result.measured`).
+    Measured,
+}
+
+impl JudgedBy {
+    /// The snake_case name (as in JSON and the records' `judged_by` column).
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Truth => "truth",
+            Self::Physical => "physical",
+            Self::Measured => "measured",
+        }
+    }
+
+    /// The name read back (`None` for anything else).
+    pub fn parse(s: &str) -> Option<Self> {
+        [Self::Truth, Self::Physical, Self::Measured]
+            .into_iter()
+            .find(|j| j.as_str() == s)
+    }
 }
 
 /// Something that happened, as the control thread reports it.

@@ -127,6 +127,29 @@ pub fn torque_contact(
         .map(|k| t_s[k])
 }
 
+/// The external torques carry no signal when every joint's samples spread
+/// over less than this, N m: a real robot's torque estimate always has
+/// noise (tenths of a N m); exact constants are a controller that does not
+/// estimate them (`isochron fri-sim` reports zeros).
+pub const TORQUE_SIGNAL_SPREAD_NM: f64 = 1e-9;
+
+/// Whether the external joint torques carry a signal: some joint's samples
+/// spread (max - min) over more than [`TORQUE_SIGNAL_SPREAD_NM`]. `false`
+/// without samples, or with non-finite ones only. Without a signal no
+/// contact can be seen.
+pub fn torque_signal(torques_nm: &[[f64; 7]]) -> bool {
+    (0..7).any(|j| {
+        let (lo, hi) = torques_nm
+            .iter()
+            .map(|tau| tau[j])
+            .filter(|v| v.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                (lo.min(v), hi.max(v))
+            });
+        hi - lo > TORQUE_SIGNAL_SPREAD_NM
+    })
+}
+
 /// Which detections a swing fit takes and how: those within `half_window_s`
 /// of `near_s` and before `before_s` (those after a contact show the stopped
 /// ball), around the rest lateral `x0_m`, at the angular frequency
@@ -333,13 +356,23 @@ pub struct MeasuredJudgement {
     pub contact_t_s: Option<f64>,
     /// Contact seen and `|timing error|` within the tolerance.
     pub success: bool,
+    /// Whether the external joint torques carried a signal
+    /// ([`torque_signal`]); without one no contact can be seen and the
+    /// judge does not decide (records written before this field: `true`).
+    #[serde(default = "yes")]
+    pub torque_signal: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl MeasuredJudgement {
-    /// Whether the measurements decide the trial: a timing error was
-    /// measured, or no contact was seen (a miss whatever the timing).
+    /// Whether the measurements decide the trial: the torques carried a
+    /// signal, and a timing error was measured or no contact was seen (a
+    /// miss whatever the timing).
     pub fn judged(&self) -> bool {
-        self.timing_error_ms.is_some() || !self.contact
+        self.torque_signal && (self.timing_error_ms.is_some() || !self.contact)
     }
 }
 
@@ -446,6 +479,7 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
         contact_t_s,
         success: contact_t_s.is_some()
             && timing_error_ms.is_some_and(|e| e.abs() <= m.tolerance_ms),
+        torque_signal: torque_signal(m.torques_nm),
     }
 }
 
@@ -721,5 +755,74 @@ mod tests {
         let miss = m(&quiet);
         assert!(!miss.contact && !miss.success && miss.judged(), "{miss:?}");
         assert!(miss.timing_error_ms.is_some());
+        assert!(j.torque_signal && miss.torque_signal);
+    }
+
+    #[test]
+    fn torques_without_a_signal_are_not_judged_but_the_timing_is_measured() {
+        let w = (9.81f64 / 1.93).sqrt();
+        let sightings = pendulum(1.5, 0.002, 5, 0.5);
+        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        let tool: Vec<[f64; 3]> = t
+            .iter()
+            .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
+            .collect();
+        let judge = |torque_t_s: &[f64], torques: &[[f64; 7]]| {
+            judge_measured(&MeasuredInputs {
+                sightings: &sightings,
+                rest_lateral_m: 0.02,
+                sigma_x_m: 0.002,
+                omega_radps: w,
+                predicted_pass_s: 1.49,
+                tool_t_s: &t,
+                tool_m: &tool,
+                torque_t_s,
+                torques_nm: torques,
+                settle_m: 0.002,
+                tolerance_ms: 20.0,
+                contact_delay_s: 0.0,
+                contact_period_s: 0.005,
+            })
+        };
+        // `isochron fri-sim`: exact zeros; a constant offset; no samples;
+        // a spread of 1e-10 N m (rounding, not a sensor).
+        let zeros = vec![[0.0; 7]; t.len()];
+        let offset = vec![[0.3, -1.2, 0.0, 4.0, 0.0, 0.1, 0.0]; t.len()];
+        let mut rounding = zeros.clone();
+        rounding[100][3] = 1e-10;
+        for (name, tt, tau) in [
+            ("zeros", &t[..], &zeros[..]),
+            ("constant", &t[..], &offset[..]),
+            ("none", &[][..], &[][..]),
+            ("rounding", &t[..], &rounding[..]),
+        ] {
+            let j = judge(tt, tau);
+            assert!(
+                !j.torque_signal && !j.contact && !j.success,
+                "{name}: {j:?}"
+            );
+            assert!(!j.judged(), "{name}: {j:?}");
+            // The timing figures are still measured.
+            let e = j.timing_error_ms.unwrap_or(f64::NAN);
+            assert!((e - (1.498 - 1.5) * 1e3).abs() < 5.0, "{name}: {j:?}");
+            assert!(j.timing_std_ms.is_some_and(|s| s > 0.0), "{name}: {j:?}");
+        }
+        // Noise of 1e-6 N m on one joint is a signal (a quiet sensor):
+        // judged, a miss.
+        let mut faint = zeros.clone();
+        faint[7][6] = 1e-6;
+        let j = judge(&t, &faint);
+        assert!(
+            j.torque_signal && j.judged() && !j.contact && !j.success,
+            "{j:?}"
+        );
+        assert!(!torque_signal(&[[f64::NAN; 7]]));
+        // A record written before the field reads as judged with a signal.
+        let old: MeasuredJudgement = serde_json::from_str(
+            r#"{"pass_t_s":1.5,"arrival_t_s":1.498,"timing_error_ms":-2.0,
+                "timing_std_ms":0.4,"contact":false,"contact_t_s":null,"success":false}"#,
+        )
+        .unwrap();
+        assert!(old.torque_signal && old.judged());
     }
 }

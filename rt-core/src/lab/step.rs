@@ -20,7 +20,7 @@ use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
-    FriQuality, FriSessionState, HorizonPoint, Refusal, Snapshot, TrialResult,
+    FriQuality, FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult,
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
@@ -65,6 +65,12 @@ pub const MAGNET_LOST: &str =
 /// A real lab's trial whose measurements could not decide it.
 pub const NOT_JUDGED_MEASURED: &str =
     "not judged: the measured judge saw a contact but no pass of the ball to time it";
+/// A real lab's trial whose robot reported no external joint torques (all
+/// samples equal, or none: `isochron fri-sim`, a controller that does not
+/// estimate them): the measured judge cannot see a contact, so neither a hit
+/// nor a miss (the record still carries the measured timing).
+pub const NOT_JUDGED_NO_TORQUE: &str = "not judged (measured): the robot reported no external \
+     joint torques, so contact cannot be seen";
 /// A finished motion the judge could not fit.
 pub const NOT_JUDGED_TRACE: &str = "not judged: the recorded motion could not be judged";
 /// A trial that ended without a committed motion.
@@ -1296,6 +1302,8 @@ impl LabStep {
         });
         let not_judged = if o.physical.is_some() || (o.physical_error.is_none() && j.is_some()) {
             None
+        } else if trial.ball.is_none() && o.measured.is_some_and(|m| !m.torque_signal) {
+            Some(NOT_JUDGED_NO_TORQUE)
         } else if trial.ball.is_none() && o.measured.is_some() {
             Some(NOT_JUDGED_MEASURED)
         } else if trial.ball.is_none() && no_motion(&o) {
@@ -1319,6 +1327,12 @@ impl LabStep {
             limit_violations: o.limit_violations,
             not_judged,
             measured: o.measured,
+            judged_by: match not_judged {
+                Some(_) => None,
+                None if o.physical.is_some() => Some(JudgedBy::Physical),
+                None if o.judgement.is_some() => Some(JudgedBy::Truth),
+                None => Some(JudgedBy::Measured),
+            },
         };
         self.snap.counters.trials += 1;
         self.p.bridge.emit(EventRecord {

@@ -171,6 +171,7 @@ impl Machine {
                                 limit_violations: 0,
                                 not_judged: None,
                                 measured: None,
+                                judged_by: Some(rt_core::bridge::JudgedBy::Truth),
                             },
                         },
                     });

@@ -444,7 +444,15 @@ contact_t_s: number | null,
 /**
  * Contact seen and `|timing error|` within the tolerance.
  */
-success: boolean, };
+success: boolean, 
+/**
+ * Whether the external joint torques carried a signal
+ * ([`torque_signal`]); without one no contact can be seen and the
+ * judge does not decide (records written before this field: `true`).
+ */
+torque_signal: boolean, };
+
+export type JudgedBy = "truth" | "physical" | "measured";
 
 export type TrialResult = { 
 /**
@@ -493,7 +501,12 @@ not_judged: string | null,
  * torques; no ground truth), when there was a committed motion. The
  * real lab's judgement; beside the true one in the simulated lab.
  */
-measured: MeasuredJudgement | null, };
+measured: MeasuredJudgement | null, 
+/**
+ * Which judge's verdict `success` and the figures above are (`null`:
+ * not judged, `not_judged` says why).
+ */
+judged_by: JudgedBy | null, };
 
 export type Event = { "kind": "state_changed", 
 /**
@@ -775,4 +788,13 @@ revision: string | null,
  * committed motion: the real lab's judgement (then `success` is its
  * verdict), beside the true one in a simulated lab.
  */
-measured: MeasuredJudgement | null, };
+measured: MeasuredJudgement | null, 
+/**
+ * Which judge gave `success` and the figures above: `truth` (a truthful
+ * simulated world's ground truth), `physical` (the reality lab's true
+ * world) or `measured` (the measured judge: a real lab; then
+ * `timing_error_ms` is `|measured.timing_error_ms|` and
+ * `position_error_m` null). Null while running, when aborted or not
+ * judged, and for trials recorded before it was stored.
+ */
+judged_by: JudgedBy | null, };
