@@ -16,6 +16,7 @@
 //! | `/camera/image` | `foxglove.CompressedImage` (JPEG) | camera stream rate |
 //! | `/camera/annotations` | `foxglove.ImageAnnotations`: detection circle, predicted positions, intercept point | camera stream rate |
 //! | `/robot_description` | JSON `std_msgs/String` with the URDF | when a recording opens, then 1 Hz |
+//! | `/trial/judgement` ([`JUDGEMENT_TOPIC`]) | JSON `isochron.TrialJudgement`: how the trial ended, which judge decided, the true figures (simulated lab) and the measured judge's | once, at the trial's end (the recording's last message) |
 //!
 //! Log times are the Unix clock (nanoseconds) when the bridge thread logs the
 //! message; the header timestamps are the control-clock times of the data moved
@@ -41,7 +42,8 @@ use foxglove::{
     },
 };
 use rt_core::{
-    bridge::{Snapshot, TrialResult},
+    bridge::{JudgedBy, Snapshot, TrialResult},
+    control::measured::MeasuredJudgement,
     kinematics::iiwa7::{JOINT_NAMES, JOINTS, URDF_AXES, URDF_FRAMES, URDF_JOINT_Z_M},
     params::Scenario,
 };
@@ -57,6 +59,14 @@ pub const TOPICS: [&str; 7] = [
     "/camera/annotations",
     "/robot_description",
 ];
+
+/// The trial's judgement, logged once when a trial ends (the last message of
+/// its recording; live clients get it too). Not in [`TOPICS`]: those stream
+/// at the state or camera rate, this one only at trials' ends.
+pub const JUDGEMENT_TOPIC: &str = "/trial/judgement";
+
+/// The schema name of [`JUDGEMENT_TOPIC`]'s messages.
+pub const JUDGEMENT_SCHEMA_NAME: &str = "isochron.TrialJudgement";
 
 /// The robot description is re-sent this often to live clients (they join any time).
 const DESCRIPTION_PERIOD: Duration = Duration::from_secs(1);
@@ -77,6 +87,16 @@ const SERIES_SCHEMA: &str = r#"{"type":"object","title":"isochron.Series","prope
 "path":{"type":"object","properties":{"speed_planned_mps":{"type":"number"},"speed_executed_mps":{"type":"number"},"progress_planned":{"type":"number"},"progress_executed":{"type":"number"}}},
 "hopf":{"type":"object","properties":{"a":{"type":"number"},"b":{"type":"number"},"u_init":{"type":"number"},"u_hopf":{"type":"number"},"u_final":{"type":"number"}}},
 "timing":{"type":"object","properties":{"step_us":{"type":"number"},"period_mean_us":{"type":"number"},"period_max_us":{"type":"number"},"reply_latency_us":{"type":"number"},"missed_cycles":{"type":"integer"},"deadline_misses":{"type":"integer"}}}}}"#;
+
+const JUDGEMENT_SCHEMA: &str = r#"{"type":"object","title":"isochron.TrialJudgement","properties":{
+"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}},"description":"the trial's end, Unix time"},
+"trial_id":{"type":"integer"},
+"status":{"type":"string","description":"done, aborted or interrupted"},
+"judged_by":{"type":["string","null"],"description":"truth (truthful simulated world), physical (reality lab), measured (real lab); null: not judged"},
+"success":{"type":["boolean","null"],"description":"the verdict; null: not judged"},
+"reason":{"type":"string","description":"the record's reason, a sentence"},
+"truth":{"type":["object","null"],"description":"the true judge's figures (simulated lab, judged_by truth or physical)","properties":{"timing_error_ms":{"type":["number","null"],"description":"|arrival - t*|, ms"},"position_error_m":{"type":["number","null"]},"t_star_s":{"type":["number","null"],"description":"control clock, s"},"arrival_t_s":{"type":["number","null"],"description":"control clock, s"},"movement_time_s":{"type":["number","null"]}}},
+"measured":{"type":["object","null"],"description":"the measured judge's verdict (camera, measured joints, external torques)","properties":{"pass_t_s":{"type":["number","null"]},"arrival_t_s":{"type":["number","null"]},"timing_error_ms":{"type":["number","null"],"description":"arrival - pass, signed (negative: early), ms"},"timing_std_ms":{"type":["number","null"]},"contact":{"type":"boolean"},"contact_t_s":{"type":["number","null"]},"success":{"type":"boolean"},"torque_signal":{"type":"boolean","description":"false: the robot reported no external torques, contact cannot be seen"}}}}}"#;
 
 const STRING_SCHEMA: &str =
     r#"{"type":"object","title":"std_msgs/String","properties":{"data":{"type":"string"}}}"#;
@@ -105,6 +125,7 @@ struct Channels {
     image: Channel<CompressedImage>,
     annotations: Channel<ImageAnnotations>,
     description: Arc<RawChannel>,
+    judgement: Arc<RawChannel>,
 }
 
 /// What a recording's metadata says about the trial it records.
@@ -227,6 +248,67 @@ struct Series {
     timing: serde_json::Value,
 }
 
+/// A trial's judgement ([`JUDGEMENT_TOPIC`]).
+#[derive(Serialize)]
+struct TrialJudgement {
+    timestamp: Stamp,
+    trial_id: u64,
+    status: &'static str,
+    judged_by: Option<JudgedBy>,
+    success: Option<bool>,
+    reason: String,
+    truth: Option<TrueFigures>,
+    measured: Option<MeasuredJudgement>,
+}
+
+/// The true judge's figures of a simulated trial (`TrialResult`'s).
+#[derive(Serialize)]
+struct TrueFigures {
+    timing_error_ms: f64,
+    position_error_m: f64,
+    t_star_s: f64,
+    arrival_t_s: f64,
+    movement_time_s: f64,
+}
+
+impl TrialJudgement {
+    fn of(trial_id: u64, end: Option<&crate::records::TrialEnd>, unix_s: f64) -> Self {
+        use crate::records::TrialEnd;
+        let (status, judged_by, success, truth, measured) = match end {
+            Some(TrialEnd::Done(r)) => (
+                "done",
+                r.judged_by,
+                r.not_judged.is_none().then_some(r.success),
+                matches!(r.judged_by, Some(JudgedBy::Truth | JudgedBy::Physical)).then_some(
+                    TrueFigures {
+                        timing_error_ms: r.timing_error_ms,
+                        position_error_m: r.position_error_m,
+                        t_star_s: r.t_star_s,
+                        arrival_t_s: r.arrival_t_s,
+                        movement_time_s: r.movement_time_s,
+                    },
+                ),
+                r.measured,
+            ),
+            Some(TrialEnd::Aborted(..)) => ("aborted", None, Some(false), None, None),
+            None => ("interrupted", None, None, None, None),
+        };
+        Self {
+            timestamp: js(stamp(unix_s)),
+            trial_id,
+            status,
+            judged_by,
+            success,
+            reason: end.map_or_else(
+                || "interrupted: the service stopped while the trial ran".to_owned(),
+                crate::records::end_reason,
+            ),
+            truth,
+            measured,
+        }
+    }
+}
+
 fn js(t: Option<Timestamp>) -> Stamp {
     t.map_or(Stamp { sec: 0, nsec: 0 }, |t| Stamp {
         sec: t.sec(),
@@ -266,6 +348,12 @@ impl Foxglove {
             image: ctx.channel_builder(TOPICS[4]).build(),
             annotations: ctx.channel_builder(TOPICS[5]).build(),
             description: json_channel(&ctx, TOPICS[6], "std_msgs/String", STRING_SCHEMA),
+            judgement: json_channel(
+                &ctx,
+                JUDGEMENT_TOPIC,
+                JUDGEMENT_SCHEMA_NAME,
+                JUDGEMENT_SCHEMA,
+            ),
         };
         let mut f = Self {
             ctx,
@@ -625,6 +713,14 @@ impl Foxglove {
         end: Option<&crate::records::TrialEnd>,
     ) -> Option<(u64, PathBuf, u64)> {
         let r = self.recording.take()?;
+        // The judgement goes into the recording before it closes.
+        let judgement = TrialJudgement::of(r.trial_id, end, unix_now_s());
+        match serde_json::to_vec(&judgement) {
+            Ok(b) => self.ch.judgement.log(&b),
+            Err(e) => {
+                tracing::error!(trial = r.trial_id, error = %e, "cannot encode the judgement")
+            }
+        }
         let mut result = BTreeMap::new();
         match end {
             Some(crate::records::TrialEnd::Done(TrialResult {

@@ -12,7 +12,9 @@
 //!    (scenario, parameters, calibration, world draw, revision, result), message
 //!    counts equal to the trial's state ticks at the state rate, log times on the
 //!    Unix clock inside the trial's start and end and increasing; the SQLite row
-//!    holds the same scenario, parameters and revision.
+//!    holds the same scenario, parameters and revision; one `/trial/judgement`
+//!    message (`isochron.TrialJudgement`) at the end carries the record's verdict,
+//!    its judge, the true figures and the measured judge's.
 
 #[path = "http_support/mod.rs"]
 mod http_support;
@@ -35,7 +37,11 @@ use rt_core::{
     params::Scenario,
 };
 use serde_json::Value;
-use server::{AppState, LabOptions, Records, app, runtime::start_simulated, viz::TOPICS};
+use server::{
+    AppState, LabOptions, Records, app,
+    runtime::start_simulated,
+    viz::{JUDGEMENT_SCHEMA_NAME, JUDGEMENT_TOPIC, TOPICS},
+};
 use tokio_tungstenite::tungstenite::{Message, client::IntoClientRequest, http::HeaderValue};
 
 const SCHEMAS: [(&str, &str, &str); 7] = [
@@ -380,8 +386,18 @@ async fn foxglove_live_and_the_trials_mcap_carry_every_channel_with_its_schema()
     }
     let mut per_topic: BTreeMap<String, Vec<u64>> = BTreeMap::new();
     let mut scene_ids = std::collections::BTreeSet::new();
+    let mut judgements: Vec<Value> = Vec::new();
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
+        if m.channel.topic == JUDGEMENT_TOPIC {
+            let s = m.channel.schema.as_ref().expect("a schema");
+            assert_eq!(
+                (s.name.as_str(), s.encoding.as_str()),
+                (JUDGEMENT_SCHEMA_NAME, "jsonschema")
+            );
+            assert_eq!(m.channel.message_encoding, "json");
+            judgements.push(serde_json::from_slice(&m.data).expect("JSON judgement"));
+        }
         if m.channel.topic == "/pendulum" {
             let s = SceneUpdate::decode(&m.data[..]).expect("SceneUpdate");
             for e in s
@@ -447,6 +463,55 @@ async fn foxglove_live_and_the_trials_mcap_carry_every_channel_with_its_schema()
         let a: f64 = metadata["world"]["release_angle_deg"].parse().unwrap();
         assert!(a.abs() > 1.0, "release angle {a} deg");
     }
+    // The judgement: one message at the trial's end, the record's verdict.
+    assert_eq!(judgements.len(), 1, "{judgements:?}");
+    let j = &judgements[0];
+    println!("MCAP judgement: {j}");
+    assert_eq!(j["trial_id"], id);
+    assert_eq!(j["status"], rec.status.as_str());
+    assert_eq!(j["success"], serde_json::json!(rec.success));
+    assert_eq!(j["reason"], serde_json::json!(rec.reason));
+    assert_eq!(
+        j["judged_by"],
+        serde_json::json!(rec.judged_by),
+        "{j} vs {rec:?}"
+    );
+    let t_end =
+        j["timestamp"]["sec"].as_f64().unwrap() + j["timestamp"]["nsec"].as_f64().unwrap() * 1e-9;
+    assert!(
+        t_end >= rec.started_unix_s && t_end <= rec.finished_unix_s.unwrap() + 1.0,
+        "judgement at {t_end} outside the trial {rec:?}"
+    );
+    if rec.status == "done" {
+        // The simulated lab of `serve` is a truthful world: the ground truth
+        // judges, and the measured judge stands beside it.
+        assert_eq!(j["judged_by"], "truth", "{j}");
+        let close = |a: &Value, b: Option<f64>| (a.as_f64().unwrap() - b.unwrap()).abs() < 1e-9;
+        assert!(
+            close(&j["truth"]["timing_error_ms"], rec.timing_error_ms),
+            "{j}"
+        );
+        assert!(
+            close(&j["truth"]["position_error_m"], rec.position_error_m),
+            "{j}"
+        );
+        assert!(j["truth"]["t_star_s"].is_number() && j["truth"]["arrival_t_s"].is_number());
+        let m = &j["measured"];
+        assert_eq!(*m, serde_json::to_value(rec.measured.unwrap()).unwrap());
+        assert!(
+            m["timing_error_ms"].is_number() && m["timing_std_ms"].as_f64().unwrap() > 0.0,
+            "{m}"
+        );
+        // The simulated controller of a truthful world reports no external
+        // torques: no contact can be seen.
+        assert_eq!(
+            (&m["torque_signal"], &m["contact"]),
+            (&Value::Bool(false), &Value::Bool(false))
+        );
+    } else {
+        assert!(j["judged_by"].is_null() && j["truth"].is_null(), "{j}");
+    }
+
     // Counts: every state tick logs one message per state channel, at the state rate.
     let ticks: u64 = metadata["result"]["state_ticks"].parse().unwrap();
     let tf = &per_topic["/tf"];
@@ -494,6 +559,9 @@ async fn foxglove_live_and_the_trials_mcap_carry_every_channel_with_its_schema()
             }
             assert_eq!(v["metadata"]["trial"]["scenario"], scenario.name);
             assert_eq!(v["metadata"]["result"]["state_ticks"], ticks.to_string());
+            let c = &v["channels"][JUDGEMENT_TOPIC];
+            assert_eq!(c["schema"], JUDGEMENT_SCHEMA_NAME, "python: {c}");
+            assert_eq!(c["count"], 1, "python: {c}");
         }
         Ok(o) => {
             let err = String::from_utf8_lossy(&o.stderr);
