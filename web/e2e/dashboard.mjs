@@ -271,6 +271,29 @@ try {
     );
     measured.history_summary = await page.textContent("#trials .summary");
   });
+  await check("operator: the finished trial's row shows the measured judge beside the true one", async () => {
+    const row = await page.evaluate(() => {
+      const tr = document.querySelector("#trials tbody tr.hit, #trials tbody tr.miss");
+      const cell = (c) => tr?.querySelector(`td[data-col="${c}"]`)?.textContent ?? null;
+      return { id: cell("id"), judge: cell("judge"), timing: cell("timing"), measured: cell("measured-timing"), contact: cell("contact") };
+    });
+    measured.trial_row = row;
+    const rec = (await api("GET", `/api/trials/${row.id}`, undefined, false)).json;
+    const m = rec.measured;
+    assert(m && typeof m.timing_error_ms === "number" && typeof m.timing_std_ms === "number", `no measured timing in the record: ${JSON.stringify(rec)}`);
+    // The simulated lab of `serve` is a truthful world: the truth judges; the
+    // measured judge's signed timing ± std stands beside it, and its simulated
+    // robot reports no external torques (no contact can be seen).
+    assert(rec.judged_by === "truth" && row.judge === "truth", `judge: row ${row.judge}, record ${rec.judged_by}`);
+    assert(row.timing === rec.timing_error_ms.toFixed(1), `true timing ${row.timing} vs ${rec.timing_error_ms}`);
+    const parts = /^([+-]?\d+\.\d) ± (\d+\.\d)$/.exec(row.measured ?? "");
+    assert(parts, `measured timing cell reads ${JSON.stringify(row.measured)}`);
+    assert(Math.abs(Number(parts[1]) - m.timing_error_ms) <= 0.05 + 1e-9 && Math.abs(Number(parts[2]) - m.timing_std_ms) <= 0.05 + 1e-9,
+      `measured cell ${row.measured} vs ${m.timing_error_ms} ± ${m.timing_std_ms} ms`);
+    const contact = m.torque_signal === false ? "no torques" : m.contact ? "yes" : "no";
+    assert(row.contact === contact, `contact cell ${row.contact}, record ${JSON.stringify(m)}`);
+    measured.trial_measured = { timing_error_ms: m.timing_error_ms, timing_std_ms: m.timing_std_ms, contact: m.contact, torque_signal: m.torque_signal, true_timing_error_ms: rec.timing_error_ms };
+  });
   await check("operator: when the trial ended the speed axis fit the planned peak and the pendulum axis read distinct labels in a unit that fits (mm below 1 m)", async () => {
     await page.waitForFunction(() => window.__isochron.trialEndAxes() !== null, null, { timeout: 5_000 });
     const a = await page.evaluate(() => window.__isochron.trialEndAxes());

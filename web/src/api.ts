@@ -56,6 +56,34 @@ export function verdict(t: Pick<TrialRecord, "id" | "status"> & { success?: bool
   return typeof t.success === "boolean" ? (t.success ? "hit" : "miss") : null;
 }
 
+/** `v` with its sign (`+1.2`, `-0.4`, `0.0`: never `-0.0`). */
+export function signed(v: number, digits: number): string {
+  const s = Math.abs(v).toFixed(digits);
+  if (Number(s) === 0) return s;
+  return v > 0 ? `+${s}` : `-${s}`;
+}
+
+/** What a trial row shows of its judges: which one gave the verdict, and the
+ * measured judge's figures (signed timing error ± its std in ms; whether the
+ * external joint torques showed a contact, or that they carried no signal). */
+export function judgeCells(t: Pick<TrialRecord, "judged_by" | "measured">): {
+  judge: string;
+  measuredTiming: string;
+  contact: string;
+} {
+  const m = t.measured;
+  const e = m?.timing_error_ms;
+  const sd = m?.timing_std_ms;
+  const measuredTiming =
+    typeof e === "number" && Number.isFinite(e)
+      ? typeof sd === "number" && Number.isFinite(sd)
+        ? `${signed(e, 1)} ± ${sd.toFixed(1)}`
+        : signed(e, 1)
+      : "–";
+  const contact = !m ? "–" : m.torque_signal === false ? "no torques" : m.contact ? "yes" : "no";
+  return { judge: t.judged_by ?? "–", measuredTiming, contact };
+}
+
 /** `GET /api/trials` answers a list, or an object holding one. */
 export function trialList(v: unknown): TrialRecord[] {
   if (Array.isArray(v)) return v as TrialRecord[];

@@ -1,5 +1,5 @@
 import uPlot from "uplot";
-import { call, trialList, verdict, type TrialRecord } from "./api";
+import { call, judgeCells, trialList, verdict, type TrialRecord } from "./api";
 import { COLORS } from "./plots";
 import { fmt, pct, wilson } from "./stats";
 
@@ -38,19 +38,28 @@ export class TrialsView {
     const newestFirst = [...this.trials].sort((a, b) => b.id - a.id);
     for (const t of newestFirst) {
       const v = verdict(t);
+      const j = judgeCells(t);
       const tr = document.createElement("tr");
-      const cells = [
-        String(t.id),
-        v ?? t.status ?? "…",
-        fmt(t.distance_m, 3),
-        fmt(t.timing_error_ms, 1),
-        fmt(t.position_error_m != null ? t.position_error_m * 1000 : null, 1),
-        fmt(t.movement_time_s, 3),
-        t.abort_reason ?? "",
+      // The judged timing error is the verdict's judge's (the truth in a
+      // simulated lab, the measured one in a real lab); the measured judge's
+      // figures stand beside it in every lab.
+      const cells: [string, string][] = [
+        ["id", String(t.id)],
+        ["result", v ?? t.status ?? "…"],
+        ["judge", j.judge],
+        ["distance", fmt(t.distance_m, 3)],
+        ["timing", fmt(t.timing_error_ms, 1)],
+        ["measured-timing", j.measuredTiming],
+        ["contact", j.contact],
+        ["position", fmt(t.position_error_m != null ? t.position_error_m * 1000 : null, 1)],
+        ["movement", fmt(t.movement_time_s, 3)],
+        ["reason", t.abort_reason ?? ""],
       ];
-      for (const c of cells) {
+      for (const [name, c] of cells) {
         const td = document.createElement("td");
+        td.dataset.col = name;
         td.textContent = c;
+        if (name === "reason" && t.reason) td.title = t.reason;
         tr.append(td);
       }
       const dl = document.createElement("td");

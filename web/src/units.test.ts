@@ -110,3 +110,35 @@ describe("trial verdicts", () => {
     expect(trialStateText({ trial_state: "aborted" })).toBe("aborted");
   });
 });
+
+import { judgeCells, signed } from "./api";
+describe("trial judges", () => {
+  const m = {
+    pass_t_s: 10,
+    arrival_t_s: 9.9988,
+    timing_error_ms: -1.24,
+    timing_std_ms: 0.83,
+    contact: true,
+    contact_t_s: 10.004,
+    success: true,
+    torque_signal: true,
+  };
+  it("shows the measured timing signed with its std and the contact", () => {
+    expect(judgeCells({ judged_by: "measured", measured: m })).toEqual({ judge: "measured", measuredTiming: "-1.2 ± 0.8", contact: "yes" });
+    expect(judgeCells({ judged_by: "truth", measured: { ...m, timing_error_ms: 3.06, contact: false } })).toEqual({
+      judge: "truth",
+      measuredTiming: "+3.1 ± 0.8",
+      contact: "no",
+    });
+  });
+  it("says when the torques carried no signal and when nothing was measured", () => {
+    expect(judgeCells({ judged_by: null, measured: { ...m, contact: false, torque_signal: false } }).contact).toBe("no torques");
+    expect(judgeCells({ judged_by: null, measured: { ...m, timing_error_ms: null, timing_std_ms: null } }).measuredTiming).toBe("–");
+    expect(judgeCells({ judged_by: null, measured: null })).toEqual({ judge: "–", measuredTiming: "–", contact: "–" });
+  });
+  it("never writes -0", () => {
+    expect(signed(-0.04, 1)).toBe("0.0");
+    expect(signed(0.04, 1)).toBe("0.0");
+    expect(signed(-0.06, 1)).toBe("-0.1");
+  });
+});
