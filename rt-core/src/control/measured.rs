@@ -150,6 +150,65 @@ pub fn torque_signal(torques_nm: &[[f64; 7]]) -> bool {
     })
 }
 
+/// When the contact whose first external torque sample [`torque_contact`]
+/// found at `first_s` began: the time centroid of its force pulse (each
+/// sample's departure from the baseline, along the pulse's direction,
+/// placed at the middle of the period it averages over; the samples from
+/// the one before the first to the one after it) less half the pulse's
+/// duration `pulse_s` and the torque estimate's lag `lag_s`. With periods
+/// of 5 ms and a half-sine pulse of 4 ms, within 0.83 ms wherever the
+/// contact falls between two messages, noise aside (the first sample alone
+/// puts it anywhere in a period). `None` without a baseline or the sample.
+pub fn contact_onset(
+    t_s: &[f64],
+    torques_nm: &[[f64; 7]],
+    from_s: f64,
+    first_s: f64,
+    pulse_s: f64,
+    lag_s: f64,
+) -> Option<f64> {
+    let n = t_s.len().min(torques_nm.len());
+    let before = t_s[..n].partition_point(|&t| t < from_s);
+    let k0 = t_s[..n].iter().position(|&t| t == first_s)?;
+    if before == 0 || k0 == 0 {
+        return None;
+    }
+    let mut base = [0.0; 7];
+    for tau in &torques_nm[..before] {
+        for (b, v) in base.iter_mut().zip(tau) {
+            *b += v / before as f64;
+        }
+    }
+    let departure = |k: usize| -> [f64; 7] { std::array::from_fn(|j| torques_nm[k][j] - base[j]) };
+    let last = (k0 + 1).min(n - 1);
+    let mut dir = departure(k0);
+    if last > k0 {
+        for (d, v) in dir.iter_mut().zip(departure(last)) {
+            *d += v;
+        }
+    }
+    let norm = dir.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if norm == 0.0 || !norm.is_finite() {
+        return None;
+    }
+    let (mut w_sum, mut wt_sum) = (0.0, 0.0);
+    for k in (k0 - 1).max(1)..=last {
+        let w = (departure(k)
+            .iter()
+            .zip(&dir)
+            .map(|(v, d)| v * d)
+            .sum::<f64>()
+            / norm)
+            .max(0.0);
+        w_sum += w;
+        wt_sum += w * 0.5 * (t_s[k] + t_s[k - 1]);
+    }
+    if w_sum <= 0.0 {
+        return None;
+    }
+    Some(wt_sum / w_sum - 0.5 * pulse_s - lag_s)
+}
+
 /// Which detections a swing fit takes and how: those within `half_window_s`
 /// of `near_s` and before `before_s` (those after a contact show the stopped
 /// ball), around the rest lateral `x0_m`, at the angular frequency
@@ -405,9 +464,12 @@ pub struct MeasuredInputs<'a> {
     pub settle_m: f64,
     /// Timing tolerance, ms.
     pub tolerance_ms: f64,
-    /// The mean delay from a contact's beginning to its first external
-    /// torque sample (a belief about the robot's torque sensing), s.
+    /// How late the robot's external torque estimate shows a contact's
+    /// force (a belief about its torque sensing), s.
     pub contact_delay_s: f64,
+    /// How long a contact's force pulse lasts (a belief about ball and
+    /// tool), s.
+    pub contact_pulse_s: f64,
     /// The torque samples' period (the contact falls anywhere within one), s.
     pub contact_period_s: f64,
 }
@@ -453,8 +515,17 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
     let hi = m.predicted_pass_s + quarter;
     let contact_t_s =
         torque_contact(m.torque_t_s, m.torques_nm, lo, CONTACT_THRESHOLD_NM).filter(|&t| t <= hi);
-    // When the contact began (its first torque sample lags it).
-    let began = contact_t_s.map(|t| t - m.contact_delay_s);
+    // When the contact began (its torque pulse lags it).
+    let began = contact_t_s.and_then(|t| {
+        contact_onset(
+            m.torque_t_s,
+            m.torques_nm,
+            lo,
+            t,
+            m.contact_pulse_s,
+            m.contact_delay_s,
+        )
+    });
     let before = began.map_or(f64::INFINITY, |t| t - BEFORE_CONTACT_S);
     let camera_pass = measured_pass_sine(m.sightings, &pass_window(m, before), m.sigma_x_m);
     // A contact anchors the pass to the robot's clock: the camera's clock is
@@ -483,58 +554,138 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
     }
 }
 
-/// Detections of the ball stopped against the tool: from this long after
+/// Detections of the ball held against the tool: from this long after
 /// the contact began (the camera's clock may be off by tens of ms) ...
 pub const STOPPED_FROM_S: f64 = 0.06;
 /// ... until this long after it, s.
 pub const STOPPED_UNTIL_S: f64 = 0.3;
-/// Largest spread of those detections of a ball at rest against the tool, m.
-pub const STOPPED_SPREAD_M: f64 = 0.01;
+/// Largest rms residual of those detections about their fitted drift, m: a
+/// ball that bounced or rolled off is not held.
+pub const STOPPED_RESIDUAL_M: f64 = 0.002;
+/// Fastest drift of a held ball (the tool settling, the ball sliding on the
+/// disc), m/s.
+pub const STOPPED_SPEED_MPS: f64 = 0.3;
+
+/// The held ball's slow drift after a contact: `x = c0 + c1 u + c2 u^2`,
+/// `u` the time since the contact began, fitted by least squares to the
+/// detections [`STOPPED_FROM_S`]..[`STOPPED_UNTIL_S`] after it (a line
+/// with fewer than 6). `None` with fewer than 3, a residual above
+/// [`STOPPED_RESIDUAL_M`] (or 3 detections' noise) or a drift faster than
+/// [`STOPPED_SPEED_MPS`].
+fn held_drift(m: &MeasuredInputs<'_>, began_s: f64) -> Option<[f64; 3]> {
+    let held = || {
+        m.sightings.iter().filter(move |s| {
+            s.t_s >= began_s + STOPPED_FROM_S && s.t_s <= began_s + STOPPED_UNTIL_S
+        })
+    };
+    let n = held().count();
+    if n < 3 {
+        return None;
+    }
+    let order = if n >= 6 { 3 } else { 2 };
+    // Normal equations of [1, u, u^2] (u in units of STOPPED_UNTIL_S).
+    let scale = STOPPED_UNTIL_S;
+    let mut a = [[0.0f64; 3]; 3];
+    let mut r = [0.0f64; 3];
+    for s in held() {
+        let u = (s.t_s - began_s) / scale;
+        let basis = [1.0, u, u * u];
+        for i in 0..order {
+            r[i] += basis[i] * s.x_m;
+            for j in 0..order {
+                a[i][j] += basis[i] * basis[j];
+            }
+        }
+    }
+    let c = solve(&a, &r, order)?;
+    let x = |u: f64| c[0] + c[1] * u + c[2] * u * u;
+    let rms = (held()
+        .map(|s| (s.x_m - x((s.t_s - began_s) / scale)).powi(2))
+        .sum::<f64>()
+        / n as f64)
+        .sqrt();
+    let fastest = held()
+        .map(|s| ((c[1] + 2.0 * c[2] * (s.t_s - began_s) / scale) / scale).abs())
+        .fold(0.0, f64::max);
+    let held_still =
+        rms <= STOPPED_RESIDUAL_M.max(3.0 * m.sigma_x_m) && fastest <= STOPPED_SPEED_MPS;
+    if !held_still {
+        return None;
+    }
+    Some([c[0], c[1] / scale, c[2] / (scale * scale)])
+}
+
+/// The first `order` unknowns of `a x = r` (Gaussian elimination with
+/// partial pivoting); the others 0. `None` when singular.
+fn solve(a: &[[f64; 3]; 3], r: &[f64; 3], order: usize) -> Option<[f64; 3]> {
+    let (mut a, mut r) = (*a, *r);
+    for col in 0..order {
+        let p = (col..order).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[p][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, p);
+        r.swap(col, p);
+        for row in col + 1..order {
+            let f = a[row][col] / a[col][col];
+            let pivot = a[col];
+            for (v, p) in a[row][col..order].iter_mut().zip(&pivot[col..order]) {
+                *v -= f * p;
+            }
+            r[row] -= f * r[col];
+        }
+    }
+    let mut x = [0.0; 3];
+    for row in (0..order).rev() {
+        let tail: f64 = (row + 1..order).map(|k| a[row][k] * x[k]).sum();
+        x[row] = (r[row] - tail) / a[row][row];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
 
 /// The pass on the robot's clock from a contact that began at `began_s`:
-/// the ball stopped against the tool at `x_stop` (the median of the
-/// detections [`STOPPED_FROM_S`]..[`STOPPED_UNTIL_S`] after the contact);
-/// the fitted swing reaches `x_stop` at `t_stop` and the rest point at
-/// the camera's pass `p`, both on the camera's clock: the pass is
-/// `began + (p - t_stop)`, whatever the camera's clock offset. Its
-/// standard deviation: the contact's time within a torque sample's period
-/// (uniform) and `x_stop`'s noise over the speed.
+/// the ball held against the tool drifts slowly ([`held_drift`], on the
+/// camera's clock); the fitted swing meets that drift at `t_touch` (the
+/// contact as the camera saw it) and reaches the rest point at the
+/// camera's pass `p`: the pass is `began + (p - t_touch)`, whatever the
+/// camera's clock offset. Its standard deviation: the contact's time
+/// within a sixth of a torque sample's period and the touch point's noise
+/// over the speed.
 fn anchored_pass(
     m: &MeasuredInputs<'_>,
     began_s: f64,
     p: &MeasuredPass,
     before_s: f64,
 ) -> Option<MeasuredPass> {
-    let mut xs = [0.0f64; 16];
-    let mut n = 0;
-    for s in m
-        .sightings
-        .iter()
-        .filter(|s| s.t_s >= began_s + STOPPED_FROM_S && s.t_s <= began_s + STOPPED_UNTIL_S)
-    {
-        if n < xs.len() {
-            xs[n] = s.x_m;
-            n += 1;
+    let c = held_drift(m, began_s)?;
+    let drift = |t: f64| {
+        let u = t - began_s;
+        c[0] + c[1] * u + c[2] * u * u
+    };
+    let win = pass_window(m, before_s);
+    // The swing meets the drift: x_swing(t) = drift(t), by fixed-point
+    // iteration (the drift is an order of magnitude slower than the swing).
+    let mut t_touch = swing_time_at(m.sightings, &win, drift(began_s))?;
+    for _ in 0..8 {
+        let next = swing_time_at(m.sightings, &win, drift(t_touch))?;
+        let done = (next - t_touch).abs() < 1e-6;
+        t_touch = next;
+        if done {
+            break;
         }
     }
-    if n < 3 {
-        return None;
-    }
-    let xs = &mut xs[..n];
-    xs.sort_unstable_by(f64::total_cmp);
-    let x_stop = xs[n / 2];
-    // A ball that did not stay against the tool (a glancing contact, a tool
-    // still moving) anchors nothing.
-    if xs[n - 1] - xs[0] > STOPPED_SPREAD_M.max(6.0 * m.sigma_x_m) {
-        return None;
-    }
-    let t_stop = swing_time_at(m.sightings, &pass_window(m, before_s), x_stop)?;
-    let lead = p.t_s - t_stop;
+    let lead = p.t_s - t_touch;
     if lead.is_nan() || lead.abs() >= 0.2 || p.speed_m_s == 0.0 {
         return None;
     }
-    let var = m.contact_period_s.powi(2) / 12.0
-        + (m.sigma_x_m * m.sigma_x_m / n as f64) / (p.speed_m_s * p.speed_m_s);
+    let held = m
+        .sightings
+        .iter()
+        .filter(|s| s.t_s >= began_s + STOPPED_FROM_S && s.t_s <= began_s + STOPPED_UNTIL_S)
+        .count()
+        .max(1);
+    let var = (m.contact_period_s / 6.0).powi(2)
+        + (m.sigma_x_m * m.sigma_x_m / held as f64) / (p.speed_m_s * p.speed_m_s);
     Some(MeasuredPass {
         t_s: began_s + lead,
         std_s: var.sqrt(),
@@ -744,6 +895,7 @@ mod tests {
                 settle_m: 0.002,
                 tolerance_ms: 20.0,
                 contact_delay_s: 0.0,
+                contact_pulse_s: 0.0,
                 contact_period_s: 0.005,
             })
         };
@@ -781,6 +933,7 @@ mod tests {
                 settle_m: 0.002,
                 tolerance_ms: 20.0,
                 contact_delay_s: 0.0,
+                contact_pulse_s: 0.0,
                 contact_period_s: 0.005,
             })
         };
@@ -824,5 +977,143 @@ mod tests {
         )
         .unwrap();
         assert!(old.torque_signal && old.judged());
+    }
+
+    /// External torques at 5 ms messages of a 4 ms half-sine pulse of
+    /// `peak` N m on joints 1 and 3 beginning at `t0`, shown `lag` late,
+    /// each message the mean over its period, plus `noise` N m.
+    fn pulse_torques(t0: f64, lag: f64, noise: f64, seed: u64) -> (Vec<f64>, Vec<[f64; 7]>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (p, d) = (0.005, 0.004);
+        let part = |t: f64| {
+            let u = ((t - t0 - lag) / d).clamp(0.0, 1.0);
+            0.5 * (1.0 - (std::f64::consts::PI * u).cos())
+        };
+        let t: Vec<f64> = (1..400).map(|k| k as f64 * p).collect();
+        let tau = t
+            .iter()
+            .map(|&b| {
+                let f = (part(b) - part(b - p)) * d / p;
+                std::array::from_fn(|j| {
+                    let amp = match j {
+                        1 => 6.0,
+                        3 => -3.0,
+                        _ => 0.0,
+                    };
+                    amp * f + noise * (rng.random::<f64>() - 0.5) * 3.46
+                })
+            })
+            .collect();
+        (t, tau)
+    }
+
+    #[test]
+    fn the_contact_onset_is_found_within_a_period_from_the_pulse_split_between_messages() {
+        // Wherever the contact falls between two messages, the pulse's
+        // centroid finds it within 0.83 ms without noise (the worst: a pulse
+        // 7% of whose impulse falls in the earlier message), within 1.3 ms
+        // with the sensing noise of 0.2 N m per joint;
+        // the first sample alone (less a period and a half) is off by up to
+        // 2.5 ms.
+        for (noise, bound) in [(0.0, 0.00084), (0.2, 0.0013)] {
+            let mut worst_first: f64 = 0.0;
+            let mut worst: f64 = 0.0;
+            for i in 0..50 {
+                let t0 = 1.0 + i as f64 * 0.0001;
+                let (t, tau) = pulse_torques(t0, 0.005, noise, i);
+                let first = torque_contact(&t, &tau, 0.9, CONTACT_THRESHOLD_NM).unwrap();
+                let onset = contact_onset(&t, &tau, 0.9, first, 0.004, 0.005).unwrap();
+                worst = worst.max((onset - t0).abs());
+                worst_first = worst_first.max((first - 0.0075 - t0).abs());
+            }
+            assert!(worst < bound, "noise {noise}: onset off by {worst}");
+            assert!(worst_first > 0.002, "{worst_first}");
+        }
+        // No sample before the window: no baseline, no onset.
+        let (t, tau) = pulse_torques(1.0, 0.005, 0.2, 1);
+        assert_eq!(contact_onset(&t, &tau, 0.0, t[10], 0.004, 0.005), None);
+    }
+
+    #[test]
+    fn the_anchored_pass_follows_a_held_ball_that_drifts_and_ignores_the_camera_clock() {
+        // The ball (radius 34 mm) meets a tool 60 mm before the rest point,
+        // is held there and drifts 50 mm/s towards the rest; the camera's
+        // clock is 20 ms late. The pass on the robot's clock from the
+        // contact's onset: within 1 ms of the truth.
+        let w = (9.81f64 / 1.93).sqrt();
+        let t_pass = 1.5;
+        let x_touch = -0.06;
+        let rest = 0.02;
+        // When the free swing reaches x_touch (bisection on the angle).
+        let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
+        let (mut lo, mut hi) = (-0.2, 0.0);
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if at(mid) < x_touch {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let tc = t_pass + hi;
+        let camera_late = 0.02;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let sightings: Vec<Sighting> = (0..60)
+            .map(|k| {
+                let t = 0.8 + k as f64 / 30.0;
+                let x = if t < tc {
+                    at(t - t_pass)
+                } else {
+                    x_touch + 0.05 * (t - tc)
+                };
+                Sighting {
+                    t_s: t + camera_late,
+                    x_m: rest + x + 0.0005 * (rng.random::<f64>() - 0.5),
+                }
+            })
+            .collect();
+        let (t, tau) = pulse_torques(tc, 0.005, 0.2, 4);
+        let tool_t: Vec<f64> = t.clone();
+        let tool: Vec<[f64; 3]> = tool_t.iter().map(|_| [0.6, 0.0, 0.3]).collect();
+        let j = judge_measured(&MeasuredInputs {
+            sightings: &sightings,
+            rest_lateral_m: rest,
+            sigma_x_m: 0.001,
+            omega_radps: w,
+            predicted_pass_s: t_pass + 0.01,
+            tool_t_s: &tool_t,
+            tool_m: &tool,
+            torque_t_s: &t,
+            torques_nm: &tau,
+            settle_m: 0.002,
+            tolerance_ms: 20.0,
+            contact_delay_s: 0.005,
+            contact_pulse_s: 0.004,
+            contact_period_s: 0.005,
+        });
+        assert!(j.contact, "{j:?}");
+        let pass = j.pass_t_s.unwrap();
+        assert!(
+            (pass - t_pass).abs() < 0.001,
+            "pass {pass} vs {t_pass}: {j:?}"
+        );
+        // The camera alone is 20 ms late.
+        let camera = measured_pass_sine(
+            &sightings,
+            &SwingWindow {
+                x0_m: rest,
+                near_s: t_pass,
+                before_s: tc,
+                omega_radps: w,
+                half_window_s: PASS_HALF_WINDOW_S,
+                min_used: 4,
+            },
+            0.001,
+        )
+        .unwrap();
+        assert!(
+            (camera.t_s - t_pass - camera_late).abs() < 0.003,
+            "{camera:?}"
+        );
     }
 }

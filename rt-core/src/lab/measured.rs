@@ -7,13 +7,14 @@
 
 use crate::control::measured::{MeasuredInputs, MeasuredJudgement, Sighting, judge_measured};
 
-/// The mean delay from a contact's beginning to its first external torque
-/// sample, FRI periods: a belief about the robot's torque sensing, here the
-/// simulated robot's (the trial driver finds the world's collision at the
-/// first control step after it, within one period, and the robot reports
-/// the contact's force with its next message). A real lab calibrates it
+/// How late the robot's external torque estimate shows a contact's force,
+/// FRI periods: a belief about the robot's torque sensing, here the
+/// simulated robot's (`sim::world::contact`). A real lab calibrates it
 /// (one knock on the tool, seen by the camera and the torques).
-pub const CONTACT_SEEN_AFTER_PERIODS: f64 = 1.5;
+pub const TORQUE_LAG_PERIODS: f64 = 1.0;
+/// How long a contact's force pulse lasts, s: a belief about ball and tool
+/// (a tennis ball on a rigid disc: a few milliseconds).
+pub const CONTACT_PULSE_S: f64 = 0.004;
 
 /// The measured judge's recording of one trial.
 #[derive(Debug)]
@@ -117,7 +118,8 @@ impl MeasuredTrace {
             torques_nm: &self.torques_nm,
             settle_m: b.settle_m,
             tolerance_ms: b.tolerance_ms,
-            contact_delay_s: CONTACT_SEEN_AFTER_PERIODS * b.period_s,
+            contact_delay_s: TORQUE_LAG_PERIODS * b.period_s,
+            contact_pulse_s: CONTACT_PULSE_S,
             contact_period_s: b.period_s,
         });
         for s in &mut self.sightings {

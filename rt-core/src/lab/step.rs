@@ -233,6 +233,9 @@ struct WorldBall {
     /// When the ball drops (the pin time plus the residual magnetism's delay).
     drop_at: Option<f64>,
     last_disc: Option<Disc>,
+    /// The true ball at the previous step (where a contact's exact time is
+    /// searched from).
+    before: Option<TruePendulum>,
 }
 
 impl TrueBall {
@@ -242,6 +245,58 @@ impl TrueBall {
             Self::World(w) => w.ball.ball_position_m(),
         }
     }
+}
+
+/// Whether the true ball of radius `radius_m` touches `disc` (moving at
+/// `v_disc`) and moves into it.
+fn touching(ball: &TruePendulum, disc: &Disc, v_disc: &Vector3<f64>, radius_m: f64) -> bool {
+    let (dist, n) = disc.distance(&ball.ball_position_m());
+    dist <= radius_m && (ball.ball_velocity_mps() - v_disc).dot(&n) < 0.0
+}
+
+/// The disc `ago_s` before the step that moved it from `last` to `now` over
+/// `period_s` (its centre interpolated linearly; the normal of `now`).
+fn disc_at(last: &Disc, now: &Disc, ago_s: f64, period_s: f64) -> Disc {
+    let f = (1.0 - ago_s / period_s).clamp(0.0, 1.0);
+    Disc {
+        centre_m: last.centre_m + (now.centre_m - last.centre_m) * f,
+        ..*now
+    }
+}
+
+/// When the ball that was `before` (not touching the disc `last`) first
+/// touches the disc moving from `last` to `now` by `t_s`: bisected to a
+/// microsecond on copies of the ball. `None` when it already touched.
+fn first_touch(
+    before: &TruePendulum,
+    drop_at: Option<f64>,
+    last: &Disc,
+    now: &Disc,
+    v_disc: &Vector3<f64>,
+    t_s: f64,
+    radius_m: f64,
+) -> Option<f64> {
+    let (mut lo, mut hi) = (before.time_s(), t_s);
+    let period_s = hi - lo;
+    if period_s <= 0.0 || touching(before, last, v_disc, radius_m) {
+        return None;
+    }
+    while hi - lo > 1e-6 {
+        let mid = 0.5 * (lo + hi);
+        let mut probe = before.clone();
+        advance_true_ball(&mut probe, drop_at, mid);
+        if touching(
+            &probe,
+            &disc_at(last, now, t_s - mid, period_s),
+            v_disc,
+            radius_m,
+        ) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    Some(hi)
 }
 
 /// Advances a true pendulum to `t_s`, dropping the ball at `drop_at`.
@@ -959,6 +1014,7 @@ impl LabStep {
                     ball,
                     drop_at: None,
                     last_disc: None,
+                    before: None,
                 })
             }),
             Some(_) => {
@@ -1109,20 +1165,42 @@ impl LabStep {
                         at.advance_to(c.predicted_pass_s);
                         trial.at_predicted = Some(at.ball_position_m());
                     }
+                    w.before = Some(w.ball.clone());
                     advance_true_ball(&mut w.ball, w.drop_at, t);
                     advance_true_ball(&mut w.ghost, w.drop_at, t);
                 }
                 // The true tool (the world's kinematics at the robot's true
                 // joints); the ball stops against its disc.
                 let disc = w.world.arm.disc(&q_true);
-                let v_disc = w.last_disc.map_or(Vector3::zeros(), |d| {
-                    (disc.centre_m - d.centre_m) / self.period_s
-                });
+                let last = w.last_disc.unwrap_or(disc);
+                let v_disc = (disc.centre_m - last.centre_m) / self.period_s;
                 w.last_disc = Some(disc);
-                let v_before = w.ball.ball_velocity_mps();
-                if w.ball.collide(&disc, &v_disc, 0.0)
-                    && let Some(truth) = self.p.truth.as_mut()
+                // A contact begins between two steps: the ball is stopped at
+                // that moment (not a step later, inside the disc), and the
+                // contact carries its exact time.
+                let radius_m = w.world.pendulum.ball_radius_m;
+                let mut contact_at = t;
+                if let Some(before) = w.before.take()
+                    && touching(&w.ball, &disc, &v_disc, radius_m)
+                    && let Some(tc) =
+                        first_touch(&before, w.drop_at, &last, &disc, &v_disc, t, radius_m)
                 {
+                    let mut at = before;
+                    advance_true_ball(&mut at, w.drop_at, tc);
+                    w.ball = at;
+                    contact_at = tc;
+                }
+                let contact_disc = disc_at(&last, &disc, t - contact_at, self.period_s);
+                let v_before = w.ball.ball_velocity_mps();
+                let hit = w.ball.collide(&contact_disc, &v_disc, 0.0);
+                let impulse_ns = w.ball.ball_velocity_mps() - v_before;
+                let contact_ball_m = w.ball.ball_position_m();
+                if contact_at < t {
+                    advance_true_ball(&mut w.ball, w.drop_at, t);
+                    // Still pressed against the disc at the step.
+                    let _ = w.ball.collide(&disc, &v_disc, 0.0);
+                }
+                if hit && let Some(truth) = self.p.truth.as_mut() {
                     // The camera sees the ball where the tool stopped it.
                     let _ = truth.to_camera.push(TruthUpdate::World(w.ball.clone()));
                     // The robot feels the impulse that stopped it.
@@ -1133,12 +1211,11 @@ impl LabStep {
                             .world
                             .as_ref()
                             .map_or(0.0, |pw| pw.pendulum.ball_mass_kg);
-                        let ball_m = w.ball.ball_position_m();
-                        let (_, n) = disc.distance(&ball_m);
+                        let (_, n) = contact_disc.distance(&contact_ball_m);
                         let _ = contacts.push(Contact {
-                            t_s: t,
-                            point_m: ball_m - n * w.world.pendulum.ball_radius_m,
-                            impulse_ns: (v_before - w.ball.ball_velocity_mps()) * mass_kg,
+                            t_s: contact_at,
+                            point_m: contact_ball_m - n * radius_m,
+                            impulse_ns: -impulse_ns * mass_kg,
                         });
                     }
                 }

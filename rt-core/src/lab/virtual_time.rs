@@ -792,6 +792,7 @@ impl VirtualLab {
             LatencyModel::from_session(&world.session, self.t_s()),
             joints,
             self.seed ^ world.session.session.wrapping_mul(0xD1B5_4A32_D192_ED03),
+            crate::sim::world::contact::TORQUE_LAG_PERIODS * self.period_ns as f64 * 1e-9,
         )));
     }
 
@@ -1223,10 +1224,11 @@ mod tests {
 
     #[test]
     fn the_measured_judge_agrees_with_the_physical_one_in_the_reality_lab() {
-        // Twenty trials as the lab runs them, then four whose true intercept
-        // point is 6 cm off the believed one in height (the ball passes
-        // above the tool: misses by construction).
-        let s = reality_lab();
+        // Twenty trials as the lab runs them (rendered frames, the detector:
+        // the held ball's detections are the judge's anchor), then four
+        // whose true intercept point is 6 cm off the believed one in height
+        // (the ball passes above the tool: misses by construction).
+        let s = Scenario::from_toml_str(include_str!("../../../scenarios/reality.toml")).unwrap();
         let mut lab = VirtualLab::new(&s, 1).unwrap();
         let mut recs: Vec<TrialRecord> = (0..20).map(|i| lab.run_trial(i)).collect();
         let mut off = reality_lab();
@@ -1277,7 +1279,7 @@ mod tests {
             })
             .collect();
         assert!(agree >= 19, "success agrees in {agree} of 20: {table}");
-        assert!(close >= 14, "timing within 3 ms in {close} of 20: {table}");
+        assert!(close >= 17, "timing within 3 ms in {close} of 20: {table}");
         assert!(
             hits >= 10 && seen == hits,
             "contact seen in {seen} of {hits} hits"

@@ -619,8 +619,10 @@ pub struct WorldRobot {
     pub latency: crate::sim::world::LatencyModel,
     /// The true joints.
     pub joints: crate::sim::world::WorldJoints,
-    /// The latest contact of ball and tool (its force pulse), if any.
-    contact: Option<crate::sim::world::Contact>,
+    /// The latest contacts of ball and tool (their force pulses).
+    contacts: [Option<crate::sim::world::Contact>; 4],
+    /// How late the external torque estimate shows a contact's force, s.
+    torque_lag_s: f64,
     /// When the previous monitoring message left, ns (the period the
     /// external torques average over).
     last_tick_ns: Option<u64>,
@@ -629,17 +631,20 @@ pub struct WorldRobot {
 }
 
 impl WorldRobot {
-    /// The reality lab's robot: `latency`, `joints`, and the external
-    /// torques' noise drawn from `seed`.
+    /// The reality lab's robot: `latency`, `joints`, the external torques'
+    /// noise drawn from `seed`, and their lag behind a contact's force
+    /// (`torque_lag_s`, `sim::world::contact::TORQUE_LAG_PERIODS` FRI periods).
     pub fn new(
         latency: crate::sim::world::LatencyModel,
         joints: crate::sim::world::WorldJoints,
         seed: u64,
+        torque_lag_s: f64,
     ) -> Self {
         Self {
             latency,
             joints,
-            contact: None,
+            contacts: [None; 4],
+            torque_lag_s,
             last_tick_ns: None,
             torque_rng: ChaCha8Rng::seed_from_u64(seed),
         }
@@ -651,15 +656,18 @@ impl WorldRobot {
         let b = now_ns as f64 * 1e-9;
         let a = self.last_tick_ns.map_or(b, |t| t as f64 * 1e-9);
         self.last_tick_ns = Some(now_ns);
+        let lag = self.torque_lag_s;
         let tau = crate::sim::world::contact::external_torques(
             q,
-            self.contact.as_ref(),
-            a,
-            b,
+            &self.contacts,
+            a - lag,
+            b - lag,
             &mut self.torque_rng,
         );
-        if self.contact.is_some_and(|c| c.over_by(a)) {
-            self.contact = None;
+        for c in &mut self.contacts {
+            if c.is_some_and(|c| c.over_by(b - lag)) {
+                *c = None;
+            }
         }
         tau
     }
@@ -842,7 +850,14 @@ impl SimController {
     /// the reality lab's robot.
     pub fn contact(&mut self, contact: crate::sim::world::Contact) {
         if let Some(w) = self.world.as_mut() {
-            w.contact = Some(contact);
+            // A free slot, else the oldest contact's.
+            if let Some(slot) = w.contacts.iter_mut().min_by(|a, b| match (a, b) {
+                (None, _) => std::cmp::Ordering::Less,
+                (_, None) => std::cmp::Ordering::Greater,
+                (Some(a), Some(b)) => a.t_s.total_cmp(&b.t_s),
+            }) {
+                *slot = Some(contact);
+            }
         }
     }
 

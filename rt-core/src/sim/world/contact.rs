@@ -5,9 +5,12 @@
 //! collision, [`super::TruePendulum::collide`]) the tool receives the
 //! impulse that changed the ball's velocity, `-m dv` (ball mass
 //! `world.pendulum.ball_mass_kg`), as a half-sine force pulse of
-//! [`CONTACT_DURATION_S`] from the contact. The robot reports, with each
+//! [`CONTACT_DURATION_S`] from the contact (its exact time between two
+//! control steps, found by the trial driver). The robot reports, with each
 //! monitoring message, the pulse's mean force over the period since its last
-//! message mapped to the joints by the transposed Jacobian of the contact
+//! message, [`TORQUE_LAG_PERIODS`] FRI periods late (the estimate's
+//! filtering: a contact between two messages shows in the next ones, split
+//! between them as its pulse falls), mapped to the joints by the transposed Jacobian of the contact
 //! point, `tau = J^T F` (`tau_i = z_i . ((p - o_i) x F)` over the iiwa's
 //! joint axes at the true joint angles), plus white noise of
 //! [`EXTERNAL_TORQUE_NOISE_NM`] per joint (a torque-sensing robot's external
@@ -26,6 +29,10 @@ use crate::sim::camera::gaussian;
 
 /// Duration of a contact's force pulse, seconds.
 pub const CONTACT_DURATION_S: f64 = 0.004;
+/// The external torque estimate shows a contact's force this many FRI
+/// periods late (its filtering): a contact that begins between two messages
+/// shows, in the next messages, the part of its pulse after a period.
+pub const TORQUE_LAG_PERIODS: f64 = 1.0;
 /// Standard deviation of the reported external torque of each joint, N m.
 pub const EXTERNAL_TORQUE_NOISE_NM: f64 = 0.2;
 
@@ -74,19 +81,23 @@ pub fn joint_torques(q: &Joints, point_m: &Vector3<f64>, force_n: &Vector3<f64>)
     })
 }
 
-/// The external torques the robot reports for the period `[a_s, b_s]`:
-/// the contact's (when any) plus the sensing noise.
+/// The external torques the robot reports for the period `[a_s, b_s]`
+/// (contact time, the sensing lag already taken off): the contacts' (when
+/// any) plus the sensing noise.
 pub fn external_torques<R: Rng>(
     q: &Joints,
-    contact: Option<&Contact>,
+    contacts: &[Option<Contact>],
     a_s: f64,
     b_s: f64,
     rng: &mut R,
 ) -> Joints {
-    let mut tau = match contact {
-        Some(c) => joint_torques(q, &c.point_m, &c.mean_force_n(a_s, b_s)),
-        None => [0.0; JOINTS],
-    };
+    let mut tau = [0.0; JOINTS];
+    for c in contacts.iter().flatten() {
+        let part = joint_torques(q, &c.point_m, &c.mean_force_n(a_s, b_s));
+        for (t, p) in tau.iter_mut().zip(part) {
+            *t += p;
+        }
+    }
     for v in &mut tau {
         *v += EXTERNAL_TORQUE_NOISE_NM * gaussian(rng);
     }
@@ -147,15 +158,15 @@ mod tests {
         let mut quiet_max: f64 = 0.0;
         for k in 0..20_000 {
             let a = k as f64 * period;
-            let tau = external_torques(&q(), None, a, a + period, &mut rng);
+            let tau = external_torques(&q(), &[None], a, a + period, &mut rng);
             quiet_max = quiet_max.max(norm(&tau));
         }
         assert!(quiet_max < 1.5, "{quiet_max}");
         // With one: the period holding most of the pulse stands out.
-        let tau = external_torques(&q(), Some(&c), 1.0, 1.005, &mut rng);
+        let tau = external_torques(&q(), &[Some(c)], 1.0, 1.005, &mut rng);
         assert!(norm(&tau) > 3.0, "{tau:?}");
         // After the pulse, noise again.
-        let tau = external_torques(&q(), Some(&c), 1.010, 1.015, &mut rng);
+        let tau = external_torques(&q(), &[Some(c)], 1.010, 1.015, &mut rng);
         assert!(norm(&tau) < 1.5, "{tau:?}");
     }
 }
