@@ -24,7 +24,10 @@
 //! a trial asked for before the robot commands is refused with a clear
 //! error), the first trial after start-up runs, and killing the robot
 //! cabinet's process mid-trial aborts that trial as `fri_lost` (the
-//! controller fell silent) while a restarted cabinet takes the next trial.
+//! controller fell silent) while a restarted cabinet takes the next trial;
+//! the same for the board (`magnet_fault`) and the webcam (its stream gone:
+//! `camera_lost`, the camera shown lost and trials refused until it
+//! delivers again).
 
 use std::{
     io::{BufRead, BufReader},
@@ -533,6 +536,53 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
     })
     .await;
     let mut ids = vec![first, second, third, fourth];
+
+    // The webcam stops mid-trial (the video's bytes gone, as an unplugged
+    // camera's stream): the trial aborts as camera_lost, the state says the
+    // camera is lost and trials are refused; the camera back (the bytes
+    // restored), frames come again and the next trial runs.
+    let fifth = start_trial(addr, &mut refusals).await;
+    wait_state(addr, Duration::from_secs(10), "the fifth trial runs", |s| {
+        s["trial_id"] == fifth
+    })
+    .await;
+    let bytes = std::fs::read(&video).unwrap();
+    let unplugged_at = Instant::now();
+    std::fs::File::create(&video).unwrap();
+    let r = wait_record(addr, fifth, Duration::from_secs(15)).await;
+    println!(
+        "wired real lab: trial {fifth} after the camera stopped ({:.2} s): {r}",
+        unplugged_at.elapsed().as_secs_f64()
+    );
+    assert_finished(&r);
+    assert_eq!(r["status"], "aborted", "{r}");
+    assert_eq!(r["abort_reason"], "camera_lost", "{r}");
+    let s = wait_state(
+        addr,
+        Duration::from_secs(10),
+        "the camera shows lost",
+        |s| s["camera"]["lost"] == true,
+    )
+    .await;
+    assert_eq!(s["abort"]["reason"], "camera_lost", "{s}");
+    let (code, body) = post(addr, "/api/trials", "").await;
+    assert_eq!(code, 409, "{body}");
+    assert_eq!(body["reason"], "device_unavailable", "{body}");
+    std::fs::write(&video, &bytes).unwrap();
+    let s = wait_state(
+        addr,
+        Duration::from_secs(10),
+        "the camera delivers again",
+        |s| s["camera"]["lost"] == false && s["camera"]["found"] == true,
+    )
+    .await;
+    println!("wired real lab: the camera delivers again: {}", s["camera"]);
+    let sixth = start_trial(addr, &mut refusals).await;
+    let r = wait_record(addr, sixth, Duration::from_secs(60)).await;
+    println!("wired real lab: trial {sixth} after the camera came back: {r}");
+    assert_finished(&r);
+    assert_eq!(r["status"], "done", "{r}");
+    ids.extend([fifth, sixth]);
 
     // Consecutive trials (REAL_LAB_TRIALS, default 3; the issue's
     // acceptance: 20) all finish with a status and a reason.

@@ -5,7 +5,8 @@ import type { CameraInfo } from "./types";
 // A camera 2 m in front of the rest position, looking along base +x: the image's
 // right is base -y, its down is base -z (rt-core's vision calibration conventions).
 const cam: CameraInfo = {
-  width_px: 1280, height_px: 720, frame: 1, t_s: 0, found: false, rejected: 0, x_px: null, y_px: null, r_px: null,
+  width_px: 1280, height_px: 720, frame: 1, t_s: 0, found: false,
+  lost: false, rejected: 0, x_px: null, y_px: null, r_px: null,
   fx_px: 1000, fy_px: 1000, cx_px: 640, cy_px: 360, k1: 0, k2: 0,
   rest_c_m: [0, 0, 2], lateral_c: [-1, 0, 0], up_c: [0, -1, 0],
 };

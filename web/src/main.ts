@@ -89,6 +89,8 @@ function status(s: StateMessage): void {
   set("st-step", `${fmt(s.timing.step_us, 1)} / ${fmt(s.timing.step_max_us, 1)} µs`);
   set("st-misses", String(s.timing.deadline_misses + s.fri.missed_cycles));
   set("st-rejected", String(s.camera?.rejected ?? "–"));
+  set("st-camera", s.camera?.lost ? "lost: no frames" : "delivering");
+  $("st-camera").classList.toggle("bad", s.camera?.lost === true);
   const ahead = (s.pendulum.crossing_t_s ?? Number.NaN) - s.t_s;
   set("st-pass", ahead >= 0 ? `in ${fmt(ahead, 2, "s")} ± ${fmt((s.pendulum.crossing_sigma_s ?? NaN) * 1000, 1, "ms")}` : "–");
 }

@@ -471,6 +471,10 @@ pub struct CameraView {
     pub t_s: f64,
     /// Whether the detector found the ball in it.
     pub found: bool,
+    /// The camera stopped delivering frames (none for over a second; a real
+    /// camera unplugged or its stream broken): trials are refused until it
+    /// delivers again.
+    pub lost: bool,
     /// Detections dropped so far as inconsistent with the track and shape
     /// (a ball-like blob where the tracked ball cannot be).
     #[ts(type = "number")]

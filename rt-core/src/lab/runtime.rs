@@ -137,8 +137,9 @@ pub enum FriLink {
     },
 }
 
-/// Builds a frame source on the lab's clock.
-pub type SourceFactory = Box<dyn FnOnce(Clock) -> Result<Box<dyn FrameSource>, VisionError> + Send>;
+/// Builds a frame source on the lab's clock (again after it stopped: a
+/// camera unplugged and plugged in).
+pub type SourceFactory = Box<dyn FnMut(Clock) -> Result<Box<dyn FrameSource>, VisionError> + Send>;
 
 /// Where the camera images come from.
 pub enum CameraLink {
@@ -329,6 +330,7 @@ impl LabRuntime {
 
         // The camera: the simulated one renders the truth the control thread hands over.
         let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
+        let mut reopen = None;
         let (source, calibration, truth, calibrations): (
             Box<dyn FrameSource>,
             SwingPlaneCalibration,
@@ -378,7 +380,14 @@ impl LabRuntime {
                 };
                 (Box::new(src), cal, Some(truth), Some(cal_rx))
             }
-            CameraLink::Source { open, calibration } => (open(clock)?, calibration, None, None),
+            CameraLink::Source {
+                mut open,
+                calibration,
+            } => {
+                let source = open(clock)?;
+                reopen = Some(open);
+                (source, calibration, None, None)
+            }
         };
         let vision = VisionLoop::spawn(VisionParts {
             source,
@@ -388,6 +397,7 @@ impl LabRuntime {
             measurements: meas_tx,
             video: frames.map(|f| (f, video)),
             clock,
+            reopen,
         })?;
 
         // The control thread: the FRI client session calling the lab's step.

@@ -59,6 +59,13 @@ pub const FRI_LOST_AFTER_S: f64 = 0.3;
 /// What a real lab's trial record says until it has a measured judge.
 pub const NOT_JUDGED_REAL: &str =
     "not judged: this lab has no ground truth and no measured judge (the real lab)";
+/// A real camera that delivers no frame for this long is lost (unplugged,
+/// its stream broken): a running trial aborts as `camera_lost`, new ones
+/// are refused until frames come again, seconds.
+pub const CAMERA_LOST_AFTER_S: f64 = 1.0;
+/// An abort's detail when the camera stopped delivering frames mid-trial.
+pub const CAMERA_LOST: &str =
+    "the camera stopped delivering frames (unplugged or its stream broke)";
 /// An abort's detail when the magnet board stopped answering mid-trial.
 pub const MAGNET_LOST: &str =
     "the magnet board stopped answering (serial link lost) while it held the ball";
@@ -400,6 +407,8 @@ pub struct LabStep {
     pending: Option<(u64, bool)>,
     /// When the operator last commanded a trial (counts as a heartbeat), control clock, s.
     operator_since_s: f64,
+    /// When the latest camera frame's measurement arrived, control clock, s.
+    last_frame_s: Option<f64>,
     /// The robot controller fell silent at this time (the last message),
     /// control clock, s; cleared by its next message.
     silent_since: Option<f64>,
@@ -506,6 +515,7 @@ impl LabStep {
             magnet_failures: 0,
             pending: None,
             operator_since_s: f64::NEG_INFINITY,
+            last_frame_s: None,
             silent_since: None,
             abort_detail: "",
         }
@@ -518,6 +528,16 @@ impl LabStep {
     }
 
     /// The magnet board does not answer (its driver reports the link lost).
+    /// The camera stopped delivering frames (none for over
+    /// [`CAMERA_LOST_AFTER_S`] after some arrived; on the wall clock, where
+    /// a real camera can be unplugged).
+    fn camera_lost(&self, t: f64) -> bool {
+        matches!(self.p.clock, LabClock::Wall(_))
+            && self
+                .last_frame_s
+                .is_some_and(|l| t - l > CAMERA_LOST_AFTER_S)
+    }
+
     fn magnet_lost(&self) -> bool {
         #[cfg(feature = "serial")]
         if let Some(v) = self.p.magnet.as_ref().and_then(MagnetHandle::try_view) {
@@ -699,9 +719,22 @@ impl LabStep {
         }
         self.dead_man(t);
         self.follow_magnet();
+        if self.trial.is_some() && self.camera_lost(t) {
+            let state = self.inner.controller().state();
+            if !matches!(
+                state,
+                TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+            ) {
+                self.abort_detail = CAMERA_LOST;
+                self.inner
+                    .controller_mut()
+                    .abort(t, AbortReason::CameraLost);
+            }
+        }
         let mut n = 0u64;
         while let Ok(m) = self.p.measurements.pop() {
             self.snap.camera.set_frame(&m);
+            self.last_frame_s = Some(t);
             if !m.found {
                 continue;
             }
@@ -848,7 +881,9 @@ impl LabStep {
             Command::Arm | Command::RunTrial { .. } if !self.commanding() => {
                 (Err(Refusal::RobotNotCommanding), None)
             }
-            Command::Arm | Command::RunTrial { .. } if self.magnet_lost() => {
+            Command::Arm | Command::RunTrial { .. }
+                if self.magnet_lost() || self.camera_lost(t) =>
+            {
                 (Err(Refusal::DeviceUnavailable), None)
             }
             Command::RunTrial { trial_id: 0 } => (Err(Refusal::Invalid), None),
@@ -1456,6 +1491,7 @@ impl LabStep {
     }
 
     fn fill_snapshot(&mut self, t: f64) {
+        self.snap.camera.lost = self.camera_lost(t);
         let c = self.inner.controller();
         let s = &mut self.snap;
         s.t_s = t;

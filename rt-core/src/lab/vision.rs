@@ -20,6 +20,7 @@ use opencv::{
 };
 use rtrb::{Consumer, Producer};
 
+use super::SourceFactory;
 use crate::bridge::{Frame as VideoFrame, FrameSender};
 use crate::check;
 use crate::vision::{
@@ -97,7 +98,13 @@ pub struct VisionParts {
     pub video: Option<(FrameSender, VideoParams)>,
     /// The control clock.
     pub clock: Clock,
+    /// Opens the source again when it stops (a real camera); `None`: the
+    /// end of the source ends the thread.
+    pub reopen: Option<SourceFactory>,
 }
+
+/// A stopped camera is tried again this often, seconds.
+pub const REOPEN_EVERY_S: f64 = 0.5;
 
 impl std::fmt::Debug for VisionParts {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -189,8 +196,35 @@ fn run(
                 pipeline = VisionPipeline::new(parts.detector.clone(), c)?;
             }
         }
-        let Some(frame) = parts.source.next_frame()? else {
-            break;
+        let frame = match parts.source.next_frame() {
+            Ok(Some(frame)) => frame,
+            ended => {
+                let Some(open) = parts.reopen.as_mut() else {
+                    // A source that cannot be reopened ends the thread.
+                    ended?;
+                    break;
+                };
+                // A camera that stopped (unplugged, its stream ended or
+                // broken): lost until it opens again, tried every
+                // REOPEN_EVERY_S; the control thread sees no frames (a
+                // running trial aborts as camera_lost, new ones are refused).
+                stats.lost.store(true, Ordering::Relaxed);
+                loop {
+                    if stop.load(Ordering::Relaxed) {
+                        return Ok(());
+                    }
+                    std::thread::sleep(std::time::Duration::from_secs_f64(REOPEN_EVERY_S));
+                    if let Ok(source) = open(clock) {
+                        parts.source = source;
+                        break;
+                    }
+                }
+                stats.reopened.fetch_add(1, Ordering::Relaxed);
+                stats.lost.store(false, Ordering::Relaxed);
+                // A fresh detector: the old track is stale.
+                pipeline = VisionPipeline::new(parts.detector.clone(), *pipeline.calibration())?;
+                continue;
+            }
         };
         let t0 = clock.now_s();
         let m = match pipeline.process(&frame, t0) {

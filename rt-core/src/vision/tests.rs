@@ -557,6 +557,7 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
         measurements: producer,
         video: None,
         clock,
+        reopen: None,
     })
     .unwrap();
     let stats = std::sync::Arc::clone(thread.stats());
@@ -591,6 +592,101 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
         std::thread::sleep(Duration::from_millis(5));
     }
     assert!(stats.overflows.load(std::sync::atomic::Ordering::Relaxed) >= 3);
+    assert!(!thread.is_finished());
+    thread.stop().unwrap();
+}
+
+/// A source that stops (an unplugged camera) after `left` frames.
+struct Stopping<S> {
+    inner: S,
+    left: u32,
+}
+
+impl<S: crate::vision::FrameSource> crate::vision::FrameSource for Stopping<S> {
+    fn next_frame(&mut self) -> Result<Option<crate::vision::Frame<'_>>, VisionError> {
+        if self.left == 0 {
+            return Err(VisionError::BadFrame("unplugged".into()));
+        }
+        self.left -= 1;
+        self.inner.next_frame()
+    }
+
+    fn fps(&self) -> f64 {
+        self.inner.fps()
+    }
+}
+
+#[test]
+fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
+    use std::sync::atomic::Ordering;
+    let clock = Clock::start();
+    let camera = CameraParams {
+        fps: 100.0,
+        latency_ms: 5.0,
+        drop_rate: 0.0,
+        ..CameraParams::default()
+    };
+    let params = SimCameraParams {
+        latency_jitter_ms: 0.0,
+        ..SimCameraParams::default()
+    };
+    let t0 = clock.now_s();
+    let cal = SimCamera::new(&camera, &params, R_BALL, 5)
+        .unwrap()
+        .true_calibration(&rest(0.6));
+    let make = move || {
+        let cam = SimCamera::new(&camera, &params, R_BALL, 5).unwrap();
+        SimCameraSource::new(cam, move |t| Some(swing(0.6, 20.0, t - t0)), clock)
+    };
+    let first = Stopping {
+        inner: make(),
+        left: 10,
+    };
+    // The camera stops after 10 frames; plugging it in again fails twice.
+    let mut attempts = 0;
+    let reopen: crate::lab::SourceFactory = Box::new(move |_| {
+        attempts += 1;
+        if attempts <= 2 {
+            return Err(VisionError::BadFrame("no such device".into()));
+        }
+        Ok(Box::new(Stopping {
+            inner: make(),
+            left: u32::MAX,
+        }))
+    });
+    let (producer, mut consumer) = measurement_ring(256);
+    let thread = crate::lab::VisionLoop::spawn(crate::lab::VisionParts {
+        source: Box::new(first),
+        detector: DetectorParams::default(),
+        calibration: cal,
+        calibrations: None,
+        measurements: producer,
+        video: None,
+        clock,
+        reopen: Some(reopen),
+    })
+    .unwrap();
+    let stats = std::sync::Arc::clone(thread.stats());
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut seen_lost = false;
+    let mut got = Vec::new();
+    while (got.len() < 30 || stats.reopened.load(Ordering::Relaxed) == 0)
+        && Instant::now() < deadline
+    {
+        seen_lost |= stats.lost.load(Ordering::Relaxed);
+        match consumer.pop() {
+            Ok(m) => got.push(m),
+            Err(_) => std::thread::sleep(Duration::from_millis(2)),
+        }
+    }
+    assert!(seen_lost, "the stopped camera never showed as lost");
+    assert_eq!(stats.reopened.load(Ordering::Relaxed), 1);
+    assert!(!stats.lost.load(Ordering::Relaxed));
+    assert!(got.len() >= 30, "{} measurements", got.len());
+    // A gap of the three attempts (0.5 s each) between the 10th and the 11th.
+    let gap = got[10].t_capture_s - got[9].t_capture_s;
+    assert!(gap >= 1.4, "gap {gap} s");
+    assert!(got[10..].iter().all(|m| m.found));
     assert!(!thread.is_finished());
     thread.stop().unwrap();
 }

@@ -65,4 +65,8 @@ pub struct VisionStats {
     pub last_frame_us: AtomicU64,
     /// Highest processing time of a frame, microseconds.
     pub max_frame_us: AtomicU64,
+    /// The camera stopped and is not open again yet.
+    pub lost: std::sync::atomic::AtomicBool,
+    /// Times the camera was opened again after it stopped.
+    pub reopened: AtomicU64,
 }

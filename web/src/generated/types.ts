@@ -282,6 +282,12 @@ t_s: number | null,
  */
 found: boolean, 
 /**
+ * The camera stopped delivering frames (none for over a second; a real
+ * camera unplugged or its stream broken): trials are refused until it
+ * delivers again.
+ */
+lost: boolean, 
+/**
  * Detections dropped so far as inconsistent with the track and shape
  * (a ball-like blob where the tracked ball cannot be).
  */
