@@ -472,6 +472,13 @@ pub struct MeasuredInputs<'a> {
     pub contact_pulse_s: f64,
     /// The torque samples' period (the contact falls anywhere within one), s.
     pub contact_period_s: f64,
+    /// The believed intercept point's lateral (robot base `y`, the swing's
+    /// direction), m; NaN: unknown.
+    pub intercept_y_m: f64,
+    /// How far along the swing from the tool point the ball's centre is
+    /// when it first touches the tool (the ball's radius and the tool's
+    /// extent along the swing, believed), m; NaN: unknown.
+    pub contact_reach_m: f64,
 }
 
 /// Settling radius of the measured arrival (the physical judge's), m.
@@ -615,6 +622,35 @@ fn held_drift(m: &MeasuredInputs<'_>, began_s: f64) -> Option<[f64; 3]> {
     Some([c[0], c[1] / scale, c[2] / (scale * scale)])
 }
 
+/// The time from the touch to the pass from the robot's side: the ball's
+/// centre touched the tool `contact_reach_m` before the measured tool point
+/// (FRI's measured joints through the believed kinematics, at the onset)
+/// along its motion, and passes the intercept's lateral `intercept_y_m`
+/// after `(y_int - y_touch) / v` (`v` the camera's fitted speed at the pass;
+/// near the bottom it changes by a few parts in a thousand over the touch's
+/// few centimetres). `None` when either belief is unknown or the lead is
+/// not positive.
+fn geometric_lead(m: &MeasuredInputs<'_>, began_s: f64, speed_mps: f64) -> Option<f64> {
+    if !(m.intercept_y_m.is_finite() && m.contact_reach_m.is_finite()) || speed_mps == 0.0 {
+        return None;
+    }
+    let n = m.tool_t_s.len().min(m.tool_m.len());
+    let k = m.tool_t_s[..n].partition_point(|&t| t < began_s);
+    if k == 0 || k >= n {
+        return None;
+    }
+    let (t0, t1) = (m.tool_t_s[k - 1], m.tool_t_s[k]);
+    let f = if t1 > t0 {
+        (began_s - t0) / (t1 - t0)
+    } else {
+        0.0
+    };
+    let y_tool = m.tool_m[k - 1][1] + f * (m.tool_m[k][1] - m.tool_m[k - 1][1]);
+    let y_touch = y_tool - speed_mps.signum() * m.contact_reach_m;
+    let lead = (m.intercept_y_m - y_touch) / speed_mps;
+    (lead > 0.0 && lead < 0.2).then_some(lead)
+}
+
 /// The first `order` unknowns of `a x = r` (Gaussian elimination with
 /// partial pivoting); the others 0. `None` when singular.
 fn solve(a: &[[f64; 3]; 3], r: &[f64; 3], order: usize) -> Option<[f64; 3]> {
@@ -674,7 +710,7 @@ fn anchored_pass(
             break;
         }
     }
-    let lead = p.t_s - t_touch;
+    let lead = geometric_lead(m, began_s, p.speed_m_s).unwrap_or(p.t_s - t_touch);
     if lead.is_nan() || lead.abs() >= 0.2 || p.speed_m_s == 0.0 {
         return None;
     }
@@ -897,6 +933,8 @@ mod tests {
                 contact_delay_s: 0.0,
                 contact_pulse_s: 0.0,
                 contact_period_s: 0.005,
+                intercept_y_m: f64::NAN,
+                contact_reach_m: f64::NAN,
             })
         };
         let j = m(&hit);
@@ -935,6 +973,8 @@ mod tests {
                 contact_delay_s: 0.0,
                 contact_pulse_s: 0.0,
                 contact_period_s: 0.005,
+                intercept_y_m: f64::NAN,
+                contact_reach_m: f64::NAN,
             })
         };
         // `isochron fri-sim`: exact zeros; a constant offset; no samples;
@@ -1090,6 +1130,8 @@ mod tests {
             contact_delay_s: 0.005,
             contact_pulse_s: 0.004,
             contact_period_s: 0.005,
+            intercept_y_m: f64::NAN,
+            contact_reach_m: f64::NAN,
         });
         assert!(j.contact, "{j:?}");
         let pass = j.pass_t_s.unwrap();
@@ -1114,6 +1156,78 @@ mod tests {
         assert!(
             (camera.t_s - t_pass - camera_late).abs() < 0.003,
             "{camera:?}"
+        );
+    }
+
+    #[test]
+    fn the_robot_side_lead_ignores_a_ball_that_slid_off_the_touch_point() {
+        // As above, but the held ball slid 15 mm on towards the rest right
+        // after the touch (over the disc's rim): the camera's touch point is
+        // off by 15 mm (about 8 ms at the pass's speed). From the robot's
+        // side (the tool point at the onset, the believed intercept lateral
+        // and the contact's reach along the swing) the pass stays within
+        // 1 ms.
+        let w = (9.81f64 / 1.93).sqrt();
+        let t_pass = 1.5;
+        let x_touch = -0.06;
+        let rest = 0.02;
+        let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
+        let (mut lo, mut hi) = (-0.2, 0.0);
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            if at(mid) < x_touch {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let tc = t_pass + hi;
+        let sightings: Vec<Sighting> = (0..60)
+            .map(|k| {
+                let t = 0.8 + k as f64 / 30.0 + 0.02;
+                let x = if t - 0.02 < tc {
+                    at(t - 0.02 - t_pass)
+                } else {
+                    x_touch + 0.015 + 0.02 * (t - 0.02 - tc)
+                };
+                Sighting {
+                    t_s: t,
+                    x_m: rest + x,
+                }
+            })
+            .collect();
+        let (t, tau) = pulse_torques(tc, 0.005, 0.2, 4);
+        // The tool point at the intercept (robot y = 0.1), settled.
+        let tool: Vec<[f64; 3]> = t.iter().map(|_| [0.6, 0.1, 0.3]).collect();
+        let judge = |intercept_y_m: f64, contact_reach_m: f64| {
+            judge_measured(&MeasuredInputs {
+                sightings: &sightings,
+                rest_lateral_m: rest,
+                sigma_x_m: 0.001,
+                omega_radps: w,
+                predicted_pass_s: t_pass + 0.01,
+                tool_t_s: &t,
+                tool_m: &tool,
+                torque_t_s: &t,
+                torques_nm: &tau,
+                settle_m: 0.002,
+                tolerance_ms: 20.0,
+                contact_delay_s: 0.005,
+                contact_pulse_s: 0.004,
+                contact_period_s: 0.005,
+                intercept_y_m,
+                contact_reach_m,
+            })
+        };
+        let robot = judge(0.1, -x_touch).pass_t_s.unwrap();
+        assert!(
+            (robot - t_pass).abs() < 0.001,
+            "robot side: {robot} vs {t_pass}"
+        );
+        let camera = judge(f64::NAN, f64::NAN).pass_t_s.unwrap();
+        assert!(
+            (camera - t_pass).abs() > 0.004,
+            "camera side: {camera} vs {t_pass}"
         );
     }
 }

@@ -1140,6 +1140,15 @@ impl Controller {
     pub fn tool_point(&self, q: &[f64; JOINTS]) -> Vector3<f64> {
         tool_pose(&Joints::from(*q), &self.tool).translation.vector
     }
+
+    /// The tool's axis (its frame's z, base frame) at a joint vector.
+    pub fn tool_axis(&self, q: &[f64; JOINTS]) -> Vector3<f64> {
+        tool_pose(&Joints::from(*q), &self.tool)
+            .rotation
+            .matrix()
+            .column(2)
+            .into_owned()
+    }
 }
 
 /// Runs the motion generator once, offline, over the planned motion at the FRI

@@ -47,6 +47,10 @@ pub(crate) struct MeasuredBeliefs {
     pub tolerance_ms: f64,
     /// The FRI period, s.
     pub period_s: f64,
+    /// The believed intercept point's lateral (base `y`), m.
+    pub intercept_y_m: f64,
+    /// Ball centre to tool point along the swing at the first touch, m.
+    pub contact_reach_m: f64,
 }
 
 impl MeasuredTrace {
@@ -121,6 +125,8 @@ impl MeasuredTrace {
             contact_delay_s: TORQUE_LAG_PERIODS * b.period_s,
             contact_pulse_s: CONTACT_PULSE_S,
             contact_period_s: b.period_s,
+            intercept_y_m: b.intercept_y_m,
+            contact_reach_m: b.contact_reach_m,
         });
         for s in &mut self.sightings {
             s.t_s += b.camera_offset_s;

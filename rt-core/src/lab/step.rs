@@ -1361,6 +1361,16 @@ impl LabStep {
                 settle_m: ARRIVAL_SETTLE_M,
                 tolerance_ms: self.p.scenario.success.timing_tolerance_ms,
                 period_s: self.period_s,
+                intercept_y_m: trial.plan.intercept_m.y,
+                // The ball first touches the disc's rim (the ball's radius
+                // and the disc's extent along the swing at the measured
+                // tool axis).
+                contact_reach_m: {
+                    let n = self.inner.controller().tool_axis(&self.q);
+                    pendulum.ball_radius_m
+                        + self.p.scenario.task.tool_contact_radius_m
+                            * (1.0 - n.y * n.y).max(0.0).sqrt()
+                },
             });
             o.latency_estimate_ms = commit.latency_s * 1e3;
             o.camera_offset_estimate_ms = Some(commit.camera_offset_s * 1e3);

@@ -66,6 +66,10 @@ fn every_rule_names_its_field() {
         ),
         ("[task]\nhome_m = [0.3, nan, 0.5]", "task.home_m[1]"),
         ("[task]\ntool_length_m = -0.1", "task.tool_length_m"),
+        (
+            "[task]\ntool_contact_radius_m = -0.01",
+            "task.tool_contact_radius_m",
+        ),
         ("[task]\nmovement_time_s = 0.0", "task.movement_time_s"),
         ("[task]\nmovement_time_s = -1.5", "task.movement_time_s"),
         ("[camera]\nfps = 0.0", "camera.fps"),

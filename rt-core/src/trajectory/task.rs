@@ -17,6 +17,10 @@ pub struct TaskParams {
     pub home_m: [f64; 3],
     /// Tool point along the flange's z axis, metres.
     pub tool_length_m: f64,
+    /// Radius of the tool's contact disc (centred on the tool point, normal
+    /// along the tool axis), metres: where the ball first touches the tool,
+    /// for the measured judge.
+    pub tool_contact_radius_m: f64,
     /// Duration of the interception motion, seconds.
     pub movement_time_s: f64,
 }
@@ -28,6 +32,7 @@ impl Default for TaskParams {
             intercept_height_m: 0.30,
             home_m: [0.30, 0.0, 0.50],
             tool_length_m: 0.10,
+            tool_contact_radius_m: 0.03,
             movement_time_s: 1.5,
         }
     }
@@ -48,6 +53,12 @@ impl TaskParams {
             check::within(&format!("task.home_m[{i}]"), *v, -1.2, 1.5)?;
         }
         check::within("task.tool_length_m", self.tool_length_m, 0.0, 0.5)?;
+        check::within(
+            "task.tool_contact_radius_m",
+            self.tool_contact_radius_m,
+            0.0,
+            0.2,
+        )?;
         check::within("task.movement_time_s", self.movement_time_s, 0.3, 10.0)
     }
 }
