@@ -360,6 +360,12 @@ pub async fn put_params(
         message: e.to_string(),
         field: e.field().map(str::to_owned),
     })?;
+    if new.world.is_some() && current.world.is_none() {
+        return Err(AppError::BadRequest {
+            message: crate::serve::WORLD_IN_SERVE.into(),
+            field: Some("world".into()),
+        });
+    }
     let changed = changed_fields(&current_json, &merged);
     if changed.is_empty() {
         return Ok(Json(current));

@@ -73,6 +73,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     for path in &args.params {
         scenario = rt_core::tuning::overlay_params_file(&scenario, path)?;
     }
+    if scenario.world.is_some() {
+        anyhow::bail!("{WORLD_IN_SERVE}");
+    }
     // `--calibration` must exist; the configured file may not yet (the lab is
     // served to be calibrated).
     let calibration = match (&args.calibration, &cfg.lab.calibration_file) {
@@ -188,6 +191,13 @@ pub fn uncalibrated_refusal(
         missing[0]
     ))
 }
+
+/// Why `serve` refuses a scenario with `[world]`: its labs never simulate
+/// one (the real lab has the real world; the simulated lab in real time is a
+/// truthful world), and a figure must say which world it comes from.
+pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world that differs from the \
+    controller's beliefs) runs on the virtual clock only (`isochron trials`, `isochron eval --reality`); \
+    `serve` simulates a truthful world in real time: remove [world] from the scenario and parameter files";
 
 /// The real lab of `cfg` (`lab.mode = "real"`): the same runtime as the
 /// simulated lab with the FRI client answering the configured controller, the

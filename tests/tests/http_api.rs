@@ -85,6 +85,15 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             400,
             Some("bogus"),
         ),
+        // The reality lab's [world] runs on the virtual clock only: the
+        // real-time lab would silently stay a truthful world.
+        (
+            "PUT",
+            "/api/params",
+            br#"{"world": {"camera": {"latency_ms": [-5.0, 15.0]}}}"#.to_vec(),
+            400,
+            Some("world"),
+        ),
         (
             "PUT",
             "/api/params",

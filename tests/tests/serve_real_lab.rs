@@ -155,3 +155,31 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
     lab.shutdown();
     drop(sim);
 }
+
+/// `serve` never simulates the reality lab's `[world]` (it runs on the
+/// virtual clock): a scenario with one is refused at start with the reason,
+/// before anything listens.
+#[test]
+fn serve_refuses_a_scenario_with_a_world_and_says_where_it_runs() {
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--params")]) else {
+        return;
+    };
+    let reality =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
+    let dir = std::env::temp_dir().join(format!("isochron-serve-world-{}", std::process::id()));
+    let out = std::process::Command::new(&bin)
+        .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
+        .arg(&dir)
+        .arg("--params")
+        .arg(&reality)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("runs on the virtual clock only"), "{err}");
+    assert!(
+        !String::from_utf8_lossy(&out.stdout).contains("listening"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
