@@ -1074,28 +1074,55 @@ mod tests {
         assert_eq!(contact_onset(&t, &tau, 0.0, t[10], 0.004, 0.005), None);
     }
 
+    /// A ball (1.93 m, 0.35 rad swing) passing the rest lateral `rest` at
+    /// `t_pass` that touches a tool 60 mm before it (`x_touch`) at `tc`.
+    struct Touch {
+        w: f64,
+        t_pass: f64,
+        x_touch: f64,
+        rest: f64,
+        tc: f64,
+    }
+
+    impl Touch {
+        fn new() -> Self {
+            let w = (9.81f64 / 1.93).sqrt();
+            let (t_pass, x_touch) = (1.5, -0.06);
+            // When the free swing reaches x_touch (bisection on the angle).
+            let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
+            let (mut lo, mut hi) = (-0.2, 0.0);
+            for _ in 0..60 {
+                let mid = 0.5 * (lo + hi);
+                if at(mid) < x_touch {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            Self {
+                w,
+                t_pass,
+                x_touch,
+                rest: 0.02,
+                tc: t_pass + hi,
+            }
+        }
+    }
+
     #[test]
     fn the_anchored_pass_follows_a_held_ball_that_drifts_and_ignores_the_camera_clock() {
         // The ball (radius 34 mm) meets a tool 60 mm before the rest point,
         // is held there and drifts 50 mm/s towards the rest; the camera's
         // clock is 20 ms late. The pass on the robot's clock from the
         // contact's onset: within 1 ms of the truth.
-        let w = (9.81f64 / 1.93).sqrt();
-        let t_pass = 1.5;
-        let x_touch = -0.06;
-        let rest = 0.02;
-        // When the free swing reaches x_touch (bisection on the angle).
+        let Touch {
+            w,
+            t_pass,
+            x_touch,
+            rest,
+            tc,
+        } = Touch::new();
         let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
-        let (mut lo, mut hi) = (-0.2, 0.0);
-        for _ in 0..60 {
-            let mid = 0.5 * (lo + hi);
-            if at(mid) < x_touch {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        let tc = t_pass + hi;
         let camera_late = 0.02;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let sightings: Vec<Sighting> = (0..60)
@@ -1167,21 +1194,14 @@ mod tests {
         // side (the tool point at the onset, the believed intercept lateral
         // and the contact's reach along the swing) the pass stays within
         // 1 ms.
-        let w = (9.81f64 / 1.93).sqrt();
-        let t_pass = 1.5;
-        let x_touch = -0.06;
-        let rest = 0.02;
+        let Touch {
+            w,
+            t_pass,
+            x_touch,
+            rest,
+            tc,
+        } = Touch::new();
         let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
-        let (mut lo, mut hi) = (-0.2, 0.0);
-        for _ in 0..60 {
-            let mid = 0.5 * (lo + hi);
-            if at(mid) < x_touch {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        let tc = t_pass + hi;
         let sightings: Vec<Sighting> = (0..60)
             .map(|k| {
                 let t = 0.8 + k as f64 / 30.0 + 0.02;

@@ -530,9 +530,8 @@ fn simulated_vision_measures_the_swing_with_drops_and_latency_deterministically(
     assert_ne!(c, run(&mut w, 60));
 }
 
-#[test]
-fn the_vision_thread_fills_the_ring_and_counts_overflow() {
-    let clock = Clock::start();
+/// A 100 fps camera with 5 ms latency, no drops, no jitter.
+fn fast_camera() -> (CameraParams, SimCameraParams) {
     let camera = CameraParams {
         fps: 100.0,
         latency_ms: 5.0,
@@ -543,6 +542,13 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
         latency_jitter_ms: 0.0,
         ..SimCameraParams::default()
     };
+    (camera, params)
+}
+
+#[test]
+fn the_vision_thread_fills_the_ring_and_counts_overflow() {
+    let clock = Clock::start();
+    let (camera, params) = fast_camera();
     let cam = SimCamera::new(&camera, &params, R_BALL, 5).unwrap();
     let cal = cam.true_calibration(&rest(0.6));
     let t0 = clock.now_s();
@@ -620,16 +626,7 @@ impl<S: crate::vision::FrameSource> crate::vision::FrameSource for Stopping<S> {
 fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
     use std::sync::atomic::Ordering;
     let clock = Clock::start();
-    let camera = CameraParams {
-        fps: 100.0,
-        latency_ms: 5.0,
-        drop_rate: 0.0,
-        ..CameraParams::default()
-    };
-    let params = SimCameraParams {
-        latency_jitter_ms: 0.0,
-        ..SimCameraParams::default()
-    };
+    let (camera, params) = fast_camera();
     let t0 = clock.now_s();
     let cal = SimCamera::new(&camera, &params, R_BALL, 5)
         .unwrap()
