@@ -369,7 +369,8 @@ pub fn swing_time_at(sightings: &[Sighting], win: &SwingWindow, x_m: f64) -> Opt
 /// The measured arrival: the first time after which the measured tool point
 /// (`tool[k]` at `t_s[k]`) stays within `settle_m` of its final point, the
 /// event interpolated between the last sample outside and the next one
-/// (the physical judge's rule, `sim::world::judge`, on measurements).
+/// (the settling rule a judge with ground truth applies to the true tool,
+/// here on measurements).
 pub fn measured_arrival(t_s: &[f64], tool_m: &[[f64; 3]], settle_m: f64) -> Option<f64> {
     let n = t_s.len().min(tool_m.len());
     let last = *tool_m[..n].last()?;
@@ -481,7 +482,7 @@ pub struct MeasuredInputs<'a> {
     pub contact_reach_m: f64,
 }
 
-/// Settling radius of the measured arrival (the physical judge's), m.
+/// Settling radius of the measured arrival, m.
 pub const ARRIVAL_SETTLE_M: f64 = 0.002;
 /// Contact threshold on the external torques' departure (Euclidean norm
 /// over the joints), N m: about 5.5 standard deviations of the norm of
@@ -899,9 +900,37 @@ mod tests {
         assert_eq!(measured_arrival(&[], &[], 0.002), None);
     }
 
+    /// A test's judge inputs: the detections, tool and torque samples as
+    /// given; the beliefs of a 1.93 m pendulum whose committed pass is at
+    /// 1.49 s, 2 mm camera noise, no torque lag or pulse, no robot-side
+    /// beliefs (tests override what they exercise).
+    fn inputs<'a>(
+        sightings: &'a [Sighting],
+        (tool_t_s, tool_m): (&'a [f64], &'a [[f64; 3]]),
+        (torque_t_s, torques_nm): (&'a [f64], &'a [[f64; 7]]),
+    ) -> MeasuredInputs<'a> {
+        MeasuredInputs {
+            sightings,
+            rest_lateral_m: 0.02,
+            sigma_x_m: 0.002,
+            omega_radps: (9.81f64 / 1.93).sqrt(),
+            predicted_pass_s: 1.49,
+            tool_t_s,
+            tool_m,
+            torque_t_s,
+            torques_nm,
+            settle_m: 0.002,
+            tolerance_ms: 20.0,
+            contact_delay_s: 0.0,
+            contact_pulse_s: 0.0,
+            contact_period_s: 0.005,
+            intercept_y_m: f64::NAN,
+            contact_reach_m: f64::NAN,
+        }
+    }
+
     #[test]
     fn the_measured_judge_needs_contact_and_timing() {
-        let w = (9.81f64 / 1.93).sqrt();
         let t_pass = 1.5;
         let sightings = pendulum(t_pass, 0.002, 5, 0.5);
         let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
@@ -917,26 +946,8 @@ mod tests {
             .collect();
         let mut hit = quiet.clone();
         hit[302][1] += 4.0;
-        let m = |torques: &[[f64; 7]]| {
-            judge_measured(&MeasuredInputs {
-                sightings: &sightings,
-                rest_lateral_m: 0.02,
-                sigma_x_m: 0.002,
-                omega_radps: w,
-                predicted_pass_s: 1.49,
-                tool_t_s: &t,
-                tool_m: &tool,
-                torque_t_s: &t,
-                torques_nm: torques,
-                settle_m: 0.002,
-                tolerance_ms: 20.0,
-                contact_delay_s: 0.0,
-                contact_pulse_s: 0.0,
-                contact_period_s: 0.005,
-                intercept_y_m: f64::NAN,
-                contact_reach_m: f64::NAN,
-            })
-        };
+        let m =
+            |torques: &[[f64; 7]]| judge_measured(&inputs(&sightings, (&t, &tool), (&t, torques)));
         let j = m(&hit);
         assert!(j.contact && j.success && j.judged(), "{j:?}");
         assert_eq!(j.contact_t_s, Some(t[302]));
@@ -950,7 +961,6 @@ mod tests {
 
     #[test]
     fn torques_without_a_signal_are_not_judged_but_the_timing_is_measured() {
-        let w = (9.81f64 / 1.93).sqrt();
         let sightings = pendulum(1.5, 0.002, 5, 0.5);
         let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
         let tool: Vec<[f64; 3]> = t
@@ -958,24 +968,7 @@ mod tests {
             .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
             .collect();
         let judge = |torque_t_s: &[f64], torques: &[[f64; 7]]| {
-            judge_measured(&MeasuredInputs {
-                sightings: &sightings,
-                rest_lateral_m: 0.02,
-                sigma_x_m: 0.002,
-                omega_radps: w,
-                predicted_pass_s: 1.49,
-                tool_t_s: &t,
-                tool_m: &tool,
-                torque_t_s,
-                torques_nm: torques,
-                settle_m: 0.002,
-                tolerance_ms: 20.0,
-                contact_delay_s: 0.0,
-                contact_pulse_s: 0.0,
-                contact_period_s: 0.005,
-                intercept_y_m: f64::NAN,
-                contact_reach_m: f64::NAN,
-            })
+            judge_measured(&inputs(&sightings, (&t, &tool), (torque_t_s, torques)))
         };
         // `isochron fri-sim`: exact zeros; a constant offset; no samples;
         // a spread of 1e-10 N m (rounding, not a sensor).
@@ -1143,22 +1136,13 @@ mod tests {
         let tool_t: Vec<f64> = t.clone();
         let tool: Vec<[f64; 3]> = tool_t.iter().map(|_| [0.6, 0.0, 0.3]).collect();
         let j = judge_measured(&MeasuredInputs {
-            sightings: &sightings,
             rest_lateral_m: rest,
             sigma_x_m: 0.001,
             omega_radps: w,
             predicted_pass_s: t_pass + 0.01,
-            tool_t_s: &tool_t,
-            tool_m: &tool,
-            torque_t_s: &t,
-            torques_nm: &tau,
-            settle_m: 0.002,
-            tolerance_ms: 20.0,
             contact_delay_s: 0.005,
             contact_pulse_s: 0.004,
-            contact_period_s: 0.005,
-            intercept_y_m: f64::NAN,
-            contact_reach_m: f64::NAN,
+            ..inputs(&sightings, (&tool_t, &tool), (&t, &tau))
         });
         assert!(j.contact, "{j:?}");
         let pass = j.pass_t_s.unwrap();
@@ -1221,22 +1205,15 @@ mod tests {
         let tool: Vec<[f64; 3]> = t.iter().map(|_| [0.6, 0.1, 0.3]).collect();
         let judge = |intercept_y_m: f64, contact_reach_m: f64| {
             judge_measured(&MeasuredInputs {
-                sightings: &sightings,
                 rest_lateral_m: rest,
                 sigma_x_m: 0.001,
                 omega_radps: w,
                 predicted_pass_s: t_pass + 0.01,
-                tool_t_s: &t,
-                tool_m: &tool,
-                torque_t_s: &t,
-                torques_nm: &tau,
-                settle_m: 0.002,
-                tolerance_ms: 20.0,
                 contact_delay_s: 0.005,
                 contact_pulse_s: 0.004,
-                contact_period_s: 0.005,
                 intercept_y_m,
                 contact_reach_m,
+                ..inputs(&sightings, (&t, &tool), (&t, &tau))
             })
         };
         let robot = judge(0.1, -x_touch).pass_t_s.unwrap();
