@@ -7,6 +7,7 @@ pub mod robot;
 #[cfg(feature = "opencv")]
 pub mod simworld;
 pub mod swing;
+pub mod view;
 
 #[cfg(test)]
 mod tests;
@@ -15,6 +16,7 @@ pub use file::{CalibrationFile, StepRecord};
 pub use latency::{LedEdge, LedLatency, estimate_led_latency};
 pub use robot::{RobotLatency, fit_robot_latency};
 pub use swing::{SwingFit, SwingSample, fit_swing};
+pub use view::{StepView, Unwatched, ViewKind, Watch};
 
 /// Why a calibration step could not give a result (nothing is written then).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

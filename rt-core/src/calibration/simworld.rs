@@ -8,7 +8,7 @@
 //! Until the scenario's `[world]` (CONTRACT.md) is available, the truth is drawn
 //! here from a seed, around the scenario's beliefs (`HiddenWorld::draw`).
 
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 use opencv::{
     core::{self, Mat, MatTraitConst, Point, Rect, Scalar},
     imgproc,
@@ -31,7 +31,8 @@ use crate::params::{ParamError, Scenario};
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimVision};
 use crate::sim::kuka::{FriSimParams, SimController};
-use crate::vision::{DetectorParams, SwingPlaneCalibration, VisionError};
+use crate::sim::world::camera::WorldCamera;
+use crate::vision::{CameraIntrinsics, DetectorParams, SwingPlaneCalibration, VisionError};
 
 /// Why a procedure could not run or give a result.
 #[derive(Debug, thiserror::Error)]
@@ -76,6 +77,29 @@ pub struct HiddenWorld {
     pub robot_latency_jitter_ms: f64,
     /// True first-order servo lag of the joints, ms.
     pub servo_time_constant_ms: f64,
+    /// The true camera's lens: Brown-Conrady `[k1, k2, p1, p2]` (the lab believes
+    /// none until the camera step).
+    #[serde(default)]
+    pub distortion: [f64; 4],
+    /// The true camera's rotation off the believed pose, about base x, y, z, rad.
+    #[serde(default)]
+    pub camera_rotation_error_rad: [f64; 3],
+    /// The true camera's position off the believed pose, base frame, m.
+    #[serde(default)]
+    pub camera_position_error_m: [f64; 3],
+    /// Rolling shutter readout, top row to bottom row, ms.
+    #[serde(default)]
+    pub rolling_shutter_ms: f64,
+    /// Exposure, ms.
+    #[serde(default)]
+    pub exposure_ms: f64,
+    /// Per-frame delivery jitter bound (uniform, added to the latency), ms.
+    #[serde(default)]
+    pub camera_jitter_ms: f64,
+    /// The true intercept point (the hanging ball's rest point) minus the believed
+    /// one, base frame, m.
+    #[serde(default)]
+    pub intercept_error_m: [f64; 3],
 }
 
 impl HiddenWorld {
@@ -103,6 +127,13 @@ impl HiddenWorld {
                 robot_latency_ms: (d.robot_latency_s * 1e3).clamp(0.0, 200.0),
                 robot_latency_jitter_ms: 0.0,
                 servo_time_constant_ms: rng.random_range(3.0..=12.0),
+                distortion: d.distortion,
+                camera_rotation_error_rad: d.camera_rotation_error_rad,
+                camera_position_error_m: d.camera_position_error_m,
+                rolling_shutter_ms: d.rolling_shutter_s * 1e3,
+                exposure_ms: d.exposure_s * 1e3,
+                camera_jitter_ms: d.camera_jitter_s * 1e3,
+                intercept_error_m: d.intercept_error_m,
             };
         }
         Self {
@@ -116,6 +147,7 @@ impl HiddenWorld {
                 .latency_jitter_ms
                 .min(rng.random_range(3.0..=30.0)),
             servo_time_constant_ms: rng.random_range(3.0..=12.0),
+            ..Self::truthful(scenario)
         }
     }
 
@@ -128,7 +160,45 @@ impl HiddenWorld {
             robot_latency_ms: scenario.robot.latency_ms,
             robot_latency_jitter_ms: scenario.robot.latency_jitter_ms,
             servo_time_constant_ms: 5.0,
+            distortion: [0.0; 4],
+            camera_rotation_error_rad: [0.0; 3],
+            camera_position_error_m: [0.0; 3],
+            rolling_shutter_ms: 0.0,
+            exposure_ms: 0.0,
+            camera_jitter_ms: 0.0,
+            intercept_error_m: [0.0; 3],
         }
+    }
+
+    /// The true camera of this world around the lab's believed one (pose and
+    /// intrinsics as the lab believes them, no distortion): its lens, pose error,
+    /// rolling shutter, exposure and latency (`sim::world::camera`). A procedure
+    /// projects through it what a real camera would show; the true latency is
+    /// `camera_latency_ms`, whose mean includes half the jitter bound.
+    pub fn world_camera(&self, scenario: &Scenario) -> WorldCamera {
+        let cam = SimCameraParams::default();
+        let intrinsics = CameraIntrinsics::from_hfov(
+            scenario.camera.width_px,
+            scenario.camera.height_px,
+            cam.hfov_deg,
+        );
+        let believed_latency_s = scenario.camera.latency_ms * 1e-3;
+        let mut c = WorldCamera::truthful(
+            cam.pose,
+            intrinsics,
+            scenario.camera.height_px,
+            believed_latency_s,
+        );
+        let [rx, ry, rz] = self.camera_rotation_error_rad;
+        c.base_from_camera = Rotation3::from_euler_angles(rx, ry, rz) * c.base_from_camera;
+        c.position_m += Vector3::from(self.camera_position_error_m);
+        c.distortion = self.distortion;
+        c.rolling_shutter_s = self.rolling_shutter_ms * 1e-3;
+        c.exposure_s = self.exposure_ms * 1e-3;
+        c.jitter_s = self.camera_jitter_ms * 1e-3;
+        c.latency_offset_s =
+            (self.camera_latency_ms - 0.5 * self.camera_jitter_ms) * 1e-3 - believed_latency_s;
+        c
     }
 }
 
