@@ -565,6 +565,162 @@ pub async fn heartbeat(
     Ok(Json(HeartbeatAnswer { t_s }))
 }
 
+fn desk(state: &AppState) -> Result<&Arc<crate::calibration::CalibrationDesk>, AppError> {
+    state.calibration.as_ref().ok_or_else(|| {
+        AppError::Unavailable("this service has no calibration file (no lab runs)".into())
+    })
+}
+
+/// The calibration file's steps (done, missing prerequisites, their results)
+/// and the running or last step with what it sees.
+#[utoipa::path(get, path = "/api/calibration", tag = "calibration",
+    responses(
+        (status = 200, description = "the steps and the job", body = crate::calibration::CalibrationStatus),
+        (status = 503, description = "no lab (no calibration file) or the file is unreadable", body = crate::error::ErrorBody)))]
+pub async fn get_calibration(
+    State(state): State<Arc<AppState>>,
+) -> Result<Json<crate::calibration::CalibrationStatus>, AppError> {
+    let desk = Arc::clone(desk(&state)?);
+    tokio::task::spawn_blocking(move || desk.status())
+        .await
+        .map_err(anyhow::Error::from)?
+        .map(Json)
+        .map_err(|e| AppError::Unavailable(format!("the calibration file: {e}")))
+}
+
+/// `POST /api/calibration/{step}` body: empty, `{}`, or the step's options.
+#[derive(Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationRequest {
+    /// Pendulum step: the angle the magnet holds the ball at before the free
+    /// swing, degrees, in (0, 60] (default 25; a swing under 5 cm is refused
+    /// by the step: "swing too small").
+    #[serde(default)]
+    pub release_deg: Option<f64>,
+}
+
+/// `POST /api/calibration/{step}` answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationStarted {
+    /// The step.
+    pub step: &'static str,
+    /// The job's number (`GET /api/calibration` job.id).
+    pub id: u64,
+}
+
+/// Runs one calibration step on the lab (its result, residuals, date and
+/// revision go into the calibration file, and the lab's beliefs take it when no
+/// trial runs). Watch it with `GET /api/calibration`.
+#[utoipa::path(post, path = "/api/calibration/{step}", tag = "calibration",
+    params(("step" = String, Path, description = "camera, latency, pendulum, camera-robot or robot")),
+    request_body(content = Option<CalibrationRequest>, description = "empty, {} or {\"release_deg\": 25}"),
+    responses(
+        (status = 202, description = "the step started", body = CalibrationStarted),
+        (status = 400, description = "malformed body, unknown field or value out of range; names the field", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 404, description = "no such step", body = crate::error::ErrorBody),
+        (status = 409, description = "refused: a step or a trial runs (busy), a prerequisite is not calibrated (prerequisites), or the lab cannot run it (not_available)", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn start_calibration(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    Path(name): Path<String>,
+    JsonBody(bytes): JsonBody,
+) -> Result<(StatusCode, Json<CalibrationStarted>), AppError> {
+    use crate::calibration::{StartRefused, Step, StepOptions};
+    let step = Step::from_name(&name).ok_or_else(|| {
+        AppError::NotFound(format!(
+            "no calibration step {name:?}; the steps: camera, latency, pendulum, camera-robot, robot"
+        ))
+    })?;
+    let req: CalibrationRequest = if bytes.is_empty() {
+        CalibrationRequest::default()
+    } else {
+        let value: serde_json::Value = parse_json(&bytes)?;
+        if !value.is_object() {
+            return Err(AppError::BadRequest {
+                message: "the body must be empty or a JSON object ({\"release_deg\": 25})".into(),
+                field: None,
+            });
+        }
+        parse_json(&bytes)?
+    };
+    let mut opts = StepOptions::default();
+    if let Some(d) = req.release_deg {
+        if step != Step::Pendulum {
+            return Err(AppError::BadRequest {
+                message: format!("release_deg: only the pendulum step takes it, not {name}"),
+                field: Some("release_deg".into()),
+            });
+        }
+        if !(d.is_finite() && d > 0.0 && d <= 60.0) {
+            return Err(AppError::BadRequest {
+                message: format!("release_deg = {d} is out of range: must be in (0, 60] degrees"),
+                field: Some("release_deg".into()),
+            });
+        }
+        opts.release_deg = d;
+    }
+    let lab = Arc::clone(lab(&state)?);
+    let desk = Arc::clone(desk(&state)?);
+    if let Some((snapshot, _)) = lab.latest()
+        && snapshot.trial_state.busy()
+    {
+        return Err(AppError::Conflict {
+            message: format!(
+                "refused: a trial runs (state: {}); calibrate when it has finished",
+                snapshot.trial_state.as_str()
+            ),
+            field: None,
+            reason: Some(Refusal::Busy.as_str()),
+        });
+    }
+    let id = desk.claim(step).map_err(|e| AppError::Conflict {
+        message: format!("refused: {e}"),
+        field: None,
+        reason: Some(match e {
+            StartRefused::Busy(_) => "busy",
+            StartRefused::Prerequisites { .. } => "prerequisites",
+            StartRefused::NotAvailable(_) => "not_available",
+        }),
+    })?;
+    tokio::spawn(async move {
+        let scenario = lab.params();
+        let world = rt_core::calibration::simworld::HiddenWorld::truthful(&scenario);
+        let worker = Arc::clone(&desk);
+        let beliefs =
+            tokio::task::spawn_blocking(move || worker.run(id, step, &scenario, &world, opts))
+                .await
+                .ok()
+                .flatten();
+        if let Some(beliefs) = beliefs {
+            let _guard = lab.params_update.lock().await;
+            let busy = lab.latest().is_some_and(|(s, _)| s.trial_state.busy());
+            if busy {
+                desk.note(id, "written to the calibration file; the lab takes it at its next start (a trial was running)".into());
+            } else if lab
+                .command(Command::SetParams(Box::new(beliefs.clone())))
+                .await
+                .is_ok()
+            {
+                lab.store_params(beliefs);
+            } else {
+                desk.note(id, "written to the calibration file; the control loop did not take the new beliefs (it takes them at the next start)".into());
+            }
+        }
+    });
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(CalibrationStarted {
+            step: step.name(),
+            id,
+        }),
+    ))
+}
+
 /// `POST /api/trials` answer.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct TrialStarted {
@@ -591,11 +747,24 @@ pub async fn start_trial(
     body: JsonBody,
 ) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
     empty_body(body)?;
-    if let Some(why) = &state.trials_refused {
+    let refused = state
+        .calibration
+        .as_ref()
+        .map_or_else(|| state.trials_refused.clone(), |d| d.trials_refused());
+    if let Some(why) = refused {
         return Err(AppError::Conflict {
-            message: why.clone(),
+            message: why,
             field: None,
             reason: Some("uncalibrated"),
+        });
+    }
+    if state.calibration.as_ref().is_some_and(|d| d.running()) {
+        return Err(AppError::Conflict {
+            message: "refused: a calibration step is running (GET /api/calibration); \
+                      start the trial when it has finished"
+                .into(),
+            field: None,
+            reason: Some("calibrating"),
         });
     }
     let lab = lab(&state)?;
@@ -906,14 +1075,18 @@ impl utoipa::Modify for BearerAuth {
 #[openapi(
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
     paths(crate::health, get_state, get_fri, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
+          get_calibration, start_calibration,
           start_trial, list_trials, get_trial, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
-                       TrialStarted, TrialRecord, NoFields, crate::lab::StreamCounters, FriInfo,
+                       TrialStarted, TrialRecord, NoFields, CalibrationRequest, CalibrationStarted,
+                       crate::calibration::CalibrationStatus, crate::calibration::StepStatus,
+                       crate::calibration::CalibrationJob, crate::calibration::Change,
+                       rt_core::calibration::StepView, rt_core::calibration::ViewKind, crate::lab::StreamCounters, FriInfo,
                        crate::lab::StateMessage, crate::lab::EventMessage, crate::ws::Hello,
                        rt_core::bridge::Snapshot, rt_core::bridge::EventRecord,
                        rt_core::bridge::Event, rt_core::bridge::TrialResult)),
     modifiers(&BearerAuth),
-    tags((name = "service"), (name = "lab"), (name = "commands"), (name = "trials"), (name = "streams"))
+    tags((name = "service"), (name = "lab"), (name = "commands"), (name = "calibration"), (name = "trials"), (name = "streams"))
 )]
 pub struct ApiDoc;

@@ -5,6 +5,7 @@
 //! message schema of the WebSocket stream is in `server/README.md`.
 
 pub mod api;
+pub mod calibration;
 pub mod config;
 pub mod error;
 pub mod lab;
@@ -78,7 +79,10 @@ pub struct AppState {
     /// Other web origins allowed to call the API from a browser.
     pub cors_origins: Vec<String>,
     /// Why trials are refused (a real lab without calibration); none: allowed.
+    /// The calibration desk's rule replaces it when there is a desk.
     pub trials_refused: Option<String>,
+    /// The calibration file and its steps (`/api/calibration`); none: 503.
+    pub calibration: Option<Arc<calibration::CalibrationDesk>>,
     /// The FRI version the lab's client speaks.
     pub fri_version: rt_core::fri::FriVersion,
     /// Where `isochron fri doctor` writes its last report (none: not shown).
@@ -95,6 +99,7 @@ impl AppState {
             lab: None,
             records: None,
             trials_refused: None,
+            calibration: None,
             body_limit_bytes: DEFAULT_BODY_LIMIT_BYTES,
             cors_origins: Vec::new(),
             fri_version: rt_core::fri::FriVersion::default(),
@@ -125,6 +130,13 @@ impl AppState {
     /// Refuses every trial with `reason` (409, `reason: "uncalibrated"`).
     pub fn with_trials_refused(mut self, reason: Option<String>) -> Self {
         self.trials_refused = reason;
+        self
+    }
+
+    /// Attaches the calibration desk (`/api/calibration`; it decides whether
+    /// trials are refused for want of calibration).
+    pub fn with_calibration(mut self, desk: Arc<calibration::CalibrationDesk>) -> Self {
+        self.calibration = Some(desk);
         self
     }
 
@@ -203,6 +215,8 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/magnet", post(api::magnet))
         .route("/stop", post(api::stop))
         .route("/heartbeat", post(api::heartbeat))
+        .route("/calibration", get(api::get_calibration))
+        .route("/calibration/{step}", post(api::start_calibration))
         .route("/trials", get(api::list_trials).post(api::start_trial))
         .route("/trials/{id}", get(api::get_trial))
         .route("/trials/{id}/recording.csv", get(api::recording_csv))

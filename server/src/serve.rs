@@ -65,7 +65,6 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     if !web_dir.join("index.html").is_file() {
         tracing::warn!(dir = %web_dir.display(), "dashboard not built (run `make web`); serving the API only");
     }
-    let data_dir = args.data_dir.unwrap_or_else(|| cfg.server.data_dir.clone());
     let mut scenario = match &cfg.lab.scenario {
         Some(path) => Scenario::from_file(path)?,
         None => Scenario::default(),
@@ -78,17 +77,33 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     }
     // `--calibration` must exist; the configured file may not yet (the lab is
     // served to be calibrated).
+    let data_dir = args.data_dir.unwrap_or_else(|| cfg.server.data_dir.clone());
     let calibration = match (&args.calibration, &cfg.lab.calibration_file) {
         (Some(p), _) => rt_core::calibration::CalibrationFile::from_file(p)?,
         (None, Some(p)) => rt_core::calibration::CalibrationFile::load_or_empty(p)?,
-        (None, None) => rt_core::calibration::CalibrationFile::default(),
+        (None, None) => rt_core::calibration::CalibrationFile::load_or_empty(
+            &data_dir.join("calibration.toml"),
+        )?,
     };
+    // The file the Calibration panel writes and the next start loads: the one
+    // given, else the data directory's `calibration.toml`.
+    let calibration_path = args
+        .calibration
+        .clone()
+        .or_else(|| cfg.lab.calibration_file.clone())
+        .unwrap_or_else(|| data_dir.join("calibration.toml"));
     scenario = calibration.apply(&scenario)?;
     let trials_refused = uncalibrated_refusal(&cfg, &calibration);
     if let Some(why) = &trials_refused {
         tracing::warn!("{why}");
     }
     let records = Arc::new(Records::open(&data_dir)?);
+    let rule_cfg = cfg.clone();
+    let desk = Arc::new(crate::calibration::CalibrationDesk::new(
+        calibration_path,
+        cfg.lab.mode == LabMode::Real,
+        Box::new(move |file| uncalibrated_refusal(&rule_cfg, file)),
+    ));
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
     let options = crate::LabOptions {
         state_hz: cfg.server.state_hz,
@@ -132,6 +147,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_body_limit(cfg.server.body_limit_bytes)
             .with_cors_origins(cfg.server.cors_origins.clone())
             .with_trials_refused(trials_refused)
+            .with_calibration(desk)
             .with_fri(fri_version, data_dir.join(crate::FRI_DOCTOR_REPORT_FILE)),
     );
     let foxglove_lab = Arc::clone(&lab);

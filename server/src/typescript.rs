@@ -11,10 +11,12 @@ use rt_core::bridge::{
     FriSessionState, FriView, HopfView, HorizonPoint, JudgedBy, LoopTiming, MagnetState,
     Measurement, PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
 };
+use rt_core::calibration::{StepView, ViewKind};
 use rt_core::control::measured::MeasuredJudgement;
 use ts_rs::TS;
 
 use crate::{
+    calibration::{CalibrationJob, CalibrationStatus, Change, StepStatus},
     lab::{EventMessage, StateMessage, StreamCounters},
     records::TrialRecord,
     ws::Hello,
@@ -54,6 +56,12 @@ pub fn declarations() -> String {
         EventMessage::decl(),
         Hello::decl(),
         TrialRecord::decl(),
+        ViewKind::decl(),
+        StepView::decl(),
+        StepStatus::decl(),
+        Change::decl(),
+        CalibrationJob::decl(),
+        CalibrationStatus::decl(),
     ];
     let mut out = String::from(
         "// Generated from the Rust types by ts-rs (server/src/typescript.rs): do not edit.\n\

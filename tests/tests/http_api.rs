@@ -671,6 +671,8 @@ async fn the_openapi_document_validates_and_lists_every_endpoint() {
         ("post", "/api/magnet"),
         ("post", "/api/stop"),
         ("post", "/api/heartbeat"),
+        ("get", "/api/calibration"),
+        ("post", "/api/calibration/{step}"),
         ("post", "/api/trials"),
         ("get", "/api/trials"),
         ("get", "/api/trials/{id}"),
@@ -697,7 +699,7 @@ async fn the_openapi_document_validates_and_lists_every_endpoint() {
                 assert!(resp["description"].is_string(), "{method} {path} {code}");
             }
             // Path parameters are declared.
-            for name in ["id"] {
+            for name in ["id", "step"] {
                 if path.contains(&format!("{{{name}}}")) {
                     let params = op["parameters"].as_array().unwrap();
                     assert!(

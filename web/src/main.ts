@@ -1,5 +1,6 @@
 import "./style.css";
 import { call } from "./api";
+import { CalibrationPanel } from "./calibration";
 import { CameraView, type OverlayDrawn } from "./camera";
 import { Link, wsUrl, type LinkStatus } from "./connection";
 import { Controls, ParamsPanel } from "./controls";
@@ -27,9 +28,14 @@ const twin = new Twin($("twin"));
 const camera = new CameraView($("camera"));
 const trials = new TrialsView($("trials"));
 const params = new ParamsPanel($<HTMLFormElement>("params"), notify);
-const controls = new Controls(notify, () => void trials.refresh());
+const controls = new Controls(notify, () => {
+  void trials.refresh();
+  void calibration.refresh();
+});
 const fri = new FriPanel($("fri"));
 fri.start();
+const calibration = new CalibrationPanel($("calibration"), notify, () => controls.canCommand());
+calibration.start();
 
 let latest: StateMessage | null = null;
 let lastTrialState = "";

@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use super::file::PendulumCalibration;
 use super::latency::{LedEdge, LedFrame};
 use super::robot::JointSample;
+use super::view::{StepView, ViewKind, Watch, thin};
 use super::{
     CalibrationError, LedLatency, RobotLatency, SwingSample, estimate_led_latency,
     fit_robot_latency, fit_swing,
@@ -246,6 +247,7 @@ pub fn run_pendulum(
     seed: u64,
     release_deg: f64,
     duration_s: f64,
+    watch: &mut dyn Watch,
 ) -> Result<PendulumRun, ProcedureError> {
     scenario.validate()?;
     let p = &scenario.pendulum;
@@ -295,6 +297,16 @@ pub fn run_pendulum(
         )));
     }
     let (mu, mv, su, sv) = mean_std(&rest);
+    watch.seen(StepView {
+        progress: 0.05,
+        message: format!(
+            "hanging ball found in {} frames at ({mu:.1}, {mv:.1}) px",
+            rest.len()
+        ),
+        kind: ViewKind::Image,
+        points: rest.iter().map(|&(u, v)| [u, v]).collect(),
+        fit: vec![[mu, mv]],
+    });
     let rest_c = calibration.point_on_plane_c(mu, mv).ok_or_else(|| {
         ProcedureError::NotSeen("the rest point's ray misses the swing plane".into())
     })?;
@@ -329,8 +341,31 @@ pub fn run_pendulum(
             });
             track.push((m.x_px, m.y_px));
         }
+        if (k + 1) % 60 == 0 {
+            watch.seen(swing_view(
+                0.05 + 0.85 * (k + 1) as f64 / frames.max(1) as f64,
+                format!(
+                    "free swing: {:.1} of {duration_s:.0} s recorded",
+                    (k + 1) as f64 * period
+                ),
+                &samples,
+                Vec::new(),
+            ));
+        }
     }
     let swing = fit_swing(&samples, p.gravity_mps2, p.length_m)?;
+    let fitted = swing_curve(&swing, &samples, p.gravity_mps2);
+    watch.seen(swing_view(
+        1.0,
+        format!(
+            "fitted: length {:.4} m, damping {:.4} /s, residual {:.2} mm",
+            swing.length_m,
+            swing.damping_per_s,
+            swing.residual_rms_m * 1e3
+        ),
+        &samples,
+        fitted,
+    ));
     Ok(PendulumRun {
         calibration: PendulumCalibration {
             swing,
@@ -343,6 +378,49 @@ pub fn run_pendulum(
         true_rest_m: rest_true.into(),
         rest_m: rest_m_b.into(),
     })
+}
+
+/// Samples as `[t, lateral m]` for the live view (at most 400).
+fn swing_view(
+    progress: f64,
+    message: String,
+    samples: &[SwingSample],
+    fit: Vec<[f64; 2]>,
+) -> StepView {
+    let points: Vec<[f64; 2]> = samples.iter().map(|s| [s.t_s, s.lateral_m]).collect();
+    StepView {
+        progress,
+        message,
+        kind: ViewKind::Series,
+        points: thin(&points, 400),
+        fit,
+    }
+}
+
+/// The fitted swing at 400 times over the samples (the model `fit_swing` fits:
+/// the damped nonlinear pendulum from its fitted start state).
+fn swing_curve(fit: &super::SwingFit, samples: &[SwingSample], g: f64) -> Vec<[f64; 2]> {
+    let (Some(first), Some(last)) = (samples.first(), samples.last()) else {
+        return Vec::new();
+    };
+    let model = PendulumModel {
+        length_m: fit.length_m,
+        gravity_mps2: g,
+        damping_per_s: fit.damping_per_s,
+    };
+    let mut state = crate::pendulum::PendulumState::new(fit.start_angle_rad, fit.start_rate_radps);
+    let dt = ((last.t_s - first.t_s) / 400.0).max(1e-3);
+    (0..=400)
+        .map(|i| {
+            if i > 0 {
+                state = model.integrate(state, dt, 2e-3, 0.0);
+            }
+            [
+                first.t_s + dt * f64::from(i),
+                fit.length_m * state[0].sin() + fit.rest_offset_m,
+            ]
+        })
+        .collect()
 }
 
 fn mean_std(points: &[(f64, f64)]) -> (f64, f64, f64, f64) {
@@ -394,6 +472,7 @@ pub fn run_led_latency(
     seed: u64,
     switches: usize,
     led_in_view: bool,
+    watch: &mut dyn Watch,
 ) -> Result<LatencyRun, ProcedureError> {
     scenario.validate()?;
     let mut cam = true_camera(scenario, world, seed)?;
@@ -475,6 +554,13 @@ pub fn run_led_latency(
         return Err(CalibrationError::LedNotSeen { edges: 2, seen: 0 }.into());
     }
     let roi = Rect::new((max_at.x - 2).max(0), (max_at.y - 2).max(0), 5, 5);
+    watch.seen(StepView {
+        progress: 0.1,
+        message: format!("LED found at ({}, {}) px", max_at.x, max_at.y),
+        kind: ViewKind::Image,
+        points: vec![[f64::from(max_at.x), f64::from(max_at.y)]],
+        fit: Vec::new(),
+    });
 
     // 2. The frame grid: capture times and delivery (true latency) drawn up front;
     //    the host sees the first second of deliveries before it plans the switches.
@@ -543,7 +629,27 @@ pub fn run_led_latency(
 
     // 4. The frames, each rendered with the LED as lit over its exposure.
     let mut frames = Vec::with_capacity(grid.len());
-    for &(t_c, t_d) in &grid {
+    let brightness_view = |frames: &[LedFrame], progress: f64, message: String| StepView {
+        progress,
+        message,
+        kind: ViewKind::Series,
+        points: thin(
+            &frames
+                .iter()
+                .map(|f| [f.t_delivered_s, f.brightness])
+                .collect::<Vec<_>>(),
+            600,
+        ),
+        fit: Vec::new(),
+    };
+    for (i, &(t_c, t_d)) in grid.iter().enumerate() {
+        if i % 60 == 59 {
+            watch.seen(brightness_view(
+                &frames,
+                0.1 + 0.85 * i as f64 / grid.len().max(1) as f64,
+                format!("LED brightness in {} of {} frames", i, grid.len()),
+            ));
+        }
         let img = draw(cam.render(None)?, lit_fraction(t_c), led_at)?;
         let mut sub = Mat::default();
         imgproc::cvt_color_def(&Mat::roi(&img, roi)?, &mut sub, imgproc::COLOR_BGR2GRAY)?;
@@ -555,6 +661,26 @@ pub fn run_led_latency(
     }
     frames.sort_by(|a, b| a.t_delivered_s.total_cmp(&b.t_delivered_s));
     let result = estimate_led_latency(&frames, &edges, period)?;
+    let mut done = brightness_view(
+        &frames,
+        1.0,
+        format!(
+            "latency {:.2} ms (+-{:.2} ms), {} of {} switches seen",
+            result.latency_ms, result.bound_ms, result.edges_seen, result.edges
+        ),
+    );
+    // The switches as the camera should see them: each edge's switch time plus
+    // the estimated latency, drawn as a step between the off and on levels.
+    let (lo, hi) = frames.iter().fold((f64::MAX, f64::MIN), |(lo, hi), f| {
+        (lo.min(f.brightness), hi.max(f.brightness))
+    });
+    for e in &edges {
+        let t = e.t_sent_s + super::latency::switch_delay_s(e) + result.latency_ms * 1e-3;
+        let (from, to) = if e.on { (lo, hi) } else { (hi, lo) };
+        done.fit.push([t, from]);
+        done.fit.push([t, to]);
+    }
+    watch.seen(done);
     Ok(LatencyRun {
         result,
         true_latency_ms: world.camera_latency_ms,
@@ -639,6 +765,7 @@ pub fn run_robot(
     seed: u64,
     amplitude_rad: f64,
     duration_s: f64,
+    watch: &mut dyn Watch,
 ) -> Result<RobotRun, ProcedureError> {
     scenario.validate()?;
     if !(amplitude_rad.is_finite() && amplitude_rad > 0.0 && amplitude_rad <= 0.05) {
@@ -699,6 +826,26 @@ pub fn run_robot(
         )));
     }
     let result = fit_robot_latency(&step.commands, &step.measured)?;
+    let series = |s: &[JointSample]| -> Vec<[f64; 2]> {
+        let t0 = step.commands.first().map_or(0.0, |c| c.t_s);
+        thin(
+            &s.iter().map(|j| [j.t_s - t0, j.q_rad]).collect::<Vec<_>>(),
+            800,
+        )
+    };
+    watch.seen(StepView {
+        progress: 1.0,
+        message: format!(
+            "A{} excited: latency {:.2} ms, servo lag {:.2} ms ({:.1} Hz)",
+            joint + 1,
+            result.latency_ms,
+            result.servo_time_constant_ms,
+            result.bandwidth_hz
+        ),
+        kind: ViewKind::Series,
+        points: series(&step.measured),
+        fit: series(&step.commands),
+    });
     Ok(RobotRun {
         result,
         true_latency_ms: world.robot_latency_ms,

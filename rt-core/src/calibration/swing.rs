@@ -38,6 +38,9 @@ pub struct SwingFit {
     pub damping_std_per_s: f64,
     /// The angle at the first sample, radians.
     pub start_angle_rad: f64,
+    /// The angular rate at the first sample, rad/s.
+    #[serde(default)]
+    pub start_rate_radps: f64,
     /// Where the ball hangs at rest relative to the believed rest point, metres (lateral).
     pub rest_offset_m: f64,
     /// Small-angle period `2 pi sqrt(l/g)` of the fitted length, seconds.
@@ -183,7 +186,13 @@ pub fn fit_swing(
             reason: "no window to fit".into(),
         });
     };
-    let [length_m, damping_per_s, start_angle_rad, _, rest_offset_m] = [
+    let [
+        length_m,
+        damping_per_s,
+        start_angle_rad,
+        start_rate_radps,
+        rest_offset_m,
+    ] = [
         fit.params[0],
         fit.params[1],
         fit.params[2],
@@ -205,6 +214,7 @@ pub fn fit_swing(
         damping_per_s,
         damping_std_per_s: fit.std[1],
         start_angle_rad,
+        start_rate_radps,
         rest_offset_m,
         small_angle_period_s: small,
         period_at_start_s: large_angle_period_s(small, amp),

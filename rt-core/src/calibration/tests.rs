@@ -304,7 +304,8 @@ mod on_the_simulated_world {
         let s = model_scenario();
         for seed in [1, 2] {
             let w = HiddenWorld::draw(&s, seed);
-            let run = run_pendulum(&s, &w, seed, 25.0, 20.0).expect("pendulum step");
+            let run = run_pendulum(&s, &w, seed, 25.0, 20.0, &mut super::super::Unwatched)
+                .expect("pendulum step");
             let fit = &run.calibration.swing;
             assert!(
                 (fit.length_m - run.true_length_m).abs() < 0.003,
@@ -344,7 +345,8 @@ mod on_the_simulated_world {
         assert_eq!(truth.length_error_m, d.length_error_m);
         assert!(truth.length_error_m.abs() > 0.0 && truth.length_error_m.abs() <= 0.05);
         assert!(truth.camera_latency_ms >= s.camera.latency_ms + 5.0);
-        let run = run_pendulum(&s, &truth, 4, 25.0, 20.0).expect("pendulum step");
+        let run = run_pendulum(&s, &truth, 4, 25.0, 20.0, &mut super::super::Unwatched)
+            .expect("pendulum step");
         assert!(
             (run.calibration.swing.length_m - run.true_length_m).abs() < 0.003,
             "{} vs {}",
@@ -353,11 +355,45 @@ mod on_the_simulated_world {
         );
     }
 
+    /// The live view of the pendulum step ends with the samples and the fitted
+    /// curve, and the curve is the fit: within a few millimetres of every sample.
+    #[test]
+    fn the_pendulum_view_shows_the_samples_and_the_fitted_swing() {
+        let s = model_scenario();
+        let w = HiddenWorld::draw(&s, 2);
+        let mut views = Vec::new();
+        let mut watch = |v: super::super::StepView| views.push(v);
+        let run = run_pendulum(&s, &w, 2, 25.0, 20.0, &mut watch).expect("pendulum step");
+        assert!(views.len() >= 5, "{} views", views.len());
+        assert!(views.windows(2).all(|v| v[1].progress >= v[0].progress));
+        assert_eq!(views[0].kind, super::super::ViewKind::Image);
+        let last = views.last().unwrap();
+        assert_eq!(last.progress, 1.0);
+        assert_eq!(last.kind, super::super::ViewKind::Series);
+        assert!(last.points.len() > 300 && last.points.len() <= 400);
+        assert!(last.fit.len() > 300);
+        // Each sample against the curve, linearly interpolated.
+        let mut worst: f64 = 0.0;
+        for p in &last.points {
+            let i = last
+                .fit
+                .partition_point(|f| f[0] < p[0])
+                .clamp(1, last.fit.len() - 1);
+            let (a, b) = (last.fit[i - 1], last.fit[i]);
+            let y = a[1] + (b[1] - a[1]) * (p[0] - a[0]) / (b[0] - a[0]);
+            worst = worst.max((y - p[1]).abs());
+        }
+        assert!(
+            worst < 0.01 + 4.0 * run.calibration.swing.residual_rms_m,
+            "the curve is {worst} m off a sample"
+        );
+    }
+
     #[test]
     fn a_swing_too_small_is_refused() {
         let s = model_scenario();
         let w = HiddenWorld::draw(&s, 1);
-        let e = run_pendulum(&s, &w, 1, 1.0, 20.0).unwrap_err();
+        let e = run_pendulum(&s, &w, 1, 1.0, 20.0, &mut super::super::Unwatched).unwrap_err();
         assert!(
             matches!(
                 e,
@@ -373,7 +409,8 @@ mod on_the_simulated_world {
         let s = Scenario::default();
         for seed in [1, 2] {
             let w = HiddenWorld::draw(&s, seed);
-            let run = run_led_latency(&s, &w, seed, 40, true).expect("latency step");
+            let run = run_led_latency(&s, &w, seed, 40, true, &mut super::super::Unwatched)
+                .expect("latency step");
             assert!(
                 (run.result.latency_ms - run.true_latency_ms).abs() < 2.0,
                 "seed {seed}: {} vs true {} (belief {})",
@@ -383,7 +420,7 @@ mod on_the_simulated_world {
             );
         }
         let w = HiddenWorld::draw(&s, 1);
-        let e = run_led_latency(&s, &w, 1, 40, false).unwrap_err();
+        let e = run_led_latency(&s, &w, 1, 40, false, &mut super::super::Unwatched).unwrap_err();
         assert!(e.to_string().contains("LED never seen"), "{e}");
     }
 
@@ -392,7 +429,8 @@ mod on_the_simulated_world {
         let s = Scenario::default();
         for seed in [1, 2] {
             let w = HiddenWorld::draw(&s, seed);
-            let run = run_robot(&s, &w, seed, 0.02, 4.0).expect("robot step");
+            let run = run_robot(&s, &w, seed, 0.02, 4.0, &mut super::super::Unwatched)
+                .expect("robot step");
             assert!(
                 (run.result.latency_ms - run.true_latency_ms).abs() < 1.0,
                 "seed {seed}: {} vs true {}",

@@ -6,7 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 /// How to draw a view's points.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ts_rs::TS, utoipa::ToSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum ViewKind {
     /// Image pixels (x right, y down) of a `width x height` camera frame: board
@@ -18,7 +20,7 @@ pub enum ViewKind {
 }
 
 /// One look at what a step sees.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ts_rs::TS, utoipa::ToSchema)]
 pub struct StepView {
     /// Fraction of the step done, 0..=1.
     pub progress: f64,

@@ -804,3 +804,131 @@ measured: MeasuredJudgement | null,
  * judged, and for trials recorded before it was stored.
  */
 judged_by: JudgedBy | null, };
+
+export type ViewKind = "image" | "series";
+
+export type StepView = { 
+/**
+ * Fraction of the step done, 0..=1.
+ */
+progress: number, 
+/**
+ * What the step is doing, for people ("board view 7 of 15: 54 corners").
+ */
+message: string, 
+/**
+ * How to draw `points` and `fit`.
+ */
+kind: ViewKind, 
+/**
+ * What was measured.
+ */
+points: Array<[number, number]>, 
+/**
+ * What the fit or the model says at the same places (a fitted swing, the
+ * reprojected corners); may be empty.
+ */
+fit: Array<[number, number]>, };
+
+export type StepStatus = { 
+/**
+ * The step's name (`camera-robot`), as in `POST /api/calibration/{step}`.
+ */
+name: string, 
+/**
+ * What it measures.
+ */
+title: string, 
+/**
+ * The steps it builds on.
+ */
+prerequisites: Array<string>, 
+/**
+ * Of those, the ones the calibration file does not hold yet (the step is
+ * refused while any is missing).
+ */
+missing: Array<string>, 
+/**
+ * The file holds this step's result.
+ */
+done: boolean, 
+/**
+ * The step's record in the file (date, revision, source, result), or null.
+ */
+record: Record<string, unknown> | null, };
+
+export type Change = { 
+/**
+ * Dotted key in the step's result (`swing.length_m`).
+ */
+key: string, 
+/**
+ * The previous calibration's value.
+ */
+before: number, 
+/**
+ * The new value.
+ */
+after: number, };
+
+export type CalibrationJob = { 
+/**
+ * The step (null: none has run since the service started).
+ */
+step: string | null, 
+/**
+ * `idle`, `running`, `done` or `failed`.
+ */
+state: string, 
+/**
+ * Fraction done, 0..=1.
+ */
+progress: number, 
+/**
+ * What the step is doing, or why it failed.
+ */
+message: string, 
+/**
+ * What the step sees now (its last view), or null.
+ */
+view: StepView | null, 
+/**
+ * The result written (done), or null.
+ */
+result: Record<string, unknown> | null, 
+/**
+ * Every number of the result that differs from the previous calibration
+ * of this step (empty: the first, or nothing changed).
+ */
+changes: Array<Change>, 
+/**
+ * The file had no result of this step before (done).
+ */
+first: boolean, 
+/**
+ * Job number since the service started (also the simulated world's noise seed).
+ */
+id: number, };
+
+export type CalibrationStatus = { 
+/**
+ * The calibration file the lab loads and the steps write.
+ */
+file: string, 
+/**
+ * Where the steps run (`simulated world (truthful: the lab's own simulators)`, or
+ * the real lab).
+ */
+source: string, 
+/**
+ * The steps in the order a lab runs them.
+ */
+steps: Array<StepStatus>, 
+/**
+ * The running or last job.
+ */
+job: CalibrationJob, 
+/**
+ * Why trials are refused for want of calibration (null: they are not).
+ */
+trials_refused: string | null, };

@@ -1,0 +1,633 @@
+//! The calibration steps as the CLI (`isochron calibrate`) and the dashboard's
+//! Calibration panel (`/api/calibration`) run them: one procedure per step on the
+//! simulated world (`rt_core::calibration::simworld`), its result stamped and
+//! recorded into the calibration file, the hidden truth beside it for the report.
+
+use anyhow::Context;
+use rt_core::{
+    calibration::{
+        CalibrationFile, StepRecord, Watch,
+        simworld::{self, HiddenWorld},
+    },
+    params::Scenario,
+};
+use serde_json::json;
+
+/// The steps, in the order a lab runs them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Step {
+    /// Camera intrinsics and distortion from a chessboard.
+    Camera,
+    /// Camera latency by the magnet board's LED.
+    Latency,
+    /// Pendulum: rest point, free-swing fit (length, damping).
+    Pendulum,
+    /// The camera's pose in the robot base frame and the intercept point.
+    CameraRobot,
+    /// Robot command-to-motion latency and servo lag (a small excitation through FRI).
+    Robot,
+}
+
+impl Step {
+    /// Every step, in the order a lab runs them.
+    pub const ALL: [Self; 5] = [
+        Self::Camera,
+        Self::Latency,
+        Self::Pendulum,
+        Self::CameraRobot,
+        Self::Robot,
+    ];
+
+    /// The step by its name (`camera-robot`).
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|s| s.name() == name)
+    }
+
+    /// The steps whose results this one builds on: the LED and the swing are
+    /// found in undistorted frames (camera); the intercept point is the rest
+    /// point the pendulum step found, seen by the calibrated camera.
+    pub fn prerequisites(self) -> &'static [Self] {
+        match self {
+            Self::Camera | Self::Robot => &[],
+            Self::Latency | Self::Pendulum => &[Self::Camera],
+            Self::CameraRobot => &[Self::Camera, Self::Pendulum],
+        }
+    }
+
+    /// Whether the calibration file holds this step's result.
+    pub fn done_in(self, file: &CalibrationFile) -> bool {
+        match self {
+            Self::Camera => step_done_camera(file),
+            Self::Latency => file.latency.is_some(),
+            Self::Pendulum => file.pendulum.is_some(),
+            Self::CameraRobot => step_done_camera_robot(file),
+            Self::Robot => file.robot.is_some(),
+        }
+    }
+
+    /// The step's result in the file, as JSON (null: not calibrated).
+    pub fn record_in(self, file: &CalibrationFile) -> serde_json::Value {
+        let v = match self {
+            Self::Camera => record_camera(file),
+            Self::Latency => serde_json::to_value(&file.latency),
+            Self::Pendulum => serde_json::to_value(&file.pendulum),
+            Self::CameraRobot => record_camera_robot(file),
+            Self::Robot => serde_json::to_value(&file.robot),
+        };
+        v.unwrap_or(serde_json::Value::Null)
+    }
+
+    /// What the step measures, for people.
+    pub fn title(self) -> &'static str {
+        match self {
+            Self::Camera => "Camera intrinsics and distortion (chessboard)",
+            Self::Latency => "Camera latency (the magnet board's LED)",
+            Self::Pendulum => "Pendulum: rest point, length and damping (free swing)",
+            Self::CameraRobot => "Camera to robot: camera pose and intercept point (tool marker)",
+            Self::Robot => "Robot latency and servo lag (excitation through FRI)",
+        }
+    }
+
+    /// The step's name on the command line and in the API.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Camera => "camera",
+            Self::Latency => "latency",
+            Self::Pendulum => "pendulum",
+            Self::CameraRobot => "camera-robot",
+            Self::Robot => "robot",
+        }
+    }
+}
+
+/// The issue's acceptance targets (absolute error): pendulum length, m.
+pub const TARGET_LENGTH_M: f64 = 0.003;
+/// The issue's target for the camera latency, ms.
+pub const TARGET_CAMERA_LATENCY_MS: f64 = 2.0;
+/// The issue's target for the robot latency, ms.
+pub const TARGET_ROBOT_LATENCY_MS: f64 = 1.0;
+
+/// Options of a step's procedure.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOptions {
+    /// Pendulum step: the release angle, degrees (0..=60).
+    pub release_deg: f64,
+}
+
+impl Default for StepOptions {
+    fn default() -> Self {
+        Self { release_deg: 25.0 }
+    }
+}
+
+/// Where a step's result was measured, when, by which software.
+pub type Stamp = (String, String, String);
+
+/// What a step gave on the simulated world: its result, the hidden truth and the
+/// error (both for the report only; nothing of the truth goes into the file),
+/// and how the result goes into the calibration file.
+pub struct StepOutcome {
+    /// The step's result (as written into the file).
+    pub result: serde_json::Value,
+    /// The hidden truth of the figures the step estimates.
+    pub truth: serde_json::Value,
+    /// Estimate minus truth, per figure.
+    pub error: serde_json::Value,
+    /// The headline figure: (name, estimate, truth, the issue's target).
+    pub figure: (&'static str, f64, f64, f64),
+    write: Recorder,
+}
+
+/// Puts a step's result into the calibration file.
+type Recorder = Box<dyn FnOnce(&mut CalibrationFile, Stamp) + Send>;
+
+impl StepOutcome {
+    /// Puts the result into `file` (replacing the step's previous result).
+    pub fn record_into(self, file: &mut CalibrationFile, stamp: Stamp) {
+        (self.write)(file, stamp);
+    }
+}
+
+/// Runs one step's procedure on the simulated world `world` (session `seed`);
+/// `watch` sees what the step sees. The CLI, `--accuracy` and the dashboard's
+/// Calibration panel (`POST /api/calibration/{step}`) all run steps through this.
+pub fn run_step(
+    step: Step,
+    scenario: &Scenario,
+    world: &HiddenWorld,
+    seed: u64,
+    opts: StepOptions,
+    watch: &mut dyn Watch,
+) -> anyhow::Result<StepOutcome> {
+    Ok(match step {
+        Step::Pendulum => {
+            if !(opts.release_deg.is_finite() && (0.0..=60.0).contains(&opts.release_deg)) {
+                anyhow::bail!(
+                    "release_deg = {} is out of range: must be 0..=60",
+                    opts.release_deg
+                );
+            }
+            let run = simworld::run_pendulum(scenario, world, seed, opts.release_deg, 20.0, watch)
+                .context("calibrate pendulum")?;
+            let c = run.calibration.clone();
+            StepOutcome {
+                result: serde_json::to_value(&c)?,
+                truth: json!({"length_m": run.true_length_m, "damping_per_s": run.true_damping_per_s,
+                       "rest_m": run.true_rest_m}),
+                error: json!({"length_m": c.swing.length_m - run.true_length_m,
+                       "damping_per_s": c.swing.damping_per_s - run.true_damping_per_s,
+                       "rest_height_m": run.rest_m[2] - run.true_rest_m[2]}),
+                figure: (
+                    "length_m",
+                    c.swing.length_m,
+                    run.true_length_m,
+                    TARGET_LENGTH_M,
+                ),
+                write: Box::new(move |file, stamp| {
+                    file.pendulum = Some(step_record(stamp, run.calibration));
+                }),
+            }
+        }
+        Step::Latency => {
+            let run = simworld::run_led_latency(scenario, world, seed, 40, true, watch)
+                .context("calibrate latency")?;
+            StepOutcome {
+                result: serde_json::to_value(&run.result)?,
+                truth: json!({"camera_latency_ms": run.true_latency_ms}),
+                error: json!({"camera_latency_ms": run.result.latency_ms - run.true_latency_ms}),
+                figure: (
+                    "camera_latency_ms",
+                    run.result.latency_ms,
+                    run.true_latency_ms,
+                    TARGET_CAMERA_LATENCY_MS,
+                ),
+                write: Box::new(move |file, stamp| {
+                    file.latency = Some(step_record(stamp, run.result));
+                }),
+            }
+        }
+        Step::Robot => {
+            let run = simworld::run_robot(scenario, world, seed, 0.02, 4.0, watch)
+                .context("calibrate robot")?;
+            StepOutcome {
+                result: serde_json::to_value(&run.result)?,
+                truth: json!({"robot_latency_ms": run.true_latency_ms,
+                       "servo_time_constant_ms": run.true_servo_time_constant_ms}),
+                error: json!({"robot_latency_ms": run.result.latency_ms - run.true_latency_ms,
+                       "servo_time_constant_ms": run.result.servo_time_constant_ms
+                           - run.true_servo_time_constant_ms}),
+                figure: (
+                    "robot_latency_ms",
+                    run.result.latency_ms,
+                    run.true_latency_ms,
+                    TARGET_ROBOT_LATENCY_MS,
+                ),
+                write: Box::new(move |file, stamp| {
+                    file.robot = Some(step_record(stamp, run.result));
+                }),
+            }
+        }
+        Step::Camera | Step::CameraRobot => anyhow::bail!(
+            "calibrate {}: this step is not implemented yet (pendulum, latency and robot are)",
+            step.name()
+        ),
+    })
+}
+
+/// The camera step's result is in the file (the step is not built yet).
+fn step_done_camera(_file: &CalibrationFile) -> bool {
+    false
+}
+
+/// The camera-to-robot step's result is in the file (the step is not built yet).
+fn step_done_camera_robot(_file: &CalibrationFile) -> bool {
+    false
+}
+
+/// The camera step's record as JSON (the step is not built yet).
+fn record_camera(_file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
+    Ok(serde_json::Value::Null)
+}
+
+/// The camera-to-robot step's record as JSON (the step is not built yet).
+fn record_camera_robot(_file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
+    Ok(serde_json::Value::Null)
+}
+
+/// `date` as RFC 3339 UTC, from the system clock.
+pub fn utc_now() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let days = i64::try_from(secs / 86_400).unwrap_or(0);
+    let rem = secs % 86_400;
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z",
+        rem / 3600,
+        (rem / 60) % 60,
+        rem % 60
+    )
+}
+
+/// The stamp of a result measured now on `source`: the UTC date, this
+/// software's version and revision, and where.
+pub fn stamp(source: &str) -> Stamp {
+    (utc_now(), crate::VERSION.to_owned(), source.to_owned())
+}
+
+fn step_record<T>((date, revision, source): Stamp, result: T) -> StepRecord<T> {
+    StepRecord {
+        date,
+        revision,
+        source,
+        result,
+    }
+}
+
+/// A step's state in `GET /api/calibration`.
+#[derive(Debug, Clone, serde::Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct StepStatus {
+    /// The step's name (`camera-robot`), as in `POST /api/calibration/{step}`.
+    pub name: String,
+    /// What it measures.
+    pub title: String,
+    /// The steps it builds on.
+    pub prerequisites: Vec<String>,
+    /// Of those, the ones the calibration file does not hold yet (the step is
+    /// refused while any is missing).
+    pub missing: Vec<String>,
+    /// The file holds this step's result.
+    pub done: bool,
+    /// The step's record in the file (date, revision, source, result), or null.
+    #[ts(type = "Record<string, unknown> | null")]
+    #[schema(value_type = Option<Object>)]
+    pub record: serde_json::Value,
+}
+
+/// The running or last calibration job.
+#[derive(Debug, Clone, Default, serde::Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct CalibrationJob {
+    /// The step (null: none has run since the service started).
+    pub step: Option<String>,
+    /// `idle`, `running`, `done` or `failed`.
+    pub state: String,
+    /// Fraction done, 0..=1.
+    pub progress: f64,
+    /// What the step is doing, or why it failed.
+    pub message: String,
+    /// What the step sees now (its last view), or null.
+    pub view: Option<rt_core::calibration::StepView>,
+    /// The result written (done), or null.
+    #[ts(type = "Record<string, unknown> | null")]
+    #[schema(value_type = Option<Object>)]
+    pub result: Option<serde_json::Value>,
+    /// Every number of the result that differs from the previous calibration
+    /// of this step (empty: the first, or nothing changed).
+    pub changes: Vec<Change>,
+    /// The file had no result of this step before (done).
+    pub first: bool,
+    /// Job number since the service started (also the simulated world's noise seed).
+    #[ts(type = "number")]
+    pub id: u64,
+}
+
+/// One number of a step's result: before and after.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct Change {
+    /// Dotted key in the step's result (`swing.length_m`).
+    pub key: String,
+    /// The previous calibration's value.
+    pub before: f64,
+    /// The new value.
+    pub after: f64,
+}
+
+/// `GET /api/calibration`.
+#[derive(Debug, Clone, serde::Serialize, ts_rs::TS, utoipa::ToSchema)]
+pub struct CalibrationStatus {
+    /// The calibration file the lab loads and the steps write.
+    pub file: String,
+    /// Where the steps run (`simulated world (truthful: the lab's own simulators)`, or
+    /// the real lab).
+    pub source: String,
+    /// The steps in the order a lab runs them.
+    pub steps: Vec<StepStatus>,
+    /// The running or last job.
+    pub job: CalibrationJob,
+    /// Why trials are refused for want of calibration (null: they are not).
+    pub trials_refused: Option<String>,
+}
+
+/// Every number in `before` and `after` (objects walked, arrays by index) that
+/// differs, by dotted key; keys missing on either side are skipped.
+pub fn changes(before: &serde_json::Value, after: &serde_json::Value) -> Vec<Change> {
+    fn walk(a: &serde_json::Value, b: &serde_json::Value, key: String, out: &mut Vec<Change>) {
+        use serde_json::Value as V;
+        match (a, b) {
+            (V::Object(x), V::Object(y)) => {
+                for (k, vb) in y {
+                    if let Some(va) = x.get(k) {
+                        let key = if key.is_empty() {
+                            k.clone()
+                        } else {
+                            format!("{key}.{k}")
+                        };
+                        walk(va, vb, key, out);
+                    }
+                }
+            }
+            (V::Array(x), V::Array(y)) => {
+                for (i, (va, vb)) in x.iter().zip(y).enumerate() {
+                    walk(va, vb, format!("{key}[{i}]"), out);
+                }
+            }
+            (V::Number(x), V::Number(y)) => {
+                if let (Some(x), Some(y)) = (x.as_f64(), y.as_f64())
+                    && x != y
+                {
+                    out.push(Change {
+                        key,
+                        before: x,
+                        after: y,
+                    });
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    walk(before, after, String::new(), &mut out);
+    out
+}
+
+/// Why a step cannot start.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StartRefused {
+    /// Another step runs.
+    #[error("calibration step {0} is running; wait for it to finish")]
+    Busy(String),
+    /// A prerequisite's result is missing from the file.
+    #[error("calibrate {step} needs {missing} first (the calibration file has no result of it)")]
+    Prerequisites {
+        /// The step asked for.
+        step: String,
+        /// The missing steps, comma-separated.
+        missing: String,
+    },
+    /// The lab cannot run the step here.
+    #[error("{0}")]
+    NotAvailable(String),
+}
+
+/// Decides whether the lab must refuse trials with this calibration file.
+pub type RefusalRule = Box<dyn Fn(&CalibrationFile) -> Option<String> + Send + Sync>;
+
+/// The service's calibration desk: the file, the job, the refusal of trials.
+pub struct CalibrationDesk {
+    path: std::path::PathBuf,
+    real_lab: bool,
+    rule: RefusalRule,
+    job: std::sync::Mutex<CalibrationJob>,
+    refused: std::sync::Mutex<Option<String>>,
+}
+
+impl std::fmt::Debug for CalibrationDesk {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CalibrationDesk")
+            .field("path", &self.path)
+            .field("real_lab", &self.real_lab)
+            .finish_non_exhaustive()
+    }
+}
+
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl CalibrationDesk {
+    /// A desk over the calibration file at `path` (it need not exist yet); `rule`
+    /// says when trials are refused, `real_lab` whether the steps would run on
+    /// hardware (their real-lab procedures are not built: refused there).
+    pub fn new(path: std::path::PathBuf, real_lab: bool, rule: RefusalRule) -> Self {
+        let file = CalibrationFile::load_or_empty(&path).unwrap_or_default();
+        let refused = rule(&file);
+        Self {
+            path,
+            real_lab,
+            rule,
+            job: std::sync::Mutex::new(CalibrationJob {
+                state: "idle".into(),
+                ..CalibrationJob::default()
+            }),
+            refused: std::sync::Mutex::new(refused),
+        }
+    }
+
+    /// The calibration file.
+    pub fn path(&self) -> &std::path::Path {
+        &self.path
+    }
+
+    /// Why trials are refused now (none: allowed).
+    pub fn trials_refused(&self) -> Option<String> {
+        lock(&self.refused).clone()
+    }
+
+    /// A step runs.
+    pub fn running(&self) -> bool {
+        lock(&self.job).state == "running"
+    }
+
+    /// The file's steps and the job.
+    pub fn status(&self) -> Result<CalibrationStatus, rt_core::params::ParamError> {
+        let file = CalibrationFile::load_or_empty(&self.path)?;
+        let steps = Step::ALL
+            .iter()
+            .map(|&s| StepStatus {
+                name: s.name().into(),
+                title: s.title().into(),
+                prerequisites: s.prerequisites().iter().map(|p| p.name().into()).collect(),
+                missing: s
+                    .prerequisites()
+                    .iter()
+                    .filter(|p| !p.done_in(&file))
+                    .map(|p| p.name().into())
+                    .collect(),
+                done: s.done_in(&file),
+                record: s.record_in(&file),
+            })
+            .collect();
+        Ok(CalibrationStatus {
+            file: self.path.display().to_string(),
+            source: if self.real_lab {
+                "the real lab".into()
+            } else {
+                "simulated world (truthful: the lab's own simulators)".into()
+            },
+            steps,
+            job: lock(&self.job).clone(),
+            trials_refused: self.trials_refused(),
+        })
+    }
+
+    /// Claims the job for `step` if nothing runs, the prerequisites are in the
+    /// file and the lab can run it; returns the job's number.
+    pub fn claim(&self, step: Step) -> Result<u64, StartRefused> {
+        if self.real_lab {
+            return Err(StartRefused::NotAvailable(format!(
+                "calibrate {}: the real-lab procedure of this step is not built yet; \
+                 the panel runs the steps on the simulated lab",
+                step.name()
+            )));
+        }
+        let file = CalibrationFile::load_or_empty(&self.path)
+            .map_err(|e| StartRefused::NotAvailable(format!("the calibration file: {e}")))?;
+        let missing: Vec<&str> = step
+            .prerequisites()
+            .iter()
+            .filter(|p| !p.done_in(&file))
+            .map(|p| p.name())
+            .collect();
+        if !missing.is_empty() {
+            return Err(StartRefused::Prerequisites {
+                step: step.name().into(),
+                missing: missing.join(", "),
+            });
+        }
+        let mut job = lock(&self.job);
+        if job.state == "running" {
+            return Err(StartRefused::Busy(job.step.clone().unwrap_or_default()));
+        }
+        let id = job.id + 1;
+        *job = CalibrationJob {
+            step: Some(step.name().into()),
+            state: "running".into(),
+            progress: 0.0,
+            message: format!("{} ...", step.title()),
+            id,
+            ..CalibrationJob::default()
+        };
+        Ok(id)
+    }
+
+    /// Runs the claimed job `id` for `step` on the simulated world `world` of the
+    /// lab's `scenario` (blocking: call it off the async runtime). On success the
+    /// result is written into the file (atomically, validated against the
+    /// scenario) and the lab's beliefs with it are returned; on failure the
+    /// file is unchanged and the job says why.
+    pub fn run(
+        &self,
+        id: u64,
+        step: Step,
+        scenario: &Scenario,
+        world: &HiddenWorld,
+        opts: StepOptions,
+    ) -> Option<Scenario> {
+        let outcome = (|| -> anyhow::Result<(Scenario, serde_json::Value, Vec<Change>, bool)> {
+            let mut file = CalibrationFile::load_or_empty(&self.path)?;
+            let before = step.record_in(&file);
+            let mut watch = |view: rt_core::calibration::StepView| {
+                let mut job = lock(&self.job);
+                if job.id == id {
+                    job.progress = view.progress.clamp(0.0, 1.0);
+                    job.message.clone_from(&view.message);
+                    job.view = Some(view);
+                }
+            };
+            let out = run_step(step, scenario, world, id, opts, &mut watch)?;
+            let result = out.result.clone();
+            out.record_into(
+                &mut file,
+                stamp("simulated world (the lab's own simulators)"),
+            );
+            let beliefs = file
+                .apply(scenario)
+                .with_context(|| format!("calibrate {}: the result", step.name()))?;
+            file.write(&self.path)?;
+            let after = step.record_in(&file);
+            let first = before.is_null();
+            let changes = if first {
+                Vec::new()
+            } else {
+                changes(&before["result"], &after["result"])
+            };
+            *lock(&self.refused) = (self.rule)(&file);
+            Ok((beliefs, result, changes, first))
+        })();
+        let mut job = lock(&self.job);
+        match outcome {
+            Ok((beliefs, result, changes, first)) => {
+                job.state = "done".into();
+                job.progress = 1.0;
+                job.result = Some(result);
+                job.changes = changes;
+                job.first = first;
+                Some(beliefs)
+            }
+            Err(e) => {
+                job.state = "failed".into();
+                job.message = format!("{e:#}");
+                None
+            }
+        }
+    }
+
+    /// Ends the job `id` with a message (the lab could not take the result).
+    pub fn note(&self, id: u64, message: String) {
+        let mut job = lock(&self.job);
+        if job.id == id {
+            job.message = message;
+        }
+    }
+}

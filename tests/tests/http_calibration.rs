@@ -1,0 +1,216 @@
+//! The Calibration panel's API on the simulated lab as `isochron serve` runs
+//! it: `GET /api/calibration` (the steps in order, their prerequisites, the
+//! job and what it sees), `POST /api/calibration/{step}` (refusals that change
+//! nothing; a step that writes its result into the calibration file and hands
+//! the new beliefs to the running lab).
+
+use std::{
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use isochron_tests::http;
+use rt_core::{calibration::CalibrationFile, params::Scenario};
+use server::{
+    AppState, LabOptions, app,
+    calibration::{CalibrationDesk, Step, changes},
+    runtime::start_simulated,
+};
+
+async fn get(addr: std::net::SocketAddr, path: &str) -> serde_json::Value {
+    http(addr, "GET", path, &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap()
+}
+
+/// Waits for the job `id` to leave `running`; returns the job.
+async fn finished(addr: std::net::SocketAddr, id: u64, within: Duration) -> serde_json::Value {
+    let deadline = Instant::now() + within;
+    loop {
+        let job = get(addr, "/api/calibration").await["job"].clone();
+        if job["id"].as_u64() == Some(id) && job["state"] != "running" {
+            return job;
+        }
+        assert!(Instant::now() < deadline, "job {id} still running: {job}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("calibration.toml");
+    let (lab, _sim) = start_simulated(Scenario::default(), None, LabOptions::default(), 3).unwrap();
+    // Trials are refused until the robot step is in the file (a rule like the
+    // real lab's, here to see it lift when the step lands).
+    let desk = Arc::new(CalibrationDesk::new(
+        file.clone(),
+        false,
+        Box::new(|f: &CalibrationFile| f.robot.is_none().then(|| "robot not calibrated".into())),
+    ));
+    let state = AppState::new(tmp.path().join("web"))
+        .with_lab(Arc::clone(&lab))
+        .with_calibration(Arc::clone(&desk));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
+    });
+
+    // The steps in the order a lab runs them, with their prerequisites.
+    let s = get(addr, "/api/calibration").await;
+    let names: Vec<&str> = s["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        ["camera", "latency", "pendulum", "camera-robot", "robot"]
+    );
+    assert_eq!(
+        s["steps"][3]["missing"],
+        serde_json::json!(["camera", "pendulum"])
+    );
+    assert_eq!(s["job"]["state"], "idle");
+    assert_eq!(s["trials_refused"], "robot not calibrated");
+
+    // Refusals: nothing is written, the job stays idle.
+    for (path, body, status, what) in [
+        ("/api/calibration/pendulum", &b""[..], 409, "prerequisites"),
+        ("/api/calibration/nope", b"", 404, "no calibration step"),
+        ("/api/calibration/robot", b"[1]", 400, "JSON object"),
+        ("/api/calibration/robot", br#"{"bogus": 1}"#, 400, "bogus"),
+        (
+            "/api/calibration/robot",
+            br#"{"release_deg": 20}"#,
+            400,
+            "release_deg",
+        ),
+        (
+            "/api/calibration/pendulum",
+            br#"{"release_deg": "x"}"#,
+            400,
+            "release_deg",
+        ),
+        (
+            "/api/calibration/pendulum",
+            br#"{"release_deg": 1e9}"#,
+            400,
+            "release_deg",
+        ),
+        ("/api/calibration/robot", b"{", 400, "malformed"),
+    ] {
+        let r = http(
+            addr,
+            "POST",
+            path,
+            &[("content-type", "application/json")],
+            body,
+        )
+        .await
+        .unwrap();
+        let text = String::from_utf8_lossy(&r.body).to_string();
+        assert_eq!(
+            r.status,
+            status,
+            "{path} {}: {text}",
+            String::from_utf8_lossy(body)
+        );
+        assert!(text.contains(what), "{path}: {text}");
+    }
+    assert!(!file.exists(), "a refused step wrote the calibration file");
+    assert_eq!(get(addr, "/api/calibration").await["job"]["state"], "idle");
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 409);
+    assert_eq!(r.json().unwrap()["reason"], "uncalibrated");
+
+    // The robot step: accepted, a second start while it runs is refused (busy),
+    // a trial too (calibrating); it ends done with what it saw.
+    let prior_before = lab.params().control.latency_prior_ms;
+    let r = http(addr, "POST", "/api/calibration/robot", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let again = http(addr, "POST", "/api/calibration/robot", &[], b"")
+        .await
+        .unwrap();
+    let trial = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    let job = finished(addr, id, Duration::from_secs(60)).await;
+    assert_eq!(
+        again.status,
+        409,
+        "{}",
+        String::from_utf8_lossy(&again.body)
+    );
+    assert_eq!(again.json().unwrap()["reason"], "busy");
+    assert_eq!(trial.status, 409);
+    assert_eq!(job["state"], "done", "{job}");
+    assert_eq!(job["progress"], 1.0);
+    assert_eq!(job["first"], true);
+    let view = &job["view"];
+    assert_eq!(view["kind"], "series");
+    assert!(view["points"].as_array().unwrap().len() > 100, "{view}");
+    assert!(view["fit"].as_array().unwrap().len() > 100);
+
+    // The file holds the result with its stamp; the lab believes it; trials are
+    // no longer refused.
+    let f = CalibrationFile::from_file(&file).unwrap();
+    let rec = f.robot.as_ref().expect("robot section");
+    assert!(rec.revision.contains("0.1.0"), "{}", rec.revision);
+    assert!(rec.date.ends_with('Z'));
+    let want = rec.result.latency_ms + rec.result.servo_time_constant_ms;
+    assert_eq!(job["result"]["latency_ms"], rec.result.latency_ms);
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while (lab.params().control.latency_prior_ms - want).abs() > 1e-9 {
+        assert!(
+            Instant::now() < deadline,
+            "the lab did not take the calibration"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_ne!(prior_before, want);
+    let s = get(addr, "/api/calibration").await;
+    assert_eq!(s["steps"][4]["done"], true);
+    assert_eq!(
+        s["steps"][4]["record"]["result"]["latency_ms"],
+        rec.result.latency_ms
+    );
+    assert!(s["trials_refused"].is_null(), "{s}");
+
+    // Run again: what changed from the last calibration.
+    let r = http(addr, "POST", "/api/calibration/robot", &[], b"")
+        .await
+        .unwrap();
+    let id2 = r.json().unwrap()["id"].as_u64().unwrap();
+    assert_eq!(id2, id + 1);
+    let job = finished(addr, id2, Duration::from_secs(60)).await;
+    assert_eq!(job["first"], false);
+    let ch = job["changes"].as_array().unwrap();
+    let lat = ch
+        .iter()
+        .find(|c| c["key"] == "latency_ms")
+        .expect("latency changed");
+    assert_eq!(lat["before"], rec.result.latency_ms);
+    let f2 = CalibrationFile::from_file(&file).unwrap();
+    assert_eq!(lat["after"], f2.robot.unwrap().result.latency_ms);
+}
+
+#[test]
+fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let desk = CalibrationDesk::new(tmp.path().join("c.toml"), true, Box::new(|_| None));
+    let e = desk.claim(Step::Robot).unwrap_err();
+    assert!(e.to_string().contains("real-lab procedure"), "{e}");
+    assert!(!desk.running());
+    let a = serde_json::json!({"x": 1.0, "s": {"y": [1.0, 2.0]}, "t": "a", "only_a": 3.0});
+    let b = serde_json::json!({"x": 1.0, "s": {"y": [1.0, 2.5]}, "t": "b", "only_b": 4.0});
+    let c = changes(&a, &b);
+    assert_eq!(c.len(), 1);
+    assert_eq!(c[0].key, "s.y[1]");
+    assert_eq!((c[0].before, c[0].after), (2.0, 2.5));
+}
