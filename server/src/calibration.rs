@@ -7,6 +7,7 @@ use anyhow::Context;
 use rt_core::{
     calibration::{
         CalibrationFile, StepRecord, Watch,
+        sim_extrinsics::{self, CameraRobotOptions, CameraRobotRun},
         simworld::{self, HiddenWorld},
     },
     params::Scenario,
@@ -107,18 +108,51 @@ pub const TARGET_LENGTH_M: f64 = 0.003;
 pub const TARGET_CAMERA_LATENCY_MS: f64 = 2.0;
 /// The target for the robot latency, ms.
 pub const TARGET_ROBOT_LATENCY_MS: f64 = 1.0;
+/// The target for the camera's rotation in the base frame, degrees.
+pub const TARGET_CAMERA_ROTATION_DEG: f64 = 0.3;
+/// The target for the camera's position in the base frame, mm.
+pub const TARGET_CAMERA_POSITION_MM: f64 = 5.0;
+/// The target for the intercept point, mm.
+pub const TARGET_INTERCEPT_MM: f64 = 3.0;
 
 /// Options of a step's procedure.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepOptions {
     /// Pendulum step: the release angle, degrees (0..=60).
     pub release_deg: f64,
+    /// Camera-robot step: touch the hanging ball with the tool for the intercept
+    /// point's depth (else the believed swing plane).
+    pub touch: bool,
+    /// Camera-robot step: the marker is on the tool and in view (`false`: covered,
+    /// a check that the step refuses).
+    pub marker_visible: bool,
 }
 
 impl Default for StepOptions {
     fn default() -> Self {
-        Self { release_deg: 25.0 }
+        Self {
+            release_deg: 25.0,
+            touch: true,
+            marker_visible: true,
+        }
     }
+}
+
+/// The camera-robot step's errors against the hidden truth (and the beliefs'
+/// before the step).
+pub fn camera_robot_errors(r: &CameraRobotRun) -> serde_json::Value {
+    let c = &r.calibration;
+    json!({"camera_rotation_deg": r.camera_rotation_error_deg,
+           "camera_position_mm": r.camera_position_error_mm,
+           "intercept_mm": r.intercept_error_mm,
+           "intercept_m": [
+               c.intercept_m[0] - r.true_intercept_m[0],
+               c.intercept_m[1] - r.true_intercept_m[1],
+               c.intercept_m[2] - r.true_intercept_m[2]],
+           "touch_kinematic_error_m": r.touch_kinematic_error_m,
+           "before": {"camera_rotation_deg": r.believed_rotation_error_deg,
+                      "camera_position_mm": r.believed_position_error_mm,
+                      "intercept_mm": r.believed_intercept_error_mm}})
 }
 
 /// Where a step's result was measured, when, by which software.
@@ -228,8 +262,32 @@ pub fn run_step(
                 }),
             }
         }
-        Step::Camera | Step::CameraRobot => anyhow::bail!(
-            "calibrate {}: this step is not implemented yet (pendulum, latency and robot are)",
+        Step::CameraRobot => {
+            let options = CameraRobotOptions {
+                marker_visible: opts.marker_visible,
+                touch: opts.touch,
+                intrinsics: None,
+            };
+            let run = sim_extrinsics::run_camera_robot(scenario, world, seed, &options, watch)
+                .context("calibrate camera-robot")?;
+            StepOutcome {
+                result: serde_json::to_value(&run.calibration)?,
+                truth: json!({"camera_pose": run.true_camera_pose,
+                              "intercept_m": run.true_intercept_m}),
+                error: camera_robot_errors(&run),
+                figure: (
+                    "camera_rotation_error_deg",
+                    run.camera_rotation_error_deg,
+                    0.0,
+                    TARGET_CAMERA_ROTATION_DEG,
+                ),
+                write: Box::new(move |file, stamp| {
+                    file.camera_robot = Some(step_record(stamp, run.calibration));
+                }),
+            }
+        }
+        Step::Camera => anyhow::bail!(
+            "calibrate {}: this step is not implemented yet (pendulum, latency, robot and camera-robot are)",
             step.name()
         ),
     })
@@ -240,9 +298,9 @@ fn step_done_camera(_file: &CalibrationFile) -> bool {
     false
 }
 
-/// The camera-to-robot step's result is in the file (the step is not built yet).
-fn step_done_camera_robot(_file: &CalibrationFile) -> bool {
-    false
+/// The camera-to-robot step's result is in the file.
+fn step_done_camera_robot(file: &CalibrationFile) -> bool {
+    file.camera_robot.is_some()
 }
 
 /// The camera step's record as JSON (the step is not built yet).
@@ -250,9 +308,9 @@ fn record_camera(_file: &CalibrationFile) -> serde_json::Result<serde_json::Valu
     Ok(serde_json::Value::Null)
 }
 
-/// The camera-to-robot step's record as JSON (the step is not built yet).
-fn record_camera_robot(_file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
-    Ok(serde_json::Value::Null)
+/// The camera-to-robot step's record as JSON.
+fn record_camera_robot(file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
+    serde_json::to_value(&file.camera_robot)
 }
 
 /// `date` as RFC 3339 UTC, from the system clock.

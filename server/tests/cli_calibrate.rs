@@ -111,3 +111,69 @@ fn bad_input_writes_nothing() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// camera-robot on reality.toml: the camera's pose and the intercept point into
+/// the file beside the other steps, `trials` lays it over the beliefs; a covered
+/// marker is refused with the reason and the file is left as it was.
+#[test]
+fn camera_robot_writes_its_section_and_refuses_a_hidden_marker() {
+    let dir = temp_dir("camera-robot");
+    let file = dir.join("calibration.toml");
+    let f = file.to_str().unwrap();
+    let reality = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/reality.toml");
+    let (ok, _, err) = calibrate(&["latency", "--scenario", reality, "--out", f]);
+    assert!(ok, "{err}");
+    let before = std::fs::read_to_string(&file).unwrap();
+    // Covered marker: refused, one line naming it, the file untouched.
+    let (ok, _, err) = calibrate(&[
+        "camera-robot",
+        "--scenario",
+        reality,
+        "--hide-marker",
+        "--out",
+        f,
+    ]);
+    assert!(!ok);
+    assert!(err.contains("marker never seen"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), before);
+
+    let (ok, v, err) = calibrate(&[
+        "camera-robot",
+        "--scenario",
+        reality,
+        "--seed",
+        "2",
+        "--out",
+        f,
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let e = &v["error"];
+    assert!(e["camera_rotation_deg"].as_f64().unwrap() < 0.3, "{v}");
+    assert!(e["camera_position_mm"].as_f64().unwrap() < 5.0, "{v}");
+    assert!(e["intercept_mm"].as_f64().unwrap() < 3.0, "{v}");
+    let cal = rt_core::calibration::CalibrationFile::from_file(&file).unwrap();
+    assert!(cal.latency.is_some(), "the latency step is kept");
+    let c = cal
+        .camera_robot
+        .clone()
+        .expect("the camera-robot step is written");
+    assert!(c.result.poses >= 12 && c.result.reprojection_rms_px < 1.0);
+    let s = rt_core::params::Scenario::from_file(std::path::Path::new(reality)).unwrap();
+    let applied = cal.apply(&s).unwrap();
+    assert_eq!(applied.camera.pose, Some(c.result.camera_pose));
+    assert_eq!(applied.task.intercept_offset_m, c.result.intercept_offset_m);
+
+    let out = isochron()
+        .args(["trials", "--scenario", reality])
+        .args(["--n", "2", "--json", "--calibration", f])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

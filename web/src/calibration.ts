@@ -34,7 +34,7 @@ export function headline(name: string, result: Record<string, unknown> | null | 
     case "pendulum":
       return `length ${f(num("swing.length_m"), 4, "m")} ± ${f((num("swing.length_std_m") ?? NaN) * 1000, 2, "mm")}, damping ${f(num("swing.damping_per_s"), 4, "/s")}`;
     case "camera-robot":
-      return `reprojection ${f(num("rms_px"), 3, "px")}, ${f(num("poses"), 0, "poses")}`;
+      return `reprojection ${f(num("reprojection_rms_px"), 3, "px")}, ${f(num("poses"), 0, "poses")}`;
     case "robot":
       return `latency ${f(num("latency_ms"), 2, "ms")}, servo lag ${f(num("servo_time_constant_ms"), 2, "ms")} (${f(num("bandwidth_hz"), 1, "Hz")})`;
     default:

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::{LedLatency, RobotLatency, SwingFit};
+use super::{CameraRobotCalibration, LedLatency, RobotLatency, SwingFit};
 use crate::params::{ParamError, Scenario};
 
 /// When, by which software and on what one step was measured.
@@ -48,6 +48,8 @@ pub struct CalibrationFile {
     pub latency: Option<StepRecord<LedLatency>>,
     /// `isochron calibrate robot`.
     pub robot: Option<StepRecord<RobotLatency>>,
+    /// `isochron calibrate camera-robot`.
+    pub camera_robot: Option<StepRecord<CameraRobotCalibration>>,
 }
 
 impl CalibrationFile {
@@ -100,8 +102,10 @@ impl CalibrationFile {
     }
 
     /// The lab's beliefs with the calibrated values: pendulum length and damping,
-    /// camera latency, and the robot latency prior of the online estimator (delay
-    /// plus servo lag, which is what the estimator measures). The result is validated.
+    /// camera latency, the robot latency prior of the online estimator (delay
+    /// plus servo lag, which is what the estimator measures), the camera's pose
+    /// (`camera.pose`) and the intercept point's offset (`task.intercept_offset_m`).
+    /// The result is validated.
     pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, ParamError> {
         let mut s = scenario.clone();
         if let Some(p) = &self.pendulum {
@@ -113,6 +117,10 @@ impl CalibrationFile {
         }
         if let Some(r) = &self.robot {
             s.control.latency_prior_ms = r.result.latency_ms + r.result.servo_time_constant_ms;
+        }
+        if let Some(c) = &self.camera_robot {
+            s.camera.pose = Some(c.result.camera_pose);
+            s.task.intercept_offset_m = c.result.intercept_offset_m;
         }
         s.validate()?;
         Ok(s)

@@ -1,9 +1,12 @@
 #![doc = include_str!("README.md")]
 
+pub mod extrinsics;
 pub mod file;
 pub mod latency;
 pub mod lsq;
 pub mod robot;
+#[cfg(feature = "opencv")]
+pub mod sim_extrinsics;
 #[cfg(feature = "opencv")]
 pub mod simworld;
 pub mod swing;
@@ -12,6 +15,7 @@ pub mod view;
 #[cfg(test)]
 mod tests;
 
+pub use extrinsics::CameraRobotCalibration;
 pub use file::{CalibrationFile, StepRecord};
 pub use latency::{LedEdge, LedLatency, estimate_led_latency};
 pub use robot::{RobotLatency, fit_robot_latency};

@@ -274,6 +274,7 @@ fn calibration_file_round_trip_and_apply() {
         }),
         latency: None,
         robot: None,
+        ..CalibrationFile::default()
     };
     let text = file.to_toml_string();
     let back = CalibrationFile::from_toml_str(&text).expect("parse");
@@ -444,5 +445,79 @@ mod on_the_simulated_world {
                 run.true_servo_time_constant_ms
             );
         }
+    }
+}
+
+#[cfg(feature = "opencv")]
+mod camera_robot {
+    use crate::calibration::Unwatched;
+    use crate::calibration::sim_extrinsics::{CameraRobotOptions, run_camera_robot};
+    use crate::calibration::simworld::HiddenWorld;
+    use crate::calibration::view::StepView;
+    use crate::params::Scenario;
+
+    fn reality() -> Scenario {
+        Scenario::from_file(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenarios/reality.toml"
+        )))
+        .expect("reality.toml")
+    }
+
+    /// On reality.toml's hidden draws: the camera within 0.3 deg and 5 mm of the
+    /// true camera, the intercept point within 3 mm of the true rest point; every
+    /// command the tour sent inside the joint limits (by at least 5 degrees).
+    #[test]
+    fn camera_pose_and_intercept_within_targets_on_reality_draws() {
+        let s = reality();
+        for seed in [1, 2, 3] {
+            let w = HiddenWorld::draw(&s, seed);
+            let mut views: Vec<StepView> = Vec::new();
+            let mut watch = |v: StepView| views.push(v);
+            let run = run_camera_robot(&s, &w, seed, &CameraRobotOptions::default(), &mut watch)
+                .expect("camera-robot step");
+            let c = &run.calibration;
+            assert!(
+                run.camera_rotation_error_deg < 0.3,
+                "seed {seed}: rotation error {} deg",
+                run.camera_rotation_error_deg
+            );
+            assert!(
+                run.camera_position_error_mm < 5.0,
+                "seed {seed}: position error {} mm",
+                run.camera_position_error_mm
+            );
+            assert!(
+                run.intercept_error_mm < 3.0,
+                "seed {seed}: intercept error {} mm ({:?} vs {:?})",
+                run.intercept_error_mm,
+                c.intercept_m,
+                run.true_intercept_m
+            );
+            assert!(c.poses >= 12 && c.reprojection_rms_px < 1.0, "{c:?}");
+            assert!(run.commands_sent > 1000, "{}", run.commands_sent);
+            assert!(
+                run.min_command_margin_rad > 5f64.to_radians(),
+                "a command came within {} rad of a joint limit",
+                run.min_command_margin_rad
+            );
+            // The live view: one per pose, then the fit with its reprojection.
+            assert!(views.len() >= c.poses, "{} views", views.len());
+            let last = views.last().expect("views");
+            assert!((last.progress - 1.0).abs() < 1e-12);
+            assert_eq!(last.points.len(), last.fit.len());
+        }
+    }
+
+    #[test]
+    fn hidden_marker_is_refused() {
+        let s = reality();
+        let w = HiddenWorld::draw(&s, 4);
+        let options = CameraRobotOptions {
+            marker_visible: false,
+            ..CameraRobotOptions::default()
+        };
+        let e = run_camera_robot(&s, &w, 4, &options, &mut Unwatched).unwrap_err();
+        assert!(e.to_string().contains("marker never seen"), "{e}");
     }
 }

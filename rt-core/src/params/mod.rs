@@ -43,6 +43,11 @@ pub struct CameraParams {
     pub drop_rate: f64,
     /// `full` (render + OpenCV) or `model` (noisy projection).
     pub vision: VisionMode,
+    /// Where the lab believes the camera stands (base frame): written by
+    /// `isochron calibrate camera-robot` through the calibration file; `None`:
+    /// the simulated lab's mounting (`SimCameraParams::pose`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose: Option<crate::vision::CameraPose>,
 }
 
 impl Default for CameraParams {
@@ -55,6 +60,7 @@ impl Default for CameraParams {
             image_noise: 6.0,
             drop_rate: 0.02,
             vision: VisionMode::Full,
+            pose: None,
         }
     }
 }
@@ -68,6 +74,9 @@ impl CameraParams {
         check::within("camera.latency_ms", self.latency_ms, 0.0, 1000.0)?;
         check::within("camera.image_noise", self.image_noise, 0.0, 255.0)?;
         check::probability("camera.drop_rate", self.drop_rate)?;
+        if let Some(p) = &self.pose {
+            p.validate("camera.pose")?;
+        }
         if self.drop_rate > 0.9 {
             return Err(check::out_of_range(
                 "camera.drop_rate",

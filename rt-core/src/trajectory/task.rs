@@ -13,6 +13,10 @@ pub struct TaskParams {
     pub distance_m: RangeParam,
     /// Height of the intercept point (the ball at rest) above the robot base, metres.
     pub intercept_height_m: f64,
+    /// The intercept point's offset from `(distance, 0, intercept_height_m)`,
+    /// base frame, metres (`isochron calibrate camera-robot` measures it; the
+    /// ball's rest point is `(distance, 0, intercept_height_m) + offset`).
+    pub intercept_offset_m: [f64; 3],
     /// Tool point at the start of every motion, robot base frame, metres.
     pub home_m: [f64; 3],
     /// Tool point along the flange's z axis, metres.
@@ -30,6 +34,7 @@ impl Default for TaskParams {
         Self {
             distance_m: RangeParam::new(0.35, 0.80),
             intercept_height_m: 0.30,
+            intercept_offset_m: [0.0; 3],
             home_m: [0.30, 0.0, 0.50],
             tool_length_m: 0.10,
             tool_contact_radius_m: 0.03,
@@ -39,6 +44,16 @@ impl Default for TaskParams {
 }
 
 impl TaskParams {
+    /// The believed intercept point (the ball at rest) for a trial at `distance_m`,
+    /// base frame, metres.
+    pub fn intercept_m(&self, distance_m: f64) -> nalgebra::Vector3<f64> {
+        nalgebra::Vector3::new(
+            distance_m + self.intercept_offset_m[0],
+            self.intercept_offset_m[1],
+            self.intercept_height_m + self.intercept_offset_m[2],
+        )
+    }
+
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), ParamError> {
         self.distance_m
@@ -49,6 +64,9 @@ impl TaskParams {
             -0.5,
             1.5,
         )?;
+        for (i, v) in self.intercept_offset_m.iter().enumerate() {
+            check::within(&format!("task.intercept_offset_m[{i}]"), *v, -0.1, 0.1)?;
+        }
         for (i, v) in self.home_m.iter().enumerate() {
             check::within(&format!("task.home_m[{i}]"), *v, -1.2, 1.5)?;
         }

@@ -14,7 +14,10 @@ use rt_core::{
     params::Scenario,
 };
 use serde_json::json;
-use server::calibration::{Step, StepOptions, run_step, stamp};
+use server::calibration::{
+    Step, StepOptions, TARGET_CAMERA_POSITION_MM, TARGET_CAMERA_ROTATION_DEG, TARGET_INTERCEPT_MM,
+    run_step, stamp,
+};
 
 /// Arguments of `isochron calibrate`.
 #[derive(Debug, clap::Args)]
@@ -34,6 +37,13 @@ pub struct CalibrateArgs {
     /// Pendulum step: the angle the magnet holds the ball at before the release, degrees.
     #[arg(long, default_value_t = 25.0)]
     pub release_deg: f64,
+    /// Camera-robot step: leave out the touch of the hanging ball (the intercept
+    /// point's depth is then the believed swing plane).
+    #[arg(long)]
+    pub no_touch: bool,
+    /// Camera-robot step: cover the marker (a check that the step refuses).
+    #[arg(long, hide = true)]
+    pub hide_marker: bool,
     /// The calibration file to update (other steps' results in it are kept).
     #[arg(long, default_value = "calibration.toml")]
     pub out: PathBuf,
@@ -55,6 +65,9 @@ fn accuracy(
 ) -> anyhow::Result<String> {
     if n == 0 || n > 1000 {
         anyhow::bail!("--accuracy = {n} is out of range: must be 1..=1000");
+    }
+    if args.step == Step::CameraRobot {
+        return accuracy_camera_robot(args, scenario, n, opts);
     }
     let mut rows = Vec::new();
     let mut worst: f64 = 0.0;
@@ -106,6 +119,80 @@ fn accuracy(
     Ok(out)
 }
 
+/// `--accuracy N` of the camera-robot step: its three figures per draw (the
+/// camera's rotation and position, the intercept point), with the beliefs'
+/// errors before the step and the run time.
+fn accuracy_camera_robot(
+    args: &CalibrateArgs,
+    scenario: &Scenario,
+    n: u64,
+    opts: StepOptions,
+) -> anyhow::Result<String> {
+    let mut rows = Vec::new();
+    let (mut rot, mut pos, mut icp): (f64, f64, f64) = (0.0, 0.0, 0.0);
+    for seed in args.seed..args.seed + n {
+        let world = HiddenWorld::draw(scenario, seed);
+        let t0 = std::time::Instant::now();
+        let out = run_step(args.step, scenario, &world, seed, opts, &mut Unwatched)
+            .with_context(|| format!("calibrate camera-robot (seed {seed})"))?;
+        let secs = t0.elapsed().as_secs_f64();
+        let e = out.error.clone();
+        let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+        rot = rot.max(f(&e["camera_rotation_deg"]));
+        pos = pos.max(f(&e["camera_position_mm"]));
+        icp = icp.max(f(&e["intercept_mm"]));
+        rows.push(json!({"seed": seed, "error": e,
+                         "reprojection_rms_px": out.result["reprojection_rms_px"],
+                         "poses": out.result["poses"], "k1": out.result["k1"],
+                         "run_s": secs}));
+    }
+    let within = rot <= TARGET_CAMERA_ROTATION_DEG
+        && pos <= TARGET_CAMERA_POSITION_MM
+        && icp <= TARGET_INTERCEPT_MM;
+    let summary = json!({
+        "step": args.step.name(),
+        "source": format!("simulated world (scenario {}), hidden draws", scenario.name),
+        "draws": rows,
+        "max_error": {"camera_rotation_deg": rot, "camera_position_mm": pos, "intercept_mm": icp},
+        "target": {"camera_rotation_deg": TARGET_CAMERA_ROTATION_DEG,
+                   "camera_position_mm": TARGET_CAMERA_POSITION_MM,
+                   "intercept_mm": TARGET_INTERCEPT_MM},
+        "within_target": within,
+    });
+    if args.json {
+        return Ok(summary.to_string());
+    }
+    let mut out = format!(
+        "calibrate camera-robot accuracy over {n} hidden draws of the simulated world (scenario {}):\n\
+         | seed | rotation err deg (before) | position err mm (before) | intercept err mm (before) | rms px | poses | run s |\n\
+         |---|---|---|---|---|---|---|\n",
+        scenario.name
+    );
+    for r in &rows {
+        let e = &r["error"];
+        let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+        out.push_str(&format!(
+            "| {} | {:.3} ({:.3}) | {:.2} ({:.2}) | {:.2} ({:.2}) | {:.2} | {} | {:.1} |\n",
+            r["seed"],
+            f(&e["camera_rotation_deg"]),
+            f(&e["before"]["camera_rotation_deg"]),
+            f(&e["camera_position_mm"]),
+            f(&e["before"]["camera_position_mm"]),
+            f(&e["intercept_mm"]),
+            f(&e["before"]["intercept_mm"]),
+            f(&r["reprojection_rms_px"]),
+            r["poses"],
+            f(&r["run_s"]),
+        ));
+    }
+    out.push_str(&format!(
+        "max error: rotation {rot:.3} deg (target {TARGET_CAMERA_ROTATION_DEG}), position {pos:.2} mm \
+         (target {TARGET_CAMERA_POSITION_MM}), intercept {icp:.2} mm (target {TARGET_INTERCEPT_MM}): {}",
+        if within { "within" } else { "OUTSIDE" }
+    ));
+    Ok(out)
+}
+
 /// Runs one step; returns the text for stdout. Nothing is written unless the step
 /// gave a result.
 pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
@@ -129,6 +216,8 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
     }
     let opts = StepOptions {
         release_deg: args.release_deg,
+        touch: !args.no_touch,
+        marker_visible: !args.hide_marker,
     };
     if let Some(n) = args.accuracy {
         return accuracy(args, &scenario, n, opts);

@@ -1,0 +1,903 @@
+//! Camera to robot on the simulated world (`isochron calibrate camera-robot`):
+//! the robot carries a coloured disc on its flange through ~18 poses in the
+//! camera's view (slow joint-space moves through FRI against the simulated KUKA
+//! controller); at each, frames of the disc through the *true* camera are
+//! rendered and the disc is found by colour threshold, contour and centroid; the
+//! disc's base-frame centre is the forward kinematics of the *measured* joints
+//! plus its known offset. `cv::solvePnP` on all poses with the lab's
+//! intrinsics, refined by least squares (with `k1` when the file has no camera
+//! step) -> the camera's pose in the base frame. Then the intercept point: the
+//! hanging ball's rest pixel, its ray through the calibrated camera met with the
+//! plane of the ball's depth, that depth from the tool touching the ball
+//! (hand-guided: the robot's measured pose at the touch) or, without the touch,
+//! the believed swing plane. README.md ("Camera to robot").
+//!
+//! What the procedure sees: rendered frames, its own detections, FRI
+//! monitoring. The truth (camera pose error, lens, the arm's true geometry, the
+//! true rest point, the operator's touch) lives only in the simulators and is
+//! returned beside the estimate.
+
+use nalgebra::{Rotation3, SVector, Vector2, Vector3};
+use opencv::{
+    calib3d,
+    core::{
+        self, Mat, MatTraitConst, MatTraitManual, Point, Point2d, Point3d, Rect, Scalar, Vector,
+    },
+    imgproc,
+};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::extrinsics::{
+    CameraRobotCalibration, PnpFit, camera_pose_of, ray_b, refine_pose, reproject,
+    rotation_angle_rad,
+};
+use super::simworld::{HiddenWorld, ProcedureError};
+use super::view::{StepView, ViewKind, Watch};
+use crate::fri::{
+    ControlStep, FriClient, FriClientParams, Joints, LinkState, SessionState, StepInput,
+};
+use crate::kinematics::{self, iiwa7::POSITION_LIMIT_RAD};
+use crate::params::{Scenario, VisionMode};
+use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimVision};
+use crate::sim::kuka::{FriSimParams, SimController};
+use crate::sim::world::TrueArm;
+use crate::vision::{CameraIntrinsics, CameraPose, DetectorParams, SwingPlaneCalibration};
+
+/// The marker disc's centre in the flange frame, metres: on the tool's shaft,
+/// 6 cm out along the flange's z axis (a constant of the tool, measured once).
+pub const MARKER_OFFSET_M: [f64; 3] = [0.0, 0.0, 0.06];
+/// The marker disc's radius, metres (painted on both faces, normal along the tool axis).
+pub const MARKER_RADIUS_M: f64 = 0.02;
+/// The marker's colour: hue (degrees), saturation, value. A green no clutter
+/// object has (the renderer's clutter keeps hues 0..32 and 125..350 or is grey,
+/// the ball and its decoys are 48..100).
+const MARKER_HSV: (f64, f64, f64) = (112.0, 0.9, 0.8);
+/// Hue band the detector accepts, OpenCV hue units (degrees / 2).
+const HUE_BAND: (f64, f64) = (51.0, 61.0);
+/// Joint speed of the moves, rad/s (slow: a tenth of the iiwa's slowest limit).
+const MOVE_SPEED_RADPS: f64 = 0.17;
+/// Joint margin of every target, rad (10 degrees inside the limits).
+const TARGET_MARGIN_RAD: f64 = 0.1745;
+/// After a move: wait before the frames (the servo settles), s.
+const SETTLE_S: f64 = 0.6;
+/// Frames averaged per pose.
+const FRAMES_PER_POSE: usize = 5;
+/// Frames of the hanging ball averaged for the rest pixel.
+const REST_FRAMES: usize = 30;
+/// Least poses for a pose fit.
+const MIN_POSES: usize = 8;
+
+/// Options of the procedure.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraRobotOptions {
+    /// The marker is on the tool and in view (`false` covers it: the step must refuse).
+    pub marker_visible: bool,
+    /// Touch the hanging ball with the tool (hand-guided) for the intercept
+    /// point's depth; `false`: the believed swing plane.
+    pub touch: bool,
+    /// The camera step's intrinsics and distortion when the calibration file has
+    /// them (`k1` is then not fitted); `None`: the believed intrinsics, `k1` fitted.
+    pub intrinsics: Option<CameraIntrinsics>,
+}
+
+impl Default for CameraRobotOptions {
+    fn default() -> Self {
+        Self {
+            marker_visible: true,
+            touch: true,
+            intrinsics: None,
+        }
+    }
+}
+
+/// The camera-robot step on the simulated world, with the truth beside it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraRobotRun {
+    /// What the step measured.
+    pub calibration: CameraRobotCalibration,
+    /// The true camera pose.
+    pub true_camera_pose: CameraPose,
+    /// The true intercept point (the hanging ball's centre), base frame, m.
+    pub true_intercept_m: [f64; 3],
+    /// Angle between the estimated and the true camera rotation, degrees.
+    pub camera_rotation_error_deg: f64,
+    /// Distance between the estimated and the true camera centre, mm.
+    pub camera_position_error_mm: f64,
+    /// Distance between the estimated and the true intercept point, mm.
+    pub intercept_error_mm: f64,
+    /// The same before the step (the believed pose and intercept point against the truth).
+    pub believed_rotation_error_deg: f64,
+    /// See `believed_rotation_error_deg`, mm.
+    pub believed_position_error_mm: f64,
+    /// See `believed_rotation_error_deg`, mm.
+    pub believed_intercept_error_mm: f64,
+    /// At the touch: the believed tool point (forward kinematics of the measured
+    /// joints) minus the true one, base frame, m (the arm's and tool's true
+    /// geometry against the model; zero without the touch).
+    pub touch_kinematic_error_m: [f64; 3],
+    /// Commands sent to the robot.
+    pub commands_sent: usize,
+    /// The smallest distance of any command to its joint limit, rad.
+    pub min_command_margin_rad: f64,
+}
+
+fn to_vec(q: &Joints) -> SVector<f64, 7> {
+    SVector::<f64, 7>::from_column_slice(q)
+}
+
+/// The believed marker centre and the disc normal for measured joints `q`.
+fn marker_believed(q: &Joints) -> (Vector3<f64>, Vector3<f64>) {
+    let f = kinematics::flange_pose(&to_vec(q));
+    let r = f.rotation.matrix();
+    (
+        f.translation.vector + r * Vector3::from(MARKER_OFFSET_M),
+        r.column(2).into_owned(),
+    )
+}
+
+/// The true marker centre and normal for the robot's true joints.
+fn marker_true(arm: &TrueArm, q: &Joints) -> (Vector3<f64>, Vector3<f64>) {
+    let (p, r) = arm.flange(q);
+    (
+        p + r * Vector3::from(MARKER_OFFSET_M),
+        r.column(2).into_owned(),
+    )
+}
+
+/// A slow tour through joint targets: cosine-profile joint moves, a hold at each
+/// for the frames; the measured joints averaged over the hold's capture window.
+/// A command outside the joint limits is never sent (the tour stops instead).
+struct Tour {
+    targets: Vec<Joints>,
+    /// Per target: (sum of measured joints, count) over its capture window.
+    measured: Vec<(Joints, usize)>,
+    /// Target `i` holds and frames are taken now.
+    capturing: Option<usize>,
+    at: usize,
+    from: Option<Joints>,
+    t_move_ns: u64,
+    move_s: f64,
+    holding_since_ns: Option<u64>,
+    capture_s: f64,
+    /// The latest measured joints.
+    last_measured: Joints,
+    done: bool,
+    refused: bool,
+    commands: usize,
+    min_margin_rad: f64,
+}
+
+impl Tour {
+    fn new(targets: Vec<Joints>, capture_s: f64) -> Self {
+        let n = targets.len();
+        Self {
+            targets,
+            measured: vec![([0.0; 7], 0); n],
+            capturing: None,
+            at: 0,
+            from: None,
+            t_move_ns: 0,
+            move_s: 0.0,
+            holding_since_ns: None,
+            capture_s,
+            last_measured: [0.0; 7],
+            done: n == 0,
+            refused: false,
+            commands: 0,
+            min_margin_rad: f64::INFINITY,
+        }
+    }
+}
+
+fn move_duration_s(a: &Joints, b: &Joints) -> f64 {
+    let d = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    // Cosine profile: peak speed (pi/2) d / T.
+    (std::f64::consts::FRAC_PI_2 * d / MOVE_SPEED_RADPS).max(1.0)
+}
+
+impl ControlStep for Tour {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        if let Some(q) = input.monitoring.measured_joint_position_rad {
+            self.last_measured = q;
+        }
+        if let (Some(i), Some(q)) = (self.capturing, input.monitoring.measured_joint_position_rad) {
+            let m = &mut self.measured[i];
+            for (s, v) in m.0.iter_mut().zip(q.iter()) {
+                *s += v;
+            }
+            m.1 += 1;
+        }
+        if !input.commanding || self.done || self.refused {
+            return;
+        }
+        let now = input.now_ns;
+        let from = *self.from.get_or_insert_with(|| {
+            self.t_move_ns = now;
+            self.move_s = move_duration_s(command_rad, &self.targets[0]);
+            *command_rad
+        });
+        let target = self.targets[self.at];
+        let mut q = target;
+        if let Some(t0) = self.holding_since_ns {
+            let held = (now - t0) as f64 * 1e-9;
+            self.capturing = (held >= SETTLE_S).then_some(self.at);
+            if held >= SETTLE_S + self.capture_s {
+                self.capturing = None;
+                self.holding_since_ns = None;
+                self.at += 1;
+                if self.at >= self.targets.len() {
+                    self.done = true;
+                } else {
+                    self.from = Some(target);
+                    self.t_move_ns = now;
+                    self.move_s = move_duration_s(&target, &self.targets[self.at]);
+                }
+            }
+        } else {
+            let s = ((now - self.t_move_ns) as f64 * 1e-9 / self.move_s).min(1.0);
+            let w = 0.5 - 0.5 * (std::f64::consts::PI * s).cos();
+            for ((v, a), b) in q.iter_mut().zip(from.iter()).zip(target.iter()) {
+                *v = a + (b - a) * w;
+            }
+            if s >= 1.0 {
+                self.holding_since_ns = Some(now);
+            }
+        }
+        // Every command inside the limits, or none at all.
+        let margin = q
+            .iter()
+            .zip(POSITION_LIMIT_RAD)
+            .map(|(v, l)| l - v.abs())
+            .fold(f64::INFINITY, f64::min);
+        if margin.is_nan() || margin <= 0.0 {
+            self.refused = true;
+            return;
+        }
+        self.min_margin_rad = self.min_margin_rad.min(margin);
+        self.commands += 1;
+        *command_rad = q;
+    }
+}
+
+/// Marker positions of the tour (base frame, m): a grid over the pendulum's
+/// region, across the image and in depth.
+fn tour_points(scenario: &Scenario) -> Vec<Vector3<f64>> {
+    let d = &scenario.task.distance_m;
+    let h = scenario.task.intercept_height_m;
+    let mut out = Vec::new();
+    for (ix, x) in [d.lo, 0.5 * (d.lo + d.hi), d.hi].into_iter().enumerate() {
+        for y in [-0.30, 0.0, 0.30] {
+            for dz in [-0.15, 0.15] {
+                // Stagger the rows per depth so the image is covered evenly.
+                let yy = y + 0.05 * ix as f64;
+                out.push(Vector3::new(x.min(0.75), yy, h + dz + 0.03 * ix as f64));
+            }
+        }
+    }
+    out
+}
+
+/// Tilts of the tool tried, from along +x down towards -z, radians (near the
+/// base a horizontal tool is out of reach: the arm comes from above, as the
+/// interception's planned tilt does).
+const TILTS_RAD: [f64; 5] = [0.0, 0.35, 0.7, 0.9, 1.05];
+
+/// The flange orientation with the tool along +x tilted down by `tilt` (the
+/// disc faces the camera behind the robot).
+fn tool_rotation(tilt: f64) -> Rotation3<f64> {
+    Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2 + tilt)
+}
+
+/// The tour's orientation at pose `i` and tilt: a little yaw and roll per pose.
+fn tour_rotation(i: usize, tilt: f64) -> Rotation3<f64> {
+    let (a, b) = [
+        (0.0, 0.0),
+        (0.15, 0.0),
+        (-0.15, 0.1),
+        (0.0, -0.15),
+        (0.1, 0.15),
+    ][i % 5];
+    Rotation3::from_euler_angles(0.0, 0.0, a)
+        * tool_rotation(tilt)
+        * Rotation3::from_euler_angles(0.0, 0.0, b)
+}
+
+/// Joint targets (inside the limits by `TARGET_MARGIN_RAD`) putting the marker at
+/// each point; unreachable points are skipped.
+fn tour_targets(points: &[Vector3<f64>], start: &Joints) -> Vec<Joints> {
+    let mut seed = to_vec(start);
+    let mut out = Vec::new();
+    for (i, p) in points.iter().enumerate() {
+        for tilt in TILTS_RAD {
+            let r = tour_rotation(i, tilt);
+            let flange = p - r * Vector3::from(MARKER_OFFSET_M);
+            let pose = kinematics::Pose::from_parts(nalgebra::Translation3::from(flange), r);
+            if let Ok(sol) = kinematics::analytic::solve(&pose, Some(&seed), TARGET_MARGIN_RAD) {
+                seed = sol.q;
+                out.push(std::array::from_fn(|j| sol.q[j]));
+                break;
+            }
+        }
+    }
+    out
+}
+
+/// Joints that put the *true* tool point at `target` with the tool along `r`:
+/// the believed IK corrected on the true arm (a few fixed-point steps); what a
+/// hand guiding the tool to a place does.
+fn true_ik(
+    arm: &TrueArm,
+    r: &Rotation3<f64>,
+    target: &Vector3<f64>,
+    seed: &Joints,
+) -> Option<Joints> {
+    let tool = Vector3::new(0.0, 0.0, arm.tool_length_m);
+    let mut aim = *target;
+    let mut q = to_vec(seed);
+    for _ in 0..6 {
+        let flange = aim - r * tool;
+        let pose = kinematics::Pose::from_parts(nalgebra::Translation3::from(flange), *r);
+        q = kinematics::analytic::solve(&pose, Some(&q), TARGET_MARGIN_RAD)
+            .ok()?
+            .q;
+        let qa: Joints = std::array::from_fn(|j| q[j]);
+        aim += target - arm.tool_point(&qa);
+    }
+    Some(std::array::from_fn(|j| q[j]))
+}
+
+/// Draws the marker disc (projected rim through the true camera) into `img`,
+/// with pixel noise over its region.
+fn draw_marker(
+    img: &mut Mat,
+    rim: &[Vector2<f64>],
+    noise: f64,
+    rng: &mut ChaCha8Rng,
+) -> Result<(), ProcedureError> {
+    const SHIFT: i32 = 4;
+    let scale = f64::from(1 << SHIFT);
+    let pts: Vector<Point> = rim
+        .iter()
+        .map(|p| Point::new((p.x * scale).round() as i32, (p.y * scale).round() as i32))
+        .collect();
+    let mut polys = Vector::<Vector<Point>>::new();
+    polys.push(pts);
+    let (h, s, v) = MARKER_HSV;
+    let c = v * s;
+    let hp = h / 60.0;
+    let x = c * (1.0 - (hp % 2.0 - 1.0).abs());
+    let m = v - c;
+    // Hue 112: between green and cyan (r = 0 side).
+    let (r, g, b) = (x + m, c + m, m);
+    let colour = Scalar::new(b * 255.0, g * 255.0, r * 255.0, 0.0);
+    imgproc::fill_poly(
+        img,
+        &polys,
+        colour,
+        imgproc::LINE_AA,
+        SHIFT,
+        Point::default(),
+    )?;
+    // Sensor noise on the disc's box (the background has its own).
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for p in rim {
+        x0 = x0.min(p.x);
+        y0 = y0.min(p.y);
+        x1 = x1.max(p.x);
+        y1 = y1.max(p.y);
+    }
+    let rect = Rect::new(
+        (x0.floor() as i32 - 2).max(0),
+        (y0.floor() as i32 - 2).max(0),
+        0,
+        0,
+    );
+    let rect = Rect::new(
+        rect.x,
+        rect.y,
+        ((x1.ceil() as i32 + 2).min(img.cols()) - rect.x).max(0),
+        ((y1.ceil() as i32 + 2).min(img.rows()) - rect.y).max(0),
+    );
+    if noise > 0.0 && rect.width > 0 && rect.height > 0 {
+        let mut patch = Mat::roi(img, rect)?.try_clone()?;
+        for v in patch.data_bytes_mut()? {
+            *v = (f64::from(*v) + noise * crate::sim::camera::gaussian(rng))
+                .round()
+                .clamp(0.0, 255.0) as u8;
+        }
+        let mut roi = Mat::roi_mut(img, rect)?;
+        patch.copy_to(&mut roi)?;
+    }
+    Ok(())
+}
+
+/// Finds the marker near `guess_px` (the believed camera's prediction): the
+/// pixels of its hue, their largest blob, its centroid. `None`: not seen.
+fn find_marker(
+    img: &Mat,
+    guess_px: &Vector2<f64>,
+    expect_r_px: f64,
+) -> Result<Option<Vector2<f64>>, ProcedureError> {
+    let half = (3.0 * expect_r_px + 40.0).round() as i32;
+    let (cx, cy) = (guess_px.x.round() as i32, guess_px.y.round() as i32);
+    let x0 = (cx - half).clamp(0, img.cols());
+    let y0 = (cy - half).clamp(0, img.rows());
+    let x1 = (cx + half).clamp(0, img.cols());
+    let y1 = (cy + half).clamp(0, img.rows());
+    if x1 - x0 < 8 || y1 - y0 < 8 {
+        return Ok(None);
+    }
+    let roi = Mat::roi(img, Rect::new(x0, y0, x1 - x0, y1 - y0))?;
+    let mut blur = Mat::default();
+    imgproc::gaussian_blur_def(&roi, &mut blur, core::Size::new(3, 3), 0.0)?;
+    let mut hsv = Mat::default();
+    imgproc::cvt_color_def(&blur, &mut hsv, imgproc::COLOR_BGR2HSV)?;
+    let mut mask = Mat::default();
+    core::in_range(
+        &hsv,
+        &Scalar::new(HUE_BAND.0, 120.0, 60.0, 0.0),
+        &Scalar::new(HUE_BAND.1, 255.0, 255.0, 0.0),
+        &mut mask,
+    )?;
+    let mut contours = Vector::<Vector<Point>>::new();
+    imgproc::find_contours_def(
+        &mask,
+        &mut contours,
+        imgproc::RETR_EXTERNAL,
+        imgproc::CHAIN_APPROX_NONE,
+    )?;
+    let mut best: Option<(f64, Vector2<f64>)> = None;
+    for c in &contours {
+        let m = imgproc::moments_def(&c)?;
+        if m.m00 <= 0.0 {
+            continue;
+        }
+        if best.is_none_or(|b| m.m00 > b.0) {
+            best = Some((
+                m.m00,
+                Vector2::new(m.m10 / m.m00 + f64::from(x0), m.m01 / m.m00 + f64::from(y0)),
+            ));
+        }
+    }
+    let expect_area = std::f64::consts::PI * expect_r_px * expect_r_px;
+    Ok(best
+        .filter(|(a, _)| *a > 0.3 * expect_area && *a < 3.0 * expect_area)
+        .map(|(_, c)| c))
+}
+
+/// The camera-robot step on the simulated world (module docs). `watch` gets a
+/// view per marker pose (the detected pixels and, at the end, their reprojection).
+pub fn run_camera_robot(
+    scenario: &Scenario,
+    world: &HiddenWorld,
+    seed: u64,
+    options: &CameraRobotOptions,
+    watch: &mut dyn Watch,
+) -> Result<CameraRobotRun, ProcedureError> {
+    scenario.validate()?;
+    // The truth (simulators only): the camera, the arm, the rest point.
+    let true_cam = world.world_camera(scenario);
+    let arm = match &scenario.world {
+        Some(w) => {
+            let s = w.draw_session(seed, 0, scenario.robot.latency_ms);
+            TrueArm::from_session(
+                scenario.task.tool_length_m,
+                w.geometry.contact_disc_radius_m,
+                &s,
+            )
+        }
+        None => TrueArm::nominal(scenario.task.tool_length_m, 0.03),
+    };
+    // The ball hangs at the far end of the distances for the step: there the arm
+    // reaches it with the tool level (the touch then measures depth alone).
+    let nominal_rest = Vector3::new(
+        step_distance_m(scenario),
+        0.0,
+        scenario.task.intercept_height_m,
+    );
+    let true_rest = nominal_rest + Vector3::from(world.intercept_error_m);
+
+    // What the lab believes.
+    let sim_cam = SimCameraParams::default();
+    let believed_pose = scenario.camera.pose.unwrap_or(sim_cam.pose);
+    let intrinsics = options.intrinsics.unwrap_or_else(|| {
+        CameraIntrinsics::from_hfov(
+            scenario.camera.width_px,
+            scenario.camera.height_px,
+            sim_cam.hfov_deg,
+        )
+    });
+    let mut cam_params = scenario.camera.clone();
+    cam_params.vision = VisionMode::Full;
+    cam_params.latency_ms = world.camera_latency_ms;
+    let mut camera = SimCamera::new(&cam_params, &sim_cam, scenario.pendulum.ball_radius_m, seed)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x00ca_3e7a);
+
+    // 1. The robot: the FRI session against the simulated controller.
+    let params = FriSimParams {
+        latency_ms: world.robot_latency_ms,
+        latency_jitter_ms: world.robot_latency_jitter_ms.min(world.robot_latency_ms),
+        servo_time_constant_ms: world.servo_time_constant_ms,
+        seed,
+        ..FriSimParams::from_robot(&scenario.robot)
+    };
+    let start: Joints = std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians());
+    let period_ns = params.period_ns();
+    let mut robot = SimController::new(params, 1_700_000_000_000_000_000)
+        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+    let mut client = FriClient::new(FriClientParams::default())
+        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+    let mut targets = tour_targets(&tour_points(scenario), &start);
+    let poses_commanded = targets.len();
+    if poses_commanded < MIN_POSES {
+        return Err(ProcedureError::Robot(format!(
+            "only {poses_commanded} marker poses reachable inside the joint limits, at least {MIN_POSES} needed"
+        )));
+    }
+    // The touch (a hand guiding the tool, simulated): the true tool point just
+    // before the ball, the disc's face touching it (within the operator's 0.3 mm).
+    let touch_target = if options.touch {
+        let gap = rng.random_range(0.0..0.0003);
+        let seed_q = targets.last().copied().unwrap_or(start);
+        let mut found = None;
+        for tilt in TILTS_RAD {
+            let r = tool_rotation(tilt);
+            let n = r * Vector3::z();
+            let at = true_rest - n * (scenario.pendulum.ball_radius_m + gap);
+            // Approach from 5 cm along the tool's axis, then forward to the touch.
+            if let Some(q) = true_ik(&arm, &r, &at, &seed_q)
+                && let Some(before) = true_ik(&arm, &r, &(at - 0.05 * n), &q)
+            {
+                found = Some((before, q));
+                break;
+            }
+        }
+        let (before, q) = found.ok_or_else(|| {
+            ProcedureError::Robot("the hanging ball is out of the tool's reach".into())
+        })?;
+        targets.push(before);
+        targets.push(q);
+        Some(targets.len() - 1)
+    } else {
+        None
+    };
+    let capture_s = FRAMES_PER_POSE as f64 / scenario.camera.fps + 0.05;
+    let mut tour = Tour::new(targets, capture_s);
+    let frame_period = 1.0 / scenario.camera.fps;
+    let mut detections: Vec<Vec<Vector2<f64>>> = vec![Vec::new(); poses_commanded];
+    let mut next_frame_s = 0.0;
+    let mut t_ns = 0u64;
+    let mut started = false;
+    let limit_ns = 3_600 * 1_000_000_000u64;
+    while !tour.done && !tour.refused && t_ns < limit_ns {
+        t_ns += period_ns;
+        if robot.state() != SessionState::CommandingActive && !started {
+            robot.request_commanding();
+        }
+        client.poll(t_ns, &mut tour);
+        if let Some(bytes) = robot.tick(t_ns)
+            && let Some(reply) = client.on_datagram(bytes, t_ns, &mut tour)
+        {
+            robot.on_reply(reply, t_ns + 20_000);
+        }
+        started |= tour.from.is_some();
+        if started && client.state() != LinkState::CommandingActive {
+            break;
+        }
+        let t = t_ns as f64 * 1e-9;
+        let Some(i) = tour.capturing.filter(|&i| i < poses_commanded) else {
+            next_frame_s = t;
+            continue;
+        };
+        if t < next_frame_s || detections[i].len() >= FRAMES_PER_POSE {
+            continue;
+        }
+        next_frame_s = t + frame_period;
+        // A frame: the background, the disc where the true camera sees it.
+        let (c, n) = marker_true(&arm, robot.joint_rad());
+        let img = camera.render(None)?;
+        let mut img = img.try_clone()?;
+        if options.marker_visible {
+            let u = n
+                .cross(&Vector3::z())
+                .try_normalize(1e-9)
+                .unwrap_or(Vector3::y());
+            let v = n.cross(&u);
+            let rim: Option<Vec<Vector2<f64>>> = (0..48)
+                .map(|k| {
+                    let a = std::f64::consts::TAU * k as f64 / 48.0;
+                    true_cam.project(&(c + MARKER_RADIUS_M * (a.cos() * u + a.sin() * v)))
+                })
+                .collect();
+            if let Some(rim) = rim {
+                draw_marker(&mut img, &rim, scenario.camera.image_noise, &mut rng)?;
+            }
+        }
+        // The procedure's side: where the believed camera expects the disc.
+        let (c_b, _) = marker_believed(&tour.last_measured);
+        let pc = believed_pose.to_camera(&c_b);
+        let Some(guess) = intrinsics.project(&pc) else {
+            continue;
+        };
+        let r_px = intrinsics.fx_px * MARKER_RADIUS_M / pc.z.max(0.1);
+        if let Some(px) = find_marker(&img, &guess, r_px)? {
+            detections[i].push(px);
+        }
+        if detections[i].len() == FRAMES_PER_POSE {
+            let seen: Vec<[f64; 2]> = detections
+                .iter()
+                .filter(|d| !d.is_empty())
+                .map(|d| {
+                    let m = d.iter().fold(Vector2::zeros(), |a, p| a + p) / d.len() as f64;
+                    [m.x, m.y]
+                })
+                .collect();
+            watch.seen(StepView {
+                progress: 0.8 * (i + 1) as f64 / poses_commanded as f64,
+                message: format!("marker pose {} of {poses_commanded}: seen", i + 1),
+                kind: ViewKind::Image,
+                points: seen,
+                fit: Vec::new(),
+            });
+        }
+    }
+    if tour.refused {
+        return Err(ProcedureError::Robot(
+            "a command would have left the joint limits; the tour stopped".into(),
+        ));
+    }
+    if !tour.done {
+        return Err(ProcedureError::Robot(format!(
+            "the FRI session did not stay in COMMANDING_ACTIVE (client {:?}, controller {})",
+            client.state(),
+            robot.state().name()
+        )));
+    }
+    if let Some(a) = robot.stats().last_abort() {
+        return Err(ProcedureError::Robot(format!(
+            "the controller aborted: {a:?}"
+        )));
+    }
+
+    // 2. The sightings: mean pixel per pose, the marker's believed centre from the
+    //    mean measured joints.
+    let mut points_b = Vec::new();
+    let mut pixels = Vec::new();
+    for (i, det) in detections.iter().enumerate() {
+        let (sum, k) = tour.measured[i];
+        if det.len() < FRAMES_PER_POSE / 2 + 1 || k == 0 {
+            continue;
+        }
+        let q: Joints = std::array::from_fn(|j| sum[j] / k as f64);
+        let px = det.iter().fold(Vector2::zeros(), |a, p| a + p) / det.len() as f64;
+        points_b.push(marker_believed(&q).0);
+        pixels.push(px);
+    }
+    if points_b.is_empty() {
+        return Err(ProcedureError::NotSeen(format!(
+            "marker never seen: 0 of {poses_commanded} poses (is the disc on the tool and in the camera's view?)"
+        )));
+    }
+    if points_b.len() < MIN_POSES {
+        return Err(ProcedureError::NotSeen(format!(
+            "marker seen at {} of {poses_commanded} poses, at least {MIN_POSES} needed",
+            points_b.len()
+        )));
+    }
+
+    // 3. The pose: solvePnP (iterative, from the believed pose), then least squares.
+    let fit = fit_pose(&intrinsics, &points_b, &pixels, &believed_pose, options)?;
+    let fitted = reproject(&intrinsics, &fit, &points_b);
+    watch.seen(StepView {
+        progress: 0.85,
+        message: format!(
+            "camera pose from {} marker poses: reprojection rms {:.2} px",
+            points_b.len(),
+            fit.rms_px
+        ),
+        kind: ViewKind::Image,
+        points: pixels.iter().map(|p| [p.x, p.y]).collect(),
+        fit: fitted,
+    });
+
+    // 4. The hanging ball's rest pixel (the robot away from it: the touch comes last).
+    let ball_px = true_cam.project(&true_rest).ok_or_else(|| {
+        ProcedureError::NotSeen("the hanging ball is not in the camera's view".into())
+    })?;
+    let ball = BallState {
+        centre_m: true_cam.equivalent_centre_m(&ball_px, &true_rest),
+        velocity_mps: Vector3::zeros(),
+    };
+    let cal = SwingPlaneCalibration::from_pose(
+        intrinsics,
+        &believed_pose,
+        &nominal_rest,
+        scenario.pendulum.ball_radius_m,
+    );
+    let mut vision = SimVision::new(camera, DetectorParams::default(), cal)?;
+    let mut rest = Vec::new();
+    for k in 0..REST_FRAMES * 2 {
+        if rest.len() >= REST_FRAMES {
+            break;
+        }
+        if let Some(m) = vision.capture(frame_period * k as f64, Some(&ball))?
+            && m.found
+        {
+            rest.push(Vector2::new(m.x_px, m.y_px));
+        }
+    }
+    if rest.len() < REST_FRAMES / 2 {
+        return Err(ProcedureError::NotSeen(format!(
+            "the hanging ball was found in {} of {} frames (is it in view?)",
+            rest.len(),
+            REST_FRAMES * 2
+        )));
+    }
+    let rest_px = rest.iter().fold(Vector2::zeros(), |a, p| a + p) / rest.len() as f64;
+    watch.seen(StepView {
+        progress: 0.95,
+        message: format!("hanging ball at ({:.1}, {:.1}) px", rest_px.x, rest_px.y),
+        kind: ViewKind::Image,
+        points: rest.iter().map(|p| [p.x, p.y]).collect(),
+        fit: vec![[rest_px.x, rest_px.y]],
+    });
+
+    // 5. The intercept point: the ray through the rest pixel met with the plane of
+    //    the ball's centre, x = the touch's tool point + ball radius (or believed).
+    //    The ball's centre lies on the plane `n . p = d`: with the touch, the disc's
+    //    plane (normal n, the tool axis, at the measured tool point) moved out by
+    //    the ball's radius; without, the believed swing plane `x = distance`.
+    let mut touch_kinematic_error_m = [0.0; 3];
+    let (n, d, depth_from) = match touch_target {
+        Some(i) => {
+            let (sum, k) = tour.measured[i];
+            if k == 0 {
+                return Err(ProcedureError::Robot("no measurement at the touch".into()));
+            }
+            let q: Joints = std::array::from_fn(|j| sum[j] / k as f64);
+            let tool = kinematics::tool_pose(
+                &to_vec(&q),
+                &kinematics::Tool::along_z(scenario.task.tool_length_m),
+            );
+            let n = tool.rotation.matrix().column(2).into_owned();
+            // (The truth, for the report only.)
+            touch_kinematic_error_m =
+                (tool.translation.vector - arm.tool_point(robot.joint_rad())).into();
+            let d = n.dot(&tool.translation.vector) + scenario.pendulum.ball_radius_m;
+            (n, d, "touch")
+        }
+        None => (Vector3::x(), nominal_rest.x, "plane"),
+    };
+    let ray = ray_b(&intrinsics, &fit, rest_px.x, rest_px.y);
+    let along = n.dot(&ray);
+    if along <= 0.05 {
+        return Err(ProcedureError::NotSeen(
+            "the rest point's ray does not reach the ball's plane".into(),
+        ));
+    }
+    let s = (d - n.dot(&fit.position_m)) / along;
+    let intercept = fit.position_m + ray * s;
+
+    let pose = camera_pose_of(&fit.base_from_camera, &fit.position_m);
+    let calibration = CameraRobotCalibration {
+        camera_pose: pose,
+        base_from_camera_rows: std::array::from_fn(|r| {
+            std::array::from_fn(|c| fit.base_from_camera[(r, c)])
+        }),
+        reprojection_rms_px: fit.rms_px,
+        poses: points_b.len(),
+        poses_commanded,
+        k1: fit.k1,
+        k1_fitted: options.intrinsics.is_none(),
+        position_std_m: fit.position_std_m.into(),
+        marker_offset_m: MARKER_OFFSET_M,
+        intercept_m: intercept.into(),
+        intercept_offset_m: (intercept - nominal_rest).into(),
+        rest_px: [rest_px.x, rest_px.y],
+        intercept_depth_from: depth_from.to_owned(),
+    };
+    watch.seen(StepView {
+        progress: 1.0,
+        message: format!(
+            "camera at ({:.4}, {:.4}, {:.4}) m, intercept point ({:.4}, {:.4}, {:.4}) m",
+            pose.position_m[0],
+            pose.position_m[1],
+            pose.position_m[2],
+            intercept.x,
+            intercept.y,
+            intercept.z
+        ),
+        kind: ViewKind::Image,
+        points: pixels.iter().map(|p| [p.x, p.y]).collect(),
+        fit: reproject(&intrinsics, &fit, &points_b),
+    });
+    let believed_r = believed_pose.base_from_camera();
+    Ok(CameraRobotRun {
+        calibration,
+        true_camera_pose: camera_pose_of(&true_cam.base_from_camera, &true_cam.position_m),
+        true_intercept_m: true_rest.into(),
+        camera_rotation_error_deg: rotation_angle_rad(
+            &fit.base_from_camera,
+            &true_cam.base_from_camera,
+        )
+        .to_degrees(),
+        camera_position_error_mm: (fit.position_m - true_cam.position_m).norm() * 1e3,
+        intercept_error_mm: (intercept - true_rest).norm() * 1e3,
+        believed_rotation_error_deg: rotation_angle_rad(&believed_r, &true_cam.base_from_camera)
+            .to_degrees(),
+        believed_position_error_mm: (believed_pose.position() - true_cam.position_m).norm() * 1e3,
+        believed_intercept_error_mm: (scenario_intercept(scenario) - true_rest).norm() * 1e3,
+        touch_kinematic_error_m,
+        commands_sent: tour.commands,
+        min_command_margin_rad: tour.min_margin_rad,
+    })
+}
+
+/// Where the ball hangs during the step: the far end of the distances, m.
+pub fn step_distance_m(s: &Scenario) -> f64 {
+    s.task.distance_m.hi
+}
+
+/// The intercept point the scenario believes (nominal plus its offset).
+fn scenario_intercept(s: &Scenario) -> Vector3<f64> {
+    s.task.intercept_m(step_distance_m(s))
+}
+
+/// `cv::solvePnP` (iterative, from the believed pose) on all sightings, then the
+/// least-squares refinement (with `k1` unless the camera step gave it).
+fn fit_pose(
+    intrinsics: &CameraIntrinsics,
+    points_b: &[Vector3<f64>],
+    pixels: &[Vector2<f64>],
+    believed: &CameraPose,
+    options: &CameraRobotOptions,
+) -> Result<PnpFit, ProcedureError> {
+    let obj: Vector<Point3d> = points_b
+        .iter()
+        .map(|p| Point3d::new(p.x, p.y, p.z))
+        .collect();
+    let img: Vector<Point2d> = pixels.iter().map(|p| Point2d::new(p.x, p.y)).collect();
+    let k = Mat::from_slice_2d(&[
+        [intrinsics.fx_px, 0.0, intrinsics.cx_px],
+        [0.0, intrinsics.fy_px, intrinsics.cy_px],
+        [0.0, 0.0, 1.0],
+    ])?;
+    let dist_v = [intrinsics.k1, intrinsics.k2, 0.0, 0.0];
+    let dist = Mat::from_slice(&dist_v)?;
+    let r0 = believed.base_from_camera().inverse();
+    let t0 = -(r0 * believed.position());
+    let rv0 = r0.scaled_axis();
+    let mut rvec = Mat::from_slice(&[rv0.x, rv0.y, rv0.z])?.try_clone()?;
+    let mut tvec = Mat::from_slice(&[t0.x, t0.y, t0.z])?.try_clone()?;
+    let ok = calib3d::solve_pnp(
+        &obj,
+        &img,
+        &k,
+        &dist,
+        &mut rvec,
+        &mut tvec,
+        true,
+        calib3d::SOLVEPNP_ITERATIVE,
+    )?;
+    let get = |m: &Mat| -> Result<Vector3<f64>, ProcedureError> {
+        Ok(Vector3::new(
+            *m.at::<f64>(0)?,
+            *m.at::<f64>(1)?,
+            *m.at::<f64>(2)?,
+        ))
+    };
+    let (r, t) = if ok {
+        (Rotation3::new(get(&rvec)?), get(&tvec)?)
+    } else {
+        (r0, t0)
+    };
+    let start = (r.inverse(), -(r.inverse() * t));
+    let k1_fixed = options.intrinsics.map(|k| k.k1);
+    Ok(refine_pose(intrinsics, points_b, pixels, start, k1_fixed)?)
+}
