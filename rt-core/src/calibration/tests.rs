@@ -521,3 +521,30 @@ mod camera_robot {
         assert!(e.to_string().contains("marker never seen"), "{e}");
     }
 }
+
+/// The camera-robot step's intercept offset is a belief the controller plans
+/// with: the planned intercept point moves by it (and the camera pose is refused
+/// out of range, naming the field).
+#[test]
+fn intercept_offset_moves_the_planned_intercept_point() {
+    let mut s = crate::params::Scenario::default();
+    let plain = crate::control::Controller::plan(&s.beliefs(), 0.6).expect("plan");
+    s.task.intercept_offset_m = [0.002, -0.003, 0.001];
+    s.validate().expect("valid");
+    let moved = crate::control::Controller::plan(&s.beliefs(), 0.6).expect("plan");
+    let d = moved.intercept_m - plain.intercept_m;
+    assert!(
+        (d - nalgebra::Vector3::new(0.002, -0.003, 0.001)).norm() < 1e-12,
+        "{d:?}"
+    );
+    s.task.intercept_offset_m = [0.5, 0.0, 0.0];
+    let e = s.validate().unwrap_err();
+    assert_eq!(e.field(), Some("task.intercept_offset_m[0]"));
+    s.task.intercept_offset_m = [0.0; 3];
+    s.camera.pose = Some(crate::vision::CameraPose {
+        yaw_deg: 90.0,
+        ..crate::vision::CameraPose::default()
+    });
+    let e = s.validate().unwrap_err();
+    assert_eq!(e.field(), Some("camera.pose.yaw_deg"));
+}

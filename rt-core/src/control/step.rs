@@ -456,7 +456,8 @@ impl Controller {
         check::within("task.distance_m", distance_m, 0.1, 1.2)?;
         let task = &beliefs.task;
         let home = Vector3::from(task.home_m);
-        let intercept = Vector3::new(distance_m, 0.0, task.intercept_height_m);
+        // The believed rest point: `task.intercept_offset_m` (calibrated) included.
+        let intercept = task.intercept_m(distance_m);
         // The posture planner of `trajectory` (the same one `isochron kin plan`
         // reports), with this section's speed ratio and position margin.
         let traj = TrajectoryParams {
@@ -707,11 +708,13 @@ impl Controller {
                 state: self.machine.state().name(),
             });
         }
-        let geometry = PendulumGeometry::new(
+        let mut geometry = PendulumGeometry::new(
             self.model.length_m,
             plan.distance_m,
             self.intercept_height_m,
         )?;
+        // The pivot above the believed rest point (with the calibrated offset).
+        geometry.pivot_m = plan.intercept_m + Vector3::new(0.0, 0.0, self.model.length_m);
         let mut ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
             .map_err(|e| ControlError::Setup(e.to_string()))?;
         if self.params.learn_frequency {

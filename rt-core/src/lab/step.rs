@@ -1030,7 +1030,18 @@ impl LabStep {
         self.operator_since_s = t;
         let world = match &self.p.truth {
             Some(truth) if truth.world => {
-                World::for_trial(&self.p.scenario, self.p.seed, index, &plan.intercept_m)
+                // The truth hangs where the uncalibrated lab puts it (plus the
+                // world's error), whatever the beliefs say.
+                World::for_trial(
+                    &self.p.scenario,
+                    self.p.seed,
+                    index,
+                    &Vector3::new(
+                        plan.distance_m,
+                        0.0,
+                        self.p.scenario.task.intercept_height_m,
+                    ),
+                )
             }
             _ => None,
         };
@@ -1077,17 +1088,12 @@ impl LabStep {
             .map_err(|_| Refusal::ChecksFailed)?;
         if let (Some(truth), Some(ball)) = (self.p.truth.as_mut(), ball.as_ref()) {
             let cam = truth.camera;
-            let rest = Vector3::new(
-                draw.distance_m,
-                0.0,
-                self.p.scenario.task.intercept_height_m,
-            );
-            let cal = SwingPlaneCalibration::from_pose(
-                cam.intrinsics,
-                &cam.pose,
-                &rest,
-                cam.ball_radius_m,
-            );
+            // What the lab believes: the camera's pose and the rest point (both
+            // as calibrated, when they are).
+            let rest = plan.intercept_m;
+            let pose = self.p.scenario.camera.pose.unwrap_or(cam.pose);
+            let cal =
+                SwingPlaneCalibration::from_pose(cam.intrinsics, &pose, &rest, cam.ball_radius_m);
             let size = &self.p.scenario.camera;
             self.snap
                 .camera

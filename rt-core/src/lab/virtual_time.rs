@@ -732,8 +732,11 @@ impl VirtualLab {
     /// world changes nothing.
     fn world_trial(&mut self, t: f64, index: usize, draw: &TrialDraw, plan: &ArmPlan) {
         self.world_view = None;
-        let Some(world) = World::for_trial(&self.scenario, self.seed, index, &plan.intercept_m)
-        else {
+        // The truth hangs where the uncalibrated lab puts it (plus the world's
+        // error), whatever the beliefs say.
+        let nominal =
+            nalgebra::Vector3::new(plan.distance_m, 0.0, self.scenario.task.intercept_height_m);
+        let Some(world) = World::for_trial(&self.scenario, self.seed, index, &nominal) else {
             return;
         };
         self.enter_session(&world);
@@ -750,7 +753,7 @@ impl VirtualLab {
         // What the lab believes: the believed camera, the believed rest point.
         let believed = SwingPlaneCalibration::from_pose(
             intrinsics,
-            &sim_cam.pose,
+            &self.scenario.camera.pose.unwrap_or(sim_cam.pose),
             &plan.intercept_m,
             self.scenario.pendulum.ball_radius_m,
         );

@@ -30,12 +30,12 @@ pub struct MotionRequest {
 
 impl MotionRequest {
     /// The paper's interception motion: from `task.home_m` to the intercept point
-    /// `(distance_m, 0, task.intercept_height_m)` in `task.movement_time_s`, Hopf
+    /// `(distance_m, 0, task.intercept_height_m) + task.intercept_offset_m` in `task.movement_time_s`, Hopf
     /// (sinusoidal) profile, tool `task.tool_length_m` along the flange's z axis.
     pub fn interception(task: &TaskParams, distance_m: f64) -> Self {
         Self {
             start_m: Vector3::from(task.home_m),
-            end_m: Vector3::new(distance_m, 0.0, task.intercept_height_m),
+            end_m: task.intercept_m(distance_m),
             movement_time_s: task.movement_time_s,
             profile: ProfileKind::Hopf,
             tool: Tool::along_z(task.tool_length_m),
