@@ -219,10 +219,11 @@ pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world th
 /// simulated lab with the FRI client answering the configured controller, the
 /// webcam (or, when `camera.device` is a regular file, that video looped at
 /// its frame rate), the magnet on the configured serial port, and the
-/// pendulum where `calibration.pivot_m` puts it. The camera is where
-/// `calibration.camera_pose` puts it; without one it is taken to look along the
-/// base's +x at the height of the ball at rest, `plane_distance_m` before the
-/// swing plane.
+/// pendulum where `calibration.pivot_m` puts it. The camera is where the
+/// calibration file's camera-robot step measured it (`camera.pose` of the
+/// scenario it was applied to), else where `calibration.camera_pose` puts it;
+/// without either it is taken to look along the base's +x at the height of the
+/// ball at rest, `plane_distance_m` before the swing plane.
 pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow::Result<LabSetup> {
     scenario.robot.fri_period_ms = cfg.fri.period_ms;
     scenario.camera.width_px = cfg.camera.width_px;
@@ -240,10 +241,14 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         k1: 0.0,
         k2: 0.0,
     };
-    let pose = k.camera_pose.unwrap_or(CameraPose {
-        position_m: [px - k.plane_distance_m, py, rest.z],
-        ..CameraPose::default()
-    });
+    let pose = scenario
+        .camera
+        .pose
+        .or(k.camera_pose)
+        .unwrap_or(CameraPose {
+            position_m: [px - k.plane_distance_m, py, rest.z],
+            ..CameraPose::default()
+        });
     let calibration =
         SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, scenario.pendulum.ball_radius_m);
     let device = cfg.camera.device.clone();
