@@ -6,8 +6,9 @@
 use anyhow::Context;
 use rt_core::{
     calibration::{
-        CalibrationFile, StepRecord, Watch,
+        CalibrationFile, Chessboard, StepRecord, Watch,
         sim_extrinsics::{self, CameraRobotOptions, CameraRobotRun},
+        sim_intrinsics,
         simworld::{self, HiddenWorld},
     },
     params::Scenario,
@@ -104,6 +105,8 @@ impl Step {
 
 /// The acceptance targets (absolute error): pendulum length, m.
 pub const TARGET_LENGTH_M: f64 = 0.003;
+/// The target for the camera's radial distortion `k1`.
+pub const TARGET_K1: f64 = 0.02;
 /// The target for the camera latency, ms.
 pub const TARGET_CAMERA_LATENCY_MS: f64 = 2.0;
 /// The target for the robot latency, ms.
@@ -126,6 +129,11 @@ pub struct StepOptions {
     /// Camera-robot step: the marker is on the tool and in view (`false`: covered,
     /// a check that the step refuses).
     pub marker_visible: bool,
+    /// Camera step: board views the operator holds up (1..=200).
+    pub views: usize,
+    /// Camera step: the board is held in the camera's view (`false`: outside
+    /// it, a check that the step refuses, "no board visible").
+    pub board_visible: bool,
 }
 
 impl Default for StepOptions {
@@ -134,6 +142,8 @@ impl Default for StepOptions {
             release_deg: 25.0,
             touch: true,
             marker_visible: true,
+            views: 20,
+            board_visible: true,
         }
     }
 }
@@ -266,7 +276,8 @@ pub fn run_step(
             let options = CameraRobotOptions {
                 marker_visible: opts.marker_visible,
                 touch: opts.touch,
-                intrinsics: None,
+                // The camera step's lens when the lab believes one.
+                intrinsics: scenario.camera.intrinsics,
             };
             let run = sim_extrinsics::run_camera_robot(scenario, world, seed, &options, watch)
                 .context("calibrate camera-robot")?;
@@ -286,16 +297,57 @@ pub fn run_step(
                 }),
             }
         }
-        Step::Camera => anyhow::bail!(
-            "calibrate {}: this step is not implemented yet (pendulum, latency, robot and camera-robot are)",
-            step.name()
-        ),
+        Step::Camera => {
+            let run = sim_intrinsics::run_camera(
+                scenario,
+                world,
+                seed,
+                &Chessboard::default(),
+                opts.views,
+                opts.board_visible,
+                watch,
+            )
+            .context("calibrate camera")?;
+            let (k, t) = (run.result.intrinsics, run.truth);
+            let corners = |inset: f64| corner_error_px(scenario, &t, &k, inset);
+            StepOutcome {
+                result: serde_json::to_value(&run.result)?,
+                truth: serde_json::to_value(t)?,
+                error: json!({"fx_px": k.fx_px - t.fx_px, "fy_px": k.fy_px - t.fy_px,
+                       "cx_px": k.cx_px - t.cx_px, "cy_px": k.cy_px - t.cy_px,
+                       "k1": k.k1 - t.k1, "k2": k.k2 - t.k2, "p1": k.p1 - t.p1, "p2": k.p2 - t.p2,
+                       "corner_px": corners(40.0), "corner_inner_px": corners(100.0)}),
+                figure: ("k1", k.k1, t.k1, TARGET_K1),
+                write: Box::new(move |file, stamp| {
+                    file.camera = Some(step_record(stamp, run.result));
+                }),
+            }
+        }
     })
 }
 
-/// The camera step's result is in the file (the step is not built yet).
-fn step_done_camera(_file: &CalibrationFile) -> bool {
-    false
+/// The calibrated lens's undistortion error near the image's corners (`inset`
+/// px in from both edges; the worst of the four), pixels: how far from its true
+/// pinhole projection the lab puts a point seen there.
+pub fn corner_error_px(
+    scenario: &Scenario,
+    truth: &rt_core::vision::CameraIntrinsics,
+    believed: &rt_core::vision::CameraIntrinsics,
+    inset: f64,
+) -> f64 {
+    let (w, h) = (
+        f64::from(scenario.camera.width_px) - 1.0 - inset,
+        f64::from(scenario.camera.height_px) - 1.0 - inset,
+    );
+    [(inset, inset), (w, inset), (inset, h), (w, h)]
+        .iter()
+        .map(|&(u, v)| sim_intrinsics::undistortion_error_px(truth, believed, u, v))
+        .fold(0.0, f64::max)
+}
+
+/// The camera step's result is in the file.
+fn step_done_camera(file: &CalibrationFile) -> bool {
+    file.camera.is_some()
 }
 
 /// The camera-to-robot step's result is in the file.
@@ -303,9 +355,9 @@ fn step_done_camera_robot(file: &CalibrationFile) -> bool {
     file.camera_robot.is_some()
 }
 
-/// The camera step's record as JSON (the step is not built yet).
-fn record_camera(_file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
-    Ok(serde_json::Value::Null)
+/// The camera step's record as JSON.
+fn record_camera(file: &CalibrationFile) -> serde_json::Result<serde_json::Value> {
+    serde_json::to_value(&file.camera)
 }
 
 /// The camera-to-robot step's record as JSON.

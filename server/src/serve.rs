@@ -92,6 +92,11 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .clone()
         .or_else(|| cfg.lab.calibration_file.clone())
         .unwrap_or_else(|| data_dir.join("calibration.toml"));
+    if cfg.lab.mode == LabMode::Real {
+        // The camera step's intrinsics are checked against the real camera's size.
+        scenario.camera.width_px = cfg.camera.width_px;
+        scenario.camera.height_px = cfg.camera.height_px;
+    }
     scenario = calibration.apply(&scenario)?;
     let trials_refused = uncalibrated_refusal(&cfg, &calibration);
     if let Some(why) = &trials_refused {
@@ -219,11 +224,14 @@ pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world th
 /// simulated lab with the FRI client answering the configured controller, the
 /// webcam (or, when `camera.device` is a regular file, that video looped at
 /// its frame rate), the magnet on the configured serial port, and the
-/// pendulum where `calibration.pivot_m` puts it. The camera is where the
-/// calibration file's camera-robot step measured it (`camera.pose` of the
-/// scenario it was applied to), else where `calibration.camera_pose` puts it;
-/// without either it is taken to look along the base's +x at the height of the
-/// ball at rest, `plane_distance_m` before the swing plane.
+/// pendulum where `calibration.pivot_m` puts it. The camera's intrinsics and
+/// lens are the camera step's (`camera.intrinsics`, from the calibration file),
+/// else `calibration.focal_length_px` and `principal_point_px` without
+/// distortion. The camera is where the calibration file's camera-robot step
+/// measured it (`camera.pose` of the scenario it was applied to), else where
+/// `calibration.camera_pose` puts it; without either it is taken to look along
+/// the base's +x at the height of the ball at rest, `plane_distance_m` before
+/// the swing plane.
 pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow::Result<LabSetup> {
     scenario.robot.fri_period_ms = cfg.fri.period_ms;
     scenario.camera.width_px = cfg.camera.width_px;
@@ -233,14 +241,18 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
     let k = &cfg.calibration;
     let [px, py, pz] = k.pivot_m;
     let rest = nalgebra::Vector3::new(px, py, pz - scenario.pendulum.length_m);
-    let intrinsics = CameraIntrinsics {
+    // The camera step's intrinsics and lens (the calibration file laid over the
+    // scenario), else the configured focal length and principal point, no lens.
+    let intrinsics = scenario.camera.intrinsics.unwrap_or(CameraIntrinsics {
         fx_px: k.focal_length_px,
         fy_px: k.focal_length_px,
         cx_px: k.principal_point_px[0],
         cy_px: k.principal_point_px[1],
         k1: 0.0,
         k2: 0.0,
-    };
+        p1: 0.0,
+        p2: 0.0,
+    });
     let pose = scenario
         .camera
         .pose

@@ -95,9 +95,10 @@ fn bad_input_writes_nothing() {
     assert!(err.contains("swing too small"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(!file.exists(), "a refused step wrote the file");
-    // Steps not there yet say so.
-    let (ok, _, err) = calibrate(&["camera", "--out", f]);
-    assert!(!ok && err.contains("not implemented yet"), "{err}");
+    // The chessboard never in view.
+    let (ok, _, err) = calibrate(&["camera", "--board-out-of-view", "--out", f]);
+    assert!(!ok && err.contains("no board visible"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
     let (ok, _, err) = calibrate(&["pendulum", "--release-deg", "nan", "--out", f]);
     assert!(!ok && err.contains("release-deg"), "{err}");
     assert!(!file.exists());
@@ -175,5 +176,41 @@ fn camera_robot_writes_its_section_and_refuses_a_hidden_marker() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// camera on reality.toml: the lens within the k1 target into the
+/// file's `[camera]` section, which the lab's beliefs then carry.
+#[test]
+fn camera_writes_its_section() {
+    let dir = temp_dir("camera");
+    let file = dir.join("calibration.toml");
+    let f = file.to_str().unwrap();
+    let reality = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/reality.toml");
+    let (ok, v, err) = calibrate(&[
+        "camera",
+        "--scenario",
+        reality,
+        "--seed",
+        "2",
+        "--out",
+        f,
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let e = &v["error"];
+    assert!(e["k1"].as_f64().unwrap().abs() <= 0.02, "{v}");
+    assert!(e["fx_px"].as_f64().unwrap().abs() < 5.0, "{v}");
+    assert!(e["cx_px"].as_f64().unwrap().abs() < 5.0, "{v}");
+    let cal = rt_core::calibration::CalibrationFile::from_file(&file).unwrap();
+    let c = cal.camera.clone().expect("the camera step is written");
+    assert!(
+        c.result.rms_px < 0.5 && c.result.views_used >= 16,
+        "{:?}",
+        c.result
+    );
+    let s = rt_core::params::Scenario::from_file(std::path::Path::new(reality)).unwrap();
+    let applied = cal.apply(&s).unwrap();
+    assert_eq!(applied.camera.intrinsics, Some(c.result.intrinsics));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::{CameraRobotCalibration, LedLatency, RobotLatency, SwingFit};
+use super::{CameraCalibration, CameraRobotCalibration, LedLatency, RobotLatency, SwingFit};
 use crate::params::{ParamError, Scenario};
 
 /// When, by which software and on what one step was measured.
@@ -42,6 +42,8 @@ pub struct PendulumCalibration {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CalibrationFile {
+    /// `isochron calibrate camera`.
+    pub camera: Option<StepRecord<CameraCalibration>>,
     /// `isochron calibrate pendulum`.
     pub pendulum: Option<StepRecord<PendulumCalibration>>,
     /// `isochron calibrate latency`.
@@ -101,13 +103,30 @@ impl CalibrationFile {
         std::fs::rename(&tmp, path).map_err(io)
     }
 
-    /// The lab's beliefs with the calibrated values: pendulum length and damping,
-    /// camera latency, the robot latency prior of the online estimator (delay
-    /// plus servo lag, which is what the estimator measures), the camera's pose
-    /// (`camera.pose`) and the intercept point's offset (`task.intercept_offset_m`).
-    /// The result is validated.
+    /// The lab's beliefs with the calibrated values: the camera's intrinsics and
+    /// lens (`camera.intrinsics`: the detector undistorts with them), pendulum
+    /// length and damping, camera latency, the robot latency prior of the online
+    /// estimator (delay plus servo lag, which is what the estimator measures),
+    /// the camera's pose (`camera.pose`) and the intercept point's offset
+    /// (`task.intercept_offset_m`). The result is validated; intrinsics measured
+    /// at another image size than the scenario's camera are refused.
     pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, ParamError> {
         let mut s = scenario.clone();
+        if let Some(c) = &self.camera {
+            let r = &c.result;
+            if (r.width_px, r.height_px) != (s.camera.width_px, s.camera.height_px) {
+                return Err(ParamError::OutOfRange {
+                    field: "camera.intrinsics".to_owned(),
+                    value: format!("{}x{}", r.width_px, r.height_px),
+                    bound: format!(
+                        "the calibration file's camera step was measured at {}x{} px, the lab's camera is {}x{}: \
+                         run `isochron calibrate camera` at the lab's resolution",
+                        r.width_px, r.height_px, s.camera.width_px, s.camera.height_px
+                    ),
+                });
+            }
+            s.camera.intrinsics = Some(r.intrinsics);
+        }
         if let Some(p) = &self.pendulum {
             s.pendulum.length_m = p.result.swing.length_m;
             s.pendulum.damping_per_s = p.result.swing.damping_per_s.max(0.0);

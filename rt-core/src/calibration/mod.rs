@@ -2,11 +2,14 @@
 
 pub mod extrinsics;
 pub mod file;
+pub mod intrinsics;
 pub mod latency;
 pub mod lsq;
 pub mod robot;
 #[cfg(feature = "opencv")]
 pub mod sim_extrinsics;
+#[cfg(feature = "opencv")]
+pub mod sim_intrinsics;
 #[cfg(feature = "opencv")]
 pub mod simworld;
 pub mod swing;
@@ -17,6 +20,9 @@ mod tests;
 
 pub use extrinsics::CameraRobotCalibration;
 pub use file::{CalibrationFile, StepRecord};
+#[cfg(feature = "opencv")]
+pub use intrinsics::fit_intrinsics;
+pub use intrinsics::{BoardView, CameraCalibration, Chessboard};
 pub use latency::{LedEdge, LedLatency, estimate_led_latency};
 pub use robot::{RobotLatency, fit_robot_latency};
 pub use swing::{SwingFit, SwingSample, fit_swing};
@@ -81,6 +87,19 @@ pub enum CalibrationError {
         what: &'static str,
         /// Why.
         reason: String,
+    },
+    /// The chessboard was found in no frame.
+    #[error(
+        "no board visible: the {inner_cols}x{inner_rows} chessboard (inner corners) was found in none of {shown} frames \
+         (is it in view, whole, lit, and is its pattern size right?)"
+    )]
+    BoardNotSeen {
+        /// Frames the board was looked for in.
+        shown: usize,
+        /// The board's inner corners along a row.
+        inner_cols: u32,
+        /// The board's inner corners along a column.
+        inner_rows: u32,
     },
     /// The excitation did not move the joint enough to fit.
     #[error(

@@ -344,15 +344,22 @@ impl LabRuntime {
                     scenario.pendulum.ball_radius_m,
                     seed,
                 )?;
+                // The detector's calibration uses the believed intrinsics (the
+                // renderer draws through the nominal pinhole).
                 let model = CameraModel {
-                    intrinsics: *cam.intrinsics(),
+                    intrinsics: scenario.camera.believed_intrinsics(cam.params().hfov_deg),
                     pose: cam.params().pose,
                     ball_radius_m: scenario.pendulum.ball_radius_m,
                 };
                 // Until the first trial: the ball hangs at rest mid-range.
                 let d = fixed_distance_m.unwrap_or(scenario.task.distance_m.lerp(0.5));
                 let rest = nalgebra::Vector3::new(d, 0.0, scenario.task.intercept_height_m);
-                let cal = cam.true_calibration(&rest);
+                let cal = SwingPlaneCalibration::from_pose(
+                    model.intrinsics,
+                    &model.pose,
+                    &rest,
+                    model.ball_radius_m,
+                );
                 let (mut truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
                 let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
                 let pm = PendulumModel::from_params(&scenario.pendulum)

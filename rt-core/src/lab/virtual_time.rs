@@ -274,12 +274,10 @@ impl VirtualLab {
         // The camera's geometry (the rendered camera's; the model camera
         // needs none, but the dashboard's overlay and the calibration ring do).
         let sim_camera = SimCameraParams::default();
+        // The believed intrinsics (calibrated, or the nominal pinhole): the
+        // detector's calibration undistorts with them.
         let model = CameraModel {
-            intrinsics: CameraIntrinsics::from_hfov(
-                scenario.camera.width_px,
-                scenario.camera.height_px,
-                sim_camera.hfov_deg,
-            ),
+            intrinsics: scenario.camera.believed_intrinsics(sim_camera.hfov_deg),
             pose: sim_camera.pose,
             ball_radius_m: scenario.pendulum.ball_radius_m,
         };
@@ -742,6 +740,8 @@ impl VirtualLab {
         self.enter_session(&world);
         let cam = &self.scenario.camera;
         let sim_cam = SimCameraParams::default();
+        // The true camera: the nominal pinhole (what the renderer draws
+        // through) with the session's lens and pose error.
         let intrinsics = CameraIntrinsics::from_hfov(cam.width_px, cam.height_px, sim_cam.hfov_deg);
         let camera = WorldCamera::from_session(
             sim_cam.pose,
@@ -750,9 +750,10 @@ impl VirtualLab {
             cam.latency_ms * 1e-3,
             &world.session,
         );
-        // What the lab believes: the believed camera, the believed rest point.
+        // What the lab believes: the believed camera (its calibrated lens, if
+        // any), the believed rest point.
         let believed = SwingPlaneCalibration::from_pose(
-            intrinsics,
+            cam.believed_intrinsics(sim_cam.hfov_deg),
             &self.scenario.camera.pose.unwrap_or(sim_cam.pose),
             &plan.intercept_m,
             self.scenario.pendulum.ball_radius_m,

@@ -48,6 +48,14 @@ pub struct CameraParams {
     /// the simulated lab's mounting (`SimCameraParams::pose`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pose: Option<crate::vision::CameraPose>,
+    /// The believed intrinsics and lens (`[camera.intrinsics]`: `fx_px, fy_px,
+    /// cx_px, cy_px, k1, k2, p1, p2`), as `isochron calibrate camera` measured
+    /// them (the calibration file sets it). Absent: the simulated camera's
+    /// nominal pinhole (square pixels, centred principal point, 70 degrees
+    /// horizontal field of view, no distortion); the real lab's
+    /// `[calibration]` focal length and principal point, no distortion.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub intrinsics: Option<crate::vision::CameraIntrinsics>,
 }
 
 impl Default for CameraParams {
@@ -61,6 +69,7 @@ impl Default for CameraParams {
             drop_rate: 0.02,
             vision: VisionMode::Full,
             pose: None,
+            intrinsics: None,
         }
     }
 }
@@ -84,7 +93,18 @@ impl CameraParams {
                 "must be <= 0.9 (the ball must be seen)",
             ));
         }
+        if let Some(k) = &self.intrinsics {
+            k.validate("camera.intrinsics")?;
+        }
         Ok(())
+    }
+
+    /// The intrinsics the lab believes for the simulated camera: the calibrated
+    /// ones (`intrinsics`) or the nominal pinhole of a `hfov_deg` lens.
+    pub fn believed_intrinsics(&self, hfov_deg: f64) -> crate::vision::CameraIntrinsics {
+        self.intrinsics.unwrap_or_else(|| {
+            crate::vision::CameraIntrinsics::from_hfov(self.width_px, self.height_px, hfov_deg)
+        })
     }
 }
 

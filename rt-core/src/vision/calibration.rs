@@ -10,7 +10,10 @@ use serde::{Deserialize, Serialize};
 use super::VisionError;
 use crate::check::{self, ParamError};
 
-/// Pinhole intrinsics with two radial distortion terms (OpenCV's k1, k2).
+/// Pinhole intrinsics with OpenCV's Brown-Conrady distortion: two radial terms
+/// (`k1, k2`; `k3` is taken as zero) and two tangential ones (`p1, p2`) on
+/// normalised coordinates, as `cv::calibrateCamera` gives them
+/// (`isochron calibrate camera`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CameraIntrinsics {
@@ -26,6 +29,10 @@ pub struct CameraIntrinsics {
     pub k1: f64,
     /// Radial distortion, r^4 term.
     pub k2: f64,
+    /// Tangential distortion `p1` (absent in older files: 0).
+    pub p1: f64,
+    /// Tangential distortion `p2` (absent in older files: 0).
+    pub p2: f64,
 }
 
 impl Default for CameraIntrinsics {
@@ -46,6 +53,8 @@ impl CameraIntrinsics {
             cy_px: 0.5 * f64::from(height_px) - 0.5,
             k1: 0.0,
             k2: 0.0,
+            p1: 0.0,
+            p2: 0.0,
         }
     }
 
@@ -56,7 +65,25 @@ impl CameraIntrinsics {
         check::within(&format!("{prefix}.cx_px"), self.cx_px, -1e4, 1e4)?;
         check::within(&format!("{prefix}.cy_px"), self.cy_px, -1e4, 1e4)?;
         check::within(&format!("{prefix}.k1"), self.k1, -1.0, 1.0)?;
-        check::within(&format!("{prefix}.k2"), self.k2, -1.0, 1.0)
+        check::within(&format!("{prefix}.k2"), self.k2, -1.0, 1.0)?;
+        check::within(&format!("{prefix}.p1"), self.p1, -0.1, 0.1)?;
+        check::within(&format!("{prefix}.p2"), self.p2, -0.1, 0.1)
+    }
+
+    /// Whether the lens has any distortion term.
+    pub fn has_distortion(&self) -> bool {
+        self.k1 != 0.0 || self.k2 != 0.0 || self.p1 != 0.0 || self.p2 != 0.0
+    }
+
+    /// Distorts normalised coordinates `(x, y)` (Brown-Conrady, OpenCV's model
+    /// with `k3 = 0`).
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        (
+            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
     }
 
     /// Projects a point in the camera frame (metres) to pixels; `None` behind the camera.
@@ -64,27 +91,35 @@ impl CameraIntrinsics {
         if p_c.z <= 1e-6 {
             return None;
         }
-        let (x, y) = (p_c.x / p_c.z, p_c.y / p_c.z);
-        let r2 = x * x + y * y;
-        let d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        let (x, y) = self.distort(p_c.x / p_c.z, p_c.y / p_c.z);
         Some(Vector2::new(
-            self.fx_px * x * d + self.cx_px,
-            self.fy_px * y * d + self.cy_px,
+            self.fx_px * x + self.cx_px,
+            self.fy_px * y + self.cy_px,
         ))
     }
 
     /// The ray through a pixel, in the camera frame, scaled to z = 1 (distortion removed).
+    ///
+    /// Allocation-free; the detector calls it per frame.
     pub fn ray(&self, u_px: f64, v_px: f64) -> Vector3<f64> {
         let xd = (u_px - self.cx_px) / self.fx_px;
         let yd = (v_px - self.cy_px) / self.fy_px;
         let (mut x, mut y) = (xd, yd);
-        if self.k1 != 0.0 || self.k2 != 0.0 {
-            // Fixed-point undistortion: converges in a few steps for webcam lenses.
-            for _ in 0..8 {
+        if self.has_distortion() {
+            // Fixed-point undistortion (OpenCV's undistortPoints does the same):
+            // x = (xd - tangential(x, y)) / radial(x, y). It contracts by about
+            // 2 |k1| r^2 per step: 20 steps reach 1e-8 px even in a 70 degree
+            // lens's corners with k1 = -0.3.
+            for _ in 0..20 {
                 let r2 = x * x + y * y;
-                let d = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
-                x = xd / d;
-                y = yd / d;
+                let radial = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+                if radial.abs() < 1e-6 {
+                    break;
+                }
+                let dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x);
+                let dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y;
+                x = (xd - dx) / radial;
+                y = (yd - dy) / radial;
             }
         }
         Vector3::new(x, y, 1.0)

@@ -293,6 +293,63 @@ fn parameters_are_validated_naming_the_field() {
     assert!(SimCamera::new(&CameraParams::default(), &bad, R_BALL, 0).is_err());
 }
 
+/// `ray` undoes `project` with OpenCV's full lens (radial and tangential) out
+/// to the image's corners, for a strong barrel lens too; a lens file written
+/// before `p1, p2` existed reads them as zero.
+#[test]
+fn undistortion_inverts_the_lens_to_the_corners() {
+    for (k1, k2, p1, p2) in [
+        (-0.05, 0.01, 0.0, 0.0),
+        (0.02, 0.0, 0.001, -0.001),
+        (-0.25, 0.1, 0.002, -0.0015),
+    ] {
+        let k = CameraIntrinsics {
+            k1,
+            k2,
+            p1,
+            p2,
+            ..CameraIntrinsics::default()
+        };
+        // Points whose distorted pixels reach the corners of 1280 x 720.
+        for (x, y) in [
+            (0.0, 0.0),
+            (0.7, 0.39),
+            (-0.72, 0.4),
+            (0.69, -0.41),
+            (0.3, -0.1),
+        ] {
+            let px = k.project(&Vector3::new(x, y, 1.0)).unwrap();
+            let r = k.ray(px.x, px.y);
+            let err = (k.fx_px * (r.x - x)).hypot(k.fy_px * (r.y - y));
+            assert!(
+                err < 1e-6,
+                "lens {k1} {k2} {p1} {p2} at ({x}, {y}): {err} px"
+            );
+        }
+    }
+    // The tangential terms move a point as OpenCV's model does.
+    let t = CameraIntrinsics {
+        p1: 0.01,
+        ..CameraIntrinsics::default()
+    };
+    let (xd, yd) = t.distort(0.5, 0.2);
+    assert!((xd - (0.5 + 2.0 * 0.01 * 0.5 * 0.2)).abs() < 1e-12);
+    assert!((yd - (0.2 + 0.01 * (0.29 + 2.0 * 0.04))).abs() < 1e-12);
+    let old: CameraIntrinsics = toml::from_str(
+        "fx_px = 900.0\nfy_px = 900.0\ncx_px = 640.0\ncy_px = 360.0\nk1 = -0.1\nk2 = 0.0\n",
+    )
+    .unwrap();
+    assert_eq!((old.k1, old.p1, old.p2), (-0.1, 0.0, 0.0));
+    let bad = CameraIntrinsics {
+        p2: 0.5,
+        ..CameraIntrinsics::default()
+    };
+    assert_eq!(
+        bad.validate("camera.intrinsics").unwrap_err().field(),
+        Some("camera.intrinsics.p2")
+    );
+}
+
 #[test]
 fn projection_and_plane_conversion_are_inverse() {
     let intr = CameraIntrinsics {

@@ -44,6 +44,13 @@ pub struct CalibrateArgs {
     /// Camera-robot step: cover the marker (a check that the step refuses).
     #[arg(long, hide = true)]
     pub hide_marker: bool,
+    /// Camera step: board views the virtual operator holds up.
+    #[arg(long, default_value_t = StepOptions::default().views)]
+    pub views: usize,
+    /// Camera step: the operator holds the board outside the camera's view (a
+    /// check that the step refuses, "no board visible", and writes nothing).
+    #[arg(long, hide = true)]
+    pub board_out_of_view: bool,
     /// The calibration file to update (other steps' results in it are kept).
     #[arg(long, default_value = "calibration.toml")]
     pub out: PathBuf,
@@ -75,16 +82,17 @@ fn accuracy(
     let mut target = 0.0;
     for seed in args.seed..args.seed + n {
         let world = HiddenWorld::draw(scenario, seed);
-        let (figure, estimate, truth, t) =
-            run_step(args.step, scenario, &world, seed, opts, &mut Unwatched)
-                .with_context(|| format!("calibrate {} (seed {seed})", args.step.name()))?
-                .figure;
+        let t0 = std::time::Instant::now();
+        let out = run_step(args.step, scenario, &world, seed, opts, &mut Unwatched)
+            .with_context(|| format!("calibrate {} (seed {seed})", args.step.name()))?;
+        let (figure, estimate, truth, t) = out.figure;
         name = figure;
         target = t;
         worst = worst.max((estimate - truth).abs());
-        rows.push(
-            json!({"seed": seed, "estimate": estimate, "truth": truth, "error": estimate - truth}),
-        );
+        rows.push(json!({"seed": seed, "estimate": estimate, "truth": truth,
+                         "error": estimate - truth, "errors": out.error,
+                         "rms_px": out.result["rms_px"], "views_used": out.result["views_used"],
+                         "run_s": t0.elapsed().as_secs_f64()}));
     }
     let summary = json!({
         "step": args.step.name(),
@@ -105,12 +113,29 @@ fn accuracy(
     );
     for r in &rows {
         out.push_str(&format!(
-            "| {} | {:.4} | {:.4} | {:+.4} |\n",
+            "| {} | {:.4} | {:.4} | {:+.4} |",
             r["seed"],
             r["estimate"].as_f64().unwrap_or(f64::NAN),
             r["truth"].as_f64().unwrap_or(f64::NAN),
             r["error"].as_f64().unwrap_or(f64::NAN)
         ));
+        if args.step == Step::Camera {
+            let e = &r["errors"];
+            let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+            out.push_str(&format!(
+                " fx {:+.2} px, cx {:+.2} px, cy {:+.2} px, corners {:.2} px (100 px in: {:.2}), \
+                 RMS {:.3} px, {} views, {:.1} s",
+                f(&e["fx_px"]),
+                f(&e["cx_px"]),
+                f(&e["cy_px"]),
+                f(&e["corner_px"]),
+                f(&e["corner_inner_px"]),
+                f(&r["rms_px"]),
+                r["views_used"],
+                f(&r["run_s"])
+            ));
+        }
+        out.push('\n');
     }
     out.push_str(&format!(
         "max |error| {worst:.4} (target {target}): {}",
@@ -218,12 +243,19 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
         release_deg: args.release_deg,
         touch: !args.no_touch,
         marker_visible: !args.hide_marker,
+        views: args.views,
+        board_visible: !args.board_out_of_view,
     };
     if let Some(n) = args.accuracy {
         return accuracy(args, &scenario, n, opts);
     }
     // Read the file first: a broken calibration file is an error before anything runs.
     let mut file = CalibrationFile::load_or_empty(&args.out)?;
+    // The camera step's lens is a belief the later steps use (camera-robot's PnP).
+    let mut scenario = scenario;
+    if let Some(c) = &file.camera {
+        scenario.camera.intrinsics = Some(c.result.intrinsics);
+    }
     let world = HiddenWorld::draw(&scenario, args.seed);
     let source = format!(
         "simulated world (scenario {}, seed {})",
@@ -265,4 +297,51 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
         serde_json::to_string_pretty(&summary["result"])?,
         summary["error"]
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(step: Step, out: PathBuf) -> CalibrateArgs {
+        CalibrateArgs {
+            step,
+            config: None,
+            scenario: Some(PathBuf::from(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/../scenarios/reality.toml"
+            ))),
+            seed: 1,
+            release_deg: 25.0,
+            no_touch: false,
+            hide_marker: false,
+            views: StepOptions::default().views,
+            board_out_of_view: false,
+            out,
+            json: true,
+            accuracy: None,
+        }
+    }
+
+    /// The board never in view: a clear message, and the calibration file is
+    /// neither created nor changed.
+    #[test]
+    fn camera_step_without_a_board_writes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("calibration.toml");
+        let mut a = args(Step::Camera, out.clone());
+        a.board_out_of_view = true;
+        let e = format!("{:#}", run(&a).unwrap_err());
+        assert!(e.contains("calibrate camera: no board visible"), "{e}");
+        assert!(!out.exists(), "nothing written");
+        let before = "[latency]\ndate = \"d\"\nrevision = \"r\"\nsource = \"s\"\n\
+                      [latency.result]\nlatency_ms = 40.0\nbound_ms = 0.5\nspread_ms = 1.0\n\
+                      serial_one_way_ms = 1.0\nframe_period_ms = 33.3\nedges = 40\nedges_seen = 40\n\
+                      edges_consistent = 40\nframes = 300\n";
+        assert!(CalibrationFile::from_toml_str(before).is_ok());
+        std::fs::write(&out, before).unwrap();
+        let e = format!("{:#}", run(&a).unwrap_err());
+        assert!(e.contains("no board visible"), "{e}");
+        assert_eq!(std::fs::read_to_string(&out).unwrap(), before, "unchanged");
+    }
 }
