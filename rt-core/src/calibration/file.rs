@@ -112,6 +112,17 @@ impl CalibrationFile {
     /// at another image size than the scenario's camera are refused.
     pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, ParamError> {
         let mut s = scenario.clone();
+        // A simulated world stays where it is: its offsets keep being drawn
+        // around the beliefs the lab had before this file.
+        if let Some(w) = s.world.as_mut()
+            && w.anchor.is_none()
+        {
+            w.anchor = Some(crate::params::world::WorldAnchor {
+                pendulum_length_m: scenario.pendulum.length_m,
+                pendulum_damping_per_s: scenario.pendulum.damping_per_s,
+                camera_latency_ms: scenario.camera.latency_ms,
+            });
+        }
         if let Some(c) = &self.camera {
             let r = &c.result;
             if (r.width_px, r.height_px) != (s.camera.width_px, s.camera.height_px) {

@@ -449,7 +449,10 @@ fn principal_angle_deg(points: &[(f64, f64)]) -> f64 {
 pub struct LatencyRun {
     /// What the step measured.
     pub result: LedLatency,
-    /// The true mean latency, ms.
+    /// The true mean latency, ms: in a world with the true camera's timing, from
+    /// the middle of the hanging ball's exposure (its row down the rolling
+    /// shutter) to the frame's delivery (what the stamps need); otherwise from
+    /// the middle of the exposure.
     pub true_latency_ms: f64,
     /// Where the LED was found in the image, pixels.
     pub led_px: [f64; 2],
@@ -476,13 +479,32 @@ pub fn run_led_latency(
 ) -> Result<LatencyRun, ProcedureError> {
     scenario.validate()?;
     let mut cam = true_camera(scenario, world, seed)?;
-    let exposure_s = SimCameraParams::default().exposure_ms * 1e-3;
     let period = 1.0 / scenario.camera.fps;
-    // The LED sits on the magnet's stand beside the swing, 0.35 m to the robot's right.
-    let led_b = believed_rest(scenario) + Vector3::new(0.0, -0.35, 0.05);
-    let led_true_px = cam.project(&led_b);
+    // The LED sits on the magnet's stand beside the swing, 0.35 m to the robot's
+    // right, at the hanging ball's height (a rolling shutter reads each row at
+    // its own time: the LED's row is the ball's).
+    let led_b = believed_rest(scenario) + Vector3::new(0.0, -0.35, 0.0);
+    // A world with the true camera's timing (`[world]`): frames start on the
+    // frame clock, rows are read down the readout, the exposure is the world's,
+    // delivery is the frame start plus the true latency and its jitter; the LED
+    // is where the true camera (pose, lens) sees it.
+    let true_cam = world.world_camera(scenario);
+    let world_timing =
+        world.rolling_shutter_ms > 0.0 || world.exposure_ms > 0.0 || world.camera_jitter_ms > 0.0;
+    let exposure_s = if world_timing {
+        world.exposure_ms.max(0.1) * 1e-3
+    } else {
+        SimCameraParams::default().exposure_ms * 1e-3
+    };
+    let led_true_px = if world_timing {
+        true_cam.project(&led_b).map(|p| (p.x, p.y))
+    } else {
+        cam.project(&led_b).map(|b| (b.x_px, b.y_px))
+    };
+    let height = f64::from(scenario.camera.height_px);
+    let row_s = |v: f64| v.clamp(0.0, height) / height * world.rolling_shutter_ms * 1e-3;
     let led_at = match (led_in_view, led_true_px) {
-        (true, Some(b)) => Some(Point::new(b.x_px.round() as i32, b.y_px.round() as i32)),
+        (true, Some((x, y))) => Some(Point::new(x.round() as i32, y.round() as i32)),
         _ => None,
     };
     let draw = |img: &Mat, lit: f64, at: Option<Point>| -> Result<Mat, ProcedureError> {
@@ -578,7 +600,18 @@ pub fn run_led_latency(
         if cam.next_dropped() {
             continue;
         }
-        grid.push((t_c, t_c + cam.next_latency_s()));
+        if world_timing {
+            // t_c is the frame's start; the LED's row is exposed from
+            // t_c + row time, for the exposure; the grid holds its middle.
+            let led_mid = t_c + led_true_px.map_or(0.0, |p| row_s(p.1)) + 0.5 * exposure_s;
+            let jitter = world.camera_jitter_ms * 1e-3;
+            let delivered = t_c
+                + (world.camera_latency_ms * 1e-3 - 0.5 * jitter).max(0.0)
+                + rng.random_range(0.0..=jitter);
+            grid.push((led_mid, delivered));
+        } else {
+            grid.push((t_c, t_c + cam.next_latency_s()));
+        }
     }
     let early: Vec<f64> = grid.iter().map(|g| g.1).take_while(|&t| t < 1.0).collect();
     // 3. The switches at stratified random phases; the serial command's delay in
@@ -681,9 +714,18 @@ pub fn run_led_latency(
         done.fit.push([t, to]);
     }
     watch.seen(done);
+    // The truth the lab needs: from the middle of the hanging ball's exposure
+    // (its row read down the rolling shutter) to the frame's delivery, mean.
+    let true_latency_ms = if world_timing {
+        let rest = believed_rest(scenario) + Vector3::from(world.intercept_error_m);
+        let v = true_cam.project(&rest).map_or(0.5 * height, |p| p.y);
+        world.camera_latency_ms - row_s(v) * 1e3 - 0.5 * exposure_s * 1e3
+    } else {
+        world.camera_latency_ms
+    };
     Ok(LatencyRun {
         result,
-        true_latency_ms: world.camera_latency_ms,
+        true_latency_ms,
         led_px: [f64::from(max_at.x), f64::from(max_at.y)],
     })
 }

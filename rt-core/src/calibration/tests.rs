@@ -940,3 +940,43 @@ fn intercept_offset_moves_the_planned_intercept_point() {
     let e = s.validate().unwrap_err();
     assert_eq!(e.field(), Some("camera.pose.yaw_deg"));
 }
+
+/// Laying a calibration over a scenario with `[world]` changes what the lab
+/// believes, never the simulated truth: the world's offsets stay drawn around
+/// the nominal beliefs (`WorldParams::anchor`), also when applied twice.
+#[test]
+fn a_calibration_moves_the_beliefs_not_the_simulated_world() {
+    use crate::sim::world::World;
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
+    let nominal = crate::params::Scenario::from_file(&path).expect("reality.toml");
+    let samples = swing(nominal.pendulum.length_m + 0.03, 0.03, 25.0, 20.0, 0.0005);
+    let fit = fit_swing(&samples, 9.81, nominal.pendulum.length_m).expect("fit");
+    let file = CalibrationFile {
+        pendulum: Some(StepRecord {
+            date: "2026-12-02T08:00:00Z".into(),
+            revision: "test".into(),
+            source: "test".into(),
+            result: file::PendulumCalibration {
+                swing: fit,
+                rest_px: [640.0, 360.0],
+                rest_std_px: [0.1, 0.1],
+                swing_image_angle_deg: 0.0,
+            },
+        }),
+        latency: None,
+        robot: None,
+        ..CalibrationFile::default()
+    };
+    let calibrated = file.apply(&nominal).expect("apply");
+    let twice = file.apply(&calibrated).expect("apply again");
+    assert!((calibrated.pendulum.length_m - nominal.pendulum.length_m - 0.03).abs() < 1e-3);
+    let at = nalgebra::Vector3::new(0.5, 0.0, 0.3);
+    for index in [0, 25, 61] {
+        let truth = World::for_trial(&nominal, 7, index, &at).expect("world");
+        for s in [&calibrated, &twice] {
+            let w = World::for_trial(s, 7, index, &at).expect("world");
+            assert_eq!(w.pendulum.length_m, truth.pendulum.length_m);
+            assert_eq!(w.pendulum.damping_per_s, truth.pendulum.damping_per_s);
+        }
+    }
+}

@@ -743,13 +743,18 @@ impl VirtualLab {
         // The true camera: the nominal pinhole (what the renderer draws
         // through) with the session's lens and pose error.
         let intrinsics = CameraIntrinsics::from_hfov(cam.width_px, cam.height_px, sim_cam.hfov_deg);
-        let camera = WorldCamera::from_session(
+        let mut camera = WorldCamera::from_session(
             sim_cam.pose,
             intrinsics,
             cam.height_px,
             cam.latency_ms * 1e-3,
             &world.session,
         );
+        // The true latency is the nominal one plus the session's offset, whatever
+        // a calibration made the lab believe.
+        if let Some(a) = self.scenario.world.as_ref().and_then(|w| w.anchor) {
+            camera.latency_offset_s += (a.camera_latency_ms - cam.latency_ms) * 1e-3;
+        }
         // What the lab believes: the believed camera (its calibrated lens, if
         // any), the believed rest point.
         let believed = SwingPlaneCalibration::from_pose(

@@ -204,6 +204,24 @@ pub struct WorldParams {
     pub robot: WorldRobotParams,
     /// The true geometry.
     pub geometry: WorldGeometryParams,
+    /// The beliefs the world's draws are relative to: the lab's nominal values
+    /// before a calibration file changed them (`CalibrationFile::apply` sets
+    /// it), so that the truth stays where it is when the lab learns it. None:
+    /// the scenario's own beliefs. Never read from or written to a file.
+    #[serde(skip)]
+    pub anchor: Option<WorldAnchor>,
+}
+
+/// The nominal beliefs a world's offsets are drawn around (see
+/// [`WorldParams::anchor`]).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct WorldAnchor {
+    /// Nominal pendulum length, m (true = this + the session's length error).
+    pub pendulum_length_m: f64,
+    /// Nominal damping, 1/s (true = this x the session's damping scale).
+    pub pendulum_damping_per_s: f64,
+    /// Nominal camera latency, ms (true = this + the session's offset).
+    pub camera_latency_ms: f64,
 }
 
 fn range(field: &str, r: &RangeParam, lo: f64, hi: f64) -> Result<(), ParamError> {

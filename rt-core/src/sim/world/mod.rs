@@ -53,13 +53,18 @@ impl World {
         let session = w.draw_session(seed, w.session_of(index), scenario.robot.latency_ms);
         let trial = w.draw_trial(seed, index);
         let intercept_m = true_intercept_m(believed_intercept_m, &session);
-        let length_m = scenario.pendulum.length_m + session.length_error_m;
+        // Offsets are drawn around the nominal beliefs (before any calibration).
+        let (nominal_length_m, nominal_damping_per_s) = w.anchor.map_or(
+            (scenario.pendulum.length_m, scenario.pendulum.damping_per_s),
+            |a| (a.pendulum_length_m, a.pendulum_damping_per_s),
+        );
+        let length_m = nominal_length_m + session.length_error_m;
         let pw = &w.pendulum;
         let pendulum = TruePendulumParams {
             pivot_m: intercept_m + Vector3::new(0.0, 0.0, length_m),
             length_m,
             gravity_mps2: scenario.pendulum.gravity_mps2,
-            damping_per_s: scenario.pendulum.damping_per_s * session.damping_scale,
+            damping_per_s: nominal_damping_per_s * session.damping_scale,
             drag_per_m: TruePendulumParams::drag_factor(
                 pw.air_density_kgpm3,
                 session.drag_coefficient,
