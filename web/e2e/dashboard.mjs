@@ -389,6 +389,76 @@ try {
     // The tool of an iiwa 7 does not reach 3 m/s; a spike from timing jitter did (~100 m/s).
     assert(a.peaks.executed < 3, `executed path speed peaked at ${a.peaks.executed} m/s (planned ${a.peaks.planned})`);
   });
+  // The Calibration panel walks through every step on the simulated lab.
+  const STEPS = ["camera", "latency", "pendulum", "camera-robot", "robot"];
+  const calState = (step) => page.locator(`#calibration li[data-step="${step}"] .cal-state`).textContent();
+  const calFile = async () => (await api("GET", "/api/calibration")).json;
+  await check("operator: the Calibration panel lists the steps in order and refuses a step whose prerequisites are missing", async () => {
+    await page.waitForFunction((n) => document.querySelectorAll("#calibration li[data-step]").length === n, STEPS.length, { timeout: 10_000 });
+    const order = await page.$$eval("#calibration li[data-step]", (li) => li.map((l) => l.dataset.step));
+    assert(JSON.stringify(order) === JSON.stringify(STEPS), `order ${order}`);
+    const before = await calFile();
+    assert(before.steps.every((s) => !s.done), "a fresh lab has a calibration");
+    assert(before.trials_refused === null, "the simulated lab refuses trials");
+    // Pendulum needs the camera: the button is disabled and says so; the API refuses.
+    const btn = page.locator('#calibration li[data-step="pendulum"] button');
+    assert(await btn.isDisabled(), "pendulum's button is enabled before the camera step");
+    assert(/needs camera/.test(await calState("pendulum")), await calState("pendulum"));
+    const r = await api("POST", "/api/calibration/pendulum");
+    assert(r.status === 409 && r.json.reason === "prerequisites" && /camera/.test(r.json.error), JSON.stringify(r));
+    const after = await calFile();
+    assert(JSON.stringify(after.steps) === JSON.stringify(before.steps), "the refused step changed the file");
+  });
+  const runStep = async (step) => {
+    const t0 = Date.now();
+    const idBefore = (await calFile()).job.id;
+    await page.click(`#calibration li[data-step="${step}"] button`);
+    let job;
+    for (;;) {
+      job = (await calFile()).job;
+      if (job.id > idBefore && job.state !== "running") break;
+      assert(Date.now() - t0 < 240_000, `calibrate ${step}: still running after 240 s`);
+      await page.waitForTimeout(200);
+    }
+    assert(job.state === "done", `calibrate ${step}: ${job.state}: ${job.message}`);
+    assert(job.step === step && job.progress === 1, JSON.stringify(job).slice(0, 300));
+    await page.waitForFunction((s) => document.querySelector(`#calibration li[data-step="${s}"]`)?.dataset.done === "true", step, { timeout: 10_000 });
+    const pts = Number(await page.getAttribute("#calibration canvas.cal-view", "data-points"));
+    assert(pts > 0, `calibrate ${step}: the view shows no points`);
+    const text = await calState(step);
+    assert(/✓/.test(text) && !/–/.test(text.split("·").slice(1).join("")), `calibrate ${step}: the row shows ${text}`);
+    measured[`calibrate_${step}_s`] = (Date.now() - t0) / 1000;
+    return job;
+  };
+  await check("operator: the Calibration panel runs every step in order and shows each result", async () => {
+    for (const step of STEPS) await runStep(step);
+    const s = await calFile();
+    assert(s.steps.every((x) => x.done && x.record && x.record.revision && x.record.date), JSON.stringify(s.steps).slice(0, 400));
+  });
+  await check("operator: a calibration step run again shows what changed; a swing too small is refused and writes nothing", async () => {
+    // The LED step again (fresh switch phases and frame noise: its numbers move).
+    const job = await runStep("latency");
+    assert(job.first === false && job.changes.length > 0, `first ${job.first}, changes ${JSON.stringify(job.changes)}`);
+    await page.waitForFunction(() => document.querySelectorAll("#calibration .cal-changes tr").length > 0, null, { timeout: 5_000 });
+    const cap = await page.textContent("#calibration .cal-changes caption");
+    assert(cap.includes(`changes from the last calibration (${job.changes.length})`), cap);
+    const before = (await calFile()).steps.find((x) => x.name === "pendulum").record;
+    const r = await api("POST", "/api/calibration/pendulum", { release_deg: 1 });
+    assert(r.status === 202, JSON.stringify(r));
+    let j;
+    for (const t0 = Date.now(); ; ) {
+      j = (await calFile()).job;
+      if (j.id === r.json.id && j.state !== "running") break;
+      assert(Date.now() - t0 < 120_000, "the small swing still runs");
+      await page.waitForTimeout(200);
+    }
+    assert(j.state === "failed" && /swing too small/.test(j.message), `${j.state}: ${j.message}`);
+    await page.waitForFunction(() => /swing too small/.test(document.querySelector("#calibration .cal-message")?.textContent ?? ""), null, { timeout: 5_000 });
+    const after = (await calFile()).steps.find((x) => x.name === "pendulum").record;
+    assert(JSON.stringify(after) === JSON.stringify(before), "the refused swing changed the file");
+    const bad = await api("POST", "/api/calibration/pendulum", { release_deg: "x" });
+    assert(bad.status === 400 && bad.json.field === "release_deg", JSON.stringify(bad));
+  });
   await check("operator: no console errors (beyond the refusals the checks provoke)", async () => {
     // The invalid parameter and the stop provoke 4xx answers by design; the browser
     // logs each as "Failed to load resource". Anything else is an error.

@@ -10,6 +10,9 @@ describe("calibration headline", () => {
       "latency 8.30 ms, servo lag 4.78 ms (33.3 Hz)",
     );
   });
+  it("reads the camera step's nested intrinsics", () => {
+    expect(headline("camera", { intrinsics: { fx_px: 915.23, k1: 0.00935 }, rms_px: 0.0976 })).toBe("fx 915.2 px, k1 0.0094, RMS 0.098 px");
+  });
   it("shows a dash for a missing or non-finite figure, nothing without a result", () => {
     expect(headline("latency", { latency_ms: null, bound_ms: 1, spread_ms: Number.NaN })).toBe("– ± 1.00 ms, spread –");
     expect(headline("latency", null)).toBe("");

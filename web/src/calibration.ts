@@ -25,10 +25,10 @@ export function headline(name: string, result: Record<string, unknown> | null | 
     for (const k of path.split(".")) v = v && typeof v === "object" ? (v as Record<string, unknown>)[k] : undefined;
     return typeof v === "number" && Number.isFinite(v) ? v : null;
   };
-  const f = (v: number | null, d: number, unit: string) => (v === null ? "–" : `${v.toFixed(d)} ${unit}`);
+  const f = (v: number | null, d: number, unit: string) => (v === null ? "–" : `${v.toFixed(d)}${unit ? ` ${unit}` : ""}`);
   switch (name) {
     case "camera":
-      return `fx ${f(num("fx_px"), 1, "px")}, k1 ${f(num("k1"), 4, "")}, RMS ${f(num("rms_px"), 3, "px")}`;
+      return `fx ${f(num("intrinsics.fx_px"), 1, "px")}, k1 ${f(num("intrinsics.k1"), 4, "")}, RMS ${f(num("rms_px"), 3, "px")}`;
     case "latency":
       return `${f(num("latency_ms"), 2, "ms")} ± ${f(num("bound_ms"), 2, "ms")}, spread ${f(num("spread_ms"), 2, "ms")}`;
     case "pendulum":
