@@ -47,6 +47,11 @@ enum Command {
         /// 127.0.0.1:8765): the arm, pendulum, camera and plots live in Foxglove.
         #[arg(long)]
         foxglove: Option<SocketAddr>,
+        /// The real-time measures of the lab's FRI threads: `auto` (all of them
+        /// with two or more CPUs, `fifo,mlock` on one), `all`, `none`, or a
+        /// comma-separated list of `fifo`, `pin`, `isolate`, `mlock`, `spin`.
+        #[arg(long, default_value = "auto")]
+        rt_tuning: String,
     },
     /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
@@ -119,6 +124,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             params,
             calibration,
             foxglove,
+            rt_tuning,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -128,6 +134,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             params,
             calibration,
             foxglove,
+            rt_tuning: Some(
+                rt_core::fri::priority::RtTuning::parse(&rt_tuning)
+                    .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?,
+            ),
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),

@@ -37,6 +37,9 @@ pub struct ServeArgs {
     pub calibration: Option<PathBuf>,
     /// `--foxglove ADDR`: a Foxglove WebSocket server (loopback only).
     pub foxglove: Option<SocketAddr>,
+    /// `--rt-tuning`: the FRI threads' real-time measures (default
+    /// [`rt_core::fri::priority::RtTuning::auto`]).
+    pub rt_tuning: Option<rt_core::fri::priority::RtTuning>,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
@@ -54,7 +57,10 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     // The lab's FRI threads: SCHED_FIFO and memory locked; with cores to spare
     // also pinned to their own CPU with the other threads kept off it (each
     // refused measure is said once).
-    rt_core::fri::priority::configure(rt_core::fri::priority::RtTuning::auto());
+    rt_core::fri::priority::configure(
+        args.rt_tuning
+            .unwrap_or_else(rt_core::fri::priority::RtTuning::auto),
+    );
     if let Some(addr) = args.foxglove {
         crate::viz::check_addr(addr)?;
     }

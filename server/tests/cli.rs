@@ -95,6 +95,28 @@ fn serve_refuses_an_open_bind_without_a_token() {
 }
 
 #[test]
+fn serve_refuses_an_unknown_real_time_measure_before_starting() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let out = isochron()
+        .args(["serve", "--bind", "127.0.0.1:0", "--rt-tuning", "fifo,fast"])
+        .arg("--data-dir")
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("isochron:")).collect();
+    assert_eq!(lines.len(), 1, "{err}");
+    assert!(
+        lines[0].contains("--rt-tuning") && lines[0].contains("fast"),
+        "{err}"
+    );
+    assert!(out.stdout.is_empty(), "it started");
+    assert!(!data.exists(), "the data directory was created");
+}
+
+#[test]
 fn serve_answers_health_and_stops_on_sigterm() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");

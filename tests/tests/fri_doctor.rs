@@ -52,6 +52,7 @@ fn run_case(bin: &PathBuf, case: &Case) -> (serde_json::Value, bool) {
             SimRunOptions {
                 auto_command: false,
                 duration: None,
+                normal_priority: false,
             },
         )
         .unwrap()

@@ -87,6 +87,7 @@ fn start(
         SimRunOptions {
             auto_command: true,
             duration: None,
+            normal_priority: false,
         },
     )
     .unwrap();
@@ -358,6 +359,7 @@ fn garbage_to_the_controller_is_counted_and_a_raw_client_completes_a_session() {
         SimRunOptions {
             auto_command: true,
             duration: None,
+            normal_priority: false,
         },
     )
     .unwrap();

@@ -426,6 +426,7 @@ fn a_kuka_style_client_with_receive_multiplier_2_started_late() {
     let opts = SimRunOptions {
         auto_command: true,
         duration: Some(Duration::from_millis(1500)),
+        normal_priority: false,
     };
     let server = SimServer::spawn(params, "127.0.0.1:0".parse().unwrap(), client, opts).unwrap();
     let sim = Arc::clone(server.stats());

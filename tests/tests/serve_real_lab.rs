@@ -68,6 +68,7 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
         SimRunOptions {
             auto_command: true,
             duration: None,
+            normal_priority: false,
         },
     )
     .unwrap();

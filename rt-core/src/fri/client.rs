@@ -214,6 +214,11 @@ pub struct SessionStats {
     pub guard_step: AtomicU64,
     /// Send errors of the socket.
     pub send_errors: AtomicU64,
+    /// Time the session spent polling for expected datagrams without sleeping
+    /// ([`crate::fri::priority::RtTuning::spin`]), ns.
+    pub spin_ns: AtomicU64,
+    /// Spins that ended without the datagram (the controller was late).
+    pub spins_gave_up: AtomicU64,
     /// Receive -> reply sent, per reply.
     pub reply_latency: LatencyHistogram,
     /// |arrival interval - send period| between consecutive messages.

@@ -13,26 +13,34 @@
 //!
 //! Beyond the priority, a process can [`configure`] the rest of what real-time
 //! Linux users do ([`RtTuning`]; `serve` and `bench` take [`RtTuning::auto`]:
-//! all of it with three or more CPUs, the priority and locked memory on two;
+//! all of it with two or more CPUs, the priority and locked memory on one;
 //! tests keep only the priority): the FRI threads pinned to one CPU (the last of the
 //! process's CPUs), every other thread of the process kept off that CPU when
-//! there is another one, and the process's memory locked (`mlockall`, pages
+//! there is another one, the process's memory locked (`mlockall`, pages
 //! locked as they are first touched) so the FRI thread never waits for a page
-//! to come back from swap. Each is asked for once, when the lab starts; a
+//! to come back from swap, and the client session polling its socket from
+//! shortly before each expected datagram (`spin`), so that no wake-up of a
+//! sleeping thread lies between the datagram and the reply. Each is asked for once, when the lab starts; a
 //! refusal is said once and the lab runs without it.
 
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 
-use rustix::thread::{CpuSet, Pid};
+pub use rustix::thread::CpuSet;
+use rustix::thread::Pid;
 
 use thread_priority::{
     RealtimeThreadSchedulePolicy, ThreadPriority, ThreadPriorityValue, ThreadSchedulePolicy,
     set_thread_priority_and_policy, thread_native_id,
 };
 
-/// Real-time priority of the FRI threads (`SCHED_FIFO`, 1..99).
+/// Real-time priority of the FRI client thread (`SCHED_FIFO`, 1..99).
 pub const FRI_PRIORITY: u8 = 20;
+/// Real-time priority of the simulated controller's thread: above the client's,
+/// so that on a shared CPU the controller's send is never held up by a client
+/// spinning for it ([`RtTuning::spin`]), and the reply wakes the controller at
+/// once. (A real controller is a machine of its own.)
+pub const SIM_PRIORITY: u8 = FRI_PRIORITY + 1;
 
 /// Threads running now with [`FRI_PRIORITY`] (held by [`RealtimeGuard`]s).
 static RAISED: AtomicU64 = AtomicU64::new(0);
@@ -40,6 +48,8 @@ static RAISED: AtomicU64 = AtomicU64::new(0);
 static REFUSAL_SAID: AtomicBool = AtomicBool::new(false);
 /// Whether FRI threads of this process ask for real-time priority.
 static ENABLED: AtomicBool = AtomicBool::new(false);
+/// Whether FRI client sessions of this process spin before expected datagrams.
+static SPIN: AtomicBool = AtomicBool::new(false);
 
 /// Which real-time measures a process takes when its lab starts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -53,6 +63,10 @@ pub struct RtTuning {
     pub isolate: bool,
     /// `mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)`.
     pub mlock: bool,
+    /// The FRI client session polls its socket without sleeping from shortly
+    /// before each expected datagram until it arrives
+    /// ([`crate::fri::session::SPIN_LEAD`]).
+    pub spin: bool,
 }
 
 impl RtTuning {
@@ -62,6 +76,7 @@ impl RtTuning {
         pin: true,
         isolate: true,
         mlock: true,
+        spin: true,
     };
     /// The priority only (the default: tests, `fri-sim`).
     pub const FIFO: Self = Self {
@@ -69,6 +84,7 @@ impl RtTuning {
         pin: false,
         isolate: false,
         mlock: false,
+        spin: false,
     };
     /// None at all.
     pub const NONE: Self = Self {
@@ -76,25 +92,34 @@ impl RtTuning {
         pin: false,
         isolate: false,
         mlock: false,
+        spin: false,
     };
 
-    /// What suits this machine (`serve`, and `bench` unless told): the
-    /// priority and locked memory always; the FRI threads on a CPU of their
-    /// own only when there are cores to spare (three or more CPUs: on two,
-    /// keeping every other thread on one CPU starves the camera and the
-    /// dashboard's host more than it helps the FRI cycle).
+    /// What suits this machine (`serve`, and `bench` unless told): every
+    /// measure with two or more CPUs (the FRI threads on the last CPU, the
+    /// rest of the process on the others); on one CPU the priority and locked
+    /// memory only (spinning there would take the CPU from everything else).
+    /// Measured on the 2-core VM of this workplace (`isochron bench`, 10 s at
+    /// 1 ms with the whole lab): reply latency p99 about 150 us with
+    /// `fifo,mlock` (1-3 late replies per 10,000), 95-145 us with all (0
+    /// late); the dashboard keeps 60 fps in the browser test either way.
     pub fn auto() -> Self {
         let cpus = rustix::thread::sched_getaffinity(None)
             .map_or(1, |m| (0..CpuSet::MAX_CPU).filter(|&c| m.is_set(c)).count());
-        Self {
-            pin: cpus >= 3,
-            isolate: cpus >= 3,
-            ..Self::ALL
+        if cpus >= 2 {
+            Self::ALL
+        } else {
+            Self {
+                pin: false,
+                isolate: false,
+                spin: false,
+                ..Self::ALL
+            }
         }
     }
 
     /// Parses `auto`, `all`, `none` or a comma-separated list of `fifo`, `pin`,
-    /// `isolate`, `mlock` (`isolate` implies `pin`).
+    /// `isolate`, `mlock`, `spin` (`isolate` implies `pin`).
     pub fn parse(text: &str) -> Result<Self, String> {
         match text.trim() {
             "auto" => return Ok(Self::auto()),
@@ -112,10 +137,11 @@ impl RtTuning {
                     t.isolate = true;
                 }
                 "mlock" => t.mlock = true,
+                "spin" => t.spin = true,
                 other => {
                     return Err(format!(
                         "unknown real-time measure {other:?}: expected auto, all, none or a \
-                         comma-separated list of fifo, pin, isolate, mlock"
+                         comma-separated list of fifo, pin, isolate, mlock, spin"
                     ));
                 }
             }
@@ -133,6 +159,7 @@ impl RtTuning {
             (self.pin && !self.isolate, "pin"),
             (self.isolate, "isolate"),
             (self.mlock, "mlock"),
+            (self.spin, "spin"),
         ]
         .into_iter()
         .filter_map(|(on, w)| on.then_some(w))
@@ -196,6 +223,7 @@ pub struct RtStatus {
 pub fn enable() -> RtStatus {
     let tuning = configured();
     ENABLED.store(tuning.fifo, Ordering::Relaxed);
+    SPIN.store(tuning.spin, Ordering::Relaxed);
     let mut status = RtStatus {
         asked: tuning,
         ..RtStatus::default()
@@ -270,6 +298,20 @@ fn say_once(what: &str) {
     }
 }
 
+/// The calling thread's CPUs, to give back later with [`set_current_cpus`]
+/// (`None` when the kernel does not say).
+pub fn current_cpus() -> Option<CpuSet> {
+    rustix::thread::sched_getaffinity(None).ok()
+}
+
+/// Lets the calling thread (and the threads and processes it starts from now
+/// on) run on `cpus` again, e.g. after [`enable`] kept it off the FRI CPU.
+pub fn set_current_cpus(cpus: &CpuSet) {
+    if let Err(e) = rustix::thread::sched_setaffinity(None, cpus) {
+        say_once(&format!("CPU affinity not restored ({e})"));
+    }
+}
+
 /// Pins the calling thread to the FRI CPU when the process asked for it.
 fn pin_current_thread() {
     let cpu = FRI_CPU.load(Ordering::Relaxed);
@@ -305,20 +347,20 @@ impl Drop for RealtimeGuard {
     }
 }
 
-/// Once [`enable`]d, gives the calling thread `SCHED_FIFO` at [`FRI_PRIORITY`]
-/// when allowed (never fails: without the privilege the thread keeps its policy, and the
+/// Once [`enable`]d, gives the calling thread `SCHED_FIFO` at `priority`
+/// ([`FRI_PRIORITY`] or [`SIM_PRIORITY`]) when allowed (never fails: without the privilege the thread keeps its policy, and the
 /// first refusal in the process is said once on standard error). `thread`
 /// names the caller in that message. Keep the guard for the thread's life.
-pub fn raise_current_thread(thread: &str) -> RealtimeGuard {
+pub fn raise_current_thread(thread: &str, priority: u8) -> RealtimeGuard {
     pin_current_thread();
     if !ENABLED.load(Ordering::Relaxed) {
         return RealtimeGuard { raised: false };
     }
-    raise(thread)
+    raise(thread, priority)
 }
 
-fn raise(thread: &str) -> RealtimeGuard {
-    let result = ThreadPriorityValue::try_from(FRI_PRIORITY)
+fn raise(thread: &str, priority: u8) -> RealtimeGuard {
+    let result = ThreadPriorityValue::try_from(priority)
         .map_err(|e| e.to_string())
         .and_then(|value| {
             set_thread_priority_and_policy(
@@ -336,13 +378,19 @@ fn raise(thread: &str) -> RealtimeGuard {
         Err(e) => {
             if !REFUSAL_SAID.swap(true, Ordering::Relaxed) {
                 eprintln!(
-                    "isochron: {thread} keeps the normal scheduling policy (SCHED_FIFO {FRI_PRIORITY} \
+                    "isochron: {thread} keeps the normal scheduling policy (SCHED_FIFO {priority} \
                      not allowed: {e}); other load can delay the FRI cycle. Said once."
                 );
             }
             RealtimeGuard { raised: false }
         }
     }
+}
+
+/// Whether FRI client sessions started from now on spin before each expected
+/// datagram ([`RtTuning::spin`], once [`enable`]d).
+pub fn spin_enabled() -> bool {
+    SPIN.load(Ordering::Relaxed)
 }
 
 /// FRI threads of this process running now with real-time priority.
@@ -359,7 +407,7 @@ mod tests {
         std::thread::Builder::new()
             .name("isochron-prio-test".into())
             .spawn(|| {
-                let guard = raise("test");
+                let guard = raise("test", FRI_PRIORITY);
                 // Whether it is allowed depends on the machine; the thread's policy
                 // and the count must agree with the answer (other tests' FRI
                 // threads may be counted too).

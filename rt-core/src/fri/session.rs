@@ -94,7 +94,10 @@ impl<C: ControlStep + Send + 'static> FriSession<C> {
         let handle = std::thread::Builder::new()
             .name("isochron-fri".into())
             .spawn(move || {
-                let _realtime = super::priority::raise_current_thread("isochron-fri");
+                let _realtime = super::priority::raise_current_thread(
+                    "isochron-fri",
+                    super::priority::FRI_PRIORITY,
+                );
                 run(socket, client, control, &params, &thread_stop)
             })?;
         Ok(Self {
@@ -139,6 +142,47 @@ impl<C> Drop for FriSession<C> {
     }
 }
 
+/// With [`super::priority::spin_enabled`], the session stops sleeping this long
+/// before the next datagram is expected and polls the socket without blocking
+/// until it comes: the datagram is taken the moment it lands, with no wake-up
+/// of a sleeping thread (on a virtual machine that wake-up is most of the round
+/// trip: an idle CPU's halt and an inter-processor interrupt).
+pub const SPIN_LEAD: Duration = Duration::from_micros(40);
+/// A spin gives up this long after the expected arrival (the controller is
+/// late): the thread sleeps on the socket again until the datagram or the
+/// silence deadline.
+pub const SPIN_PAST: Duration = Duration::from_micros(150);
+/// Each period the expected arrival may move this much later than the
+/// earliest arrivals say (it follows a controller whose clock runs slow).
+const SPIN_CREEP_NS: u64 = 1_000;
+
+/// When the next datagram is expected: the earliest arrival phase seen,
+/// creeping later by [`SPIN_CREEP_NS`] a period so that it follows the
+/// controller's clock. Late arrivals (the controller's own jitter) do not
+/// move it later than that.
+#[derive(Debug, Default, Clone, Copy)]
+struct Arrival {
+    /// The expected arrival of the next datagram, ns of the session's clock.
+    next_ns: Option<u64>,
+}
+
+impl Arrival {
+    fn on_datagram(&mut self, t_rx: u64, period_ns: u64) {
+        if period_ns == 0 {
+            self.next_ns = None;
+            return;
+        }
+        let from_this = t_rx + period_ns;
+        self.next_ns = Some(match self.next_ns {
+            // A stale expectation (a gap, a new period) is replaced.
+            Some(prev) if prev + period_ns > t_rx && prev < t_rx + period_ns => {
+                (prev + period_ns + SPIN_CREEP_NS).min(from_this)
+            }
+            _ => from_this,
+        });
+    }
+}
+
 fn run<C: ControlStep>(
     socket: UdpSocket,
     mut client: FriClient,
@@ -151,43 +195,127 @@ fn run<C: ControlStep>(
     // Larger than an FRI datagram so oversize ones are seen (and refused).
     let mut buf = [0u8; 2048];
     let stats = Arc::clone(client.stats());
+    let spin = super::priority::spin_enabled();
+    let lead_ns = SPIN_LEAD.as_nanos() as u64;
+    let past_ns = SPIN_PAST.as_nanos() as u64;
+    let mut arrival = Arrival::default();
+    // The expected arrival whose spin ended without a datagram.
+    let mut spun: Option<u64> = None;
     socket.set_nonblocking(true)?;
     while !stop.load(Relaxed) {
-        let timeout = match client.deadline_ns() {
-            Some(d) => Duration::from_nanos(d.saturating_sub(now_ns())),
-            None => IDLE_POLL,
-        };
-        if !wait_readable(&socket, timeout)? {
-            client.poll(now_ns(), &mut control);
-            control.idle(now_ns());
-            continue;
-        }
-        match socket.recv_from(&mut buf) {
-            Ok((n, from)) => {
-                let t_rx = now_ns();
-                if params.controller.is_some_and(|c| c != from) {
-                    stats.foreign_datagrams.fetch_add(1, Relaxed);
+        let now = now_ns();
+        let deadline = client.deadline_ns();
+        let expected = arrival.next_ns.filter(|&e| spin && spun != Some(e));
+        let received = match expected {
+            Some(e) if now + lead_ns >= e => {
+                // Spin: poll without blocking until the datagram or the give-up time.
+                let until = e + past_ns;
+                let got = loop {
+                    match socket.recv_from(&mut buf) {
+                        Ok(got) => break Some(got),
+                        // Nothing yet (or an ICMP "port unreachable" from an
+                        // earlier send, or a signal): go on until the give-up time.
+                        Err(_) => {
+                            if now_ns() >= until || stop.load(Relaxed) {
+                                spun = Some(e);
+                                stats.spins_gave_up.fetch_add(1, Relaxed);
+                                break None;
+                            }
+                            std::hint::spin_loop();
+                        }
+                    }
+                };
+                stats
+                    .spin_ns
+                    .fetch_add(now_ns().saturating_sub(now), Relaxed);
+                got
+            }
+            _ => {
+                let wake = match (deadline, expected) {
+                    (Some(d), Some(e)) => Some(d.min(e.saturating_sub(lead_ns))),
+                    (d, e) => d.or(e.map(|e| e.saturating_sub(lead_ns))),
+                };
+                let timeout = match wake {
+                    Some(w) => Duration::from_nanos(w.saturating_sub(now)),
+                    None => IDLE_POLL,
+                };
+                if !wait_readable(&socket, timeout)? {
+                    // Woken to spin: not a timeout.
+                    if expected.is_some_and(|e| now_ns() + lead_ns >= e)
+                        && deadline.is_none_or(|d| now_ns() < d)
+                    {
+                        continue;
+                    }
+                    client.poll(now_ns(), &mut control);
+                    control.idle(now_ns());
                     continue;
                 }
-                let to = params.controller.unwrap_or(from);
-                if let Some(reply) = client.on_datagram(&buf[..n], t_rx, &mut control) {
-                    if socket.send_to(reply, to).is_err() {
-                        stats.send_errors.fetch_add(1, Relaxed);
+                match socket.recv_from(&mut buf) {
+                    Ok(got) => Some(got),
+                    // Nothing after all, an ICMP "port unreachable" from an
+                    // earlier send, or a signal: check the deadline and go on.
+                    Err(_) => {
+                        client.poll(now_ns(), &mut control);
+                        None
                     }
-                    let took = now_ns().saturating_sub(t_rx);
-                    // The threshold after the datagram: the first one sets the period.
-                    stats.record_reply_latency(took, client.late_after_ns());
-                }
-                if params.exit_on_idle && client.state() == LinkState::Idle {
-                    break;
                 }
             }
-            // Nothing after all, an ICMP "port unreachable" from an earlier
-            // send, or a signal: check the deadline and go on.
-            Err(_) => {
-                client.poll(now_ns(), &mut control);
+        };
+        let Some((n, from)) = received else {
+            continue;
+        };
+        let t_rx = now_ns();
+        if params.controller.is_some_and(|c| c != from) {
+            stats.foreign_datagrams.fetch_add(1, Relaxed);
+            continue;
+        }
+        let to = params.controller.unwrap_or(from);
+        if let Some(reply) = client.on_datagram(&buf[..n], t_rx, &mut control) {
+            if socket.send_to(reply, to).is_err() {
+                stats.send_errors.fetch_add(1, Relaxed);
             }
+            let took = now_ns().saturating_sub(t_rx);
+            // The threshold after the datagram: the first one sets the period.
+            stats.record_reply_latency(took, client.late_after_ns());
+        }
+        arrival.on_datagram(t_rx, client.receive_period_ns());
+        if params.exit_on_idle && client.state() == LinkState::Idle {
+            break;
         }
     }
     Ok(control)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const P: u64 = 1_000_000;
+
+    #[test]
+    fn the_expected_arrival_follows_the_earliest_arrivals_and_creeps_after_a_slow_clock() {
+        let mut a = Arrival::default();
+        a.on_datagram(10 * P, 0);
+        assert_eq!(a.next_ns, None, "no period yet: nothing expected");
+        a.on_datagram(10 * P, P);
+        assert_eq!(a.next_ns, Some(11 * P));
+        // A late arrival (the controller's jitter) does not move it later than
+        // one creep.
+        a.on_datagram(11 * P + 80_000, P);
+        assert_eq!(a.next_ns, Some(12 * P + SPIN_CREEP_NS));
+        // An early one pulls it back at once.
+        a.on_datagram(12 * P - 5_000, P);
+        assert_eq!(a.next_ns, Some(13 * P - 5_000));
+        // A controller whose period is 10 us longer than believed: the
+        // expectation creeps after it (1 us a period), never runs ahead of it.
+        let mut t = 13 * P - 5_000;
+        for _ in 0..100 {
+            t += P + 10_000;
+            a.on_datagram(t, P);
+            assert!(a.next_ns.unwrap() <= t + P, "ahead of the arrivals");
+        }
+        // After a gap of several periods the old phase is dropped.
+        a.on_datagram(t + 7 * P + 300_000, P);
+        assert_eq!(a.next_ns, Some(t + 8 * P + 300_000));
+    }
 }

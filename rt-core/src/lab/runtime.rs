@@ -62,6 +62,17 @@ pub struct LatencyUs {
     pub max: f64,
 }
 
+impl From<crate::fri::stats::LatencySummary> for LatencyUs {
+    fn from(s: crate::fri::stats::LatencySummary) -> Self {
+        Self {
+            p50: s.p50,
+            p99: s.p99,
+            p999: s.p999,
+            max: s.max,
+        }
+    }
+}
+
 /// What one real-time loop run measured (CONTRACT.md, `isochron bench`'s `loop`).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct LoopReport {
@@ -81,6 +92,16 @@ pub struct LoopReport {
     pub client_late_replies: u64,
     /// Controller messages the client never received.
     pub client_missed_cycles: u64,
+    /// The client's own share of the round trip: datagram received -> reply
+    /// sent (decode, control step, encode, send), microseconds (whole run).
+    /// The rest of `reply_latency_us` is the controller's send and the two
+    /// hand-overs through the kernel.
+    pub client_us: LatencyUs,
+    /// Fraction of the window the client spent polling for expected datagrams
+    /// without sleeping ([`crate::fri::priority::RtTuning::spin`]; 0 without).
+    pub spin_cpu_share: f64,
+    /// Spins in the window that ended without the datagram (it came late).
+    pub spins_gave_up: u64,
     /// WebSocket clients connected while measuring (set by the service).
     pub ws_clients: u64,
     /// State messages the service produced per second while measuring.
@@ -453,6 +474,7 @@ impl LabRuntime {
                 SimRunOptions {
                     auto_command: true,
                     duration: None,
+                    normal_priority: false,
                 },
             )?)),
             Some(_) => None,
@@ -564,6 +586,8 @@ impl LabRuntime {
             let c = (
                 st.late_replies.load(Ordering::Relaxed),
                 st.missed_cycles.load(Ordering::Relaxed),
+                st.spin_ns.load(Ordering::Relaxed),
+                st.spins_gave_up.load(Ordering::Relaxed),
             );
             let s = self.sim_stats().map(|s| {
                 (
@@ -586,15 +610,13 @@ impl LabRuntime {
             cycles: s1.0 - s0.0,
             late_replies: s1.1 - s0.1,
             missed_cycles: s1.2 - s0.2,
-            reply_latency_us: LatencyUs {
-                p50: rtt.p50,
-                p99: rtt.p99,
-                p999: rtt.p999,
-                max: rtt.max,
-            },
+            reply_latency_us: LatencyUs::from(rtt),
             deadline_misses: 0,
             client_late_replies: c1.0 - c0.0,
             client_missed_cycles: c1.1 - c0.1,
+            client_us: LatencyUs::from(self.session_stats.reply_latency.summary_us()),
+            spin_cpu_share: (c1.2 - c0.2) as f64 / window.as_nanos().max(1) as f64,
+            spins_gave_up: c1.3 - c0.3,
             ws_clients: 0,
             ws_state_messages_per_s: 0.0,
             rt: self.rt,

@@ -51,11 +51,12 @@ pub struct BenchArgs {
     /// Rendered 1280x720 frames the detector is timed on (full frame and tracking).
     #[arg(long, default_value_t = 200)]
     pub vision_frames: usize,
-    /// The real-time measures of the `loop` run: `auto` (as `serve`: all of
-    /// them with three or more CPUs, `fifo,mlock` on two), `all`, `none`, or a
-    /// comma-separated list of `fifo` (SCHED_FIFO for the FRI threads), `pin`
-    /// (the FRI threads on the last CPU), `isolate` (the other threads off that
-    /// CPU), `mlock` (memory locked).
+    /// The real-time measures of the `fri_client` and `loop` runs: `auto` (as
+    /// `serve`: all of them with two or more CPUs, `fifo,mlock` on one), `all`,
+    /// `none`, or a comma-separated list of `fifo` (SCHED_FIFO for the FRI
+    /// threads), `pin` (the FRI threads on the last CPU), `isolate` (the other
+    /// threads off that CPU), `mlock` (memory locked), `spin` (the client polls
+    /// for each expected datagram instead of sleeping through its arrival).
     #[arg(long, default_value = "auto")]
     pub rt_tuning: String,
 }
@@ -124,12 +125,25 @@ struct VisionBench {
 #[derive(Debug, Serialize)]
 struct FriClientBench {
     period_ms: u32,
-    /// isochron's FRI client session alone.
+    /// isochron's FRI client session alone (the simulated controller's thread
+    /// takes the `--rt-tuning` measures).
     isochron: rt_core::sim::kuka::SimReport,
-    /// The `--kuka-client` application, when given.
+    /// isochron's own share of each round trip: datagram received -> reply
+    /// sent, us.
+    isochron_client_us: rt_core::fri::stats::LatencySummary,
+    /// Fraction of the window isochron's client spent polling for expected
+    /// datagrams without sleeping (`spin`).
+    isochron_spin_cpu_share: f64,
+    /// The `--kuka-client` application, when given, on any CPU of the process,
+    /// against the simulated controller at normal priority and unpinned: that
+    /// is where KUKA's example client answers fastest (a controller thread with
+    /// SCHED_FIFO roughly doubles its median).
     kuka: Option<rt_core::sim::kuka::SimReport>,
     /// isochron's reply latency p99 over the external client's (same run).
     p99_ratio: Option<f64>,
+    /// The whole lab's (`loop`) reply latency p99 over the external client's
+    /// alone (same run).
+    loop_p99_ratio: Option<f64>,
 }
 
 /// What the Foxglove client received while the loop was measured.
@@ -557,6 +571,7 @@ fn vision_ms(s: &Scenario, frames: usize) -> anyhow::Result<VisionBench> {
 fn controller_against(
     client: std::net::SocketAddr,
     window: Duration,
+    normal_priority: bool,
 ) -> anyhow::Result<rt_core::sim::kuka::SimReport> {
     use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
     let server = SimServer::spawn(
@@ -569,6 +584,7 @@ fn controller_against(
         SimRunOptions {
             auto_command: true,
             duration: Some(window),
+            normal_priority,
         },
     )?;
     Ok(server.wait(window + Duration::from_secs(5))?)
@@ -577,7 +593,11 @@ fn controller_against(
 /// `fri_client`: isochron's FRI client session alone (holding position), then
 /// the external application at `kuka` (if any), each answering the simulated
 /// controller for `window`.
-fn fri_clients(window: Duration, kuka: Option<&std::path::Path>) -> anyhow::Result<FriClientBench> {
+fn fri_clients(
+    window: Duration,
+    kuka: Option<&std::path::Path>,
+    cpus: Option<&rt_core::fri::priority::CpuSet>,
+) -> anyhow::Result<FriClientBench> {
     use rt_core::fri::{FriClientParams, FriSession, FriSessionParams, HoldPosition};
     let session = FriSession::spawn(
         FriSessionParams {
@@ -588,11 +608,18 @@ fn fri_clients(window: Duration, kuka: Option<&std::path::Path>) -> anyhow::Resu
         },
         HoldPosition,
     )?;
-    let isochron = controller_against(session.local_addr(), window)?;
+    let isochron = controller_against(session.local_addr(), window, false)?;
+    let isochron_client_us = session.stats().reply_latency.summary_us();
+    let spin_ns = session.stats().spin_ns.load(Ordering::Relaxed);
     drop(session);
     let kuka = match kuka {
         None => None,
         Some(path) => {
+            // The application and the controller's thread (both started from
+            // here) on every CPU the process had, not only those `isolate` left.
+            if let Some(cpus) = cpus {
+                rt_core::fri::priority::set_current_cpus(cpus);
+            }
             let mut child = std::process::Command::new(path)
                 .stdin(std::process::Stdio::null())
                 .stdout(std::process::Stdio::null())
@@ -615,7 +642,7 @@ fn fri_clients(window: Duration, kuka: Option<&std::path::Path>) -> anyhow::Resu
                 }
                 std::thread::sleep(Duration::from_millis(5));
             }
-            let report = controller_against(port, window);
+            let report = controller_against(port, window, true);
             let _ = child.kill();
             let _ = child.wait();
             Some(report?)
@@ -627,9 +654,12 @@ fn fri_clients(window: Duration, kuka: Option<&std::path::Path>) -> anyhow::Resu
         .map(|k| isochron.rtt_us.p99 / k.rtt_us.p99);
     Ok(FriClientBench {
         period_ms: 1,
+        isochron_spin_cpu_share: spin_ns as f64 / window.as_nanos().max(1) as f64,
+        isochron_client_us,
         isochron,
         kuka,
         p99_ratio,
+        loop_p99_ratio: None,
     })
 }
 
@@ -661,6 +691,7 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     let tuning = rt_core::fri::priority::RtTuning::parse(&args.rt_tuning)
         .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?;
     rt_core::fri::priority::configure(tuning);
+    let cpus = rt_core::fri::priority::current_cpus();
     let s = Scenario::default();
     let e = ekf_ns(&s)?;
     let h = hopf_ns(&s)?;
@@ -679,9 +710,13 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         );
     }
     let vision = vision_ms(&s, args.vision_frames)?;
-    let fri = fri_clients(
+    // The same real-time measures for the clients alone as for the lab below
+    // (the simulated controller's thread takes them for both clients).
+    rt_core::fri::priority::enable();
+    let mut fri = fri_clients(
         Duration::from_secs_f64(args.fri_client_s),
         args.kuka_client.as_deref(),
+        cpus.as_ref(),
     )?;
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
@@ -691,6 +726,11 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         args.ws_clients,
         args.foxglove_client,
     )?;
+    fri.loop_p99_ratio = fri
+        .kuka
+        .as_ref()
+        .filter(|k| k.rtt_us.p99 > 0.0)
+        .map(|k| lp.reply_latency_us.p99 / k.rtt_us.p99);
     let q = quantile_sorted;
     let b = Bench {
         ekf_step_ns: P2 {
@@ -725,9 +765,11 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          control step    p50 {:.1} us, p99 {:.1} us, p99.9 {:.1} us, max {:.1} us (thread CPU time)\n\
          control steps   {} over {} trials at {} ms: {} deadline misses (CPU time > period), {} preempted (wall clock only); load average {}\n\
          vision frame    full p50 {:.3} ms, p99 {:.3} ms; tracking p50 {:.3} ms, p99 {:.3} ms ({} frames, found in {})\n\
-         fri client      isochron alone: reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing; {}\n\
-         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us; \
-         {} WebSocket clients at {:.0} state messages/s; {}\n\
+         fri client      isochron alone: reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing \
+         (its own receive -> send p50 {:.0} us, p99 {:.0} us; spinning {:.1}% of the time); {}\n\
+         loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us \
+         (p99 over the --kuka-client's: {}); client receive -> send p50 {:.0} us, p99 {:.0} us; spinning {:.1}% of the time \
+         ({} spins given up); {} WebSocket clients at {:.0} state messages/s; {}\n\
          real time       asked {}: FRI threads on CPU {}, {} other threads kept off it, memory {}",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
@@ -764,6 +806,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         b.fri_client.isochron.rtt_us.p999,
         b.fri_client.isochron.late_replies,
         b.fri_client.isochron.missing_replies,
+        b.fri_client.isochron_client_us.p50,
+        b.fri_client.isochron_client_us.p99,
+        100.0 * b.fri_client.isochron_spin_cpu_share,
         b.fri_client.kuka.as_ref().map_or_else(
             || "no --kuka-client".to_owned(),
             |k| format!(
@@ -784,6 +829,13 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         lp.reply_latency_us.p99,
         lp.reply_latency_us.p999,
         lp.reply_latency_us.max,
+        b.fri_client
+            .loop_p99_ratio
+            .map_or_else(|| "no --kuka-client".to_owned(), |r| format!("{r:.2}")),
+        lp.client_us.p50,
+        lp.client_us.p99,
+        100.0 * lp.spin_cpu_share,
+        lp.spins_gave_up,
         lp.ws_clients,
         lp.ws_state_messages_per_s,
         b.foxglove.as_ref().map_or_else(
@@ -836,7 +888,7 @@ mod tests {
 
     #[test]
     fn the_fri_client_alone_answers_the_simulated_controller_while_commanding() {
-        let f = fri_clients(Duration::from_millis(600), None).unwrap();
+        let f = fri_clients(Duration::from_millis(600), None, None).unwrap();
         let r = &f.isochron;
         assert!(
             r.states_reached.contains(&"COMMANDING_ACTIVE"),

@@ -70,6 +70,7 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
         SimRunOptions {
             auto_command: true,
             duration: Some(duration),
+            normal_priority: false,
         },
     )?;
     if !args.json {

@@ -23,6 +23,11 @@ pub struct SimRunOptions {
     pub auto_command: bool,
     /// Close the session (send IDLE) after this long.
     pub duration: Option<Duration>,
+    /// Keep the thread at normal priority and unpinned even when the process
+    /// asked for real-time measures (`isochron bench` measures an external
+    /// client against it: KUKA's example client answers such a controller
+    /// fastest).
+    pub normal_priority: bool,
 }
 
 /// Why the simulated controller could not start.
@@ -86,7 +91,12 @@ impl SimServer {
         let handle = std::thread::Builder::new()
             .name("isochron-fri-sim".into())
             .spawn(move || {
-                let _realtime = crate::fri::priority::raise_current_thread("isochron-fri-sim");
+                let _realtime = (!opts.normal_priority).then(|| {
+                    crate::fri::priority::raise_current_thread(
+                        "isochron-fri-sim",
+                        crate::fri::priority::SIM_PRIORITY,
+                    )
+                });
                 run(socket, client, sim, opts, &flags.0, &flags.1, &flags.2)
             })?;
         Ok(Self {
