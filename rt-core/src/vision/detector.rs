@@ -1,6 +1,7 @@
 //! The ball detector: colour first, shape as the confirmation.
 //!
-//! Per search region: BGR -> HSV, `in_range` on the ball's colour, morphological
+//! Per search region: the ball's colour range in HSV ([`super::colour`]: OpenCV's
+//! BGR -> HSV and `in_range`, fused into one pass), morphological
 //! open (specks) and close (holes), external contours; each blob is measured by
 //! its image moments (sub-pixel centroid, the moment ellipse) and accepted only
 //! if its size, elongation, fill and the fit of its outline to the moment ellipse
@@ -10,12 +11,13 @@
 //! candidates are refined at full resolution.
 
 use opencv::{
-    core::{self, Mat, MatTraitConst, Point, Rect, Scalar, Size, ToInputArray, Vector},
+    core::{self, Mat, MatTraitConst, Point, Rect, Size, ToInputArray, Vector},
     imgproc,
 };
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
+use super::colour::HsvRange;
 use crate::check::{self, ParamError};
 
 /// The arc fit's sampling seed (deterministic for the same frames).
@@ -160,12 +162,10 @@ struct Track {
 /// in the virtual-time simulation.
 pub struct Detector {
     params: DetectorParams,
-    lower: Scalar,
-    upper: Scalar,
+    colour: HsvRange,
     kernel_open: Mat,
     kernel_close: Mat,
     small: Mat,
-    hsv: Mat,
     mask: Mat,
     tmp: Mat,
     contours: Vector<Vector<Point>>,
@@ -214,26 +214,26 @@ impl Detector {
     pub fn new(params: DetectorParams) -> Result<Self, VisionError> {
         params.validate()?;
         super::limit_opencv_threads()?;
-        // OpenCV's 8-bit HSV: hue 0..180 (half degrees), saturation and value 0..255.
-        let lower = Scalar::new(
-            (params.hue_deg[0] / 2.0).floor(),
-            (params.saturation_min * 255.0).round(),
-            (params.value_min * 255.0).round(),
-            0.0,
+        // OpenCV's 8-bit HSV: hue 0..180 (half degrees), saturation and value
+        // 0..255 (the parameters are validated: within those scales).
+        let colour = HsvRange::new(
+            [
+                (params.hue_deg[0] / 2.0).floor() as u8,
+                (params.saturation_min * 255.0).round() as u8,
+                (params.value_min * 255.0).round() as u8,
+            ],
+            [(params.hue_deg[1] / 2.0).ceil() as u8, 255, 255],
         );
-        let upper = Scalar::new((params.hue_deg[1] / 2.0).ceil(), 255.0, 255.0, 0.0);
         let kernel_open =
             imgproc::get_structuring_element_def(imgproc::MORPH_ELLIPSE, Size::new(3, 3))?;
         let kernel_close =
             imgproc::get_structuring_element_def(imgproc::MORPH_ELLIPSE, Size::new(5, 5))?;
         Ok(Self {
             params,
-            lower,
-            upper,
+            colour,
             kernel_open,
             kernel_close,
             small: Mat::default(),
-            hsv: Mat::default(),
             mask: Mat::default(),
             tmp: Mat::default(),
             contours: Vector::new(),
@@ -626,8 +626,7 @@ impl Detector {
         frame_w: i32,
         frame_h: i32,
     ) -> Result<(), VisionError> {
-        imgproc::cvt_color_def(img, &mut self.hsv, imgproc::COLOR_BGR2HSV)?;
-        core::in_range(&self.hsv, &self.lower, &self.upper, &mut self.tmp)?;
+        self.colour.mask(img, &mut self.tmp)?;
         imgproc::morphology_ex_def(
             &self.tmp,
             &mut self.mask,

@@ -2,6 +2,8 @@
 
 pub mod calibration;
 #[cfg(feature = "opencv")]
+pub mod colour;
+#[cfg(feature = "opencv")]
 pub mod detector;
 #[cfg(feature = "opencv")]
 pub mod source;
