@@ -777,8 +777,11 @@ impl Ekf {
             }
         }
         let k = p * c_i.transpose() / s_i;
-        let ikc = StateCov::identity() - k * c_i;
-        let pn = ikc * p * ikc.transpose() + k * k.transpose() * self.r;
+        // Joseph form (I - k c) P (I - k c)^T + k r k^T, with the two products
+        // by I - k c done as rank-one updates: (I - k c) P = P - k (c P), then
+        // M (I - k c)^T = M - (M c^T) k^T.
+        let m = p - k * (c_i * p);
+        let pn = m - (m * c_i.transpose()) * k.transpose() + k * k.transpose() * self.r;
         entry.x = xi;
         entry.p = (pn + pn.transpose()) * 0.5;
         entry.kind = EntryKind::Fused;
@@ -799,7 +802,7 @@ impl Ekf {
         for _ in 0..(n as u64) {
             let (xn, f) = model::step(self.params.process_model, &x, h);
             x = xn;
-            p = f * p * f.transpose() + q;
+            p = model::carry_cov(&f, &p) + q;
         }
         (x, (p + p.transpose()) * 0.5)
     }

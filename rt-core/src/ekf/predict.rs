@@ -249,7 +249,7 @@ impl Ekf {
                     PassDirection::TowardsNegativeY => vy < 0.0,
                 };
                 if tc >= t_from_s && wanted {
-                    let pc = fc * p * fc.transpose() + self.q(tau);
+                    let pc = model::carry_cov(&fc, &p) + self.q(tau);
                     let cy = l * xc[0].cos();
                     let var_y = cy * cy * pc[(0, 0)].max(0.0);
                     let time_std_s = if vy != 0.0 {
@@ -268,7 +268,7 @@ impl Ekf {
                     n += 1;
                 }
             }
-            p = f * p * f.transpose() + q;
+            p = model::carry_cov(&f, &p) + q;
             x = x1;
             t += h;
             g0 = g1;

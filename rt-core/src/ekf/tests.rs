@@ -121,6 +121,20 @@ fn jacobians_match_finite_differences() {
             }
         }
     }
+    // The covariance carried with the structured product equals the dense
+    // F P F^T (to rounding), for both models' Jacobians.
+    let a = nalgebra::SMatrix::<f64, { model::N }, { model::N }>::from_fn(|i, j| {
+        0.3 + ((i * 7 + j * 3) % 11) as f64 * 0.1
+    });
+    let p = a * a.transpose();
+    for f in [model::rk4_step(&x, 0.033).1, model::paper_step(&x, 0.033).1] {
+        let dense = f * p * f.transpose();
+        let fast = model::carry_cov(&f, &p);
+        assert!(
+            (dense - fast).abs().max() < 1e-14 * dense.abs().max(),
+            "{dense} {fast}"
+        );
+    }
     // C = [l cos(phi), 0, 0, 0, 1] (the paper's C lacks the factor l; b adds).
     let (z, c) = model::measure(L, &x);
     assert!((z - L * 0.4f64.sin() - 0.01).abs() < 1e-15);
