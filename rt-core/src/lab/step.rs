@@ -141,8 +141,11 @@ pub struct TrialOutcome {
 }
 /// Spacing of the predicted horizon points, seconds.
 const HORIZON_STEP_S: f64 = 0.08;
-/// The predicted horizon is recomputed this often (the stream runs at 100 Hz).
-const HORIZON_EVERY_S: f64 = 0.01;
+/// The predicted horizon is recomputed when the filter fused a new measurement
+/// (at the camera's rate) and at least this often otherwise, so that its start
+/// follows the clock. (Recomputing it every 10 ms for the 100 Hz stream put a
+/// horizon propagation on every tenth FRI cycle: the loop's p99.)
+const HORIZON_EVERY_S: f64 = 0.05;
 /// Steps per window of the period statistics.
 const PERIOD_WINDOW: u32 = 200;
 
@@ -388,6 +391,8 @@ pub struct LabStep {
     snap: Snapshot,
     horizon: Vec<Prediction>,
     next_horizon_s: f64,
+    /// The posterior time the horizon was last computed from.
+    horizon_posterior_s: f64,
     last_state: TrialState,
     /// The previous measured tool point and the robot's sample time of it
     /// (sequence counter x send period), seconds.
@@ -501,6 +506,7 @@ impl LabStep {
             snap,
             horizon: vec![Prediction::default(); bridge::HORIZON_POINTS],
             next_horizon_s: 0.0,
+            horizon_posterior_s: f64::NAN,
             last_state: TrialState::Idle,
             prev_tool: None,
             robot_t_s: 0.0,
@@ -1516,15 +1522,16 @@ impl LabStep {
         // Pendulum: estimate and predicted horizon.
         let l = self.p.scenario.pendulum.length_m;
         match c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {
-            Some((ekf, (_, x, p))) => {
+            Some((ekf, (t_post, x, p))) => {
                 s.pendulum.phi_rad = x[0];
                 s.pendulum.dphi_radps = x[1];
                 s.pendulum.sigma_phi_rad = p[(0, 0)].max(0.0).sqrt();
                 s.pendulum.sigma_dphi_radps = p[(1, 1)].max(0.0).sqrt();
                 s.pendulum.x_m = l * x[0].sin();
                 s.pendulum.sigma_x_m = l * x[0].cos().abs() * s.pendulum.sigma_phi_rad;
-                if t >= self.next_horizon_s {
+                if t >= self.next_horizon_s || t_post != self.horizon_posterior_s {
                     self.next_horizon_s = t + HORIZON_EVERY_S;
+                    self.horizon_posterior_s = t_post;
                     s.pendulum.horizon.len = 0;
                     if let Ok(n) = ekf.predict_horizon(t, HORIZON_STEP_S, &mut self.horizon) {
                         if let Some(first) = self.horizon.first().filter(|_| n > 0) {
