@@ -143,8 +143,9 @@ pub struct TrialOutcome {
 const HORIZON_STEP_S: f64 = 0.08;
 /// The predicted horizon is recomputed when the filter fused a new measurement
 /// (at the camera's rate) and at least this often otherwise, so that its start
-/// follows the clock. (Recomputing it every 10 ms for the 100 Hz stream put a
-/// horizon propagation on every tenth FRI cycle: the loop's p99.)
+/// follows the clock. (Every 10 ms, as before, put a horizon propagation of
+/// about 10 us on every tenth FRI cycle, though the horizon only changes when
+/// the posterior does.)
 const HORIZON_EVERY_S: f64 = 0.05;
 /// Steps per window of the period statistics.
 const PERIOD_WINDOW: u32 = 200;
