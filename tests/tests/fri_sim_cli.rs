@@ -455,3 +455,48 @@ fn a_kuka_style_client_with_receive_multiplier_2_started_late() {
     assert_eq!(report.aborts, 0, "{report:?}");
     assert!(sim.commands_accepted.load(Relaxed) > 100, "{report:?}");
 }
+
+/// A client whose answers trail by one message (it answers each message when
+/// the next one arrives): its answer to the last message before IDLE leaves
+/// after the controller sent IDLE, and the controller still counts it, so its
+/// count of answers equals the client's (the answers in flight at the close are
+/// read for two periods after it).
+#[test]
+fn answers_in_flight_when_the_session_closes_are_counted() {
+    let sock = UdpSocket::bind(SocketAddr::from(([127, 0, 0, 1], 0))).unwrap();
+    let client = sock.local_addr().unwrap();
+    let params = FriSimParams {
+        fri_period_ms: 2,
+        late_after_periods: 3.0,
+        ..FriSimParams::default()
+    };
+    let opts = SimRunOptions {
+        auto_command: false,
+        duration: Some(Duration::from_millis(300)),
+        normal_priority: false,
+    };
+    let server = SimServer::spawn(params, "127.0.0.1:0".parse().unwrap(), client, opts).unwrap();
+    sock.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+    let mut dec = MonitoringDecoder::new();
+    let mut enc = CommandEncoder::new();
+    let mut buf = [0u8; 2048];
+    let (mut pending, mut seq, mut sent) = (None::<(u32, SocketAddr)>, 0u32, 0u64);
+    let mut idle = false;
+    while !idle {
+        let (n, from) = sock.recv_from(&mut buf).expect("the controller sends");
+        let m = dec.decode(&buf[..n]).unwrap();
+        if let Some((reflected, to)) = pending.take() {
+            sock.send_to(enc.encode(seq, reflected, None).unwrap(), to)
+                .unwrap();
+            seq += 1;
+            sent += 1;
+        }
+        idle = m.session_state == SessionState::Idle;
+        pending = Some((m.sequence_counter, from));
+    }
+    let report = server.wait(Duration::from_secs(5)).unwrap();
+    assert!(sent > 50, "{sent}");
+    assert_eq!(report.replies, sent, "{report:?}");
+    assert_eq!(report.stale_replies, 0, "{report:?}");
+    assert_eq!(report.decode_errors, 0, "{report:?}");
+}

@@ -421,7 +421,9 @@ async fn events_of_a_trial_arrive_in_order_with_type_and_time() {
             "intercepting",
             "holding",
             "done"
-        ]
+        ],
+        "events {events:?}; messages the stream skipped: {}",
+        svc.lab.stream().skipped.load(Ordering::Relaxed)
     );
     for e in &events {
         assert_eq!(e["trial_id"], id);

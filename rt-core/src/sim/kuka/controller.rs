@@ -1035,10 +1035,10 @@ impl SimController {
     }
 
     /// Takes a client datagram that arrived at `now_ns` (before injected delay).
+    ///
+    /// After the session closed, answers to its messages are still counted and
+    /// graded (they were sent while it ran), but a command in them is ignored.
     pub fn on_reply(&mut self, bytes: &[u8], now_ns: u64) {
-        if self.closed {
-            return;
-        }
         if self.p.reply_loss > 0.0 && self.rng.random_bool(self.p.reply_loss) {
             self.stats.replies_dropped.fetch_add(1, Relaxed);
             return;
@@ -1094,6 +1094,9 @@ impl SimController {
             }
         }
 
+        if self.closed {
+            return;
+        }
         match self.state {
             SessionState::CommandingWait => {
                 if let Some(q) = c.joint_position_rad {

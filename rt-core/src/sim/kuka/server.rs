@@ -203,6 +203,7 @@ fn run(
                 let _ = socket.send_to(bytes, client);
             }
             if sim.is_closed() {
+                drain_replies(&socket, client, &mut sim, epoch, period, &stats, &mut buf);
                 break;
             }
             next_send += period;
@@ -227,6 +228,35 @@ fn run(
             }
             let t = epoch.elapsed().as_nanos() as u64;
             sim.on_reply(&buf[..n], t);
+        }
+    }
+}
+
+/// After IDLE, reads the answers still on their way for up to two periods, so
+/// that every answer the client sent to the session's messages is counted
+/// (an answer to the last message before IDLE, or answers queued while the
+/// thread was not scheduled, would otherwise be left in the socket).
+fn drain_replies(
+    socket: &UdpSocket,
+    client: SocketAddr,
+    sim: &mut SimController,
+    epoch: Instant,
+    period: Duration,
+    stats: &SimStats,
+    buf: &mut [u8],
+) {
+    let until = epoch.elapsed() + 2 * period;
+    loop {
+        let wait = until.saturating_sub(epoch.elapsed());
+        if !matches!(wait_readable(socket, wait), Ok(true)) {
+            return;
+        }
+        if let Ok((n, from)) = socket.recv_from(buf) {
+            if from != client {
+                stats.foreign_datagrams.fetch_add(1, Relaxed);
+                continue;
+            }
+            sim.on_reply(&buf[..n], epoch.elapsed().as_nanos() as u64);
         }
     }
 }
