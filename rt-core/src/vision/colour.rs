@@ -125,7 +125,20 @@ impl HsvRange {
     /// `out` = 255 where `img` (8-bit BGR, a view of a frame is fine) is in the
     /// range, 0 elsewhere; `out` is reallocated only when its size changes.
     pub fn mask(&self, img: &impl MatTraitConst, out: &mut Mat) -> Result<(), VisionError> {
-        let (rows, cols) = (img.rows(), img.cols());
+        self.mask_sampled(img, 1, out)
+    }
+
+    /// [`Self::mask`] of every `step`-th pixel of every `step`-th row (the
+    /// pixel at the top left of each `step` x `step` block): `out` is
+    /// `rows / step` x `cols / step`, as `resize` to that size would make it.
+    pub fn mask_sampled(
+        &self,
+        img: &impl MatTraitConst,
+        step: i32,
+        out: &mut Mat,
+    ) -> Result<(), VisionError> {
+        let step = step.max(1);
+        let (rows, cols) = (img.rows() / step, img.cols() / step);
         if img.typ() != core::CV_8UC3 {
             return Err(VisionError::BadFrame(format!(
                 "expected an 8-bit 3-channel BGR image, got type {}",
@@ -136,9 +149,9 @@ impl HsvRange {
             *out = Mat::new_rows_cols_with_default(rows, cols, core::CV_8UC1, Scalar::all(0.0))?;
         }
         for y in 0..rows {
-            let src = img.at_row::<Vec3b>(y)?;
+            let src = img.at_row::<Vec3b>(y * step)?;
             let dst = out.at_row_mut::<u8>(y)?;
-            for (d, p) in dst.iter_mut().zip(src) {
+            for (d, p) in dst.iter_mut().zip(src.iter().step_by(step as usize)) {
                 *d = if self.contains(p[0], p[1], p[2]) {
                     255
                 } else {
@@ -226,6 +239,28 @@ mod tests {
                     0
                 };
                 assert_eq!(*out.at_2d::<u8>(y, x).unwrap(), want);
+            }
+        }
+        // Sampled: every step-th pixel of every step-th row, the rest dropped.
+        // (The second range, value <= 130, passes part of this view.)
+        let dark = HsvRange::new([0, 0, 0], [180, 255, 130]);
+        for (range, step) in [(&range, 2), (&range, 3), (&dark, 2), (&dark, 3)] {
+            range.mask_sampled(&roi, step, &mut out).unwrap();
+            assert_eq!((out.rows(), out.cols()), (11 / step, 37 / step));
+            for y in 0..11 / step {
+                for x in 0..37 / step {
+                    let p = *roi.at_2d::<Vec3b>(y * step, x * step).unwrap();
+                    let want = if range.contains(p[0], p[1], p[2]) {
+                        255
+                    } else {
+                        0
+                    };
+                    assert_eq!(*out.at_2d::<u8>(y, x).unwrap(), want, "step {step}");
+                }
+            }
+            if std::ptr::eq(range, &dark) {
+                let on = core::count_non_zero(&out).unwrap();
+                assert!(on > 0 && on < out.rows() * out.cols(), "{on}");
             }
         }
         let grey = Mat::new_rows_cols_with_default(4, 4, core::CV_8UC1, Scalar::all(0.0)).unwrap();

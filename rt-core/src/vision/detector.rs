@@ -65,7 +65,9 @@ pub struct DetectorParams {
     pub confidence_min: f64,
     /// Half-size of the tracking window, in ball radii (never below 40 px).
     pub window_radii: f64,
-    /// Downscale factor for the full-frame search (1 = full resolution).
+    /// Downscale factor for the full-frame search (1 = full resolution): the
+    /// colour test looks at every `coarse_scale`-th pixel of every
+    /// `coarse_scale`-th row.
     pub coarse_scale: u32,
     /// Longest gap between detections over which the track is kept, seconds.
     pub track_timeout_s: f64,
@@ -165,7 +167,6 @@ pub struct Detector {
     colour: HsvRange,
     kernel_open: Mat,
     kernel_close: Mat,
-    small: Mat,
     mask: Mat,
     tmp: Mat,
     contours: Vector<Vector<Point>>,
@@ -233,7 +234,6 @@ impl Detector {
             colour,
             kernel_open,
             kernel_close,
-            small: Mat::default(),
             mask: Mat::default(),
             tmp: Mat::default(),
             contours: Vector::new(),
@@ -546,24 +546,9 @@ impl Detector {
             self.search(image, Rect::new(0, 0, w, h), 1, w, h)?;
             return Ok(self.best(None));
         }
-        let mut small = std::mem::take(&mut self.small);
-        imgproc::resize(
-            image,
-            &mut small,
-            Size::new(w / scale, h / scale),
-            0.0,
-            0.0,
-            imgproc::INTER_AREA,
-        )?;
-        let res = self.search(
-            &small,
-            Rect::new(0, 0, small.cols(), small.rows()),
-            scale,
-            w,
-            h,
-        );
-        self.small = small;
-        res?;
+        self.colour.mask_sampled(image, scale, &mut self.tmp)?;
+        let (sw, sh) = (self.tmp.cols(), self.tmp.rows());
+        self.search_mask(Rect::new(0, 0, sw, sh), sw, sh, scale, w, h)?;
         // Refine the coarse candidates at full resolution, best first.
         let mut coarse = std::mem::take(&mut self.coarse);
         coarse.clear();
@@ -627,6 +612,19 @@ impl Detector {
         frame_h: i32,
     ) -> Result<(), VisionError> {
         self.colour.mask(img, &mut self.tmp)?;
+        self.search_mask(rect, img.cols(), img.rows(), scale, frame_w, frame_h)
+    }
+
+    /// [`Self::search`] from the colour mask in `self.tmp` (`iw` x `ih`).
+    fn search_mask(
+        &mut self,
+        rect: Rect,
+        iw: i32,
+        ih: i32,
+        scale: i32,
+        frame_w: i32,
+        frame_h: i32,
+    ) -> Result<(), VisionError> {
         imgproc::morphology_ex_def(
             &self.tmp,
             &mut self.mask,
@@ -646,7 +644,6 @@ impl Detector {
             imgproc::RETR_EXTERNAL,
             imgproc::CHAIN_APPROX_NONE,
         )?;
-        let (iw, ih) = (img.cols(), img.rows());
         let s = f64::from(scale);
         let coarse = scale > 1;
         // Coarse candidates only need to be roughly ball-like; refinement decides.
