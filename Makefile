@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -175,8 +175,26 @@ test-api-fuzz: py-deps
 
 test: lint test-core test-web test-browser test-api-fuzz fuzz-smoke test-rust
 
-bench: deps
+## bench: the criterion benches, then `isochron bench` (release) with its peers in
+## the same run (filterpy's EKF and the Robotics Toolbox's C++ IK, in .venv-peers)
+## and, when KUKA_CLIENT=path is given, KUKA's FRI client example beside isochron's.
+PEER_VENV := .venv-peers
+FILTERPY_VERSION := 2.0.0
+RTB_VERSION := 1.5.0
+KUKA_CLIENT ?=
+
+peer-deps: $(PEER_VENV)/.peers-$(FILTERPY_VERSION)-$(RTB_VERSION)
+
+$(PEER_VENV)/.peers-$(FILTERPY_VERSION)-$(RTB_VERSION):
+	@[ -x $(PEER_VENV)/bin/python ] || $(PY) -m venv $(PEER_VENV)
+	$(PEER_VENV)/bin/python -m pip install --quiet --disable-pip-version-check \
+	  "filterpy==$(FILTERPY_VERSION)" "roboticstoolbox-python==$(RTB_VERSION)"
+	@touch $@
+
+bench: release peer-deps
 	$(CARGO) bench --workspace
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" bench --peers $(PEER_VENV)/bin/python \
+	  $(if $(KUKA_CLIENT),--kuka-client $(KUKA_CLIENT))
 
 ## types: the dashboard's TypeScript declarations from the Rust types (server/src/typescript.rs);
 ## `cargo test` fails while web/src/generated/types.ts is stale.

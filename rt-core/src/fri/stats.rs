@@ -100,6 +100,15 @@ impl LatencyHistogram {
         self.count.load(Relaxed)
     }
 
+    /// Adds every sample of `other` (two measurement windows as one).
+    pub fn absorb(&self, other: &LatencyHistogram) {
+        for (b, o) in self.buckets.iter().zip(&other.buckets) {
+            b.fetch_add(o.load(Relaxed), Relaxed);
+        }
+        self.count.fetch_add(other.count(), Relaxed);
+        self.max_ns.fetch_max(other.max_ns(), Relaxed);
+    }
+
     /// The largest sample, ns.
     pub fn max_ns(&self) -> u64 {
         self.max_ns.load(Relaxed)

@@ -983,6 +983,28 @@ fn garbage_to_either_side_is_counted_and_ignored() {
 }
 
 #[test]
+fn two_histograms_absorbed_are_the_histogram_of_both_windows() {
+    let (a, b, both) = (
+        LatencyHistogram::new(),
+        LatencyHistogram::new(),
+        LatencyHistogram::new(),
+    );
+    for v in 1..=1000u64 {
+        // Odd samples in one window, even in the other, the second slower.
+        let ns = if v % 2 == 1 { v * 1000 } else { v * 3000 };
+        if v % 2 == 1 { &a } else { &b }.record_ns(ns);
+        both.record_ns(ns);
+    }
+    a.absorb(&b);
+    assert_eq!(a.count(), 1000);
+    assert_eq!(a.max_ns(), both.max_ns());
+    for q in [0.1, 0.5, 0.9, 0.99, 0.999] {
+        assert_eq!(a.quantile_ns(q), both.quantile_ns(q), "q {q}");
+    }
+    assert_ne!(a.quantile_ns(0.99), b.quantile_ns(0.99));
+}
+
+#[test]
 fn histogram_quantiles_are_within_one_percent_of_the_exact_order_statistic() {
     let h = LatencyHistogram::new();
     for v in 1..=1000u64 {

@@ -10,13 +10,16 @@ use anyhow::Context;
 use nalgebra::UnitQuaternion;
 use rt_core::control::stats::quantile_sorted;
 use rt_core::control::{Controller, StepClock, StepTimings, TrialState};
-use rt_core::ekf::Ekf;
 use rt_core::lab::LoopReport;
 use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use rt_core::timing::{MotionSample, TimedMotion};
 use serde::Serialize;
+
+use rt_core::sim::kuka::{SimReport, SimStats};
+
+use super::bench_peers::{EkfRun, IkPath, Peers};
 
 /// Arguments of `isochron bench`.
 #[derive(Debug, clap::Args)]
@@ -59,6 +62,11 @@ pub struct BenchArgs {
     /// for each expected datagram instead of sleeping through its arrival).
     #[arg(long, default_value = "auto")]
     pub rt_tuning: String,
+    /// A Python with `filterpy` and `roboticstoolbox-python` (`make bench` makes
+    /// `.venv-peers`): times their EKF step and C++ LM IK on the same inputs as
+    /// isochron's in the same run (`peers`: times, checks, ratios).
+    #[arg(long, value_name = "PYTHON")]
+    pub peers: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Serialize)]
@@ -102,6 +110,9 @@ struct Bench {
     loop_: LoopReport,
     /// The Foxglove client during the loop (`--foxglove-client`).
     foxglove: Option<FoxgloveLoad>,
+    /// filterpy's EKF and the Robotics Toolbox's IK on the same inputs
+    /// (`--peers`).
+    peers: Option<Peers>,
 }
 
 /// `vision_frame_ms`.
@@ -127,7 +138,7 @@ struct FriClientBench {
     period_ms: u32,
     /// isochron's FRI client session alone (the simulated controller's thread
     /// takes the `--rt-tuning` measures).
-    isochron: rt_core::sim::kuka::SimReport,
+    isochron: SimReport,
     /// isochron's own share of each round trip: datagram received -> reply
     /// sent, us.
     isochron_client_us: rt_core::fri::stats::LatencySummary,
@@ -137,12 +148,16 @@ struct FriClientBench {
     /// The `--kuka-client` application, when given, on any CPU of the process,
     /// against the simulated controller at normal priority and unpinned: that
     /// is where KUKA's example client answers fastest (a controller thread with
-    /// SCHED_FIFO roughly doubles its median).
-    kuka: Option<rt_core::sim::kuka::SimReport>,
-    /// isochron's reply latency p99 over the external client's (same run).
+    /// SCHED_FIFO roughly doubles its median). Half of `--fri-client-s` before
+    /// the lab's loop (`kuka`) and half after it (`kuka_after`), so that its
+    /// figure and the loop's come from the same minutes.
+    kuka: Option<SimReport>,
+    kuka_after: Option<SimReport>,
+    /// The external client's round-trip p99 over both halves, us.
+    kuka_p99_us: Option<f64>,
+    /// isochron's reply latency p99 (client alone) over `kuka_p99_us`.
     p99_ratio: Option<f64>,
-    /// The whole lab's (`loop`) reply latency p99 over the external client's
-    /// alone (same run).
+    /// The whole lab's (`loop`) reply latency p99 over `kuka_p99_us`.
     loop_p99_ratio: Option<f64>,
 }
 
@@ -210,24 +225,29 @@ fn ns_since(t: Instant) -> f64 {
     t.elapsed().as_nanos() as f64
 }
 
-fn ekf_ns(s: &Scenario) -> anyhow::Result<Vec<f64>> {
+/// The filter's inputs: 10 releases from 20..29 deg, 399 noise-free camera
+/// measurements each at 30 Hz.
+fn ekf_inputs(s: &Scenario) -> anyhow::Result<Vec<EkfRun>> {
     let model = PendulumModel::from_params(&s.pendulum)?;
     let geo = PendulumGeometry::new(s.pendulum.length_m, 0.6, s.task.intercept_height_m)?;
-    let mut out = Vec::with_capacity(4000);
+    let mut runs = Vec::with_capacity(10);
     for run in 0..10 {
-        let mut ekf = Ekf::new(s.ekf.clone(), model, geo)?;
         let mut sim = PendulumSim::held_at(model, geo, (20.0 + f64::from(run)).to_radians(), 0.0)?;
         sim.release(0.0)?;
+        let (mut t, mut z) = (Vec::with_capacity(400), Vec::with_capacity(400));
         for k in 1..400 {
-            let t = f64::from(k) / 30.0;
-            sim.advance_to(t)?;
-            let z = sim.lateral_m();
-            let started = Instant::now();
-            let _ = ekf.measure(t, z);
-            out.push(ns_since(started));
+            let tk = f64::from(k) / 30.0;
+            sim.advance_to(tk)?;
+            t.push(tk);
+            z.push(sim.lateral_m());
         }
+        runs.push(EkfRun {
+            t,
+            z,
+            phi_final: f64::NAN,
+        });
     }
-    Ok(sorted(out))
+    Ok(runs)
 }
 
 fn hopf_ns(s: &Scenario) -> anyhow::Result<Vec<f64>> {
@@ -247,10 +267,17 @@ fn hopf_ns(s: &Scenario) -> anyhow::Result<Vec<f64>> {
     Ok(sorted(out))
 }
 
-fn ik_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
+/// The per-cycle IK along the path home -> intercept (1,000 targets), ten
+/// times; each call's time (us, sorted) and the path it found.
+fn ik_us(s: &Scenario) -> anyhow::Result<(Vec<f64>, IkPath)> {
     let plan = Controller::plan(&s.beliefs(), 0.7)?;
     let a = nalgebra::Vector3::from(s.task.home_m);
     let mut out = Vec::with_capacity(10_000);
+    let mut path = IkPath {
+        path_len: 1000,
+        q_home: plan.posture.q_home,
+        q: Vec::with_capacity(1000),
+    };
     let mut q = plan.posture.q_home;
     for k in 0..10_000 {
         let u = f64::from(k % 1000) / 1000.0;
@@ -259,8 +286,11 @@ fn ik_us(s: &Scenario) -> anyhow::Result<Vec<f64>> {
         let started = Instant::now();
         let _ = plan.posture.joints_for_point(&p, &prev, &mut q);
         out.push(ns_since(started) * 1e-3);
+        if k < 1000 {
+            path.q.push(q);
+        }
     }
-    Ok(sorted(out))
+    Ok((sorted(out), path))
 }
 
 /// One phase of the trial (which branch of the step ran) and its cost.
@@ -567,12 +597,12 @@ fn vision_ms(s: &Scenario, frames: usize) -> anyhow::Result<VisionBench> {
 }
 
 /// The simulated controller at 1 ms sending to `client` for `window`, asking for
-/// commanding as soon as it can; its report.
+/// commanding as soon as it can; its report and statistics (round trips).
 fn controller_against(
     client: std::net::SocketAddr,
     window: Duration,
     normal_priority: bool,
-) -> anyhow::Result<rt_core::sim::kuka::SimReport> {
+) -> anyhow::Result<(SimReport, Arc<SimStats>)> {
     use rt_core::sim::kuka::{FriSimParams, SimRunOptions, SimServer};
     let server = SimServer::spawn(
         FriSimParams {
@@ -587,17 +617,58 @@ fn controller_against(
             normal_priority,
         },
     )?;
-    Ok(server.wait(window + Duration::from_secs(5))?)
+    let stats = Arc::clone(server.stats());
+    Ok((server.wait(window + Duration::from_secs(5))?, stats))
+}
+
+/// The external client application at `path` answering the simulated
+/// controller for `window`: the application and the controller's thread (at
+/// normal priority, where KUKA's example answers fastest) on every CPU the
+/// process had (`cpus`), not only those `isolate` left.
+fn external_client(
+    path: &std::path::Path,
+    window: Duration,
+    cpus: Option<&rt_core::fri::priority::CpuSet>,
+) -> anyhow::Result<(SimReport, Arc<SimStats>)> {
+    if let Some(cpus) = cpus {
+        rt_core::fri::priority::set_current_cpus(cpus);
+    }
+    let mut child = std::process::Command::new(path)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .with_context(|| format!("cannot start --kuka-client {}", path.display()))?;
+    // The application binds its port after start-up: wait until the port is
+    // taken (a probe bind fails), at most 5 s.
+    let port = std::net::SocketAddr::from(([127, 0, 0, 1], 30200));
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while std::net::UdpSocket::bind(std::net::SocketAddr::from(([0, 0, 0, 0], 30200))).is_ok() {
+        if Instant::now() > deadline || child.try_wait()?.is_some() {
+            let _ = child.kill();
+            let _ = child.wait();
+            anyhow::bail!(
+                "--kuka-client {} did not bind 0.0.0.0:30200 within 5 s",
+                path.display()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let report = controller_against(port, window, true);
+    let _ = child.kill();
+    let _ = child.wait();
+    report
 }
 
 /// `fri_client`: isochron's FRI client session alone (holding position), then
 /// the external application at `kuka` (if any), each answering the simulated
-/// controller for `window`.
+/// controller for `window` (the external one for half of it: its other half
+/// comes after the lab's loop, [`external_after`]).
 fn fri_clients(
     window: Duration,
     kuka: Option<&std::path::Path>,
     cpus: Option<&rt_core::fri::priority::CpuSet>,
-) -> anyhow::Result<FriClientBench> {
+) -> anyhow::Result<(FriClientBench, Option<Arc<SimStats>>)> {
     use rt_core::fri::{FriClientParams, FriSession, FriSessionParams, HoldPosition};
     let session = FriSession::spawn(
         FriSessionParams {
@@ -608,59 +679,56 @@ fn fri_clients(
         },
         HoldPosition,
     )?;
-    let isochron = controller_against(session.local_addr(), window, false)?;
+    let (isochron, _) = controller_against(session.local_addr(), window, false)?;
     let isochron_client_us = session.stats().reply_latency.summary_us();
     let spin_ns = session.stats().spin_ns.load(Ordering::Relaxed);
     drop(session);
-    let kuka = match kuka {
-        None => None,
+    let (kuka, kuka_stats) = match kuka {
+        None => (None, None),
         Some(path) => {
-            // The application and the controller's thread (both started from
-            // here) on every CPU the process had, not only those `isolate` left.
-            if let Some(cpus) = cpus {
-                rt_core::fri::priority::set_current_cpus(cpus);
-            }
-            let mut child = std::process::Command::new(path)
-                .stdin(std::process::Stdio::null())
-                .stdout(std::process::Stdio::null())
-                .stderr(std::process::Stdio::null())
-                .spawn()
-                .with_context(|| format!("cannot start --kuka-client {}", path.display()))?;
-            // The application binds its port after start-up: wait until the
-            // port is taken (a probe bind fails), at most 5 s.
-            let port = std::net::SocketAddr::from(([127, 0, 0, 1], 30200));
-            let deadline = Instant::now() + Duration::from_secs(5);
-            while std::net::UdpSocket::bind(std::net::SocketAddr::from(([0, 0, 0, 0], 30200)))
-                .is_ok()
-            {
-                if Instant::now() > deadline || child.try_wait()?.is_some() {
-                    let _ = child.kill();
-                    anyhow::bail!(
-                        "--kuka-client {} did not bind port 30200 within 5 s",
-                        path.display()
-                    );
-                }
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            let report = controller_against(port, window, true);
-            let _ = child.kill();
-            let _ = child.wait();
-            Some(report?)
+            let (r, st) = external_client(path, window / 2, cpus)?;
+            (Some(r), Some(st))
         }
     };
-    let p99_ratio = kuka
-        .as_ref()
-        .filter(|k| k.rtt_us.p99 > 0.0)
-        .map(|k| isochron.rtt_us.p99 / k.rtt_us.p99);
-    Ok(FriClientBench {
-        period_ms: 1,
-        isochron_spin_cpu_share: spin_ns as f64 / window.as_nanos().max(1) as f64,
-        isochron_client_us,
-        isochron,
-        kuka,
-        p99_ratio,
-        loop_p99_ratio: None,
-    })
+    Ok((
+        FriClientBench {
+            period_ms: 1,
+            isochron_spin_cpu_share: spin_ns as f64 / window.as_nanos().max(1) as f64,
+            isochron_client_us,
+            isochron,
+            kuka,
+            kuka_after: None,
+            kuka_p99_us: None,
+            p99_ratio: None,
+            loop_p99_ratio: None,
+        },
+        kuka_stats,
+    ))
+}
+
+/// The external client's second half window, after the lab's loop; fills
+/// `kuka_after`, `kuka_p99_us` (both halves as one) and the ratios.
+fn external_after(
+    fri: &mut FriClientBench,
+    before: Option<Arc<SimStats>>,
+    path: Option<&std::path::Path>,
+    window: Duration,
+    cpus: Option<&rt_core::fri::priority::CpuSet>,
+    loop_p99_us: f64,
+) -> anyhow::Result<()> {
+    let (Some(before), Some(path)) = (before, path) else {
+        return Ok(());
+    };
+    let (after, after_stats) = external_client(path, window / 2, cpus)?;
+    before.rtt.absorb(&after_stats.rtt);
+    let p99 = before.rtt.summary_us().p99;
+    fri.kuka_after = Some(after);
+    if p99 > 0.0 {
+        fri.kuka_p99_us = Some(p99);
+        fri.p99_ratio = Some(fri.isochron.rtt_us.p99 / p99);
+        fri.loop_p99_ratio = Some(loop_p99_us / p99);
+    }
+    Ok(())
 }
 
 /// Runs the benches; returns the text for stdout.
@@ -692,10 +760,27 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?;
     rt_core::fri::priority::configure(tuning);
     let cpus = rt_core::fri::priority::current_cpus();
+    if let Some(p) = &args.peers
+        && !p.is_file()
+    {
+        anyhow::bail!("--peers {}: no such file", p.display());
+    }
     let s = Scenario::default();
-    let e = ekf_ns(&s)?;
+    let mut ekf_runs = ekf_inputs(&s)?;
+    let e = sorted(super::bench_peers::time_ekf(&s, &mut ekf_runs)?);
     let h = hopf_ns(&s)?;
-    let ik = ik_us(&s)?;
+    let (ik, ik_path) = ik_us(&s)?;
+    let q = quantile_sorted;
+    let peers = match &args.peers {
+        Some(python) => Some(super::bench_peers::run(
+            python,
+            &s,
+            &ekf_runs,
+            &ik_path,
+            (q(&e, 0.5), q(&ik, 0.5)),
+        )?),
+        None => None,
+    };
     if !(1..=1000).contains(&args.control_trials) {
         anyhow::bail!(
             "--control-trials = {} is out of range: must be in 1..=1000",
@@ -713,11 +798,9 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
     // The same real-time measures for the clients alone as for the lab below
     // (the simulated controller's thread takes them for both clients).
     rt_core::fri::priority::enable();
-    let mut fri = fri_clients(
-        Duration::from_secs_f64(args.fri_client_s),
-        args.kuka_client.as_deref(),
-        cpus.as_ref(),
-    )?;
+    let fri_window = Duration::from_secs_f64(args.fri_client_s);
+    let (mut fri, kuka_before) =
+        fri_clients(fri_window, args.kuka_client.as_deref(), cpus.as_ref())?;
     let mut rt = s.clone();
     rt.robot.fri_period_ms = 1;
     let (lp, fox) = loop_with_clients(
@@ -726,12 +809,14 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         args.ws_clients,
         args.foxglove_client,
     )?;
-    fri.loop_p99_ratio = fri
-        .kuka
-        .as_ref()
-        .filter(|k| k.rtt_us.p99 > 0.0)
-        .map(|k| lp.reply_latency_us.p99 / k.rtt_us.p99);
-    let q = quantile_sorted;
+    external_after(
+        &mut fri,
+        kuka_before,
+        args.kuka_client.as_deref(),
+        fri_window,
+        cpus.as_ref(),
+        lp.reply_latency_us.p99,
+    )?;
     let b = Bench {
         ekf_step_ns: P2 {
             p50: q(&e, 0.5),
@@ -753,6 +838,7 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         fri_client: fri,
         loop_: lp,
         foxglove: fox,
+        peers,
     };
     if args.json {
         return Ok(serde_json::to_string(&b)?);
@@ -770,7 +856,8 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us \
          (p99 over the --kuka-client's: {}); client receive -> send p50 {:.0} us, p99 {:.0} us; spinning {:.1}% of the time \
          ({} spins given up); {} WebSocket clients at {:.0} state messages/s; {}\n\
-         real time       asked {}: FRI threads on CPU {}, {} other threads kept off it, memory {}",
+         real time       asked {}: FRI threads on CPU {}, {} other threads kept off it, memory {}\n\
+         peers           {}",
         b.ekf_step_ns.p50,
         b.ekf_step_ns.p99,
         b.hopf_step_ns.p50,
@@ -812,12 +899,18 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         b.fri_client.kuka.as_ref().map_or_else(
             || "no --kuka-client".to_owned(),
             |k| format!(
-                "--kuka-client: p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing (p99 ratio {:.2})",
+                "--kuka-client before the loop: p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing; \
+                 after it: p99 {:.0} us; both: p99 {:.0} us (isochron's over it {:.2})",
                 k.rtt_us.p50,
                 k.rtt_us.p99,
                 k.rtt_us.p999,
                 k.late_replies,
                 k.missing_replies,
+                b.fri_client
+                    .kuka_after
+                    .as_ref()
+                    .map_or(f64::NAN, |a| a.rtt_us.p99),
+                b.fri_client.kuka_p99_us.unwrap_or(f64::NAN),
                 b.fri_client.p99_ratio.unwrap_or(f64::NAN)
             )
         ),
@@ -855,7 +948,34 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
         } else {
             "not locked"
         },
+        b.peers
+            .as_ref()
+            .map_or_else(|| "no --peers".to_owned(), peers_line),
     ))
+}
+
+fn peers_line(p: &Peers) -> String {
+    let ratio = |r: Option<f64>| r.map_or_else(|| "refused".to_owned(), |r| format!("{r:.0}x"));
+    let mut line = format!(
+        "filterpy {} EKF step p50 {:.0} ns, p99 {:.0} ns (isochron's is {} faster; final angles within {:.1e} rad); \
+         Robotics Toolbox {} ik_LM p50 {:.1} us, p99 {:.1} us, {} of {} solved (isochron's IK is {} faster)",
+        p.versions[2],
+        p.filterpy_ekf_step_ns.p50,
+        p.filterpy_ekf_step_ns.p99,
+        ratio(p.ekf_ratio),
+        p.filterpy_final_angle_max_diff_rad,
+        p.versions[3],
+        p.toolbox_ik_lm_us.p50,
+        p.toolbox_ik_lm_us.p99,
+        p.toolbox_ik_solved,
+        p.ik_targets,
+        ratio(p.ik_ratio),
+    );
+    for r in &p.refused {
+        line.push_str("; ");
+        line.push_str(r);
+    }
+    line
 }
 
 #[cfg(test)]
@@ -873,6 +993,7 @@ mod tests {
             kuka_client: None,
             vision_frames: 4,
             rt_tuning: "all".into(),
+            peers: None,
         }
     }
 
@@ -888,7 +1009,8 @@ mod tests {
 
     #[test]
     fn the_fri_client_alone_answers_the_simulated_controller_while_commanding() {
-        let f = fri_clients(Duration::from_millis(600), None, None).unwrap();
+        let (f, kuka) = fri_clients(Duration::from_millis(1500), None, None).unwrap();
+        assert!(kuka.is_none());
         let r = &f.isochron;
         assert!(
             r.states_reached.contains(&"COMMANDING_ACTIVE"),
@@ -921,5 +1043,6 @@ mod tests {
             |a| a.kuka_client = Some("/nonexistent/kuka-client".into()),
             "--kuka-client",
         );
+        bad(|a| a.peers = Some("/nonexistent/python".into()), "--peers");
     }
 }

@@ -1,6 +1,7 @@
 //! The `isochron` subcommands, one file each.
 
 pub mod bench;
+pub mod bench_peers;
 pub mod calibrate;
 pub mod detect;
 pub mod eval;
