@@ -151,15 +151,26 @@ impl HsvRange {
         for y in 0..rows {
             let src = img.at_row::<Vec3b>(y * step)?;
             let dst = out.at_row_mut::<u8>(y)?;
-            for (d, p) in dst.iter_mut().zip(src.iter().step_by(step as usize)) {
-                *d = if self.contains(p[0], p[1], p[2]) {
-                    255
-                } else {
-                    0
-                };
+            if step == 1 {
+                self.mask_row(dst, src.iter());
+            } else {
+                self.mask_row(dst, src.iter().step_by(step as usize));
             }
         }
         Ok(())
+    }
+
+    /// One row of [`Self::mask_sampled`] (the plain iterator for step 1:
+    /// `step_by` costs a fifth more per pixel).
+    #[inline(always)]
+    fn mask_row<'a>(&self, dst: &mut [u8], src: impl Iterator<Item = &'a Vec3b>) {
+        for (d, p) in dst.iter_mut().zip(src) {
+            *d = if self.contains(p[0], p[1], p[2]) {
+                255
+            } else {
+                0
+            };
+        }
     }
 }
 

@@ -2,7 +2,8 @@
 //!
 //! Per search region: the ball's colour range in HSV ([`super::colour`]: OpenCV's
 //! BGR -> HSV and `in_range`, fused into one pass), morphological
-//! open (specks) and close (holes), external contours; each blob is measured by
+//! open (specks) and close (holes) ([`super::morphology`]: OpenCV's
+//! `morphologyEx` with its elliptic kernels, in row passes), external contours; each blob is measured by
 //! its image moments (sub-pixel centroid, the moment ellipse) and accepted only
 //! if its size, elongation, fill and the fit of its outline to the moment ellipse
 //! (the shape confirmation) are those of a ball, possibly motion-blurred.
@@ -11,13 +12,17 @@
 //! candidates are refined at full resolution.
 
 use opencv::{
-    core::{self, Mat, MatTraitConst, Point, Rect, Size, ToInputArray, Vector},
+    core::{
+        self, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Point, Rect, Scalar,
+        ToInputArray, Vector,
+    },
     imgproc,
 };
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
 use super::colour::HsvRange;
+use super::morphology::{Morphology, RunKernel};
 use crate::check::{self, ParamError};
 
 /// The arc fit's sampling seed (deterministic for the same frames).
@@ -165,8 +170,10 @@ struct Track {
 pub struct Detector {
     params: DetectorParams,
     colour: HsvRange,
-    kernel_open: Mat,
-    kernel_close: Mat,
+    /// OpenCV's 3x3 and 5x5 `MORPH_ELLIPSE`.
+    kernel_open: RunKernel,
+    kernel_close: RunKernel,
+    morph: Morphology,
     mask: Mat,
     tmp: Mat,
     contours: Vector<Vector<Point>>,
@@ -225,15 +232,14 @@ impl Detector {
             ],
             [(params.hue_deg[1] / 2.0).ceil() as u8, 255, 255],
         );
-        let kernel_open =
-            imgproc::get_structuring_element_def(imgproc::MORPH_ELLIPSE, Size::new(3, 3))?;
-        let kernel_close =
-            imgproc::get_structuring_element_def(imgproc::MORPH_ELLIPSE, Size::new(5, 5))?;
+        let kernel_open = RunKernel::ellipse(3);
+        let kernel_close = RunKernel::ellipse(5);
         Ok(Self {
             params,
             colour,
             kernel_open,
             kernel_close,
+            morph: Morphology::default(),
             mask: Mat::default(),
             tmp: Mat::default(),
             contours: Vector::new(),
@@ -625,16 +631,23 @@ impl Detector {
         frame_w: i32,
         frame_h: i32,
     ) -> Result<(), VisionError> {
-        imgproc::morphology_ex_def(
-            &self.tmp,
-            &mut self.mask,
-            imgproc::MORPH_OPEN,
+        let (mw, mh) = (self.tmp.cols(), self.tmp.rows());
+        if self.mask.cols() != mw || self.mask.rows() != mh || self.mask.typ() != core::CV_8UC1 {
+            self.mask = Mat::new_rows_cols_with_default(mh, mw, core::CV_8UC1, Scalar::all(0.0))?;
+        }
+        let (uw, uh) = (mw as usize, mh as usize);
+        self.morph.open(
+            self.tmp.data_bytes()?,
+            self.mask.data_bytes_mut()?,
+            uw,
+            uh,
             &self.kernel_open,
         )?;
-        imgproc::morphology_ex_def(
-            &self.mask,
-            &mut self.tmp,
-            imgproc::MORPH_CLOSE,
+        self.morph.close(
+            self.mask.data_bytes()?,
+            self.tmp.data_bytes_mut()?,
+            uw,
+            uh,
             &self.kernel_close,
         )?;
         std::mem::swap(&mut self.mask, &mut self.tmp);

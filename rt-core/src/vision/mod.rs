@@ -5,6 +5,7 @@ pub mod calibration;
 pub mod colour;
 #[cfg(feature = "opencv")]
 pub mod detector;
+pub mod morphology;
 #[cfg(feature = "opencv")]
 pub mod source;
 #[cfg(feature = "opencv")]
