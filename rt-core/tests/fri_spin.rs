@@ -94,4 +94,16 @@ fn the_session_spins_for_expected_datagrams_answers_all_and_gives_up_on_silence(
     });
     drop(sim);
     drop(session);
+    // The stages of receive -> send: every reply's send, every message's
+    // step, each inside its reply's time.
+    let replies = stats.replies.load(Relaxed);
+    assert_eq!(stats.send_latency.count(), replies);
+    assert!(
+        stats.step_latency.count() >= replies,
+        "{} steps",
+        stats.step_latency.count()
+    );
+    let max = stats.reply_latency.max_ns();
+    assert!(stats.send_latency.max_ns() <= max && stats.step_latency.max_ns() <= max);
+    assert!(stats.send_latency.quantile_ns(0.5) > 0);
 }

@@ -221,6 +221,13 @@ pub struct SessionStats {
     pub spins_gave_up: AtomicU64,
     /// Receive -> reply sent, per reply.
     pub reply_latency: LatencyHistogram,
+    /// Of that, the control step ([`ControlStep::step`]), wall clock, per
+    /// controller message (by the runtime: the client has no clock).
+    pub step_latency: LatencyHistogram,
+    /// Of that, handing the reply to the kernel (`send_to`), per reply (by
+    /// the runtime). On a CPU shared with a higher-priority receiver (the
+    /// simulated controller) it includes the receiver's handling of it.
+    pub send_latency: LatencyHistogram,
     /// |arrival interval - send period| between consecutive messages.
     pub arrival_jitter: LatencyHistogram,
     /// The controller's last `sequenceCounter`.

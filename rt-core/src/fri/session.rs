@@ -14,7 +14,10 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
-use super::client::{ControlStep, FriClient, FriClientParams, LinkState, SessionStats};
+use super::client::{
+    ControlStep, FriClient, FriClientParams, LinkState, SessionStats, StepInput, StopReason,
+};
+use super::codec::Joints;
 use super::net::wait_readable;
 use crate::check::ParamError;
 
@@ -183,13 +186,54 @@ impl Arrival {
     }
 }
 
+/// The control step timed by wall clock into [`SessionStats::step_latency`]
+/// (one clock read before and after: the client itself has no clock).
+struct Timed<'a, C> {
+    inner: C,
+    stats: &'a SessionStats,
+}
+
+impl<C: ControlStep> ControlStep for Timed<'_, C> {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        let t = Instant::now();
+        self.inner.step(input, command_rad);
+        self.stats
+            .step_latency
+            .record_ns(t.elapsed().as_nanos() as u64);
+    }
+
+    fn stop(&mut self, reason: StopReason) {
+        self.inner.stop(reason);
+    }
+
+    fn idle(&mut self, now_ns: u64) {
+        self.inner.idle(now_ns);
+    }
+}
+
 fn run<C: ControlStep>(
     socket: UdpSocket,
-    mut client: FriClient,
-    mut control: C,
+    client: FriClient,
+    control: C,
     params: &FriSessionParams,
     stop: &AtomicBool,
 ) -> Result<C, SessionError> {
+    let stats = Arc::clone(client.stats());
+    let mut control = Timed {
+        inner: control,
+        stats: &stats,
+    };
+    run_timed(socket, client, &mut control, params, stop)?;
+    Ok(control.inner)
+}
+
+fn run_timed<C: ControlStep>(
+    socket: UdpSocket,
+    mut client: FriClient,
+    control: &mut C,
+    params: &FriSessionParams,
+    stop: &AtomicBool,
+) -> Result<(), SessionError> {
     let epoch = Instant::now();
     let now_ns = || epoch.elapsed().as_nanos() as u64;
     // Larger than an FRI datagram so oversize ones are seen (and refused).
@@ -246,7 +290,7 @@ fn run<C: ControlStep>(
                     {
                         continue;
                     }
-                    client.poll(now_ns(), &mut control);
+                    client.poll(now_ns(), control);
                     control.idle(now_ns());
                     continue;
                 }
@@ -255,7 +299,7 @@ fn run<C: ControlStep>(
                     // Nothing after all, an ICMP "port unreachable" from an
                     // earlier send, or a signal: check the deadline and go on.
                     Err(_) => {
-                        client.poll(now_ns(), &mut control);
+                        client.poll(now_ns(), control);
                         None
                     }
                 }
@@ -270,11 +314,14 @@ fn run<C: ControlStep>(
             continue;
         }
         let to = params.controller.unwrap_or(from);
-        if let Some(reply) = client.on_datagram(&buf[..n], t_rx, &mut control) {
+        if let Some(reply) = client.on_datagram(&buf[..n], t_rx, control) {
+            let t_send = now_ns();
             if socket.send_to(reply, to).is_err() {
                 stats.send_errors.fetch_add(1, Relaxed);
             }
-            let took = now_ns().saturating_sub(t_rx);
+            let t_sent = now_ns();
+            stats.send_latency.record_ns(t_sent.saturating_sub(t_send));
+            let took = t_sent.saturating_sub(t_rx);
             // The threshold after the datagram: the first one sets the period.
             stats.record_reply_latency(took, client.late_after_ns());
         }
@@ -283,7 +330,7 @@ fn run<C: ControlStep>(
             break;
         }
     }
-    Ok(control)
+    Ok(())
 }
 
 #[cfg(test)]

@@ -109,6 +109,44 @@ impl LatencyHistogram {
         self.max_ns.fetch_max(other.max_ns(), Relaxed);
     }
 
+    /// A copy of the counts now: the start of a measurement window
+    /// ([`Self::since`]).
+    pub fn copy(&self) -> Self {
+        let h = Self::new();
+        h.absorb(self);
+        h
+    }
+
+    /// The samples recorded since `start` (a [`Self::copy`] of this
+    /// histogram): one window of a running measurement, without what came
+    /// before it (a session's start-up). Its maximum is the upper edge of
+    /// the highest bucket that grew (within 0.8%), capped at the maximum so far.
+    pub fn since(&self, start: &Self) -> Self {
+        let h = Self::new();
+        let (mut total, mut top) = (0, None);
+        for (i, ((d, now), then)) in h
+            .buckets
+            .iter()
+            .zip(&self.buckets)
+            .zip(&start.buckets)
+            .enumerate()
+        {
+            let n = now.load(Relaxed).saturating_sub(then.load(Relaxed));
+            if n > 0 {
+                d.store(n, Relaxed);
+                total += n;
+                top = Some(i);
+            }
+        }
+        h.count.store(total, Relaxed);
+        let max = top.map_or(0, |b| {
+            let (lo, width) = bucket_span_ns(b);
+            (lo + width - 1).min(self.max_ns())
+        });
+        h.max_ns.store(max, Relaxed);
+        h
+    }
+
     /// The largest sample, ns.
     pub fn max_ns(&self) -> u64 {
         self.max_ns.load(Relaxed)

@@ -1005,6 +1005,45 @@ fn two_histograms_absorbed_are_the_histogram_of_both_windows() {
 }
 
 #[test]
+fn a_window_of_a_running_histogram_has_only_the_samples_recorded_in_it() {
+    let (running, window) = (LatencyHistogram::new(), LatencyHistogram::new());
+    // A slow start-up (up to 2 ms), then the window's samples (20-120 us).
+    for v in 1..=300u64 {
+        running.record_ns(v * 7_000);
+    }
+    let start = running.copy();
+    assert_eq!(start.count(), 300);
+    for v in 1..=5000u64 {
+        let ns = 20_000 + (v * 7919) % 100_000;
+        running.record_ns(ns);
+        window.record_ns(ns);
+    }
+    let w = running.since(&start);
+    assert_eq!(w.count(), 5000);
+    for q in [0.01, 0.5, 0.9, 0.99] {
+        assert_eq!(w.quantile_ns(q), window.quantile_ns(q), "q {q}");
+    }
+    // In the top bucket the cap is the window's maximum's bucket edge, not
+    // the exact maximum: within 0.5%.
+    let (a, b) = (w.quantile_ns(0.999), window.quantile_ns(0.999));
+    assert!(a.abs_diff(b) * 200 <= b, "{a} vs {b}");
+    // The start-up's 2.1 ms is not the window's maximum (120 us is, within
+    // its bucket), and the running p99 still sees it.
+    let max = w.max_ns();
+    assert!(
+        max >= window.max_ns() && max < window.max_ns() * 101 / 100,
+        "{max}"
+    );
+    assert!(running.quantile_ns(0.99) > 1_000_000);
+    // Nothing since: empty.
+    let none = running.since(&running.copy());
+    assert_eq!(
+        (none.count(), none.max_ns(), none.quantile_ns(0.5)),
+        (0, 0, 0)
+    );
+}
+
+#[test]
 fn histogram_quantiles_are_within_one_percent_of_the_exact_order_statistic() {
     let h = LatencyHistogram::new();
     for v in 1..=1000u64 {

@@ -52,6 +52,8 @@ use crate::vision::{
 /// Reply latency percentiles, microseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
 pub struct LatencyUs {
+    /// Samples.
+    pub count: u64,
     /// Median.
     pub p50: f64,
     /// 99th percentile.
@@ -65,6 +67,7 @@ pub struct LatencyUs {
 impl From<crate::fri::stats::LatencySummary> for LatencyUs {
     fn from(s: crate::fri::stats::LatencySummary) -> Self {
         Self {
+            count: s.count,
             p50: s.p50,
             p99: s.p99,
             p999: s.p999,
@@ -84,7 +87,7 @@ pub struct LoopReport {
     pub late_replies: u64,
     /// Cycles whose reply never reached the controller.
     pub missed_cycles: u64,
-    /// Controller send -> reply received, microseconds (whole run).
+    /// Controller send -> reply received, microseconds (the window).
     pub reply_latency_us: LatencyUs,
     /// Control steps longer than the period.
     pub deadline_misses: u64,
@@ -93,10 +96,16 @@ pub struct LoopReport {
     /// Controller messages the client never received.
     pub client_missed_cycles: u64,
     /// The client's own share of the round trip: datagram received -> reply
-    /// sent (decode, control step, encode, send), microseconds (whole run).
+    /// sent (decode, control step, encode, send), microseconds (the window).
     /// The rest of `reply_latency_us` is the controller's send and the two
     /// hand-overs through the kernel.
     pub client_us: LatencyUs,
+    /// Of `client_us`, the control step (the lab's whole step: commands,
+    /// camera, trial, snapshot), microseconds (the window).
+    pub client_step_us: LatencyUs,
+    /// Of `client_us`, the reply's `send_to` (on the FRI CPU it includes
+    /// the simulated controller taking the reply), microseconds (the window).
+    pub client_send_us: LatencyUs,
     /// Fraction of the window the client spent polling for expected datagrams
     /// without sleeping ([`crate::fri::priority::RtTuning::spin`]; 0 without).
     pub spin_cpu_share: f64,
@@ -598,23 +607,34 @@ impl LabRuntime {
             });
             (c, s.unwrap_or((st.received.load(Ordering::Relaxed), 0, 0)))
         };
+        // The histograms of the window only: the session's start-up (first
+        // touches of its memory, the clients connecting) is not the loop.
+        let st = &self.session_stats;
+        let rtt = || self.sim_stats().map_or(&st.reply_latency, |s| &s.rtt);
+        let starts = [
+            rtt().copy(),
+            st.reply_latency.copy(),
+            st.step_latency.copy(),
+            st.send_latency.copy(),
+        ];
         let (c0, s0) = read();
         std::thread::sleep(window);
         let (c1, s1) = read();
-        let rtt = self.sim_stats().map_or_else(
-            || self.session_stats.reply_latency.summary_us(),
-            |s| s.rtt.summary_us(),
-        );
+        let us = |h: &crate::fri::stats::LatencyHistogram, start| {
+            LatencyUs::from(h.since(start).summary_us())
+        };
         LoopReport {
             period_ms: self.period_ms,
             cycles: s1.0 - s0.0,
             late_replies: s1.1 - s0.1,
             missed_cycles: s1.2 - s0.2,
-            reply_latency_us: LatencyUs::from(rtt),
+            reply_latency_us: us(rtt(), &starts[0]),
             deadline_misses: 0,
             client_late_replies: c1.0 - c0.0,
             client_missed_cycles: c1.1 - c0.1,
-            client_us: LatencyUs::from(self.session_stats.reply_latency.summary_us()),
+            client_us: us(&st.reply_latency, &starts[1]),
+            client_step_us: us(&st.step_latency, &starts[2]),
+            client_send_us: us(&st.send_latency, &starts[3]),
             spin_cpu_share: (c1.2 - c0.2) as f64 / window.as_nanos().max(1) as f64,
             spins_gave_up: c1.3 - c0.3,
             ws_clients: 0,
@@ -740,6 +760,28 @@ mod tests {
         // A loaded test machine may answer a few late, but must answer.
         assert!(r.missed_cycles * 10 <= r.cycles, "{r:?}");
         assert!(r.reply_latency_us.p50 > 0.0, "{r:?}");
+        // The histograms hold the window only (not the session's start-up):
+        // at most one sample per cycle (a loaded machine may miss some).
+        for (what, h) in [
+            ("reply", r.reply_latency_us),
+            ("client", r.client_us),
+            ("step", r.client_step_us),
+            ("send", r.client_send_us),
+        ] {
+            assert!(
+                2 * h.count >= r.cycles && h.count <= r.cycles + 3,
+                "{what}: {} samples in {} cycles",
+                h.count,
+                r.cycles
+            );
+        }
+        // The client's stages lie inside its receive -> send.
+        assert!(
+            r.client_step_us.p50 > 0.0 && r.client_send_us.p50 > 0.0,
+            "{r:?}"
+        );
+        assert!(r.client_step_us.p50 < r.client_us.p50, "{r:?}");
+        assert!(r.client_send_us.p50 < r.client_us.p50, "{r:?}");
     }
 
     #[test]

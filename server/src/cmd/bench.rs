@@ -142,6 +142,9 @@ struct FriClientBench {
     /// isochron's own share of each round trip: datagram received -> reply
     /// sent, us.
     isochron_client_us: rt_core::fri::stats::LatencySummary,
+    /// Of that, the reply's `send_to` (with the simulated controller on the
+    /// same CPU at a higher priority: its taking the reply), us.
+    isochron_send_us: rt_core::fri::stats::LatencySummary,
     /// Fraction of the window isochron's client spent polling for expected
     /// datagrams without sleeping (`spin`).
     isochron_spin_cpu_share: f64,
@@ -681,6 +684,7 @@ fn fri_clients(
     )?;
     let (isochron, _) = controller_against(session.local_addr(), window, false)?;
     let isochron_client_us = session.stats().reply_latency.summary_us();
+    let isochron_send_us = session.stats().send_latency.summary_us();
     let spin_ns = session.stats().spin_ns.load(Ordering::Relaxed);
     drop(session);
     let (kuka, kuka_stats) = match kuka {
@@ -695,6 +699,7 @@ fn fri_clients(
             period_ms: 1,
             isochron_spin_cpu_share: spin_ns as f64 / window.as_nanos().max(1) as f64,
             isochron_client_us,
+            isochron_send_us,
             isochron,
             kuka,
             kuka_after: None,
@@ -854,7 +859,7 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
          fri client      isochron alone: reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, {} late, {} missing \
          (its own receive -> send p50 {:.0} us, p99 {:.0} us; spinning {:.1}% of the time); {}\n\
          loop ({} ms)     {} cycles, {} late, {} missed; reply p50 {:.0} us, p99 {:.0} us, p99.9 {:.0} us, max {:.0} us \
-         (p99 over the --kuka-client's: {}); client receive -> send p50 {:.0} us, p99 {:.0} us; spinning {:.1}% of the time \
+         (p99 over the --kuka-client's: {}); client receive -> send p50 {:.0} us, p99 {:.0} us (of it the lab's step p50 {:.1} us, p99 {:.0} us; send p50 {:.0} us, p99 {:.0} us); spinning {:.1}% of the time \
          ({} spins given up); {} WebSocket clients at {:.0} state messages/s; {}\n\
          real time       asked {}: FRI threads on CPU {}, {} other threads kept off it, memory {}\n\
          peers           {}",
@@ -927,6 +932,10 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<String> {
             .map_or_else(|| "no --kuka-client".to_owned(), |r| format!("{r:.2}")),
         lp.client_us.p50,
         lp.client_us.p99,
+        lp.client_step_us.p50,
+        lp.client_step_us.p99,
+        lp.client_send_us.p50,
+        lp.client_send_us.p99,
         100.0 * lp.spin_cpu_share,
         lp.spins_gave_up,
         lp.ws_clients,
