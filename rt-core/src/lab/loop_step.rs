@@ -34,6 +34,12 @@ pub struct LoopStep {
     /// When `Some`, every step's cost and states are recorded (benches; the
     /// buffer is preallocated and never grows).
     pub timings: Option<StepTimings>,
+    /// Whether each step also reads the thread's CPU time (two system calls a
+    /// step; [`StepClock::start_wall`]). The real-time lab does not: on its FRI
+    /// thread the reply is the only system call of a cycle, and a step longer
+    /// than the period counts as a deadline miss, preempted or not. The
+    /// virtual-time lab and the benches do (they separate the two).
+    pub cpu_time: bool,
 }
 
 impl LoopStep {
@@ -48,6 +54,7 @@ impl LoopStep {
             max_step_ns: 0,
             max_step_cpu_ns: 0,
             timings: None,
+            cpu_time: true,
         }
     }
 
@@ -55,7 +62,11 @@ impl LoopStep {
     /// command to send.
     pub fn run(&mut self, t_s: f64, period_s: f64, m: &Monitoring) -> [f64; JOINTS] {
         let before = self.controller.state();
-        let clock = StepClock::start();
+        let clock = if self.cpu_time {
+            StepClock::start()
+        } else {
+            StepClock::start_wall()
+        };
         let q = m
             .measured_joint_position_rad
             .unwrap_or(self.out.q_command_rad);

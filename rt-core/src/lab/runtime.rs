@@ -439,7 +439,7 @@ impl LabRuntime {
 
         // The control thread: the FRI client session calling the lab's step.
         let session_cell = Arc::new(OnceLock::new());
-        let step = LabStep::new(
+        let mut step = LabStep::new(
             controller,
             LabParts {
                 scenario: Box::new(scenario.clone()),
@@ -458,6 +458,9 @@ impl LabRuntime {
                 operator_timeout_s,
             },
         );
+        // On the FRI thread the reply is the only system call of a cycle: the
+        // step is timed by wall clock only (`LoopStep::cpu_time`).
+        step.inner_mut().step.cpu_time = false;
         let (bind, controller_addr) = match fri {
             FriLink::Simulated => (SocketAddr::from(([127, 0, 0, 1], 0)), None),
             FriLink::Controller { bind, controller } => (bind, Some(controller)),

@@ -1150,8 +1150,6 @@ impl LabStep {
         let state = self.inner.controller().state();
         // The robot's true joints where the simulator tells them (the judge's
         // tool point), else the measured ones.
-        let q_true = self.q_true.unwrap_or(self.q);
-        let tool = self.inner.controller().tool_point(&q_true);
         let commit = self.inner.controller().commit().copied();
         if self.trial.is_some() {
             self.record_measured(t, commit.as_ref());
@@ -1159,6 +1157,8 @@ impl LabStep {
         let Some(trial) = self.trial.as_mut() else {
             return;
         };
+        let q_true = self.q_true.unwrap_or(self.q);
+        let tool = self.inner.controller().tool_point(&q_true);
         match trial.ball.as_mut() {
             Some(TrueBall::Ideal(ball)) => {
                 if trial.released && t > ball.time_s() {
