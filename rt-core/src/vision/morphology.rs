@@ -108,13 +108,7 @@ impl Morphology {
         h: usize,
         k: &RunKernel,
     ) -> Result<(), VisionError> {
-        check(src, dst, w, h)?;
-        let mut mid = std::mem::take(&mut self.mid);
-        mid.resize(w * h, 0);
-        self.apply::<true>(src, &mut mid, w, h, k);
-        self.apply::<false>(&mid, dst, w, h, k);
-        self.mid = mid;
-        Ok(())
+        self.twice(true, src, dst, (w, h), k)
     }
 
     /// `dst` = the closing of `src` (`w` x `h`) by `k`: dilation, then erosion.
@@ -127,11 +121,28 @@ impl Morphology {
         h: usize,
         k: &RunKernel,
     ) -> Result<(), VisionError> {
+        self.twice(false, src, dst, (w, h), k)
+    }
+
+    /// Erosion then dilation (`erode_first`, the opening), or the reverse.
+    fn twice(
+        &mut self,
+        erode_first: bool,
+        src: &[u8],
+        dst: &mut [u8],
+        (w, h): (usize, usize),
+        k: &RunKernel,
+    ) -> Result<(), VisionError> {
         check(src, dst, w, h)?;
         let mut mid = std::mem::take(&mut self.mid);
         mid.resize(w * h, 0);
-        self.apply::<false>(src, &mut mid, w, h, k);
-        self.apply::<true>(&mid, dst, w, h, k);
+        if erode_first {
+            self.apply::<true>(src, &mut mid, w, h, k);
+            self.apply::<false>(&mid, dst, w, h, k);
+        } else {
+            self.apply::<false>(src, &mut mid, w, h, k);
+            self.apply::<true>(&mid, dst, w, h, k);
+        }
         self.mid = mid;
         Ok(())
     }
