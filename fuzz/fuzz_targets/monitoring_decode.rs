@@ -4,7 +4,7 @@
 use std::cell::RefCell;
 
 use libfuzzer_sys::fuzz_target;
-use rt_core::fri::{MonitoringDecoder, MonitoringEncoder, FriVersion};
+use rt_core::fri::{FriVersion, MonitoringDecoder, MonitoringEncoder};
 
 thread_local! {
     // Kept across inputs, as the session keeps it across datagrams.

@@ -16,8 +16,8 @@ use rt_core::fri::{
     CommandDecoder, CommandEncoder, ControlStep, FriClient, FriClientParams, Joints, LinkState,
     MonitoringDecoder, MonitoringEncoder, SessionState, StepInput,
 };
-use rt_core::sim::kuka::{FriSimParams, SimController};
 use rt_core::kinematics::iiwa7::{JOINTS, POSITION_LIMIT_RAD};
+use rt_core::sim::kuka::{FriSimParams, SimController};
 
 /// One step of a session script: the first byte says what happens, a payload
 /// (2-byte little-endian length, then the bytes) follows for datagrams.
