@@ -153,6 +153,12 @@ pub trait ControlStep {
         let _ = reason;
     }
 
+    /// Called once after each controller datagram the client handled, when
+    /// its reply (if it had one) has been sent: work that must not delay the
+    /// reply (the lab's trial bookkeeping and snapshot). On the same thread,
+    /// before the next datagram.
+    fn after_reply(&mut self) {}
+
     /// No controller message came within a receive timeout (the session's
     /// thread calls it then, at least every few tens of milliseconds while
     /// there is no link; `now_ns` on the session's clock): time-driven work

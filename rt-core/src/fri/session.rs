@@ -206,6 +206,10 @@ impl<C: ControlStep> ControlStep for Timed<'_, C> {
         self.inner.stop(reason);
     }
 
+    fn after_reply(&mut self) {
+        self.inner.after_reply();
+    }
+
     fn idle(&mut self, now_ns: u64) {
         self.inner.idle(now_ns);
     }
@@ -325,6 +329,7 @@ fn run_timed<C: ControlStep>(
             // The threshold after the datagram: the first one sets the period.
             stats.record_reply_latency(took, client.late_after_ns());
         }
+        control.after_reply();
         arrival.on_datagram(t_rx, client.receive_period_ns());
         if params.exit_on_idle && client.state() == LinkState::Idle {
             break;

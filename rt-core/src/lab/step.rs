@@ -408,6 +408,9 @@ pub struct LabStep {
     period_max_us: f64,
     periods: u32,
     step_max_us: f64,
+    /// A step whose trial bookkeeping and snapshot wait for its reply to be
+    /// sent (`ControlStep::after_reply`): its control time, s.
+    after_pending: Option<f64>,
     magnet_failures: u64,
     /// A command waiting for `isochron-lab-io` (its ack id; true: cancelled by a stop).
     pending: Option<(u64, bool)>,
@@ -519,6 +522,7 @@ impl LabStep {
             period_max_us: 0.0,
             periods: 0,
             step_max_us: 0.0,
+            after_pending: None,
             magnet_failures: 0,
             pending: None,
             operator_since_s: f64::NEG_INFINITY,
@@ -1716,12 +1720,23 @@ impl ControlStep for LabStep {
         self.before(t);
         let lab_input = StepInput { now_ns, ..*input };
         self.inner.step(&lab_input, command_rad);
-        self.follow_trial(t);
-        self.fill_snapshot(t);
+        // The rest waits until the reply is out (`after_reply`).
         let us = started.elapsed().as_secs_f64() * 1e6;
         self.step_max_us = self.step_max_us.max(us);
         self.snap.timing.step_us = us;
         self.snap.timing.step_max_us = self.step_max_us;
+        self.after_pending = Some(t);
+    }
+
+    fn after_reply(&mut self) {
+        // The trial follows the step it saw (the judge's trace, the passes,
+        // the result), then the snapshot: none of it changes the command
+        // just sent, and all of it happens before the next message.
+        let Some(t) = self.after_pending.take() else {
+            return;
+        };
+        self.follow_trial(t);
+        self.fill_snapshot(t);
         self.p.bridge.publish(&self.snap);
     }
 

@@ -666,6 +666,8 @@ impl VirtualLab {
             if let Some(n) = len {
                 robot.on_reply(&reply[..n], now + LOOPBACK_NS);
             }
+            // As the session does once the reply is sent.
+            step.after_reply();
         }
         self.serve_requests(t_next);
         while self.server.events.pop().is_some() {}
