@@ -423,6 +423,12 @@ try {
     assert(job.state === "done", `calibrate ${step}: ${job.state}: ${job.message}`);
     assert(job.step === step && job.progress === 1, JSON.stringify(job).slice(0, 300));
     await page.waitForFunction((s) => document.querySelector(`#calibration li[data-step="${s}"]`)?.dataset.done === "true", step, { timeout: 10_000 });
+    // The page shows this job finished (a step run again was already done:
+    // its row says so before the page has drawn the new job's view).
+    await page.waitForFunction((id) => {
+      const m = document.querySelector("#calibration .cal-message");
+      return m?.dataset.job === String(id) && m.dataset.state === "done";
+    }, job.id, { timeout: 10_000 });
     const pts = Number(await page.getAttribute("#calibration canvas.cal-view", "data-points"));
     assert(pts > 0, `calibrate ${step}: the view shows no points`);
     const text = await calState(step);

@@ -163,6 +163,7 @@ export class CalibrationPanel {
     progress.hidden = job.state === "idle";
     const msg = this.root.querySelector(".cal-message") as HTMLElement;
     msg.dataset.state = job.state;
+    msg.dataset.job = String(job.id);
     msg.textContent = job.step ? `${job.step}: ${job.state}${job.message ? ` · ${job.message}` : ""}` : "no step run since the service started";
     const key = JSON.stringify([job.id, job.progress, job.view?.points.length, job.view?.fit.length, job.state]);
     if (key !== this.drawnView) {
