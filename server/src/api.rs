@@ -747,24 +747,11 @@ pub async fn start_trial(
     body: JsonBody,
 ) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
     empty_body(body)?;
-    let refused = state
-        .calibration
-        .as_ref()
-        .map_or_else(|| state.trials_refused.clone(), |d| d.trials_refused());
-    if let Some(why) = refused {
+    if let Some((reason, message)) = service_blocker(&state) {
         return Err(AppError::Conflict {
-            message: why,
+            message,
             field: None,
-            reason: Some("uncalibrated"),
-        });
-    }
-    if state.calibration.as_ref().is_some_and(|d| d.running()) {
-        return Err(AppError::Conflict {
-            message: "refused: a calibration step is running (GET /api/calibration); \
-                      start the trial when it has finished"
-                .into(),
-            field: None,
-            reason: Some("calibrating"),
+            reason: Some(reason),
         });
     }
     let lab = lab(&state)?;
@@ -780,12 +767,39 @@ pub async fn start_trial(
         move || r.create_trial(&origin)
     })
     .await?;
-    if let Err(e) = lab.command(Command::RunTrial { trial_id: id }).await {
-        let r = Arc::clone(&records);
-        blocking(move || r.delete_trial(id)).await?;
+    if let Err(e) = lab.run_trial(id).await {
+        // Refused: the trial never ran, its record goes. Not answered in
+        // time: the record stays, and the control loop's late answer settles
+        // it (removed if refused; an accepted trial finishes as any other).
+        if e != CommandError::NoAnswer {
+            let r = Arc::clone(&records);
+            blocking(move || r.delete_trial(id)).await?;
+        }
         return Err(command_error(e));
     }
     Ok((StatusCode::ACCEPTED, Json(TrialStarted { id })))
+}
+
+/// What the service (not the control loop) refuses trials for now: a real
+/// lab not calibrated (`uncalibrated`), a calibration step running
+/// (`calibrating`); with the sentence a 409 carries.
+pub(crate) fn service_blocker(state: &AppState) -> Option<(&'static str, String)> {
+    let refused = state
+        .calibration
+        .as_ref()
+        .map_or_else(|| state.trials_refused.clone(), |d| d.trials_refused());
+    if let Some(why) = refused {
+        return Some(("uncalibrated", why));
+    }
+    if state.calibration.as_ref().is_some_and(|d| d.running()) {
+        return Some((
+            "calibrating",
+            "refused: a calibration step is running (GET /api/calibration); \
+             start the trial when it has finished"
+                .into(),
+        ));
+    }
+    None
 }
 
 async fn blocking<T: Send + 'static>(

@@ -156,7 +156,15 @@ pub struct EventMessage<'a> {
     pub message: Option<&'static str>,
 }
 
-type Pending = HashMap<u64, oneshot::Sender<Result<(), Refusal>>>;
+/// Who waits for a command's answer: the request (gone once it timed out)
+/// and, for a trial, its record's id (a late answer still settles the record).
+#[derive(Debug)]
+struct Waiter {
+    tx: oneshot::Sender<Result<(), Refusal>>,
+    trial: Option<u64>,
+}
+
+type Pending = HashMap<u64, Waiter>;
 
 /// The lab as the server sees it.
 #[derive(Debug)]
@@ -339,6 +347,19 @@ impl Lab {
 
     /// Sends a command and waits for its acknowledgement.
     pub async fn command(&self, command: Command) -> Result<(), CommandError> {
+        self.send(command, None).await
+    }
+
+    /// Starts the trial whose record is `trial_id`. When the control loop
+    /// answers only after the timeout, the answer still settles the record
+    /// (the bridge thread deletes it when the trial was refused; an accepted
+    /// trial finishes as any other), so a trial the lab ran is never lost.
+    pub async fn run_trial(&self, trial_id: u64) -> Result<(), CommandError> {
+        self.send(Command::RunTrial { trial_id }, Some(trial_id))
+            .await
+    }
+
+    async fn send(&self, command: Command, trial: Option<u64>) -> Result<(), CommandError> {
         let rx = {
             let mut pending = self.pending.lock().map_err(|_| CommandError::NotRunning)?;
             let mut tx = self.commands.lock().map_err(|_| CommandError::NotRunning)?;
@@ -347,7 +368,7 @@ impl Lab {
             }
             let id = tx.send(command).map_err(|_| CommandError::Full)?;
             let (ack_tx, ack_rx) = oneshot::channel();
-            pending.insert(id, ack_tx);
+            pending.insert(id, Waiter { tx: ack_tx, trial });
             (id, ack_rx)
         };
         let (id, rx) = rx;
@@ -355,7 +376,10 @@ impl Lab {
             Ok(Ok(outcome)) => outcome.map_err(CommandError::Refused),
             Ok(Err(_)) => Err(CommandError::NotRunning),
             Err(_) => {
-                if let Ok(mut p) = self.pending.lock() {
+                // A trial's waiter stays: its late answer settles the record.
+                if trial.is_none()
+                    && let Ok(mut p) = self.pending.lock()
+                {
                     p.remove(&id);
                 }
                 Err(CommandError::NoAnswer)
@@ -417,8 +441,26 @@ impl Pump {
                 .lock()
                 .ok()
                 .and_then(|mut p| p.remove(&ack.id));
-            if let Some(tx) = waiter {
-                let _ = tx.send(ack.outcome);
+            let Some(Waiter { tx, trial }) = waiter else {
+                continue;
+            };
+            if tx.send(ack.outcome).is_ok() {
+                continue;
+            }
+            // Nobody waits any more (the request timed out): a trial the
+            // control loop refused late never ran, so its record goes, as it
+            // does for a refusal in time; an accepted one finishes by its events.
+            if let (Some(id), Err(refusal), Some(records)) = (trial, ack.outcome, &self.records) {
+                match records.delete_trial(id) {
+                    Ok(()) => tracing::warn!(
+                        trial = id,
+                        reason = refusal.as_str(),
+                        "a trial refused after its request timed out: record removed"
+                    ),
+                    Err(e) => {
+                        tracing::error!(trial = id, error = ?e, "cannot remove a refused trial")
+                    }
+                }
             }
         }
     }

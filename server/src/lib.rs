@@ -176,15 +176,55 @@ pub struct Health {
     pub records: bool,
     /// Commands need a bearer token.
     pub token_required: bool,
+    /// `POST /api/trials` would start a trial now.
+    pub ready: bool,
+    /// Why not (null when `ready`): what a script waits on instead of retrying 409s.
+    pub not_ready: Option<NotReady>,
 }
 
-/// The service is up.
+/// Why the lab would not take a trial now.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct NotReady {
+    /// `no_lab` (no control loop runs), `starting` (none has published a
+    /// state yet), `uncalibrated`, `calibrating`, or the control loop's
+    /// refusal: `busy` (a trial runs, is planned or is finishing its record),
+    /// `robot_not_commanding`, `device_unavailable`.
+    pub reason: &'static str,
+    /// The reason as a sentence.
+    pub message: String,
+}
+
+/// Why a trial posted now would not start (`None`: it would).
+fn not_ready(state: &AppState) -> Option<NotReady> {
+    if let Some((reason, message)) = api::service_blocker(state) {
+        return Some(NotReady { reason, message });
+    }
+    let Some(lab) = state.lab.as_ref() else {
+        return Some(NotReady {
+            reason: "no_lab",
+            message: "no lab (control loop) runs in this service".into(),
+        });
+    };
+    let Some((snapshot, _)) = lab.latest() else {
+        return Some(NotReady {
+            reason: "starting",
+            message: "the lab has not published a state yet".into(),
+        });
+    };
+    snapshot.ready.reason.map(|r| NotReady {
+        reason: r.as_str(),
+        message: r.message().to_owned(),
+    })
+}
+
+/// The service is up, and whether the lab would take a trial now (and if not, why).
 #[utoipa::path(get, path = "/api/health", tag = "service",
     responses((status = 200, description = "the service answers", body = Health)))]
 pub async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
     let t_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64());
+    let not_ready = not_ready(&state);
     Json(Health {
         status: "ok",
         version: VERSION,
@@ -193,6 +233,8 @@ pub async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
         lab: state.lab.is_some(),
         records: state.records.is_some(),
         token_required: state.token.is_some(),
+        ready: not_ready.is_none(),
+        not_ready,
     })
 }
 

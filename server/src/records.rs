@@ -7,8 +7,9 @@
 //! ```
 //! A recording is appended while the trial runs (flushed every pump tick) and
 //! fsynced when it ends, so a crash of the service loses at most the last
-//! moments of a running trial; trials left `running` by a crash are marked
-//! `interrupted` at the next start.
+//! moments of a running trial; a trial left `running` by a crash (or a stop
+//! of the service mid-trial) is closed at the next start as `aborted` with
+//! `abort_reason` `service_restarted`: no record stays `running`.
 
 use std::{
     fs::{File, OpenOptions},
@@ -38,7 +39,8 @@ pub struct TrialRecord {
     /// Trial id (> 0).
     #[ts(type = "number")]
     pub id: u64,
-    /// `running`, `done`, `aborted` or `interrupted` (the service stopped mid-trial).
+    /// `running`, `done` or `aborted` (a trial the service stopped in is
+    /// closed at its next start as `aborted`, `abort_reason` `service_restarted`).
     pub status: String,
     /// Why it ended so, a sentence (null while running): the abort's reason
     /// and what the lab saw, `not judged: ...` for a trial whose outcome
@@ -166,16 +168,23 @@ impl Records {
                 db.execute_batch(&format!("ALTER TABLE trials ADD COLUMN {name} {ty}"))?;
             }
         }
-        let interrupted = db.execute(
-            "UPDATE trials SET status = 'interrupted',
-               reason = 'interrupted: the service stopped while the trial ran'
-             WHERE status = 'running'",
-            [],
+        // Trials a crash or a stop of the service left `running` (and rows an
+        // older version marked `interrupted`) are closed as aborted.
+        let restarted = rt_core::bridge::AbortReason::ServiceRestarted;
+        let closed = db.execute(
+            "UPDATE trials SET status = 'aborted', success = 0, abort_reason = ?1,
+               reason = ?2, finished_unix_s = COALESCE(finished_unix_s, ?3)
+             WHERE status IN ('running', 'interrupted')",
+            params![
+                restarted.as_str(),
+                abort_sentence(restarted, ""),
+                unix_now_s()
+            ],
         )?;
-        if interrupted > 0 {
+        if closed > 0 {
             tracing::warn!(
-                interrupted,
-                "trials left running by the last run marked interrupted"
+                closed,
+                "trials left running by the last run closed as aborted (service_restarted)"
             );
         }
         Ok(Self {
@@ -660,7 +669,7 @@ mod tests {
     }
 
     #[test]
-    fn trials_survive_reopening_and_running_ones_become_interrupted() {
+    fn trials_survive_reopening_and_running_ones_are_closed_as_service_restarted() {
         let dir = tmp("reopen");
         {
             let r = Records::open(&dir).unwrap();
@@ -674,13 +683,13 @@ mod tests {
         let r = Records::open(&dir).unwrap();
         let list = r.list(10).unwrap();
         assert_eq!(list.len(), 2);
-        assert_eq!(list[0].status, "interrupted");
-        assert!(
-            list[0]
-                .reason
-                .as_deref()
-                .unwrap()
-                .starts_with("interrupted")
+        assert_eq!(list[0].status, "aborted");
+        assert_eq!(list[0].abort_reason.as_deref(), Some("service_restarted"));
+        assert_eq!(list[0].success, Some(false));
+        assert!(list[0].finished_unix_s.is_some());
+        assert_eq!(
+            list[0].reason.as_deref(),
+            Some("aborted (service_restarted): the service stopped while the trial ran")
         );
         assert_eq!(list[1].status, "aborted");
         assert_eq!(list[1].abort_reason.as_deref(), Some("stop"));

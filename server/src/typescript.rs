@@ -9,7 +9,8 @@
 use rt_core::bridge::{
     AbortReason, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
     FriSessionState, FriView, HopfView, HorizonPoint, JudgedBy, LoopTiming, MagnetState,
-    Measurement, PathView, PendulumView, RobotView, Snapshot, TrialResult, TrialState,
+    Measurement, PathView, PendulumView, Readiness, Refusal, RobotView, Snapshot, TrialResult,
+    TrialState,
 };
 use rt_core::calibration::{StepView, ViewKind};
 use rt_core::control::measured::MeasuredJudgement;
@@ -44,6 +45,8 @@ pub fn declarations() -> String {
         CameraView::decl(),
         AbortReason::decl(),
         AbortView::decl(),
+        Refusal::decl(),
+        Readiness::decl(),
         Snapshot::decl(),
         MeasuredJudgement::decl(),
         JudgedBy::decl(),

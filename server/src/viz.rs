@@ -91,7 +91,7 @@ const SERIES_SCHEMA: &str = r#"{"type":"object","title":"isochron.Series","prope
 const JUDGEMENT_SCHEMA: &str = r#"{"type":"object","title":"isochron.TrialJudgement","properties":{
 "timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}},"description":"the trial's end, Unix time"},
 "trial_id":{"type":"integer"},
-"status":{"type":"string","description":"done, aborted or interrupted"},
+"status":{"type":"string","description":"done or aborted (service_restarted: the service stopped while the trial ran)"},
 "judged_by":{"type":["string","null"],"description":"truth (truthful simulated world), physical (reality lab), measured (real lab); null: not judged"},
 "success":{"type":["boolean","null"],"description":"the verdict; null: not judged"},
 "reason":{"type":"string","description":"the record's reason, a sentence"},
@@ -291,7 +291,8 @@ impl TrialJudgement {
                 r.measured,
             ),
             Some(TrialEnd::Aborted(..)) => ("aborted", None, Some(false), None, None),
-            None => ("interrupted", None, None, None, None),
+            // The service stopped mid-trial: the record is closed so at its next start.
+            None => ("aborted", None, Some(false), None, None),
         };
         Self {
             timestamp: js(stamp(unix_s)),
@@ -300,7 +301,12 @@ impl TrialJudgement {
             judged_by,
             success,
             reason: end.map_or_else(
-                || "interrupted: the service stopped while the trial ran".to_owned(),
+                || {
+                    crate::records::abort_sentence(
+                        rt_core::bridge::AbortReason::ServiceRestarted,
+                        "",
+                    )
+                },
                 crate::records::end_reason,
             ),
             truth,
@@ -762,7 +768,10 @@ impl Foxglove {
                 );
             }
             None => {
-                result.insert("status".to_owned(), "interrupted".to_owned());
+                let r = rt_core::bridge::AbortReason::ServiceRestarted;
+                result.insert("status".to_owned(), "aborted".to_owned());
+                result.insert("abort_reason".to_owned(), r.as_str().to_owned());
+                result.insert("reason".to_owned(), crate::records::abort_sentence(r, ""));
             }
         }
         result.insert("finished_unix_s".to_owned(), format!("{:.6}", unix_now_s()));

@@ -584,19 +584,29 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
     assert_eq!(r["status"], "done", "{r}");
     ids.extend([fifth, sixth]);
 
-    // Consecutive trials (REAL_LAB_TRIALS, default 3; the issue's
-    // acceptance: 20) all finish with a status and a reason.
+    // Consecutive trials (REAL_LAB_TRIALS, default 3; the acceptance: 50),
+    // scripted as a lab scripts them: the next trial is posted the moment the
+    // state shows the last one `done` (inside its after-done trace, whose
+    // record has not been concluded yet). All finish with a status and a reason.
     let n: usize = std::env::var("REAL_LAB_TRIALS")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(3);
     let t_run = Instant::now();
-    let mut durations = Vec::new();
-    for i in 0..n {
+    let (mut durations, mut consecutive, mut on_done) = (Vec::new(), Vec::new(), 0);
+    for _ in 0..n {
         let id = start_trial(addr, &mut refusals).await;
         let t0 = Instant::now();
-        let r = wait_record(addr, id, Duration::from_secs(60)).await;
+        let s = wait_state(addr, Duration::from_secs(60), "the trial ends", |s| {
+            matches!(s["trial_state"].as_str(), Some("done" | "idle" | "aborted"))
+        })
+        .await;
+        on_done += usize::from(s["trial_state"] == "done");
         durations.push(t0.elapsed().as_secs_f64());
+        consecutive.push(id);
+    }
+    for (i, &id) in consecutive.iter().enumerate() {
+        let r = wait_record(addr, id, Duration::from_secs(10)).await;
         assert_finished(&r);
         assert_eq!(r["status"], "done", "consecutive trial {i}: {r}");
         ids.push(id);
@@ -604,9 +614,10 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
     if n > 0 {
         durations.sort_by(f64::total_cmp);
         println!(
-            "wired real lab: {n} consecutive trials finished (done, with a reason) in {:.1} s; \
-             per trial min {:.2} / median {:.2} / max {:.2} s; momentary robot_not_commanding \
-             refusals over the run: {refusals}",
+            "wired real lab: {n} consecutive trials, each posted when the state showed the last \
+             one ended ({on_done} inside its after-done trace), all finished (done, with a \
+             reason) in {:.1} s; per trial min {:.2} / median {:.2} / max {:.2} s; momentary \
+             robot_not_commanding refusals over the run: {refusals}",
             t_run.elapsed().as_secs_f64(),
             durations[0],
             durations[n / 2],

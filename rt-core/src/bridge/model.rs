@@ -604,6 +604,41 @@ pub struct Snapshot {
     pub camera: CameraView,
     /// Why the last trial was aborted (kept until the next trial starts).
     pub abort: AbortView,
+    /// Whether the control loop would take a trial now, and if not, why.
+    pub ready: Readiness,
+}
+
+/// Whether the control loop would start a trial posted now (`POST
+/// /api/trials`), and if not, why: what a script waits on instead of
+/// retrying refusals. The service adds its own reasons (a calibration step
+/// running, a real lab not calibrated) in `GET /api/health`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, TS, ToSchema)]
+pub struct Readiness {
+    /// A trial posted now would start.
+    pub trial: bool,
+    /// Why not (`null` when it would): `busy` (a trial runs, is being planned
+    /// or is finishing its record), `robot_not_commanding`, `device_unavailable`.
+    pub reason: Option<Refusal>,
+    /// The reason as a sentence (empty when ready).
+    pub message: &'static str,
+}
+
+impl Readiness {
+    /// Ready when `refusal` is `None`.
+    pub const fn from_refusal(refusal: Option<Refusal>) -> Self {
+        match refusal {
+            None => Self {
+                trial: true,
+                reason: None,
+                message: "",
+            },
+            Some(r) => Self {
+                trial: false,
+                reason: Some(r),
+                message: r.message(),
+            },
+        }
+    }
 }
 
 /// Why the last trial was aborted, as `/api/state` and the dashboard show it.
@@ -644,6 +679,9 @@ pub enum AbortReason {
     Timeout,
     /// Anything else the control side detected.
     Internal,
+    /// The service stopped (or crashed) while the trial ran; its record was
+    /// closed when the service started again (never set by the control loop).
+    ServiceRestarted,
 }
 
 impl AbortReason {
@@ -660,6 +698,7 @@ impl AbortReason {
             Self::LimitViolation => "limit_violation",
             Self::Timeout => "timeout",
             Self::Internal => "internal",
+            Self::ServiceRestarted => "service_restarted",
         }
     }
 
@@ -676,6 +715,7 @@ impl AbortReason {
             Self::LimitViolation => "a joint limit would have been violated",
             Self::Timeout => "the interception condition was not met in time",
             Self::Internal => "internal error in the control loop",
+            Self::ServiceRestarted => "the service stopped while the trial ran",
         }
     }
 }

@@ -80,6 +80,8 @@ pub enum AbortReason {
     FilterFault,
     /// No operator heartbeat within the dead-man time while a trial ran.
     OperatorLost,
+    /// The operator disarmed the lab before the release.
+    Disarmed,
 }
 
 impl AbortReason {
@@ -97,6 +99,7 @@ impl AbortReason {
             Self::MagnetFault => "magnet_fault",
             Self::FilterFault => "filter_fault",
             Self::OperatorLost => "operator_lost",
+            Self::Disarmed => "disarmed",
         }
     }
 }

@@ -1,6 +1,7 @@
 #![doc = include_str!("README.md")]
 
 pub mod fri_step;
+pub mod lifecycle;
 pub mod loop_step;
 mod measured;
 #[cfg(all(feature = "opencv", feature = "serial"))]

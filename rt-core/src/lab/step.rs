@@ -458,6 +458,7 @@ fn map_abort(r: AbortReason) -> BridgeAbort {
         AbortReason::PredictionTimeout | AbortReason::MissedWindow => BridgeAbort::Timeout,
         AbortReason::MagnetFault => BridgeAbort::MagnetFault,
         AbortReason::OperatorLost => BridgeAbort::OperatorLost,
+        AbortReason::Disarmed => BridgeAbort::Disarmed,
         _ => BridgeAbort::Internal,
     }
 }
@@ -602,17 +603,12 @@ impl LabStep {
         }
         if self.p.bridge.take_stop_request() {
             let at = self.t_s;
-            self.controller().abort(at, AbortReason::StopRequested);
-            if let Some(p) = self.pending.as_mut() {
-                p.1 = true;
-            }
+            self.stop_now(at);
         }
         while let Ok(reply) = self.p.io_replies.pop() {
             self.io_reply(t, reply);
         }
-        while let Some(env) = self.p.bridge.next_command() {
-            self.handle(t, env.id, env.command);
-        }
+        self.take_commands(t);
         self.follow_magnet();
         // The trial's time-out runs without messages too (as in `follow_trial`).
         let state = self.inner.controller().state();
@@ -629,6 +625,7 @@ impl LabStep {
         self.snap.t_s = self.snap.t_s.max(t);
         self.snap.seq += 1;
         self.snap.trial_state = map_state(self.inner.controller().state());
+        self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(t));
         self.p.bridge.publish(&self.snap);
     }
 
@@ -690,6 +687,12 @@ impl LabStep {
         &self.snap
     }
 
+    /// No trial is held (running, armed or finishing its record) and none is
+    /// being planned: every trial the lab took has been concluded.
+    pub fn is_idle(&self) -> bool {
+        self.trial.is_none() && self.pending.is_none()
+    }
+
     /// The last finished trial's outcome, once (taken).
     pub fn take_outcome(&mut self) -> Option<TrialOutcome> {
         self.outcome.take()
@@ -717,17 +720,12 @@ impl LabStep {
     /// Before the closed loop's step: commands, magnet, measurements.
     fn before(&mut self, t: f64) {
         if self.p.bridge.take_stop_request() {
-            self.controller().abort(t, AbortReason::StopRequested);
-            if let Some(p) = self.pending.as_mut() {
-                p.1 = true;
-            }
+            self.stop_now(t);
         }
         while let Ok(reply) = self.p.io_replies.pop() {
             self.io_reply(t, reply);
         }
-        while let Some(env) = self.p.bridge.next_command() {
-            self.handle(t, env.id, env.command);
-        }
+        self.take_commands(t);
         self.dead_man(t);
         self.follow_magnet();
         if self.trial.is_some() && self.camera_lost(t) {
@@ -873,6 +871,59 @@ impl LabStep {
         ok
     }
 
+    /// A done trial whose after-done trace is still being recorded
+    /// (`AFTER_DONE_S`): it has not been concluded (judged and reported) yet.
+    fn finishing(&self) -> bool {
+        self.trial.is_some() && self.inner.controller().state() == TrialState::Done
+    }
+
+    /// The operator's commands, in order. While a done trial still records its
+    /// after-done trace they wait in their ring (at most `AFTER_DONE_S`): a
+    /// trial started then would take the place of the one not yet concluded,
+    /// and new parameters would replace the controller that judges it. A stop
+    /// never waits (the bridge's stop flag, `stop_now`).
+    fn take_commands(&mut self, t: f64) {
+        while !self.finishing()
+            && let Some(env) = self.p.bridge.next_command()
+        {
+            self.handle(t, env.id, env.command);
+        }
+    }
+
+    /// Stops the motion now. A done trial still recording its after-done
+    /// trace is concluded first (as done: the stop does not undo a trial that
+    /// finished); a trial being planned is cancelled.
+    fn stop_now(&mut self, t: f64) {
+        if self.finishing() {
+            self.conclude(t);
+        }
+        self.controller().abort(t, AbortReason::StopRequested);
+        if let Some(p) = self.pending.as_mut() {
+            p.1 = true;
+        }
+    }
+
+    /// Why a trial posted now would be refused (`None`: it would start), as
+    /// [`Self::handle`] decides it; published in the snapshot (`ready`).
+    fn trial_refusal(&self, t: f64) -> Option<Refusal> {
+        let state = self.inner.controller().state();
+        if self.pending.is_some()
+            || self.finishing()
+            || !matches!(
+                state,
+                TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+            )
+        {
+            Some(Refusal::Busy)
+        } else if !self.commanding() {
+            Some(Refusal::RobotNotCommanding)
+        } else if self.magnet_lost() || self.camera_lost(t) {
+            Some(Refusal::DeviceUnavailable)
+        } else {
+            None
+        }
+    }
+
     fn handle(&mut self, t: f64, id: u64, command: Command) {
         let state = self.inner.controller().state();
         let busy = self.pending.is_some()
@@ -882,10 +933,7 @@ impl LabStep {
             );
         let (outcome, returned) = match command {
             Command::Stop => {
-                self.controller().abort(t, AbortReason::StopRequested);
-                if let Some(p) = self.pending.as_mut() {
-                    p.1 = true;
-                }
+                self.stop_now(t);
                 (Ok(()), None)
             }
             Command::Arm | Command::RunTrial { .. } if busy => (Err(Refusal::Busy), None),
@@ -908,8 +956,9 @@ impl LabStep {
             }
             Command::Disarm => {
                 if state == TrialState::Armed || state == TrialState::Arming {
-                    self.controller().abort(t, AbortReason::StopRequested);
-                    self.trial = None;
+                    // The trial ends here: reported (and recorded) as disarmed.
+                    self.controller().abort(t, AbortReason::Disarmed);
+                    self.conclude(t);
                     let _ = self.controller().reset(t);
                     (Ok(()), None)
                 } else {
@@ -1036,6 +1085,10 @@ impl LabStep {
             // The session dropped out while the trial was planned.
             return Err(Refusal::RobotNotCommanding);
         }
+        // A trial still held is concluded before the next takes its place
+        // (commands wait while one finishes, so this is only a safety net:
+        // no trial ends without its outcome and report).
+        self.conclude(t);
         let _ = self.controller().reset(t);
         // The trial starts now on the operator's command: the dead-man counts from here.
         self.operator_since_s = t;
@@ -1341,6 +1394,12 @@ impl LabStep {
     /// Ends the trial: judges it on ground truth (when the lab knows the
     /// truth), keeps its [`TrialOutcome`] and, when it finished, reports it.
     fn conclude(&mut self, t: f64) {
+        if self.trial.is_none() {
+            return;
+        }
+        // The state change (an abort's reason) is reported with this trial's
+        // id before the trial is let go.
+        self.emit_state(t);
         let Some(trial) = self.trial.take() else {
             return;
         };
@@ -1519,6 +1578,7 @@ impl LabStep {
 
     fn fill_snapshot(&mut self, t: f64) {
         self.snap.camera.lost = self.camera_lost(t);
+        self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(t));
         let c = self.inner.controller();
         let s = &mut self.snap;
         s.t_s = t;
@@ -1759,6 +1819,7 @@ impl ControlStep for LabStep {
             self.session = SessionState::Idle;
             self.snap.fri.session = FriSessionState::Disconnected;
             self.snap.fri.quality = FriQuality::Unknown;
+            self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(self.t_s));
             // Publish the lost link (this runs on the control thread too).
             self.p.bridge.publish_latest(&self.snap);
         }

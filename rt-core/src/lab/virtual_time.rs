@@ -216,6 +216,10 @@ pub struct VirtualLab {
     /// measurements handed to it) is appended (tests: the controller cannot
     /// read the world).
     pub input_log: Option<Vec<u8>>,
+    /// When true, each period leaves the control thread's events in the
+    /// server end for the caller ([`Self::server`]; the lifecycle fuzzer)
+    /// instead of dropping them.
+    pub keep_events: bool,
     /// When `Some`, the simulated robot falls silent once (its process
     /// stalled or died): from the first message on which the trial is in
     /// `RobotPause::in_state`, for `RobotPause::for_s`. Meanwhile the FRI
@@ -360,6 +364,7 @@ impl VirtualLab {
             world_session: None,
             world_view: None,
             input_log: None,
+            keep_events: false,
             robot_pause: None,
         };
         lab.ensure_commanding()?;
@@ -439,6 +444,37 @@ impl VirtualLab {
     /// The virtual time, seconds.
     pub fn t_s(&self) -> f64 {
         self.t_ns as f64 * 1e-9
+    }
+
+    /// The operator's end of the bridge (commands, acks, events, stop,
+    /// heartbeat, the latest snapshot), as the server holds it.
+    pub fn server(&mut self) -> &mut ServerEnd {
+        &mut self.server
+    }
+
+    /// Runs the lab for `periods` controller periods with no operator
+    /// action, as the robot program does: the session is asked for
+    /// commanding again whenever it left it.
+    pub fn advance(&mut self, periods: u64) {
+        for _ in 0..periods {
+            if self.robot.state() != SessionState::CommandingActive {
+                self.robot.request_commanding();
+            }
+            self.period(&mut |_, f| {
+                f();
+            });
+        }
+    }
+
+    /// The controller period, seconds.
+    pub fn period_s(&self) -> f64 {
+        self.period_ns as f64 * 1e-9
+    }
+
+    /// Commands outside the limits so far: the FRI client's guard (position,
+    /// step, non-finite) and the simulated controller's own check.
+    pub fn limit_violations(&self) -> u64 {
+        self.fri_counts().violations
     }
 
     /// Runs trial `index` of the run and judges it.
@@ -620,8 +656,7 @@ impl VirtualLab {
             self.client.poll(now, &mut self.step);
             ControlStep::idle(&mut self.step, now);
             self.serve_requests(t_next);
-            while self.server.events.pop().is_some() {}
-            while self.server.telemetry.pop().is_some() {}
+            self.drain_server();
             return;
         }
         let Self {
@@ -674,7 +709,15 @@ impl VirtualLab {
             }
         }
         self.serve_requests(t_next);
-        while self.server.events.pop().is_some() {}
+        self.drain_server();
+    }
+
+    /// The server's part of a period: telemetry dropped, events too unless
+    /// the caller keeps them.
+    fn drain_server(&mut self) {
+        if !self.keep_events {
+            while self.server.events.pop().is_some() {}
+        }
         while self.server.telemetry.pop().is_some() {}
     }
 

@@ -341,7 +341,7 @@ lateral_c: (number | null)[],
  */
 up_c: (number | null)[], };
 
-export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal";
+export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal" | "service_restarted";
 
 export type AbortView = { 
 /**
@@ -360,6 +360,23 @@ message: string,
  * What the lab saw, when more is known (e.g. how the FRI link was lost; else empty).
  */
 detail: string, };
+
+export type Refusal = "busy" | "not_armed" | "motion_running" | "checks_failed" | "infeasible" | "device_unavailable" | "robot_not_commanding" | "invalid";
+
+export type Readiness = { 
+/**
+ * A trial posted now would start.
+ */
+trial: boolean, 
+/**
+ * Why not (`null` when it would): `busy` (a trial runs, is being planned
+ * or is finishing its record), `robot_not_commanding`, `device_unavailable`.
+ */
+reason: Refusal | null, 
+/**
+ * The reason as a sentence (empty when ready).
+ */
+message: string, };
 
 export type Snapshot = { 
 /**
@@ -417,7 +434,11 @@ camera: CameraView,
 /**
  * Why the last trial was aborted (kept until the next trial starts).
  */
-abort: AbortView, };
+abort: AbortView, 
+/**
+ * Whether the control loop would take a trial now, and if not, why.
+ */
+ready: Readiness, };
 
 export type MeasuredJudgement = { 
 /**
@@ -675,7 +696,11 @@ camera: CameraView,
 /**
  * Why the last trial was aborted (kept until the next trial starts).
  */
-abort: AbortView, };
+abort: AbortView, 
+/**
+ * Whether the control loop would take a trial now, and if not, why.
+ */
+ready: Readiness, };
 
 export type EventMessage = { 
 /**
@@ -727,7 +752,8 @@ export type TrialRecord = {
  */
 id: number, 
 /**
- * `running`, `done`, `aborted` or `interrupted` (the service stopped mid-trial).
+ * `running`, `done` or `aborted` (a trial the service stopped in is
+ * closed at its next start as `aborted`, `abort_reason` `service_restarted`).
  */
 status: string, 
 /**

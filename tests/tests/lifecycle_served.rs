@@ -1,0 +1,465 @@
+//! The lab's lifecycle over real sockets: `isochron serve` (the simulated
+//! lab) as its own process, driven over REST as a script drives it, its
+//! WebSocket read as the dashboard reads it.
+//!
+//! - The natural script (post the next trial the moment the state shows the
+//!   last one `done`) loses no record (`ISOCHRON_POST_ON_DONE_TRIALS`,
+//!   default 3; the issue's acceptance: 50).
+//! - Random REST sequences (trial, stop, arm, disarm, magnet, parameters,
+//!   heartbeat, calibration steps, health) at random delays for
+//!   `ISOCHRON_LIFECYCLE_SERVED_S` (default 8 s; `make fuzz`: minutes): every
+//!   accepted trial has one record that finishes and one end event on the
+//!   WebSocket, none is left `running` once the lab is idle, no record exists
+//!   for a refused trial, no limit violation, the service still answers.
+//! - A service killed mid-trial closes that record at its next start as
+//!   `aborted`, `service_restarted`.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use futures_util::StreamExt;
+use isochron_tests::{http, isochron_bin};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::Value;
+use tokio_tungstenite::tungstenite::Message;
+
+const TOKEN: &str = "lifecycle-token";
+
+struct Service {
+    child: Child,
+    addr: SocketAddr,
+}
+
+impl Drop for Service {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn bin() -> Option<PathBuf> {
+    isochron_bin(&[(&["serve", "--help"], "--data-dir")])
+}
+
+/// `isochron serve` on a free loopback port with a token and `data`.
+fn serve(bin: &Path, data: &Path) -> Service {
+    let mut child = Command::new(bin)
+        .args([
+            "serve",
+            "--bind",
+            "127.0.0.1:0",
+            "--token",
+            TOKEN,
+            "--data-dir",
+        ])
+        .arg(data)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("isochron serve starts");
+    let out = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    std::thread::Builder::new()
+        .name("isochron-test-serve-out".into())
+        .spawn(move || {
+            for line in BufReader::new(out).lines().map_while(Result::ok) {
+                if let Some(rest) = line.split("http://").nth(1) {
+                    let _ = tx.try_send(rest.trim_end_matches('/').to_owned());
+                }
+            }
+        })
+        .unwrap();
+    let addr = rx
+        .recv_timeout(Duration::from_secs(60))
+        .expect("isochron serve prints its address")
+        .parse()
+        .unwrap();
+    Service { child, addr }
+}
+
+async fn request(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
+    let auth = format!("Bearer {TOKEN}");
+    let r = http(
+        addr,
+        method,
+        path,
+        &[
+            ("Content-Type", "application/json"),
+            ("Authorization", &auth),
+        ],
+        body.as_bytes(),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e}"));
+    (r.status, r.json().unwrap_or(Value::Null))
+}
+
+/// Polls `GET path` until `pred` holds (every 10 ms, at most `timeout`).
+async fn wait_for(
+    addr: SocketAddr,
+    path: &str,
+    timeout: Duration,
+    what: &str,
+    pred: impl Fn(&Value) -> bool,
+) -> Value {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let (code, v) = request(addr, "GET", path, "").await;
+        if code == 200 && pred(&v) {
+            return v;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what}: not within {timeout:?}; last {path}: {code} {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+/// The WebSocket's trial ends (`trial_finished`, `aborted`): trial id -> count.
+struct Ends {
+    rx: tokio::sync::mpsc::Receiver<u64>,
+    seen: BTreeMap<u64, u32>,
+    _task: tokio::task::JoinHandle<()>,
+}
+
+impl Ends {
+    async fn connect(addr: SocketAddr) -> Self {
+        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
+            .await
+            .unwrap();
+        let (tx, rx) = tokio::sync::mpsc::channel(4096);
+        let task = tokio::spawn(async move {
+            let (_sink, mut stream) = ws.split();
+            while let Some(Ok(m)) = stream.next().await {
+                if let Message::Text(t) = m
+                    && let Ok(v) = serde_json::from_str::<Value>(&t)
+                    && v["type"] == "event"
+                    && matches!(
+                        v["event"]["kind"].as_str(),
+                        Some("aborted" | "trial_finished")
+                    )
+                    && let Some(id) = v["trial_id"].as_u64()
+                    && id != 0
+                {
+                    let _ = tx.send(id).await;
+                }
+            }
+        });
+        Self {
+            rx,
+            seen: BTreeMap::new(),
+            _task: task,
+        }
+    }
+
+    fn take(&mut self) {
+        while let Ok(id) = self.rx.try_recv() {
+            *self.seen.entry(id).or_default() += 1;
+        }
+    }
+
+    /// Waits until every id in `ids` has an end (at most `timeout`).
+    async fn wait_all(&mut self, ids: &[u64], timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        loop {
+            self.take();
+            if ids.iter().all(|i| self.seen.contains_key(i)) {
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "the WebSocket announced the ends of {:?} only, of {ids:?}",
+                self.seen
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+fn finished(r: &Value) -> bool {
+    matches!(r["status"].as_str(), Some("done" | "aborted"))
+}
+
+/// Waits until the state stream shows trial `id` `done` (inside its
+/// after-done trace, its record not yet concluded), or its record finished
+/// (aborted, or the `done` was missed between two polls). Returns whether
+/// `done` was seen.
+async fn wait_trial_end(addr: SocketAddr, id: u64, timeout: Duration) -> bool {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let (_, s) = request(addr, "GET", "/api/state", "").await;
+        if s["trial_id"] == id && s["trial_state"] == "done" {
+            return true;
+        }
+        let (_, r) = request(addr, "GET", &format!("/api/trials/{id}"), "").await;
+        if finished(&r) {
+            return false;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "trial {id} did not end within {timeout:?}: state {} {}, record {r}",
+            s["trial_id"],
+            s["trial_state"]
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+async fn ready(addr: SocketAddr, timeout: Duration) -> Value {
+    wait_for(addr, "/api/health", timeout, "the lab takes a trial", |h| {
+        h["ready"] == true
+    })
+    .await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
+    let Some(bin) = bin() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let svc = serve(&bin, &tmp.path().join("data"));
+    let addr = svc.addr;
+    let h = ready(addr, Duration::from_secs(30)).await;
+    assert_eq!(h["not_ready"], Value::Null, "{h}");
+    let mut ends = Ends::connect(addr).await;
+    let n: usize = std::env::var("ISOCHRON_POST_ON_DONE_TRIALS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    let (mut ids, mut on_done) = (Vec::new(), 0);
+    for i in 0..n {
+        let (code, body) = request(addr, "POST", "/api/trials", "").await;
+        assert_eq!(code, 202, "trial {i}: {body}");
+        let id = body["id"].as_u64().unwrap();
+        ids.push(id);
+        // While it runs the lab says it is busy (and why), and a trial is refused.
+        let (_, h) = request(addr, "GET", "/api/health", "").await;
+        if h["ready"] == false {
+            assert!(h["not_ready"]["reason"].is_string(), "{h}");
+            assert!(h["not_ready"]["message"].is_string(), "{h}");
+        }
+        // The next trial the moment the state shows this one done (inside its
+        // after-done trace), or once its record finished.
+        if wait_trial_end(addr, id, Duration::from_secs(60)).await {
+            on_done += 1;
+        }
+    }
+    ends.wait_all(&ids, Duration::from_secs(30)).await;
+    let list = wait_for(
+        addr,
+        "/api/trials?limit=1000",
+        Duration::from_secs(30),
+        "every record finished",
+        |l| l.as_array().is_some_and(|a| a.iter().all(finished)),
+    )
+    .await;
+    let list = list.as_array().unwrap();
+    println!(
+        "post on done: {n} trials posted ({on_done} inside the after-done trace); records: {:?}",
+        list.iter()
+            .map(|r| (r["id"].as_u64(), r["status"].as_str()))
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(list.len(), n);
+    for r in list {
+        assert_eq!(r["status"], "done", "{r}");
+        let id = r["id"].as_u64().unwrap();
+        assert_eq!(ends.seen.get(&id), Some(&1), "one end event for trial {id}");
+    }
+    assert!(
+        on_done > 0,
+        "no trial was posted while the state showed done"
+    );
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Action {
+    Trial,
+    TrialOnDone,
+    Stop,
+    Arm,
+    Disarm,
+    Magnet(bool),
+    Params,
+    Heartbeat,
+    Calibration(&'static str),
+    Health,
+}
+
+fn pick(rng: &mut ChaCha8Rng) -> Action {
+    const STEPS: [&str; 5] = ["camera", "latency", "pendulum", "camera-robot", "robot"];
+    match rng.random_range(0..100) {
+        0..22 => Action::Trial,
+        22..40 => Action::TrialOnDone,
+        40..47 => Action::Stop,
+        47..55 => Action::Arm,
+        55..63 => Action::Disarm,
+        63..66 => Action::Magnet(true),
+        66..74 => Action::Magnet(false),
+        74..82 => Action::Params,
+        82..88 => Action::Heartbeat,
+        88..92 => Action::Calibration(STEPS[rng.random_range(0..STEPS.len())]),
+        _ => Action::Health,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn random_rest_sequences_lose_no_trial_record() {
+    let Some(bin) = bin() else { return };
+    let seconds: f64 = std::env::var("ISOCHRON_LIFECYCLE_SERVED_S")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8.0);
+    let seed: u64 = std::env::var("ISOCHRON_LIFECYCLE_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let tmp = tempfile::tempdir().unwrap();
+    let svc = serve(&bin, &tmp.path().join("data"));
+    let addr = svc.addr;
+    ready(addr, Duration::from_secs(30)).await;
+    let mut ends = Ends::connect(addr).await;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (mut accepted, mut refused, mut commands) = (Vec::new(), 0u32, 0u32);
+    let mut codes: BTreeMap<String, u32> = BTreeMap::new();
+    let mut log = Vec::new();
+    let t0 = Instant::now();
+    while t0.elapsed().as_secs_f64() < seconds {
+        let action = pick(&mut rng);
+        log.push(format!("{:.2} s {action:?}", t0.elapsed().as_secs_f64()));
+        if let (Action::TrialOnDone, Some(&id)) = (action, accepted.last()) {
+            wait_trial_end(addr, id, Duration::from_secs(60)).await;
+        }
+        let (method, path, body) = match action {
+            Action::Trial | Action::TrialOnDone => {
+                ("POST", "/api/trials".to_owned(), String::new())
+            }
+            Action::Stop => ("POST", "/api/stop".to_owned(), String::new()),
+            Action::Arm => ("POST", "/api/arm".to_owned(), String::new()),
+            Action::Disarm => ("POST", "/api/disarm".to_owned(), String::new()),
+            Action::Magnet(on) => ("POST", "/api/magnet".to_owned(), format!("{{\"on\":{on}}}")),
+            Action::Params => (
+                "PUT",
+                "/api/params".to_owned(),
+                format!(
+                    "{{\"task\":{{\"movement_time_s\":{:.3}}}}}",
+                    rng.random_range(1.4..2.0)
+                ),
+            ),
+            Action::Heartbeat => ("POST", "/api/heartbeat".to_owned(), String::new()),
+            Action::Calibration(step) => {
+                ("POST", format!("/api/calibration/{step}"), "{}".to_owned())
+            }
+            Action::Health => ("GET", "/api/health".to_owned(), String::new()),
+        };
+        commands += 1;
+        let (code, v) = request(addr, method, &path, &body).await;
+        assert!(
+            code < 500,
+            "{method} {path} {body}: {code} {v}\n{}",
+            log.join("; ")
+        );
+        *codes.entry(format!("{method} {path} {code}")).or_default() += 1;
+        if path == "/api/trials" {
+            if code == 202 {
+                accepted.push(v["id"].as_u64().unwrap());
+            } else {
+                assert_eq!(code, 409, "{v}");
+                assert!(v["reason"].is_string(), "a refusal says why: {v}");
+                refused += 1;
+            }
+        }
+        let ms = match rng.random_range(0..10) {
+            0..4 => rng.random_range(0..50),
+            4..8 => rng.random_range(50..800),
+            _ => rng.random_range(800..3000),
+        };
+        tokio::time::sleep(Duration::from_millis(ms)).await;
+    }
+    // The end of the script: a stop, then the lab settles.
+    let (code, _) = request(addr, "POST", "/api/stop", "").await;
+    assert_eq!(code, 200);
+    let h = ready(addr, Duration::from_secs(60)).await;
+    ends.wait_all(&accepted, Duration::from_secs(30)).await;
+    let list = wait_for(
+        addr,
+        "/api/trials?limit=1000",
+        Duration::from_secs(30),
+        "no record left running",
+        |l| l.as_array().is_some_and(|a| a.iter().all(finished)),
+    )
+    .await;
+    let list = list.as_array().unwrap();
+    let mut ids: Vec<u64> = list.iter().filter_map(|r| r["id"].as_u64()).collect();
+    ids.sort_unstable();
+    let (done, aborted) = (
+        list.iter().filter(|r| r["status"] == "done").count(),
+        list.iter().filter(|r| r["status"] == "aborted").count(),
+    );
+    println!(
+        "served lifecycle fuzz (seed {seed}, {seconds} s): {commands} commands, {} trials \
+         accepted ({done} done, {aborted} aborted), {refused} refused; health {h}; answers {codes:?}",
+        accepted.len()
+    );
+    // Exactly the accepted trials have records, each finished, each with one end.
+    let mut want = accepted.clone();
+    want.sort_unstable();
+    assert_eq!(ids, want, "records vs accepted trials\n{}", log.join("; "));
+    for r in list {
+        let id = r["id"].as_u64().unwrap();
+        assert!(r["reason"].is_string(), "{r}");
+        assert!(
+            r["limit_violations"].as_u64().unwrap_or(0) == 0,
+            "limit violations: {r}"
+        );
+        assert_eq!(
+            ends.seen.get(&id),
+            Some(&1),
+            "one end event for trial {id}\n{}",
+            log.join("; ")
+        );
+    }
+    ends.take();
+    let unknown: Vec<_> = ends.seen.keys().filter(|i| !want.contains(i)).collect();
+    assert!(
+        unknown.is_empty(),
+        "end events for unknown trials {unknown:?}"
+    );
+    let (_, st) = request(addr, "GET", "/api/state", "").await;
+    assert_eq!(st["counters"]["limit_violations"], 0, "{}", st["counters"]);
+    assert_eq!(st["trial_id"], 0, "the idle lab shows no trial: {st}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trial_running_when_the_service_dies_is_closed_at_the_next_start() {
+    let Some(bin) = bin() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let mut svc = serve(&bin, &data);
+    ready(svc.addr, Duration::from_secs(30)).await;
+    let (code, body) = request(svc.addr, "POST", "/api/trials", "").await;
+    assert_eq!(code, 202, "{body}");
+    let id = body["id"].as_u64().unwrap();
+    let (_, r) = request(svc.addr, "GET", &format!("/api/trials/{id}"), "").await;
+    assert_eq!(r["status"], "running", "{r}");
+    // Killed (no shutdown of any kind) while the trial runs.
+    svc.child.kill().unwrap();
+    svc.child.wait().unwrap();
+    let svc = serve(&bin, &data);
+    let (code, r) = request(svc.addr, "GET", &format!("/api/trials/{id}"), "").await;
+    assert_eq!(code, 200, "{r}");
+    assert_eq!(r["status"], "aborted", "{r}");
+    assert_eq!(r["abort_reason"], "service_restarted", "{r}");
+    assert_eq!(r["success"], false, "{r}");
+    assert!(r["finished_unix_s"].is_number(), "{r}");
+    assert_eq!(
+        r["reason"],
+        "aborted (service_restarted): the service stopped while the trial ran"
+    );
+}
