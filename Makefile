@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -95,8 +95,20 @@ define fuzz_run
 	done
 endef
 
-fuzz: fuzz-deps
+fuzz: fuzz-deps fuzz-lifecycle
 	$(call fuzz_run,$(FUZZ_SECONDS))
+
+## fuzz-lifecycle: the lab's lifecycle (no trial record lost): LIFECYCLE_SEQUENCES random
+## command sequences on the virtual clock, then LIFECYCLE_SERVED_S seconds of random REST
+## commands against a served lab over real sockets (`make test` runs short versions).
+LIFECYCLE_SEQUENCES ?= 2000
+LIFECYCLE_SERVED_S ?= 180
+fuzz-lifecycle: firmware
+	ISOCHRON_LIFECYCLE_SEQUENCES=$(LIFECYCLE_SEQUENCES) $(CARGO) test --release -p rt-core --lib \
+	  lab::lifecycle::tests::no_command_sequence_loses_a_trial_record -- --nocapture
+	$(CARGO) build --bin isochron
+	ISOCHRON_LIFECYCLE_SERVED_S=$(LIFECYCLE_SERVED_S) $(CARGO) test -p isochron-tests --test lifecycle_served \
+	  random_rest_sequences_lose_no_trial_record -- --nocapture
 
 fuzz-smoke: fuzz-deps
 	$(call fuzz_run,$(FUZZ_SMOKE_SECONDS))
@@ -162,9 +174,16 @@ test-core:
 	$(CARGO) test -p rt-core --no-default-features --test control_step_no_alloc
 
 ## test-browser: the dashboard in headless Chromium against `isochron serve` (the simulated lab).
+# The soak in `make test` checks the heap for 30 s and reports the frame rate;
+# `make soak` runs it for SOAK_S (default 300) and gates the frame rate too.
 test-browser: web
 	$(CARGO) build --bin isochron
-	web/e2e/run.sh ./target/debug/isochron
+	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh ./target/debug/isochron
+
+SOAK_S ?= 300
+soak: web
+	$(CARGO) build --bin isochron
+	ISOCHRON_SOAK_S=$(SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 web/e2e/run.sh ./target/debug/isochron
 
 ## test-api-fuzz: schemathesis against `isochron serve`'s own OpenAPI document, for
 ## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).
