@@ -11,10 +11,10 @@ BIND ?= 127.0.0.1:8080
 # System packages the build and the tests need (Debian names).
 APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             gcc-avr avr-libc binutils-avr libsimavr-dev \
-            chromium python3 python3-venv
+            chromium python3 python3-venv curl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -178,21 +178,27 @@ test-core:
 # `make soak` runs it for SOAK_S (default 300) and gates the frame rate too.
 test-browser: web
 	$(CARGO) build --bin isochron
-	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh ./target/debug/isochron
+	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
 SOAK_S ?= 300
 soak: web
 	$(CARGO) build --bin isochron
-	ISOCHRON_SOAK_S=$(SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 web/e2e/run.sh ./target/debug/isochron
+	ISOCHRON_SOAK_S=$(SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
 ## test-api-fuzz: schemathesis against `isochron serve`'s own OpenAPI document, for
 ## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).
 API_FUZZ_SECONDS ?= 60
 test-api-fuzz: py-deps
 	$(CARGO) build --bin isochron
-	tests/api-fuzz/run.sh ./target/debug/isochron $(API_FUZZ_SECONDS)
+	tests/api-fuzz/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" $(API_FUZZ_SECONDS)
 
-test: lint test-core test-web test-browser test-api-fuzz fuzz-smoke test-rust
+## test-examples: examples/run_trials.py and run_trials.sh against `isochron serve`
+## (the simulated lab), one trial a distance each (examples/test.sh).
+test-examples:
+	$(CARGO) build --bin isochron
+	examples/test.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" 1
+
+test: lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
 
 ## bench: the criterion benches, then `isochron bench` (release) with its peers in
 ## the same run (filterpy's EKF and the Robotics Toolbox's C++ IK, in .venv-peers)

@@ -12,7 +12,7 @@ use axum::{
     response::{IntoResponse, Response},
 };
 use rt_core::{
-    bridge::{Command, Refusal},
+    bridge::{Command, Refusal, TrialSetup},
     params::Scenario,
 };
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
@@ -728,13 +728,84 @@ pub struct TrialStarted {
     pub id: u64,
 }
 
+/// `POST /api/trials` body: what this trial sets for itself (each field
+/// optional; the lab's parameters in force are not changed).
+#[derive(Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TrialRequest {
+    /// Robot base axis to the intercept point, horizontal, metres (else
+    /// drawn from `task.distance_m`); must be reachable in the movement time.
+    #[schema(minimum = 0.1, maximum = 1.2)]
+    pub distance_m: Option<f64>,
+    /// The motion's planned duration, seconds (else `task.movement_time_s`);
+    /// must be feasible within the joint limits at the distance.
+    #[schema(minimum = 0.3, maximum = 10.0)]
+    pub movement_time_s: Option<f64>,
+    /// The release angle's magnitude, degrees (else drawn from
+    /// `pendulum.release_angle_deg`; the side is drawn).
+    #[schema(minimum = 1.0, maximum = 60.0)]
+    pub release_deg: Option<f64>,
+}
+
+/// Checks a trial's own fields against the parameters in force: each in
+/// range, and the motion feasible within the joint limits (planned as the
+/// lab plans it, without stretching to the shortest feasible duration), or a
+/// 400 naming the field.
+pub(crate) fn trial_setup(req: &TrialRequest, params: &Scenario) -> Result<TrialSetup, AppError> {
+    let bad = |field: &str, message: String| AppError::BadRequest {
+        message,
+        field: Some(field.to_owned()),
+    };
+    let range = |field: &str, v: Option<f64>, lo: f64, hi: f64, unit: &str| match v {
+        Some(x) if !(x.is_finite() && (lo..=hi).contains(&x)) => Err(bad(
+            field,
+            format!("{field} = {x} is out of range: must be in [{lo}, {hi}] {unit}"),
+        )),
+        _ => Ok(()),
+    };
+    range("distance_m", req.distance_m, 0.1, 1.2, "m")?;
+    range("movement_time_s", req.movement_time_s, 0.3, 10.0, "s")?;
+    range("release_deg", req.release_deg, 1.0, 60.0, "deg")?;
+    if req.distance_m.is_some() || req.movement_time_s.is_some() {
+        let d = req
+            .distance_m
+            .unwrap_or_else(|| params.task.distance_m.lerp(0.5));
+        let plan = |mt: Option<f64>| {
+            let mut b = rt_core::lab::step::trial_beliefs(params, mt);
+            b.control.allow_shortest_feasible = false;
+            rt_core::control::Controller::plan(&b, d).map(|_| ())
+        };
+        if let Err(e) = plan(req.movement_time_s) {
+            let mt = req.movement_time_s.unwrap_or(params.task.movement_time_s);
+            // Blame the distance when it is out of reach at any pace (or no
+            // movement time was asked for), else the movement time.
+            return Err(match (req.distance_m, req.movement_time_s) {
+                (Some(d), mt_req) if mt_req.is_none() || plan(Some(10.0)).is_err() => bad(
+                    "distance_m",
+                    format!("distance_m = {d} m is not reachable in {mt} s: {e}"),
+                ),
+                _ => bad(
+                    "movement_time_s",
+                    format!("movement_time_s = {mt} s is not feasible at {d} m: {e}"),
+                ),
+            });
+        }
+    }
+    Ok(TrialSetup {
+        distance_m: req.distance_m,
+        movement_time_s: req.movement_time_s,
+        release_deg: req.release_deg,
+    })
+}
+
 /// Runs one whole trial (arm, release, intercept); its result appears at
-/// `/api/trials/{id}` when it ends.
+/// `/api/trials/{id}` when it ends. The body may set this trial's distance,
+/// movement time and release angle (for this trial only).
 #[utoipa::path(post, path = "/api/trials", tag = "trials",
-    request_body(content = Option<NoFields>, description = "empty or {}"),
+    request_body(content = Option<TrialRequest>, description = "empty, {} or the trial's own fields"),
     responses(
         (status = 202, description = "the trial started", body = TrialStarted),
-        (status = 400, description = "a body other than empty or {} (fields, another JSON value, malformed)", body = crate::error::ErrorBody),
+        (status = 400, description = "malformed, an unknown field, or a field out of range or infeasible (named)", body = crate::error::ErrorBody),
         (status = 413, description = "body too large", body = crate::error::ErrorBody),
         (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
         (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
@@ -744,18 +815,30 @@ pub struct TrialStarted {
 pub async fn start_trial(
     State(state): State<Arc<AppState>>,
     _op: Operator,
-    body: JsonBody,
+    JsonBody(bytes): JsonBody,
 ) -> Result<(StatusCode, Json<TrialStarted>), AppError> {
-    empty_body(body)?;
-    if let Some((reason, message)) = service_blocker(&state) {
+    let req: TrialRequest = if bytes.is_empty() {
+        TrialRequest::default()
+    } else {
+        parse_json(&bytes)?
+    };
+    let setup = trial_setup(&req, &lab(&state)?.params())?;
+    let id = start_one(&state, setup).await?;
+    Ok((StatusCode::ACCEPTED, Json(TrialStarted { id })))
+}
+
+/// Creates a trial's record and starts the trial (`POST /api/trials`, and
+/// each trial of a run); a refused trial's record is removed.
+pub(crate) async fn start_one(state: &AppState, setup: TrialSetup) -> Result<u64, AppError> {
+    if let Some((reason, message)) = service_blocker(state) {
         return Err(AppError::Conflict {
             message,
             field: None,
             reason: Some(reason),
         });
     }
-    let lab = lab(&state)?;
-    let records = records(&state)?;
+    let lab = lab(state)?;
+    let records = records(state)?;
     let params = lab.params();
     let origin = crate::records::TrialOrigin {
         scenario: params.name.clone(),
@@ -767,7 +850,7 @@ pub async fn start_trial(
         move || r.create_trial(&origin)
     })
     .await?;
-    if let Err(e) = lab.run_trial(id).await {
+    if let Err(e) = lab.run_trial(id, setup).await {
         // Refused: the trial never ran, its record goes. Not answered in
         // time: the record stays, and the control loop's late answer settles
         // it (removed if refused; an accepted trial finishes as any other).
@@ -777,7 +860,7 @@ pub async fn start_trial(
         }
         return Err(command_error(e));
     }
-    Ok((StatusCode::ACCEPTED, Json(TrialStarted { id })))
+    Ok(id)
 }
 
 /// What the service (not the control loop) refuses trials for now: a real
@@ -873,6 +956,90 @@ pub async fn get_trial(
     Path(raw): Path<String>,
 ) -> Result<Json<TrialRecord>, AppError> {
     Ok(Json(existing(&state, &raw).await?.1))
+}
+
+/// Starts a batch run: `n` trials one after another, each started when the
+/// lab can take it, with the distances, movement time and release angle the
+/// body gives (each checked as `POST /api/trials` checks one, before anything
+/// starts). Progress: `GET /api/runs/{id}` and `{"type":"run"}` messages on `/ws`.
+#[utoipa::path(post, path = "/api/runs", tag = "trials",
+    request_body = crate::runs::RunRequest,
+    responses(
+        (status = 202, description = "the run started", body = crate::runs::RunStarted),
+        (status = 400, description = "malformed, an unknown field, or a field out of range or infeasible (named)", body = crate::error::ErrorBody),
+        (status = 413, description = "body too large", body = crate::error::ErrorBody),
+        (status = 415, description = "a body that is not application/json", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 409, description = "another run is running", body = crate::error::ErrorBody),
+        (status = 503, description = "the lab is not running", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn start_run(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    JsonBody(bytes): JsonBody,
+) -> Result<(StatusCode, Json<crate::runs::RunStarted>), AppError> {
+    let req: crate::runs::RunRequest = parse_json(&bytes)?;
+    let id = crate::runs::start(Arc::clone(&state), &req)?;
+    Ok((StatusCode::ACCEPTED, Json(crate::runs::RunStarted { id })))
+}
+
+/// The runs of this service, newest first (kept in memory: the last 64).
+#[utoipa::path(get, path = "/api/runs", tag = "trials",
+    responses((status = 200, description = "runs, newest first", body = Vec<crate::runs::RunStatus>)))]
+pub async fn list_runs(State(state): State<Arc<AppState>>) -> Json<Vec<crate::runs::RunStatus>> {
+    Json(state.runs.list())
+}
+
+fn run_id(raw: &str) -> Result<u64, AppError> {
+    raw.parse::<u64>()
+        .ok()
+        .filter(|&id| id > 0)
+        .ok_or_else(|| AppError::field("id", format!("id = {raw:?} is not a run id (1, 2, ...)")))
+}
+
+/// A run's progress: trials started and finished, successes with their 95%
+/// interval, the timing error's p50 and p95, each trial's id.
+#[utoipa::path(get, path = "/api/runs/{id}", tag = "trials",
+    params(("id" = u64, Path, description = "run id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
+    responses(
+        (status = 200, description = "the run", body = crate::runs::RunStatus),
+        (status = 400, description = "not a run id", body = crate::error::ErrorBody),
+        (status = 404, description = "no such run", body = crate::error::ErrorBody)))]
+pub async fn get_run(
+    State(state): State<Arc<AppState>>,
+    Path(raw): Path<String>,
+) -> Result<Json<crate::runs::RunStatus>, AppError> {
+    let id = run_id(&raw)?;
+    state
+        .runs
+        .get(id)
+        .map(Json)
+        .ok_or_else(|| AppError::NotFound(format!("no run {id}")))
+}
+
+/// Stops a run after its current trial (which finishes and is recorded).
+#[utoipa::path(delete, path = "/api/runs/{id}", tag = "trials",
+    params(("id" = u64, Path, description = "run id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
+    responses(
+        (status = 200, description = "the run, asked to stop", body = crate::runs::RunStatus),
+        (status = 400, description = "not a run id", body = crate::error::ErrorBody),
+        (status = 401, description = "token missing or wrong", body = crate::error::ErrorBody),
+        (status = 404, description = "no such run", body = crate::error::ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn stop_run(
+    State(state): State<Arc<AppState>>,
+    _op: Operator,
+    Path(raw): Path<String>,
+) -> Result<Json<crate::runs::RunStatus>, AppError> {
+    let id = run_id(&raw)?;
+    if !state.runs.stop(id) {
+        return Err(AppError::NotFound(format!("no run {id}")));
+    }
+    state
+        .runs
+        .get(id)
+        .map(Json)
+        .ok_or_else(|| AppError::NotFound(format!("no run {id}")))
 }
 
 /// A trial's signals at the control rate, as CSV (header row; NaN when unknown).
@@ -1090,10 +1257,12 @@ impl utoipa::Modify for BearerAuth {
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
     paths(crate::health, get_state, get_fri, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
           get_calibration, start_calibration,
-          start_trial, list_trials, get_trial, recording_csv, recording_mcap, robot_urdf, openapi_json,
+          start_trial, list_trials, get_trial, start_run, list_runs, get_run, stop_run, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
-                       TrialStarted, TrialRecord, NoFields, CalibrationRequest, CalibrationStarted,
+                       TrialStarted, TrialRecord, NoFields, TrialRequest,
+                       crate::runs::RunRequest, crate::runs::RunStatus, crate::runs::RunStarted,
+                       crate::runs::Distances, CalibrationRequest, CalibrationStarted,
                        crate::calibration::CalibrationStatus, crate::calibration::StepStatus,
                        crate::calibration::CalibrationJob, crate::calibration::Change,
                        rt_core::calibration::StepView, rt_core::calibration::ViewKind, crate::lab::StreamCounters, FriInfo,

@@ -345,6 +345,11 @@ impl Lab {
         self.command(Command::Stop).await.is_ok()
     }
 
+    /// Sends a message to the WebSocket's event stream (e.g. a run's progress).
+    pub fn publish_event_text(&self, text: String) {
+        let _ = self.event_tx.send(text.into());
+    }
+
     /// Sends a command and waits for its acknowledgement.
     pub async fn command(&self, command: Command) -> Result<(), CommandError> {
         self.send(command, None).await
@@ -354,8 +359,12 @@ impl Lab {
     /// answers only after the timeout, the answer still settles the record
     /// (the bridge thread deletes it when the trial was refused; an accepted
     /// trial finishes as any other), so a trial the lab ran is never lost.
-    pub async fn run_trial(&self, trial_id: u64) -> Result<(), CommandError> {
-        self.send(Command::RunTrial { trial_id }, Some(trial_id))
+    pub async fn run_trial(
+        &self,
+        trial_id: u64,
+        setup: rt_core::bridge::TrialSetup,
+    ) -> Result<(), CommandError> {
+        self.send(Command::RunTrial { trial_id, setup }, Some(trial_id))
             .await
     }
 

@@ -10,6 +10,7 @@ pub mod config;
 pub mod error;
 pub mod lab;
 pub mod records;
+pub mod runs;
 pub mod runtime;
 pub mod serve;
 pub mod typescript;
@@ -87,6 +88,8 @@ pub struct AppState {
     pub fri_version: rt_core::fri::FriVersion,
     /// Where `isochron fri doctor` writes its last report (none: not shown).
     pub fri_doctor_report: Option<PathBuf>,
+    /// Batch runs (`/api/runs`).
+    pub runs: Arc<runs::Runs>,
 }
 
 impl AppState {
@@ -104,6 +107,7 @@ impl AppState {
             cors_origins: Vec::new(),
             fri_version: rt_core::fri::FriVersion::default(),
             fri_doctor_report: None,
+            runs: Arc::default(),
         }
     }
 
@@ -195,7 +199,7 @@ pub struct NotReady {
 }
 
 /// Why a trial posted now would not start (`None`: it would).
-fn not_ready(state: &AppState) -> Option<NotReady> {
+pub(crate) fn not_ready(state: &AppState) -> Option<NotReady> {
     if let Some((reason, message)) = api::service_blocker(state) {
         return Some(NotReady { reason, message });
     }
@@ -261,6 +265,8 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/calibration/{step}", post(api::start_calibration))
         .route("/trials", get(api::list_trials).post(api::start_trial))
         .route("/trials/{id}", get(api::get_trial))
+        .route("/runs", get(api::list_runs).post(api::start_run))
+        .route("/runs/{id}", get(api::get_run).delete(api::stop_run))
         .route("/trials/{id}/recording.csv", get(api::recording_csv))
         .route("/trials/{id}/recording.mcap", get(api::recording_mcap))
         .route("/robot.urdf", get(api::robot_urdf))

@@ -110,3 +110,216 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     let n = mcap::MessageStream::new(&mcap).unwrap().count();
     assert_eq!(n as u64, rec.samples);
 }
+
+/// The simulated lab behind the service, as `isochron serve` runs it, with records.
+async fn simulated_service(
+    tmp: &std::path::Path,
+) -> (
+    std::net::SocketAddr,
+    Arc<server::Lab>,
+    Arc<Records>,
+    tokio::task::JoinHandle<()>,
+    impl Drop,
+) {
+    let data = tmp.join("data");
+    let records = Arc::new(Records::open(&data).unwrap());
+    let (lab, sim) = start_simulated(
+        Scenario::default(),
+        Some(Arc::clone(&records)),
+        LabOptions::default(),
+        11,
+    )
+    .unwrap();
+    let web = data.join("web");
+    std::fs::create_dir_all(&web).unwrap();
+    let state = AppState::new(web)
+        .with_lab(Arc::clone(&lab))
+        .with_records(Arc::clone(&records));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let server = tokio::spawn(async move {
+        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
+    });
+    (addr, lab, records, server, sim)
+}
+
+async fn json(
+    addr: std::net::SocketAddr,
+    method: &str,
+    path: &str,
+    body: &str,
+) -> (u16, serde_json::Value) {
+    let r = http(
+        addr,
+        method,
+        path,
+        &[("Content-Type", "application/json")],
+        body.as_bytes(),
+    )
+    .await
+    .unwrap();
+    (r.status, r.json().unwrap_or(serde_json::Value::Null))
+}
+
+/// Polls `GET path` until `pred` holds, at most `timeout`.
+async fn until(
+    addr: std::net::SocketAddr,
+    path: &str,
+    timeout: Duration,
+    pred: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let (code, v) = json(addr, "GET", path, "").await;
+        if code == 200 && pred(&v) {
+            return v;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{path}: not within {timeout:?}: {code} {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (addr, _lab, records, server, _sim) = simulated_service(tmp.path()).await;
+    until(addr, "/api/health", Duration::from_secs(30), |h| {
+        h["ready"] == true
+    })
+    .await;
+
+    // Out of range, infeasible, unknown or mistyped: 400 naming the field, nothing started.
+    for (body, field) in [
+        (r#"{"distance_m": 5}"#, "distance_m"),
+        (r#"{"distance_m": "x"}"#, "distance_m"),
+        (
+            r#"{"distance_m": 0.8, "movement_time_s": 0.9}"#,
+            "movement_time_s",
+        ),
+        (r#"{"movement_time_s": 0.1}"#, "movement_time_s"),
+        (r#"{"release_deg": 80}"#, "release_deg"),
+        (r#"{"speed": 1}"#, "speed"),
+    ] {
+        let (code, v) = json(addr, "POST", "/api/trials", body).await;
+        assert_eq!(code, 400, "{body}: {v}");
+        assert_eq!(v["field"], field, "{body}: {v}");
+    }
+    assert!(
+        records.list(10).unwrap().is_empty(),
+        "a refused trial left a record"
+    );
+
+    // This trial's own distance and movement time (the parameters in force unchanged).
+    let (code, v) = json(
+        addr,
+        "POST",
+        "/api/trials",
+        r#"{"distance_m": 0.7, "movement_time_s": 2.0}"#,
+    )
+    .await;
+    assert_eq!(code, 202, "{v}");
+    let id = v["id"].as_u64().unwrap();
+    let rec = until(
+        addr,
+        &format!("/api/trials/{id}"),
+        Duration::from_secs(60),
+        |r| r["status"] != "running",
+    )
+    .await;
+    assert_eq!(rec["status"], "done", "{rec}");
+    let d = rec["distance_m"].as_f64().unwrap();
+    let mt = rec["movement_time_s"].as_f64().unwrap();
+    assert!((d - 0.70).abs() <= 0.005, "distance {d}: {rec}");
+    assert!((mt - 2.0).abs() <= 0.05, "movement time {mt}: {rec}");
+    let (_, p) = json(addr, "GET", "/api/params", "").await;
+    assert_eq!(
+        p["task"]["movement_time_s"], 1.5,
+        "the parameters in force changed"
+    );
+
+    // A run: two trials at 0.50 and 0.70 m, progress and summary.
+    let (code, v) = json(
+        addr,
+        "POST",
+        "/api/runs",
+        r#"{"n": 2, "distance_m": [0.5, 0.7], "movement_time_s": 1.5}"#,
+    )
+    .await;
+    assert_eq!(code, 202, "{v}");
+    let run = v["id"].as_u64().unwrap();
+    let (code, v) = json(addr, "POST", "/api/runs", r#"{"n": 1}"#).await;
+    assert_eq!((code, v["reason"].as_str()), (409, Some("busy")), "{v}");
+    let r = until(
+        addr,
+        &format!("/api/runs/{run}"),
+        Duration::from_secs(120),
+        |r| r["status"] != "running",
+    )
+    .await;
+    assert_eq!(r["status"], "done", "{r}");
+    assert_eq!(r["finished"], 2, "{r}");
+    let ids: Vec<u64> = r["trial_ids"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap())
+        .collect();
+    assert_eq!(ids.len(), 2, "{r}");
+    let mut successes = 0;
+    for (i, want) in ids.iter().zip([0.5, 0.7]) {
+        let (_, t) = json(addr, "GET", &format!("/api/trials/{i}"), "").await;
+        assert!(
+            (t["distance_m"].as_f64().unwrap() - want).abs() <= 0.005,
+            "{t}"
+        );
+        successes += u64::from(t["success"] == true);
+    }
+    assert_eq!(r["successes"], successes, "{r}");
+    let ci = r["success_ci95"].as_array().unwrap();
+    assert!(ci[0].as_f64().unwrap() <= ci[1].as_f64().unwrap(), "{r}");
+    if successes > 0 {
+        assert!(
+            r["timing_error_ms_p50"].as_f64().unwrap()
+                <= r["timing_error_ms_p95"].as_f64().unwrap()
+        );
+    }
+
+    // Stopped after its current trial.
+    let (code, v) = json(addr, "POST", "/api/runs", r#"{"n": 5}"#).await;
+    assert_eq!(code, 202, "{v}");
+    let run = v["id"].as_u64().unwrap();
+    let (code, v) = json(addr, "DELETE", &format!("/api/runs/{run}"), "").await;
+    assert_eq!(code, 200, "{v}");
+    let r = until(
+        addr,
+        &format!("/api/runs/{run}"),
+        Duration::from_secs(60),
+        |r| r["status"] != "running",
+    )
+    .await;
+    assert_eq!(r["status"], "stopped", "{r}");
+    assert!(r["trial_ids"].as_array().unwrap().len() <= 1, "{r}");
+    // Bad runs: 400 naming the field.
+    for (body, field) in [
+        (r#"{"n": 0}"#, "n"),
+        (r#"{"n": 2, "distance_m": [0.5, 5.0]}"#, "distance_m"),
+        (
+            r#"{"n": 2, "distance_range_m": [0.5, 5.0]}"#,
+            "distance_range_m",
+        ),
+        (
+            r#"{"n": 2, "distance_m": 0.5, "distance_range_m": [0.4, 0.6]}"#,
+            "distance_range_m",
+        ),
+    ] {
+        let (code, v) = json(addr, "POST", "/api/runs", body).await;
+        assert_eq!(code, 400, "{body}: {v}");
+        assert_eq!(v["field"], field, "{body}: {v}");
+    }
+    let (code, _) = json(addr, "GET", "/api/runs/999", "").await;
+    assert_eq!(code, 404);
+    server.abort();
+}

@@ -845,10 +845,25 @@ pub enum Command {
     RunTrial {
         /// The id the server gave the trial (> 0).
         trial_id: u64,
+        /// What this trial sets for itself (validated by the sender).
+        setup: TrialSetup,
     },
     /// Replace the parameters (already validated by the sender). The control
     /// thread hands the old ones back in the [`Ack`] so that it never frees memory.
     SetParams(Box<Scenario>),
+}
+
+/// What one trial may set for itself (`POST /api/trials`): each `None`
+/// keeps the lab's draw or parameters. Nothing here changes the parameters
+/// in force.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TrialSetup {
+    /// Robot base axis to the intercept point, horizontal, metres.
+    pub distance_m: Option<f64>,
+    /// The motion's planned duration, seconds.
+    pub movement_time_s: Option<f64>,
+    /// The release angle's magnitude, degrees (the side is drawn).
+    pub release_deg: Option<f64>,
 }
 
 impl Command {

@@ -199,7 +199,7 @@ impl Operator {
     fn send(&mut self, lab: &mut VirtualLab, command: Command, report: &mut LifecycleReport) {
         report.commands += 1;
         let trial = match command {
-            Command::RunTrial { trial_id } => trial_id,
+            Command::RunTrial { trial_id, .. } => trial_id,
             _ => 0,
         };
         match lab.server().commands.send(command) {
@@ -223,7 +223,14 @@ impl Operator {
                 ends: 0,
             },
         );
-        self.send(lab, Command::RunTrial { trial_id: id }, report);
+        self.send(
+            lab,
+            Command::RunTrial {
+                trial_id: id,
+                setup: crate::bridge::TrialSetup::default(),
+            },
+            report,
+        );
     }
 }
 

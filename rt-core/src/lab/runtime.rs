@@ -799,7 +799,10 @@ mod tests {
         std::thread::sleep(Duration::from_millis(50));
         let id = end
             .commands
-            .send(Command::RunTrial { trial_id: 9 })
+            .send(Command::RunTrial {
+                trial_id: 9,
+                setup: crate::bridge::TrialSetup::default(),
+            })
             .unwrap();
         let deadline = Instant::now() + Duration::from_secs(40);
         let (mut acked, mut states, mut result) = (false, Vec::new(), None);

@@ -21,6 +21,7 @@ use super::truth::TruthUpdate;
 use crate::bridge::{
     self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
     FriQuality, FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult,
+    TrialSetup,
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
@@ -171,6 +172,8 @@ pub(crate) enum IoRequest {
         auto_release: bool,
         index: usize,
         draw: TrialDraw,
+        /// The trial's own movement time (else the scenario's).
+        movement_time_s: Option<f64>,
     },
     /// Build a controller for new parameters (answered by [`IoReply::Params`]).
     Params { ack: u64, scenario: Box<Scenario> },
@@ -945,14 +948,14 @@ impl LabStep {
             {
                 (Err(Refusal::DeviceUnavailable), None)
             }
-            Command::RunTrial { trial_id: 0 } => (Err(Refusal::Invalid), None),
+            Command::RunTrial { trial_id: 0, .. } => (Err(Refusal::Invalid), None),
             Command::Arm => {
                 self.operator_since_s = t;
-                return self.plan(id, 0, false);
+                return self.plan(id, 0, false, TrialSetup::default());
             }
-            Command::RunTrial { trial_id } => {
+            Command::RunTrial { trial_id, setup } => {
                 self.operator_since_s = t;
-                return self.plan(id, trial_id, true);
+                return self.plan(id, trial_id, true, setup);
             }
             Command::Disarm => {
                 if state == TrialState::Armed || state == TrialState::Arming {
@@ -1011,10 +1014,13 @@ impl LabStep {
 
     /// Asks `isochron-lab-io` for the plan of the next trial; the command is
     /// answered when the plan is back.
-    fn plan(&mut self, ack: u64, trial_id: u64, auto_release: bool) {
+    fn plan(&mut self, ack: u64, trial_id: u64, auto_release: bool, setup: TrialSetup) {
         let mut draw = draw_trial(&self.p.scenario, self.p.seed, self.trial_index);
-        if let Some(d) = self.p.fixed_distance_m {
+        if let Some(d) = setup.distance_m.or(self.p.fixed_distance_m) {
             draw.distance_m = d;
+        }
+        if let Some(r) = setup.release_deg {
+            draw.release_angle_deg = r.abs().copysign(draw.release_angle_deg);
         }
         let req = IoRequest::Plan {
             ack,
@@ -1022,6 +1028,7 @@ impl LabStep {
             auto_release,
             index: self.trial_index,
             draw,
+            movement_time_s: setup.movement_time_s,
         };
         if self.p.io_requests.push(req).is_ok() {
             self.trial_index += 1;
@@ -1895,6 +1902,16 @@ fn nearest_pass(passes: &[(f64, Vector3<f64>)], t_s: f64) -> Option<(f64, Vector
 /// Answers a planning or parameter request of the control thread (on
 /// `isochron-lab-io` in real time, in line in virtual time); `None` for the
 /// other requests.
+/// The beliefs a trial plans on: the scenario's, with the trial's own
+/// movement time when it has one.
+pub fn trial_beliefs(scenario: &Scenario, movement_time_s: Option<f64>) -> crate::control::Beliefs {
+    let mut b = scenario.beliefs();
+    if let Some(mt) = movement_time_s {
+        b.task.movement_time_s = mt;
+    }
+    b
+}
+
 pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<IoReply> {
     Some(match req {
         IoRequest::Plan {
@@ -1903,14 +1920,16 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             auto_release,
             index,
             draw,
+            movement_time_s,
         } => IoReply::Plan {
             ack,
             trial_id,
             auto_release,
             index,
             draw,
-            // The controller plans on the beliefs only (never `[world]`).
-            plan: Controller::plan(&scenario.beliefs(), draw.distance_m)
+            // The controller plans on the beliefs only (never `[world]`),
+            // with the trial's own movement time when it has one.
+            plan: Controller::plan(&trial_beliefs(scenario, movement_time_s), draw.distance_m)
                 .map_err(|_| crate::bridge::Refusal::Infeasible),
         },
         IoRequest::Params { ack, scenario: new } => {

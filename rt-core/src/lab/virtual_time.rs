@@ -527,6 +527,7 @@ impl VirtualLab {
         let fri_before = self.fri_counts();
         let Ok(ack) = self.server.commands.send(Command::RunTrial {
             trial_id: index as u64 + 1,
+            setup: crate::bridge::TrialSetup::default(),
         }) else {
             rec.failure = Some("the command ring is full".to_owned());
             rec.decide(&self.scenario.success);

@@ -117,9 +117,9 @@ impl Machine {
                 };
                 (Ok(()), None)
             }
-            Command::RunTrial { trial_id: 0 } => (Err(Refusal::Invalid), None),
+            Command::RunTrial { trial_id: 0, .. } => (Err(Refusal::Invalid), None),
             Command::RunTrial { .. } if st.busy() => (Err(Refusal::Busy), None),
-            Command::RunTrial { trial_id } => {
+            Command::RunTrial { trial_id, .. } => {
                 self.trial = trial_id;
                 self.snap.trial_id = trial_id;
                 self.set_state(TrialState::Arming);
