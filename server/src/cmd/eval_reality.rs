@@ -3,7 +3,10 @@
 //! know), per distance band and movement time, the paper's own condition, and
 //! an ablation table (each world effect alone, all together; the controller's
 //! online estimation on and off, and each of its switches off). Every figure
-//! here is a **reality-lab** figure; the rest of the report is truthful-world.
+//! here is a **reality-lab** figure but the ablation's truthful row (issue
+//! #40: the truthful simulator and judge); the rest of the report is
+//! truthful-world. Each ablation row is timed by its judge's arrival rule
+//! ([`check_judge_fits`]) and names that judge.
 
 use std::{fmt::Write as _, path::Path};
 
@@ -342,7 +345,8 @@ pub fn write_reality(
 ) -> anyhow::Result<()> {
     let _ = writeln!(
         md,
-        "\n## Reality lab (`{}`): every figure in this section is a reality-lab figure\n\n\
+        "\n## Reality lab (`{}`): every figure in this section is a reality-lab figure \
+         but the ablation's truthful row (a truthful-world figure)\n\n\
          The scenario's `[world]` (scenarios/README.md) is a lab that is not what the \
          controller believes: the true pendulum (length, drag, pivot friction, swing out of \
          the plane, the magnet's release delay), the true camera (latency per session with \
