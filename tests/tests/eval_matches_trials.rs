@@ -244,6 +244,58 @@ fn the_reality_section_reports_its_rows_as_reality_lab_figures() {
         assert!(section.contains(row), "{row}");
     }
     assert!(dir.join("reality_signed_timing_error.svg").exists());
+    // Issue #40: the ablation's control rows succeed, and every row is timed
+    // by its judge's arrival rule and judged by the judge its world calls for.
+    for control in [
+        "| no world effect (truthful world) |",
+        "| no world effect (world as believed) |",
+    ] {
+        let row = section.lines().find(|l| l.starts_with(control)).unwrap();
+        let c = cells(row);
+        assert_eq!(c[1], c[2], "every trial succeeds: {row}");
+    }
+    let ablation = section.split("### Ablation").nth(1).unwrap();
+    // Its table: the second paragraph (after the title), header and rule skipped.
+    let rows: Vec<Vec<String>> = ablation
+        .split("\n\n")
+        .nth(1)
+        .unwrap()
+        .lines()
+        .skip(2)
+        .map(cells)
+        .collect();
+    assert!(rows.len() >= 8, "{ablation}");
+    let commands: Vec<&str> = section
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("isochron trials"))
+        .collect();
+    // The ablation's rows are the last of the reality section's commands.
+    let first = commands.len() - rows.len();
+    for (c, command) in rows.iter().zip(&commands[first..]) {
+        let cell = command.split_whitespace().nth(3).unwrap();
+        let sc = rt_core::params::Scenario::from_file(&dir.join(cell)).unwrap();
+        let judge = &c[8];
+        if sc.world.is_some() {
+            assert!(judge.starts_with("physical"), "{c:?}");
+            assert_eq!(sc.control.arrival_settle_m, 0.002, "{c:?}");
+        } else {
+            assert!(judge.starts_with("truthful"), "{c:?}");
+            assert_eq!(sc.control.arrival_settle_m, 0.0, "{c:?}");
+            assert!(c[9].contains("release_delay_prior_ms = 0"), "{c:?}");
+        }
+        // Each trial was judged by that judge (a `physical` verdict exactly
+        // in a world).
+        let jsonl = std::fs::read_to_string(dir.join(cell).with_extension("jsonl")).unwrap();
+        for line in jsonl.lines() {
+            let v: Value = serde_json::from_str(line).unwrap();
+            assert_eq!(
+                v.get("physical").is_some(),
+                sc.world.is_some(),
+                "{c:?}: {line}"
+            );
+        }
+    }
     // The paper's row is what its command prints again.
     let row = section
         .lines()

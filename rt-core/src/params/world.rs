@@ -51,8 +51,9 @@ pub struct WorldPendulumParams {
     /// Out-of-plane angle of the string at release, degrees (sign drawn too), per trial.
     pub out_of_plane_deg: RangeParam,
     /// Delay between the coil's pin switching off and the ball dropping
-    /// (residual magnetism), ms, per trial.
-    pub release_delay_ms: RangeParam,
+    /// (residual magnetism), ms, per trial (default: the believed
+    /// `control.release_delay_prior_ms`, the magnet the controller was built for).
+    pub release_delay_ms: Option<RangeParam>,
     /// Standard deviation of a random horizontal acceleration (air), held for
     /// 50 ms at a time, m/s^2, per trial.
     pub disturbance_mps2: RangeParam,
@@ -68,7 +69,7 @@ impl Default for WorldPendulumParams {
             air_density_kgpm3: 1.2,
             pivot_friction_mps2: RangeParam::fixed(0.0),
             out_of_plane_deg: RangeParam::fixed(0.0),
-            release_delay_ms: RangeParam::fixed(0.0),
+            release_delay_ms: None,
             disturbance_mps2: RangeParam::fixed(0.0),
         }
     }
@@ -270,12 +271,9 @@ impl WorldParams {
             0.0,
             10.0,
         )?;
-        range(
-            "world.pendulum.release_delay_ms",
-            &p.release_delay_ms,
-            0.0,
-            500.0,
-        )?;
+        if let Some(d) = &p.release_delay_ms {
+            range("world.pendulum.release_delay_ms", d, 0.0, 500.0)?;
+        }
         range(
             "world.pendulum.disturbance_mps2",
             &p.disturbance_mps2,
@@ -557,15 +555,25 @@ impl WorldParams {
         }
     }
 
-    /// The draws of trial `index` of a run with `seed`.
-    pub fn draw_trial(&self, seed: u64, index: usize) -> TrialWorldDraw {
+    /// The draws of trial `index` of a run with `seed`, for a lab whose
+    /// believed release delay is `believed_release_delay_ms`.
+    pub fn draw_trial(
+        &self,
+        seed: u64,
+        index: usize,
+        believed_release_delay_ms: f64,
+    ) -> TrialWorldDraw {
         let mut rng = ChaCha8Rng::seed_from_u64(mix(seed, index as u64, TRIAL_STREAM));
         let p = &self.pendulum;
         let oop = pick(&p.out_of_plane_deg, &mut rng).to_radians();
         let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
         TrialWorldDraw {
             out_of_plane_rad: sign * oop,
-            release_delay_s: pick(&p.release_delay_ms, &mut rng) * 1e-3,
+            release_delay_s: pick(
+                &p.release_delay_ms
+                    .unwrap_or(RangeParam::fixed(believed_release_delay_ms)),
+                &mut rng,
+            ) * 1e-3,
             disturbance_mps2: pick(&p.disturbance_mps2, &mut rng),
             seed: rng.random(),
         }

@@ -51,7 +51,7 @@ impl World {
     ) -> Option<Self> {
         let w = scenario.world.as_ref()?;
         let session = w.draw_session(seed, w.session_of(index), scenario.robot.latency_ms);
-        let trial = w.draw_trial(seed, index);
+        let trial = w.draw_trial(seed, index, scenario.control.release_delay_prior_ms);
         let intercept_m = true_intercept_m(believed_intercept_m, &session);
         // Offsets are drawn around the nominal beliefs (before any calibration).
         let (nominal_length_m, nominal_damping_per_s) = w.anchor.map_or(

@@ -179,7 +179,7 @@ fn disturbances_push_the_ball_and_are_seeded() {
 fn a_release_delay_holds_the_ball_longer() {
     let mut s = Scenario::default();
     let mut w = WorldParams::default();
-    w.pendulum.release_delay_ms = RangeParam::new(20.0, 40.0);
+    w.pendulum.release_delay_ms = Some(RangeParam::new(20.0, 40.0));
     s.world = Some(w);
     let rest = Vector3::new(0.6, 0.0, 0.3);
     let world = World::for_trial(&s, 1, 0, &rest).unwrap();
@@ -193,6 +193,29 @@ fn a_release_delay_holds_the_ball_longer() {
     b.release(d);
     b.advance_to(d + 0.05);
     assert_ne!(b.ball_position_m(), start);
+}
+
+#[test]
+fn an_unset_release_delay_is_the_believed_one() {
+    // A world without `release_delay_ms` has the magnet the controller
+    // believes (as every unset key is the belief): 15 ms believed, 15 ms drawn.
+    let mut s = Scenario::default();
+    s.control.release_delay_prior_ms = 15.0;
+    s.world = Some(WorldParams::default());
+    let rest = Vector3::new(0.6, 0.0, 0.3);
+    for i in 0..3 {
+        let world = World::for_trial(&s, 1, i, &rest).unwrap();
+        assert!((world.trial.release_delay_s - 0.015).abs() < 1e-12);
+    }
+    // Believed none: none.
+    s.control.release_delay_prior_ms = 0.0;
+    assert_eq!(
+        World::for_trial(&s, 1, 0, &rest)
+            .unwrap()
+            .trial
+            .release_delay_s,
+        0.0
+    );
 }
 
 #[test]
