@@ -40,12 +40,18 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
     let server = tokio::spawn(async move {
         let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
     });
-    let deadline = Instant::now() + Duration::from_secs(10);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    // Commanding, and the lab would take a trial (the camera delivering: a
+    // loaded machine's vision thread can take a while to start).
     while lab
         .latest()
-        .is_none_or(|(s, _)| s.fri.session != FriSessionState::CommandingActive)
+        .is_none_or(|(s, _)| s.fri.session != FriSessionState::CommandingActive || !s.ready.trial)
     {
-        assert!(Instant::now() < deadline, "FRI session not commanding");
+        assert!(
+            Instant::now() < deadline,
+            "the lab does not take a trial: {:?}",
+            lab.latest().map(|(s, _)| (s.fri.session, s.ready))
+        );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     let mut events = lab.subscribe_events();

@@ -107,10 +107,11 @@ async fn foxglove_live_and_the_trials_mcap_carry_every_channel_with_its_schema()
     let fox = server::viz::start_server(&lab, "127.0.0.1:0".parse().unwrap())
         .await
         .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(15);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    // Commanding, and the lab would take a trial (the camera delivering).
     while lab
         .latest()
-        .is_none_or(|(s, _)| s.fri.session != FriSessionState::CommandingActive)
+        .is_none_or(|(s, _)| s.fri.session != FriSessionState::CommandingActive || !s.ready.trial)
     {
         assert!(Instant::now() < deadline, "the lab is not commanding");
         tokio::time::sleep(Duration::from_millis(10)).await;

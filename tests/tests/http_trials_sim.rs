@@ -33,12 +33,12 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     let server = tokio::spawn(async move {
         let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
     });
-    let deadline = Instant::now() + Duration::from_secs(10);
-    // The FRI session over loopback UDP reaches COMMANDING_ACTIVE.
-    while lab
-        .latest()
-        .is_none_or(|(s, _)| s.fri.session != rt_core::bridge::FriSessionState::CommandingActive)
-    {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    // The FRI session over loopback UDP reaches COMMANDING_ACTIVE and the lab
+    // would take a trial (the camera delivering).
+    while lab.latest().is_none_or(|(s, _)| {
+        s.fri.session != rt_core::bridge::FriSessionState::CommandingActive || !s.ready.trial
+    }) {
         assert!(
             Instant::now() < deadline,
             "the simulated lab's FRI session is not commanding: {:?}",

@@ -84,11 +84,14 @@ async fn start_sim_service(options: LabOptions) -> SimService {
         sim: Some(sim),
         server,
     };
-    // Ready when the FRI session over loopback UDP commands the arm.
+    // Ready when the FRI session over loopback UDP commands the arm and the
+    // lab would take a trial (the camera delivering: a loaded machine's vision
+    // thread can take a while to start).
     let l = std::sync::Arc::clone(&svc.lab);
-    wait_for(Duration::from_secs(10), move || {
-        l.latest()
-            .is_some_and(|(s, _)| s.fri.session == FriSessionState::CommandingActive)
+    wait_for(Duration::from_secs(30), move || {
+        l.latest().is_some_and(|(s, _)| {
+            s.fri.session == FriSessionState::CommandingActive && s.ready.trial
+        })
     })
     .await;
     svc
