@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv curl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -174,10 +174,16 @@ test-core:
 	$(CARGO) test -p rt-core --no-default-features --test control_step_no_alloc
 
 ## test-browser: the dashboard in headless Chromium against `isochron serve` (the simulated lab).
+## test-build: every test binary and the `isochron` binary they use, in one build
+## graph (`cargo build --bin` alone resolves other features for the dependencies
+## and would build OpenCV's bindings a second time); the browser, API-fuzz and
+## example runs use that binary.
+test-build: deps firmware
+	$(CARGO) test --workspace --no-run
+
 # The soak in `make test` checks the heap for 30 s and reports the frame rate;
 # `make soak` runs it for SOAK_S (default 300) and gates the frame rate too.
-test-browser: web
-	$(CARGO) build --bin isochron
+test-browser: web test-build
 	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
 SOAK_S ?= 300
@@ -188,14 +194,12 @@ soak: web
 ## test-api-fuzz: schemathesis against `isochron serve`'s own OpenAPI document, for
 ## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).
 API_FUZZ_SECONDS ?= 60
-test-api-fuzz: py-deps
-	$(CARGO) build --bin isochron
+test-api-fuzz: py-deps test-build
 	tests/api-fuzz/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" $(API_FUZZ_SECONDS)
 
 ## test-examples: examples/run_trials.py and run_trials.sh against `isochron serve`
 ## (the simulated lab), one trial a distance each (examples/test.sh).
-test-examples:
-	$(CARGO) build --bin isochron
+test-examples: test-build
 	examples/test.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" 1
 
 test: lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
