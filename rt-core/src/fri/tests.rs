@@ -1156,3 +1156,195 @@ fn params_are_validated_naming_the_field() {
     let from_robot = FriSimParams::from_robot(&crate::params::RobotParams::default());
     assert_eq!(from_robot, FriSimParams::default());
 }
+
+/// A test control: in COMMANDING_ACTIVE moves A1 by `amp_rad` along a smooth
+/// bell of `dur_s` (peak speed `amp_rad * pi / dur_s`), then holds.
+#[derive(Debug, Default)]
+struct Bell {
+    start: Option<f64>,
+    steps: u64,
+    amp_rad: f64,
+    dur_s: f64,
+    /// The command of every reply, rad.
+    commands: Vec<f64>,
+}
+
+impl ControlStep for Bell {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        if !input.commanding {
+            return;
+        }
+        let s = *self.start.get_or_insert(command_rad[0]);
+        self.steps += 1;
+        let x = (self.steps as f64 * input.receive_period_s / self.dur_s).min(1.0);
+        command_rad[0] = s + self.amp_rad * (1.0 - (std::f64::consts::PI * x).cos()) / 2.0;
+        self.commands.push(command_rad[0]);
+    }
+}
+
+/// Velocities of a path sampled once per period, rad/s.
+fn speeds(path: &[f64], period_s: f64) -> Vec<f64> {
+    path.windows(2).map(|w| (w[1] - w[0]) / period_s).collect()
+}
+
+/// Root mean square of the step-to-step change of `v`.
+fn rms_change(v: &[f64]) -> f64 {
+    let d: Vec<f64> = v.windows(2).map(|w| w[1] - w[0]).collect();
+    (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt()
+}
+
+/// Runs a bell motion of A1 and returns the true A1 at every tick from the
+/// first command on, and the control.
+fn bell_path(p: FriSimParams) -> (Vec<f64>, Bell, Arc<crate::sim::kuka::SimStats>) {
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Bell {
+        amp_rad: 0.4,
+        dur_s: 1.0,
+        ..Bell::default()
+    };
+    rig.run_until(500, &mut ctl, active);
+    let mut path = Vec::new();
+    let n = 1.2e3 / f64::from(rig.sim.params().fri_period_ms);
+    for _ in 0..n as usize {
+        rig.run(1, &mut ctl);
+        path.push(rig.sim.joint_rad()[0]);
+    }
+    let stats = Arc::clone(rig.sim.stats());
+    (path, ctl, stats)
+}
+
+#[test]
+fn latency_jitter_never_time_warps_the_arms_motion() {
+    // The default lab: 5 ms periods, 8 ms latency, +-2 ms jitter.
+    let jittery = FriSimParams {
+        latency_ms: 8.0,
+        latency_jitter_ms: 2.0,
+        fri_period_ms: 5,
+        ..FriSimParams::default()
+    };
+    let (path, ctl, stats) = bell_path(jittery.clone());
+    // Jitter below half a period never moves a command out of its cycle:
+    // the path is the one without jitter.
+    let (steady, _, _) = bell_path(FriSimParams {
+        latency_jitter_ms: 0.0,
+        ..jittery
+    });
+    assert_eq!(path, steady);
+    assert_eq!(stats.late_commands.load(Relaxed), 0);
+    assert_eq!(stats.held_cycles.load(Relaxed), 0);
+    // As smooth as the command (the first-order servo only smooths it), and
+    // no faster than it (a first-order servo does not overshoot).
+    let v = speeds(&path, 0.005);
+    let v_cmd = speeds(&ctl.commands, 0.005);
+    let (rough, rough_cmd) = (rms_change(&v), rms_change(&v_cmd));
+    assert!(rough <= rough_cmd * 1.01, "{rough} vs {rough_cmd} rad/s");
+    let peak = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let peak_cmd = v_cmd.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(peak <= peak_cmd * 1.001, "{peak} vs {peak_cmd} rad/s");
+    assert!(peak > peak_cmd * 0.95, "{peak} vs {peak_cmd} rad/s");
+}
+
+#[test]
+fn jitter_beyond_half_a_period_moves_commands_by_whole_cycles() {
+    // 1 ms periods with +-2 ms jitter: commands land up to two cycles off
+    // their own; the servo sees whole-cycle holds and catch-ups, counted.
+    let (path, ctl, stats) = bell_path(FriSimParams {
+        latency_ms: 8.0,
+        latency_jitter_ms: 2.0,
+        fri_period_ms: 1,
+        ..FriSimParams::default()
+    });
+    assert!(stats.late_commands.load(Relaxed) > 0);
+    assert!(stats.held_cycles.load(Relaxed) > 0);
+    assert!(stats.superseded_commands.load(Relaxed) > 0);
+    // Commands shift by at most two cycles each way, so the setpoint is held
+    // for at most four cycles: the first-order servo's error stays within its
+    // lag plus four commanded steps, its speed (error / tau) within
+    // 1 + 4 * 1 ms / 5 ms of the commanded one.
+    let peak = speeds(&path, 0.001)
+        .iter()
+        .fold(0.0f64, |m, x| m.max(x.abs()));
+    let peak_cmd = speeds(&ctl.commands, 0.001)
+        .iter()
+        .fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(
+        peak <= peak_cmd * (1.0 + 4.0 / 5.0),
+        "{peak} vs {peak_cmd} rad/s"
+    );
+}
+
+#[test]
+fn a_late_reply_holds_its_cycle_once_and_is_counted() {
+    let p = FriSimParams {
+        latency_ms: 8.0,
+        latency_jitter_ms: 0.0,
+        servo_time_constant_ms: 5.0,
+        fri_period_ms: 5,
+        ..FriSimParams::default()
+    };
+    let mut rig = Rig::new(p, FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.5,
+        ..Mover::default()
+    };
+    rig.run_until(500, &mut ctl, active);
+    rig.run(20, &mut ctl);
+    let period = rig.period_ns();
+    let hop = rig.hop_ns;
+    // The setpoint A1 follows, at every tick.
+    let mut setpoints = Vec::new();
+    let mut late = None;
+    for k in 0..40 {
+        let t = rig.t_ns;
+        if let Some(m) = rig.sim.tick(t)
+            && let Some(r) = rig.client.on_datagram(m, t + hop, &mut ctl)
+        {
+            let r = r.to_vec();
+            if k == 10 {
+                // This answer reaches the controller after the next message
+                // left (its deadline): late.
+                late = Some(r);
+            } else {
+                rig.sim.on_reply(&r, t + 2 * hop);
+            }
+        }
+        setpoints.push(rig.sim.stats().setpoint_rad.load()[0]);
+        rig.client.poll(t + hop, &mut ctl);
+        rig.t_ns += period;
+        if let Some(r) = late.take_if(|_| k == 10) {
+            let t = rig.t_ns;
+            let m = rig.sim.tick(t).map(<[u8]>::to_vec);
+            rig.sim.on_reply(&r, t + hop / 2);
+            if let Some(m) = m
+                && let Some(r) = rig.client.on_datagram(&m, t + hop, &mut ctl)
+            {
+                rig.sim.on_reply(r, t + 2 * hop);
+            }
+            setpoints.push(rig.sim.stats().setpoint_rad.load()[0]);
+            rig.client.poll(t + hop, &mut ctl);
+            rig.t_ns += period;
+        }
+    }
+    let s = rig.sim.stats();
+    assert_eq!(s.late_replies.load(Relaxed), 1);
+    assert_eq!(s.late_commands.load(Relaxed), 1);
+    assert_eq!(s.held_cycles.load(Relaxed), 1);
+    assert_eq!(s.superseded_commands.load(Relaxed), 1);
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+    // Every cycle the setpoint moves one command step on, except one held
+    // cycle, made up by a double step the cycle after.
+    let step = 0.5 * 0.005;
+    let moves: Vec<f64> = setpoints
+        .windows(2)
+        .map(|w| ((w[1] - w[0]) / step).round())
+        .collect();
+    assert_eq!(moves.iter().filter(|m| **m == 0.0).count(), 1, "{moves:?}");
+    assert_eq!(moves.iter().filter(|m| **m == 2.0).count(), 1, "{moves:?}");
+    assert_eq!(
+        moves.iter().filter(|m| **m == 1.0).count(),
+        moves.len() - 2,
+        "{moves:?}"
+    );
+    let held = moves.iter().position(|m| *m == 0.0).unwrap();
+    assert_eq!(moves[held + 1], 2.0, "{moves:?}");
+}

@@ -42,9 +42,12 @@ pub struct FriSimParams {
     pub fri_period_ms: u32,
     /// The client answers every n-th message (1..100).
     pub receive_multiplier: u32,
-    /// Command arrival -> setpoint applied, ms.
+    /// Command-to-motion delay, ms: a command in time for its cycle reaches
+    /// the servo this long after the cycle that sent the message it answers.
     pub latency_ms: f64,
-    /// Uniform jitter of that delay, +/- ms (commands are never reordered).
+    /// Uniform jitter of that delay, +/- ms: it decides only which controller
+    /// cycle a command lands in (the nearest whole number of periods from its
+    /// own; commands are never reordered), never the time within a cycle.
     pub latency_jitter_ms: f64,
     /// First-order servo lag of each joint towards its setpoint, ms (0: none).
     pub servo_time_constant_ms: f64,
@@ -365,6 +368,15 @@ pub struct SimStats {
     pub commands_accepted: AtomicU64,
     /// Commands that reached the joints (after the latency).
     pub commands_applied: AtomicU64,
+    /// Commands that landed one or more cycles after their own (a reply
+    /// after its cycle's deadline, or the latency's jitter).
+    pub late_commands: AtomicU64,
+    /// Commands replaced by a newer one in the same cycle before they reached
+    /// the joints.
+    pub superseded_commands: AtomicU64,
+    /// Receive periods in COMMANDING_ACTIVE in which no new command reached
+    /// the servo (a late or missing one): the previous setpoint was held.
+    pub held_cycles: AtomicU64,
     /// COMMANDING_WAIT replies that did not mirror the ipo position exactly.
     pub mirror_mismatches: AtomicU64,
     /// COMMANDING_ACTIVE replies without joint positions.
@@ -509,6 +521,8 @@ impl SimStats {
             abort_reason: self.last_abort().map(|r| r.to_string()),
             commands_accepted: l(&self.commands_accepted),
             commands_applied: l(&self.commands_applied),
+            late_commands: l(&self.late_commands),
+            held_cycles: l(&self.held_cycles),
             mirror_mismatches: l(&self.mirror_mismatches),
             overruns: l(&self.overruns),
             final_state: self.state().name(),
@@ -553,6 +567,10 @@ pub struct SimReport {
     pub commands_accepted: u64,
     /// Commands that reached the joints.
     pub commands_applied: u64,
+    /// Commands that landed one or more cycles after their own.
+    pub late_commands: u64,
+    /// Receive periods in COMMANDING_ACTIVE with no new command (held).
+    pub held_cycles: u64,
     /// COMMANDING_WAIT replies that did not mirror the ipo position.
     pub mirror_mismatches: u64,
     /// Late send slots of the real-time runner.
@@ -588,8 +606,13 @@ pub struct SimController {
     reflected: u32,
     last_client_seq: Option<u32>,
     slots: [Slot; SLOTS],
-    /// Send time of every message, by `seq % SLOTS` (the round trip of an answer).
-    sent: [(u32, u64); SLOTS],
+    /// Send time and controller cycle time of every message, by
+    /// `seq % SLOTS` (the round trip of an answer, the cycle its command
+    /// belongs to).
+    sent: [(u32, u64, u64); SLOTS],
+    /// The controller's own cycle time of the last message (its clock: one
+    /// period per tick, re-synchronised when a tick is off by a period).
+    cycle_ns: Option<u64>,
     window: [bool; MAX_QUALITY_WINDOW],
     window_len: usize,
     window_at: usize,
@@ -601,6 +624,9 @@ pub struct SimController {
     last_cmd: Joints,
     pending: VecDeque<(u64, Joints)>,
     last_apply_ns: u64,
+    /// When the last command reached the servo in this commanding (held
+    /// cycles are the gaps).
+    last_applied_due_ns: Option<u64>,
     t_ns: Option<u64>,
     wait_since_ns: u64,
     commanding_requested: bool,
@@ -695,7 +721,8 @@ impl SimController {
             reflected: 0,
             last_client_seq: None,
             slots: [Slot::default(); SLOTS],
-            sent: [(0, 0); SLOTS],
+            sent: [(0, 0, 0); SLOTS],
+            cycle_ns: None,
             window: [false; MAX_QUALITY_WINDOW],
             window_len: 0,
             window_at: 0,
@@ -707,6 +734,7 @@ impl SimController {
             last_cmd: q,
             pending: VecDeque::with_capacity(PENDING_CAPACITY),
             last_apply_ns: 0,
+            last_applied_due_ns: None,
             t_ns: None,
             wait_since_ns: 0,
             commanding_requested: false,
@@ -890,17 +918,35 @@ impl SimController {
             if due > now_ns {
                 break;
             }
+            self.pending.pop_front();
+            if self.pending.front().is_some_and(|&(next, _)| next <= due) {
+                // A newer command landed in the same cycle: it wins.
+                self.stats.superseded_commands.fetch_add(1, Relaxed);
+                continue;
+            }
             let due = due.max(t);
             self.integrate(due - t);
             t = due;
             self.setpoint = q;
-            self.pending.pop_front();
             self.stats.commands_applied.fetch_add(1, Relaxed);
+            self.count_held(due);
         }
         self.integrate(now_ns - t);
         self.t_ns = Some(now_ns);
         self.stats.joint_rad.store(&self.q);
         self.stats.setpoint_rad.store(&self.setpoint);
+    }
+
+    /// Counts the receive periods before `due` in which no command reached
+    /// the servo (the setpoint was held).
+    fn count_held(&mut self, due: u64) {
+        if let Some(prev) = self.last_applied_due_ns.replace(due) {
+            let gap = due.saturating_sub(prev) as f64 / self.receive_period_ns() as f64;
+            let held = (gap.round() as u64).saturating_sub(1);
+            if held > 0 {
+                self.stats.held_cycles.fetch_add(held, Relaxed);
+            }
+        }
     }
 
     fn abort(&mut self, reason: AbortReason) {
@@ -912,6 +958,7 @@ impl SimController {
         self.commanding_requested = false;
         // The drives stop where they are.
         self.pending.clear();
+        self.last_applied_due_ns = None;
         self.setpoint = self.q;
         self.last_cmd = self.q;
         self.ipo = self.q;
@@ -931,6 +978,7 @@ impl SimController {
             SessionState::MonitoringReady if self.commanding_requested => {
                 self.ipo = self.setpoint;
                 self.last_cmd = self.setpoint;
+                self.last_applied_due_ns = None;
                 self.wait_since_ns = now_ns;
                 self.set_state(SessionState::CommandingWait);
             }
@@ -947,6 +995,19 @@ impl SimController {
             }
             _ => {}
         }
+    }
+
+    /// The controller's cycle time of the tick at `now_ns`: one period after
+    /// the previous one, or `now_ns` when the tick is off that by half a
+    /// period early or a whole period late (the first tick, an overrun).
+    fn next_cycle(&mut self, now_ns: u64) -> u64 {
+        let p = self.p.period_ns();
+        let cycle = match self.cycle_ns {
+            Some(c) if now_ns + p / 2 >= c + p && now_ns < c + 2 * p => c + p,
+            _ => now_ns,
+        };
+        self.cycle_ns = Some(cycle);
+        cycle
     }
 
     /// The monitoring datagram due at `now_ns` (call once per send period), or
@@ -969,7 +1030,8 @@ impl SimController {
         self.seq = self.seq.wrapping_add(1);
         self.produced += 1;
         let r = u64::from(self.p.receive_multiplier);
-        self.sent[seq as usize % SLOTS] = (seq, now_ns);
+        let cycle_ns = self.next_cycle(now_ns);
+        self.sent[seq as usize % SLOTS] = (seq, now_ns, cycle_ns);
         if self.state != SessionState::Idle && self.produced % r == 0 {
             self.slots[seq as usize % SLOTS] = Slot {
                 seq,
@@ -1071,6 +1133,7 @@ impl SimController {
         let r = c.reflected_sequence_counter;
         let covered = self.p.receive_multiplier;
         let mut first_sent_ns = None;
+        let mut cycle_ns = None;
         for s in &mut self.slots {
             if s.open && r.wrapping_sub(s.seq) < covered {
                 s.open = false;
@@ -1079,8 +1142,9 @@ impl SimController {
         }
         match first_sent_ns {
             Some(slot_sent_ns) => {
-                let (seq, sent_ns) = self.sent[r as usize % SLOTS];
+                let (seq, sent_ns, cycle) = self.sent[r as usize % SLOTS];
                 let sent_ns = if seq == r { sent_ns } else { slot_sent_ns };
+                cycle_ns = (seq == r).then_some(cycle);
                 let rtt = arrival.saturating_sub(sent_ns);
                 self.stats.rtt.record_ns(rtt);
                 let late = rtt as f64 > self.p.late_after_periods * self.p.period_ns() as f64;
@@ -1114,7 +1178,7 @@ impl SimController {
                 }
                 Some(q) => match self.check_command(&q) {
                     Some(reason) => self.abort(reason),
-                    None => self.accept(q, arrival),
+                    None => self.accept(q, arrival, cycle_ns),
                 },
             },
             _ => {}
@@ -1148,18 +1212,40 @@ impl SimController {
         None
     }
 
-    fn accept(&mut self, q: Joints, arrival_ns: u64) {
+    /// Queues an accepted command for the cycle it lands in. Its own cycle:
+    /// the latency after the controller cycle that sent the message it
+    /// answers (`cycle_ns`; its arrival for an answer to a message no longer
+    /// known). A reply after that message's deadline (`late_after_periods`)
+    /// misses the cycles up to its arrival, the latency's jitter moves it by
+    /// the nearest whole number of periods; the servo keeps the previous
+    /// setpoint meanwhile (held, not extrapolated).
+    fn accept(&mut self, q: Joints, arrival_ns: u64, cycle_ns: Option<u64>) {
         self.last_cmd = q;
         self.stats.commands_accepted.fetch_add(1, Relaxed);
-        let mut delay_ms = self.p.latency_ms;
+        let mut latency_ms = self.p.latency_ms;
+        let mut jitter_ms = 0.0;
         if let Some(w) = &self.world {
-            delay_ms = w.latency.latency_s(arrival_ns as f64 * 1e-9) * 1e3;
+            latency_ms = w.latency.latency_s(arrival_ns as f64 * 1e-9) * 1e3;
         } else if self.p.latency_jitter_ms > 0.0 {
-            delay_ms += self
+            jitter_ms = self
                 .rng
                 .random_range(-self.p.latency_jitter_ms..=self.p.latency_jitter_ms);
         }
-        let due = (arrival_ns + (delay_ms.max(0.0) * 1e6) as u64).max(self.last_apply_ns);
+        let period = self.p.period_ns();
+        let base = cycle_ns.unwrap_or(arrival_ns);
+        let own = base + (latency_ms.max(0.0) * 1e6) as u64;
+        let deadline = base + (self.p.late_after_periods * period as f64) as u64;
+        let missed = arrival_ns.saturating_sub(deadline).div_ceil(period);
+        let shift = missed as i64 + (jitter_ms * 1e6 / period as f64).round() as i64;
+        let due = own
+            .saturating_add_signed(shift * period as i64)
+            // Never before it arrived, never before the previous command
+            // (in the same cycle, it replaces that one).
+            .max(arrival_ns)
+            .max(self.last_apply_ns);
+        if due >= own + period / 2 {
+            self.stats.late_commands.fetch_add(1, Relaxed);
+        }
         self.last_apply_ns = due;
         if self.pending.len() >= PENDING_CAPACITY {
             self.stats.pending_overflow.fetch_add(1, Relaxed);
