@@ -28,7 +28,7 @@ const KEEP: usize = 64;
 pub const MAX_TRIALS: u32 = 10_000;
 
 /// `POST /api/runs` body.
-#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Deserialize, ToSchema, ts_rs::TS)]
 #[serde(deny_unknown_fields)]
 pub struct RunRequest {
     /// How many trials (1..=10000).
@@ -47,7 +47,7 @@ pub struct RunRequest {
 }
 
 /// One distance, or a list of them.
-#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Deserialize, ToSchema, ts_rs::TS)]
 #[serde(untagged)]
 pub enum Distances {
     /// The same distance for every trial, metres.
@@ -57,7 +57,7 @@ pub enum Distances {
 }
 
 /// A run as `GET /api/runs/{id}` shows it.
-#[derive(Debug, Clone, Serialize, ToSchema)]
+#[derive(Debug, Clone, Serialize, ToSchema, ts_rs::TS)]
 pub struct RunStatus {
     /// The run's id.
     pub id: u64,
@@ -67,6 +67,7 @@ pub struct RunStatus {
     /// Trials asked for.
     pub n: u32,
     /// Trials started so far, in order (their records: `/api/trials/{id}`).
+    #[ts(type = "number[]")]
     pub trial_ids: Vec<u64>,
     /// Trials whose records finished.
     pub finished: u32,
@@ -90,8 +91,10 @@ pub struct RunStatus {
     /// Why it failed or stopped (null otherwise).
     pub message: Option<String>,
     #[serde(skip)]
+    #[ts(skip)]
     timing: Vec<f64>,
     #[serde(skip)]
+    #[ts(skip)]
     stop: bool,
 }
 

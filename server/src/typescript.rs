@@ -20,6 +20,7 @@ use crate::{
     calibration::{CalibrationJob, CalibrationStatus, Change, StepStatus},
     lab::{EventMessage, StateMessage, StreamCounters},
     records::TrialRecord,
+    runs::{Distances, RunRequest, RunStatus},
     ws::Hello,
 };
 
@@ -59,6 +60,9 @@ pub fn declarations() -> String {
         EventMessage::decl(),
         Hello::decl(),
         TrialRecord::decl(),
+        Distances::decl(),
+        RunRequest::decl(),
+        RunStatus::decl(),
         ViewKind::decl(),
         StepView::decl(),
         StepStatus::decl(),

@@ -831,6 +831,92 @@ measured: MeasuredJudgement | null,
  */
 judged_by: JudgedBy | null, };
 
+export type Distances = number | Array<number>;
+
+export type RunRequest = { 
+/**
+ * How many trials (1..=10000).
+ */
+n: number, 
+/**
+ * The trials' distances, metres: one for all, or a list the trials take
+ * in turn (trial i: `distance_m[i % len]`). Absent: drawn as usual.
+ */
+distance_m: Distances | null, 
+/**
+ * Distances spread evenly over `[lo, hi]` metres across the run
+ * (trial i: `lo + (hi - lo) i / (n - 1)`); not with `distance_m`.
+ */
+distance_range_m: [number, number] | null, 
+/**
+ * Every trial's planned movement time, seconds (else the lab's).
+ */
+movement_time_s: number | null, 
+/**
+ * Every trial's release angle magnitude, degrees (else drawn).
+ */
+release_deg: number | null, };
+
+export type RunStatus = { 
+/**
+ * The run's id.
+ */
+id: bigint, 
+/**
+ * `running`, `done` (all trials ran), `stopped` (by `DELETE`) or
+ * `failed` (the lab could not take a trial; `message` says why).
+ */
+status: string, 
+/**
+ * Trials asked for.
+ */
+n: number, 
+/**
+ * Trials started so far, in order (their records: `/api/trials/{id}`).
+ */
+trial_ids: number[], 
+/**
+ * Trials whose records finished.
+ */
+finished: number, 
+/**
+ * Finished trials judged (not `not judged`, not aborted without a verdict).
+ */
+judged: number, 
+/**
+ * Judged trials that succeeded.
+ */
+successes: number, 
+/**
+ * Successes / finished trials (0 when none finished).
+ */
+success_rate: number, 
+/**
+ * Wilson 95% interval of the success rate over the finished trials.
+ */
+success_ci95: [number, number], 
+/**
+ * |timing error| of the judged trials, median, milliseconds (null: none).
+ */
+timing_error_ms_p50: number | null, 
+/**
+ * |timing error| of the judged trials, 95th percentile (linear
+ * interpolation, numpy's default), milliseconds (null: none).
+ */
+timing_error_ms_p95: number | null, 
+/**
+ * Unix time the run started, seconds.
+ */
+started_unix_s: number, 
+/**
+ * Unix time it ended, seconds (null while running).
+ */
+finished_unix_s: number | null, 
+/**
+ * Why it failed or stopped (null otherwise).
+ */
+message: string | null, };
+
 export type ViewKind = "image" | "series";
 
 export type StepView = { 
