@@ -60,6 +60,7 @@ pub enum Distances {
 #[derive(Debug, Clone, Serialize, ToSchema, ts_rs::TS)]
 pub struct RunStatus {
     /// The run's id.
+    #[ts(type = "number")]
     pub id: u64,
     /// `running`, `done` (all trials ran), `stopped` (by `DELETE`) or
     /// `failed` (the lab could not take a trial; `message` says why).

@@ -861,7 +861,7 @@ export type RunStatus = {
 /**
  * The run's id.
  */
-id: bigint, 
+id: number, 
 /**
  * `running`, `done` (all trials ran), `stopped` (by `DELETE`) or
  * `failed` (the lab could not take a trial; `message` says why).
