@@ -36,10 +36,9 @@ use crate::fri::proto::{ConnectionQuality, SessionState};
 use crate::magnet::{MagnetHandle, view};
 use crate::params::Scenario;
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use crate::sim::world::contact::BallOnTool;
 use crate::sim::world::judge::PhysicalJudgeError;
-use crate::sim::world::{
-    Contact, Disc, PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical,
-};
+use crate::sim::world::{PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical};
 
 use crate::trajectory::profile::ProfileKind;
 use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
@@ -237,91 +236,20 @@ enum TrueBall {
     World(WorldBall),
 }
 
-/// The reality lab's trial: the true pendulum, stopped by the true tool's
-/// disc, and its ghost (the same ball without the tool in its way: t* and
-/// contact are judged on it).
+/// The reality lab's trial: the world's draw and its true ball on the
+/// true tool (`sim::world::contact::BallOnTool`).
 struct WorldBall {
     world: World,
-    ball: TruePendulum,
-    ghost: TruePendulum,
-    /// When the ball drops (the pin time plus the residual magnetism's delay).
-    drop_at: Option<f64>,
-    last_disc: Option<Disc>,
-    /// The true ball at the previous step (where a contact's exact time is
-    /// searched from).
-    before: Option<TruePendulum>,
+    on_tool: BallOnTool,
 }
 
 impl TrueBall {
     fn position_m(&self) -> Vector3<f64> {
         match self {
             Self::Ideal(b) => b.ball_position_m(),
-            Self::World(w) => w.ball.ball_position_m(),
+            Self::World(w) => w.on_tool.ball.ball_position_m(),
         }
     }
-}
-
-/// Whether the true ball of radius `radius_m` touches `disc` (moving at
-/// `v_disc`) and moves into it.
-fn touching(ball: &TruePendulum, disc: &Disc, v_disc: &Vector3<f64>, radius_m: f64) -> bool {
-    let (dist, n) = disc.distance(&ball.ball_position_m());
-    dist <= radius_m && (ball.ball_velocity_mps() - v_disc).dot(&n) < 0.0
-}
-
-/// The disc `ago_s` before the step that moved it from `last` to `now` over
-/// `period_s` (its centre interpolated linearly; the normal of `now`).
-fn disc_at(last: &Disc, now: &Disc, ago_s: f64, period_s: f64) -> Disc {
-    let f = (1.0 - ago_s / period_s).clamp(0.0, 1.0);
-    Disc {
-        centre_m: last.centre_m + (now.centre_m - last.centre_m) * f,
-        ..*now
-    }
-}
-
-/// When the ball that was `before` (not touching the disc `last`) first
-/// touches the disc moving from `last` to `now` by `t_s`: bisected to a
-/// microsecond on copies of the ball. `None` when it already touched.
-fn first_touch(
-    before: &TruePendulum,
-    drop_at: Option<f64>,
-    last: &Disc,
-    now: &Disc,
-    v_disc: &Vector3<f64>,
-    t_s: f64,
-    radius_m: f64,
-) -> Option<f64> {
-    let (mut lo, mut hi) = (before.time_s(), t_s);
-    let period_s = hi - lo;
-    if period_s <= 0.0 || touching(before, last, v_disc, radius_m) {
-        return None;
-    }
-    while hi - lo > 1e-6 {
-        let mid = 0.5 * (lo + hi);
-        let mut probe = before.clone();
-        advance_true_ball(&mut probe, drop_at, mid);
-        if touching(
-            &probe,
-            &disc_at(last, now, t_s - mid, period_s),
-            v_disc,
-            radius_m,
-        ) {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    Some(hi)
-}
-
-/// Advances a true pendulum to `t_s`, dropping the ball at `drop_at`.
-fn advance_true_ball(ball: &mut TruePendulum, drop_at: Option<f64>, t_s: f64) {
-    if let Some(tr) = drop_at
-        && tr <= t_s
-        && ball.is_held()
-    {
-        ball.release(tr.max(ball.time_s()));
-    }
-    ball.advance_to(t_s);
 }
 
 struct Trial {
@@ -853,7 +781,9 @@ impl LabStep {
                 }
                 // Residual magnetism holds the ball a little longer (the
                 // simulated camera knows the same drop time from the switch).
-                Some(TrueBall::World(w)) => w.drop_at = Some(t + w.world.trial.release_delay_s),
+                Some(TrueBall::World(w)) => {
+                    w.on_tool.drop_at = Some(t + w.world.trial.release_delay_s);
+                }
                 None => {}
             }
             let c = self.inner.controller_mut();
@@ -1127,11 +1057,7 @@ impl LabStep {
                 );
                 TrueBall::World(WorldBall {
                     world: w,
-                    ghost: ball.clone(),
-                    ball,
-                    drop_at: None,
-                    last_disc: None,
-                    before: None,
+                    on_tool: BallOnTool::new(ball),
                 })
             }),
             Some(_) => {
@@ -1172,7 +1098,7 @@ impl LabStep {
             let _ = truth.calibrations.push(cal);
             let _ = truth.to_camera.push(match ball {
                 TrueBall::Ideal(b) => TruthUpdate::Ball(b.clone()),
-                TrueBall::World(w) => TruthUpdate::World(w.ball.clone()),
+                TrueBall::World(w) => TruthUpdate::World(w.on_tool.ball.clone()),
             });
         }
         self.inner.clear_stop();
@@ -1258,84 +1184,55 @@ impl LabStep {
             Some(TrueBall::World(w)) => {
                 // The same, on the ghost (the ball without the tool in its
                 // way) and the true intercept point.
-                if t > w.ghost.time_s() {
+                let ghost = &w.on_tool.ghost;
+                if t > ghost.time_s() {
                     let y = w.world.intercept_m.y;
-                    if let Some(tp) = w.ghost.next_crossing_s(y, t - w.ghost.time_s())
+                    if let Some(tp) = ghost.next_crossing_s(y, t - ghost.time_s())
                         && self.passes.len() < MAX_PASSES
                     {
-                        let mut at = w.ghost.clone();
+                        let mut at = ghost.clone();
                         at.advance_to(tp);
                         self.passes.push((tp, at.ball_position_m()));
                     }
                     if let Some(c) = commit
                         && trial.at_predicted.is_none()
-                        && c.predicted_pass_s >= w.ghost.time_s()
+                        && c.predicted_pass_s >= ghost.time_s()
                         && c.predicted_pass_s < t
-                        && !w.ghost.is_held()
+                        && !ghost.is_held()
                     {
-                        let mut at = w.ghost.clone();
+                        let mut at = ghost.clone();
                         at.advance_to(c.predicted_pass_s);
                         trial.at_predicted = Some(at.ball_position_m());
                     }
-                    w.before = Some(w.ball.clone());
-                    advance_true_ball(&mut w.ball, w.drop_at, t);
-                    advance_true_ball(&mut w.ghost, w.drop_at, t);
+                    w.on_tool.advance(t);
                 }
                 // The true tool (the world's kinematics at the robot's true
                 // joints); the ball stops against its disc.
                 let disc = w.world.arm.disc(&q_true);
-                let last = w.last_disc.unwrap_or(disc);
-                let v_disc = (disc.centre_m - last.centre_m) / self.period_s;
-                w.last_disc = Some(disc);
-                // A contact begins between two steps: the ball is stopped at
-                // that moment (not a step later, inside the disc), and the
-                // contact carries its exact time.
-                let radius_m = w.world.pendulum.ball_radius_m;
-                let mut contact_at = t;
-                if let Some(before) = w.before.take()
-                    && touching(&w.ball, &disc, &v_disc, radius_m)
-                    && let Some(tc) =
-                        first_touch(&before, w.drop_at, &last, &disc, &v_disc, t, radius_m)
+                let mass_kg = self
+                    .p
+                    .scenario
+                    .world
+                    .as_ref()
+                    .map_or(0.0, |pw| pw.pendulum.ball_mass_kg);
+                let contact = w.on_tool.meet(t, disc, self.period_s, mass_kg);
+                if let Some(contact) = contact
+                    && let Some(truth) = self.p.truth.as_mut()
                 {
-                    let mut at = before;
-                    advance_true_ball(&mut at, w.drop_at, tc);
-                    w.ball = at;
-                    contact_at = tc;
-                }
-                let contact_disc = disc_at(&last, &disc, t - contact_at, self.period_s);
-                let v_before = w.ball.ball_velocity_mps();
-                let hit = w.ball.collide(&contact_disc, &v_disc, 0.0);
-                let impulse_ns = w.ball.ball_velocity_mps() - v_before;
-                let contact_ball_m = w.ball.ball_position_m();
-                if contact_at < t {
-                    advance_true_ball(&mut w.ball, w.drop_at, t);
-                    // Still pressed against the disc at the step.
-                    let _ = w.ball.collide(&disc, &v_disc, 0.0);
-                }
-                if hit && let Some(truth) = self.p.truth.as_mut() {
                     // The camera sees the ball where the tool stopped it.
-                    let _ = truth.to_camera.push(TruthUpdate::World(w.ball.clone()));
+                    let _ = truth
+                        .to_camera
+                        .push(TruthUpdate::World(w.on_tool.ball.clone()));
                     // The robot feels the impulse that stopped it.
                     if let Some(contacts) = truth.contacts.as_mut() {
-                        let mass_kg = self
-                            .p
-                            .scenario
-                            .world
-                            .as_ref()
-                            .map_or(0.0, |pw| pw.pendulum.ball_mass_kg);
-                        let (_, n) = contact_disc.distance(&contact_ball_m);
-                        let _ = contacts.push(Contact {
-                            t_s: contact_at,
-                            point_m: contact_ball_m - n * radius_m,
-                            impulse_ns: -impulse_ns * mass_kg,
-                        });
+                        let _ = contacts.push(contact);
                     }
                 }
-                self.trace.push(t, tool, w.ball.ball_position_m());
+                self.trace.push(t, tool, w.on_tool.ball.ball_position_m());
                 if self.world_trace.len() < self.world_trace.capacity() {
                     self.world_trace.push(WorldSample {
                         t_s: t,
-                        ball_m: w.ghost.ball_position_m(),
+                        ball_m: w.on_tool.ghost.ball_position_m(),
                         disc,
                     });
                 }

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use super::controller::{FriSimParams, SimController, SimReport, SimStats};
+use super::controller::{FriSimParams, SimController, SimReport, SimStats, WorldRobot};
 use crate::check::ParamError;
 use crate::fri::net::wait_readable;
 use crate::fri::proto::SessionState;
@@ -56,11 +56,18 @@ pub enum SimError {
     Panicked,
 }
 
+/// Called on the controller's thread after each monitoring message is sent,
+/// with the controller (its true joints) and the time since the epoch, ns:
+/// the world process's world steps here (`isochron world`).
+pub type TickHook = Box<dyn FnMut(&mut SimController, u64) + Send>;
+
 /// A running simulated controller.
 #[derive(Debug)]
 pub struct SimServer {
     stats: Arc<SimStats>,
     local: SocketAddr,
+    epoch: Instant,
+    epoch_unix_ns: u64,
     command: Arc<AtomicBool>,
     close: Arc<AtomicBool>,
     pause: Arc<AtomicBool>,
@@ -75,10 +82,25 @@ impl SimServer {
         client: SocketAddr,
         opts: SimRunOptions,
     ) -> Result<Self, SimError> {
+        Self::spawn_with(params, bind, client, opts, None, None)
+    }
+
+    /// As [`spawn`](Self::spawn), with the reality lab's robot plugged in
+    /// (`world`) and `hook` called after each message sent.
+    pub fn spawn_with(
+        params: FriSimParams,
+        bind: SocketAddr,
+        client: SocketAddr,
+        opts: SimRunOptions,
+        world: Option<WorldRobot>,
+        hook: Option<TickHook>,
+    ) -> Result<Self, SimError> {
+        let epoch = Instant::now();
         let epoch_unix_ns = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos() as u64);
-        let sim = SimController::new(params, epoch_unix_ns)?;
+        let mut sim = SimController::new(params, epoch_unix_ns)?;
+        sim.set_world(world);
         let socket =
             UdpSocket::bind(bind).map_err(|source| SimError::Bind { addr: bind, source })?;
         socket.set_nonblocking(true)?;
@@ -97,11 +119,21 @@ impl SimServer {
                         crate::fri::priority::SIM_PRIORITY,
                     )
                 });
-                run(socket, client, sim, opts, &flags.0, &flags.1, &flags.2)
+                run(
+                    socket,
+                    client,
+                    sim,
+                    Hooked { opts, epoch, hook },
+                    &flags.0,
+                    &flags.1,
+                    &flags.2,
+                );
             })?;
         Ok(Self {
             stats,
             local,
+            epoch,
+            epoch_unix_ns,
             command,
             close,
             pause,
@@ -112,6 +144,16 @@ impl SimServer {
     /// The bound address (replies must come here).
     pub fn local_addr(&self) -> SocketAddr {
         self.local
+    }
+
+    /// Time 0 of the controller's clock (its messages' and the hook's times).
+    pub fn epoch(&self) -> Instant {
+        self.epoch
+    }
+
+    /// The Unix time of the epoch, ns.
+    pub fn epoch_unix_ns(&self) -> u64 {
+        self.epoch_unix_ns
     }
 
     /// The controller's counters (lock-free).
@@ -170,16 +212,27 @@ impl Drop for SimServer {
     }
 }
 
+/// The run's options, epoch and hook.
+struct Hooked {
+    opts: SimRunOptions,
+    epoch: Instant,
+    hook: Option<TickHook>,
+}
+
 fn run(
     socket: UdpSocket,
     client: SocketAddr,
     mut sim: SimController,
-    opts: SimRunOptions,
+    hooked: Hooked,
     command: &AtomicBool,
     close: &AtomicBool,
     pause: &AtomicBool,
 ) {
-    let epoch = Instant::now();
+    let Hooked {
+        opts,
+        epoch,
+        mut hook,
+    } = hooked;
     let period = Duration::from_millis(u64::from(sim.params().fri_period_ms));
     let stats = Arc::clone(sim.stats());
     let mut next_send = Duration::ZERO;
@@ -201,6 +254,9 @@ fn run(
                 && let Some(bytes) = sim.tick(t)
             {
                 let _ = socket.send_to(bytes, client);
+            }
+            if let Some(h) = hook.as_mut() {
+                h(&mut sim, t);
             }
             if sim.is_closed() {
                 drain_replies(&socket, client, &mut sim, epoch, period, &stats, &mut buf);

@@ -22,6 +22,7 @@
 use nalgebra::Vector3;
 use rand::Rng;
 
+use super::pendulum::{Disc, TruePendulum};
 use crate::fri::codec::Joints;
 use crate::kinematics::iiwa7::JOINTS;
 use crate::kinematics::{Pose, frames};
@@ -102,6 +103,152 @@ pub fn external_torques<R: Rng>(
         *v += EXTERNAL_TORQUE_NOISE_NM * gaussian(rng);
     }
     tau
+}
+
+/// The true ball and its ghost (the same ball without the tool in its way:
+/// t* and the physical judge's contact are found on it), stopped by the true
+/// tool's contact disc. One piece for the trial driver on the virtual clock
+/// and the world process on the wall clock: the ball is released at
+/// `drop_at` (the coil's switch plus the residual magnetism's delay), every
+/// step it meets the disc at the contact's exact time (bisected to 1 us on
+/// copies of the ball, the disc's centre interpolated) and stops against it
+/// (restitution 0), and the contact is handed on as the robot's force pulse.
+#[derive(Debug, Clone)]
+pub struct BallOnTool {
+    /// The true ball.
+    pub ball: TruePendulum,
+    /// The ball without the tool in its way.
+    pub ghost: TruePendulum,
+    /// When the ball drops, s (`None`: held until told).
+    pub drop_at: Option<f64>,
+    last_disc: Option<Disc>,
+    before: Option<TruePendulum>,
+}
+
+impl BallOnTool {
+    /// A held (or hanging) ball and its ghost, both `ball`.
+    pub fn new(ball: TruePendulum) -> Self {
+        Self {
+            ghost: ball.clone(),
+            ball,
+            drop_at: None,
+            last_disc: None,
+            before: None,
+        }
+    }
+
+    /// Moves ball and ghost to `t_s` (the ball free of the tool; `meet`
+    /// then stops it against the disc).
+    pub fn advance(&mut self, t_s: f64) {
+        if t_s > self.ghost.time_s() {
+            self.before = Some(self.ball.clone());
+            advance_true_ball(&mut self.ball, self.drop_at, t_s);
+            advance_true_ball(&mut self.ghost, self.drop_at, t_s);
+        }
+    }
+
+    /// The tool's disc is `disc` at `t_s` (one step of `period_s` after the
+    /// previous one): a ball that met it since is stopped at that moment, and
+    /// the contact (its time, where the force acts, the impulse on a ball of
+    /// `mass_kg`) is returned.
+    pub fn meet(&mut self, t_s: f64, disc: Disc, period_s: f64, mass_kg: f64) -> Option<Contact> {
+        let last = self.last_disc.unwrap_or(disc);
+        let v_disc = (disc.centre_m - last.centre_m) / period_s;
+        self.last_disc = Some(disc);
+        let radius_m = self.ball.params().ball_radius_m;
+        let mut contact_at = t_s;
+        if let Some(before) = self.before.take()
+            && touching(&self.ball, &disc, &v_disc, radius_m)
+            && let Some(tc) =
+                first_touch(&before, self.drop_at, &last, &disc, &v_disc, t_s, radius_m)
+        {
+            let mut at = before;
+            advance_true_ball(&mut at, self.drop_at, tc);
+            self.ball = at;
+            contact_at = tc;
+        }
+        let contact_disc = disc_at(&last, &disc, t_s - contact_at, period_s);
+        let v_before = self.ball.ball_velocity_mps();
+        let hit = self.ball.collide(&contact_disc, &v_disc, 0.0);
+        let dv = self.ball.ball_velocity_mps() - v_before;
+        let contact_ball_m = self.ball.ball_position_m();
+        if contact_at < t_s {
+            advance_true_ball(&mut self.ball, self.drop_at, t_s);
+            // Still pressed against the disc at the step.
+            let _ = self.ball.collide(&disc, &v_disc, 0.0);
+        }
+        hit.then(|| {
+            let (_, n) = contact_disc.distance(&contact_ball_m);
+            Contact {
+                t_s: contact_at,
+                point_m: contact_ball_m - n * radius_m,
+                impulse_ns: -dv * mass_kg,
+            }
+        })
+    }
+}
+
+/// Whether the true ball of radius `radius_m` touches `disc` (moving at
+/// `v_disc`) and moves into it.
+fn touching(ball: &TruePendulum, disc: &Disc, v_disc: &Vector3<f64>, radius_m: f64) -> bool {
+    let (dist, n) = disc.distance(&ball.ball_position_m());
+    dist <= radius_m && (ball.ball_velocity_mps() - v_disc).dot(&n) < 0.0
+}
+
+/// The disc `ago_s` before the step that moved it from `last` to `now` over
+/// `period_s` (its centre interpolated linearly; the normal of `now`).
+fn disc_at(last: &Disc, now: &Disc, ago_s: f64, period_s: f64) -> Disc {
+    let f = (1.0 - ago_s / period_s).clamp(0.0, 1.0);
+    Disc {
+        centre_m: last.centre_m + (now.centre_m - last.centre_m) * f,
+        ..*now
+    }
+}
+
+/// When the ball that was `before` (not touching the disc `last`) first
+/// touches the disc moving from `last` to `now` by `t_s`: bisected to a
+/// microsecond on copies of the ball. `None` when it already touched.
+fn first_touch(
+    before: &TruePendulum,
+    drop_at: Option<f64>,
+    last: &Disc,
+    now: &Disc,
+    v_disc: &Vector3<f64>,
+    t_s: f64,
+    radius_m: f64,
+) -> Option<f64> {
+    let (mut lo, mut hi) = (before.time_s(), t_s);
+    let period_s = hi - lo;
+    if period_s <= 0.0 || touching(before, last, v_disc, radius_m) {
+        return None;
+    }
+    while hi - lo > 1e-6 {
+        let mid = 0.5 * (lo + hi);
+        let mut probe = before.clone();
+        advance_true_ball(&mut probe, drop_at, mid);
+        if touching(
+            &probe,
+            &disc_at(last, now, t_s - mid, period_s),
+            v_disc,
+            radius_m,
+        ) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    Some(hi)
+}
+
+/// Advances a true pendulum to `t_s`, dropping the ball at `drop_at`.
+pub fn advance_true_ball(ball: &mut TruePendulum, drop_at: Option<f64>, t_s: f64) {
+    if let Some(tr) = drop_at
+        && tr <= t_s
+        && ball.is_held()
+    {
+        ball.release(tr.max(ball.time_s()));
+    }
+    ball.advance_to(t_s);
 }
 
 #[cfg(test)]

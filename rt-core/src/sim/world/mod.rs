@@ -5,6 +5,7 @@ pub mod contact;
 pub mod dynamics;
 pub mod geometry;
 pub mod judge;
+pub mod live;
 /// `[world]`, parsed with the rest of the scenario (`params::world`).
 pub use crate::params::world as params;
 pub mod pendulum;
@@ -50,7 +51,27 @@ impl World {
         believed_intercept_m: &Vector3<f64>,
     ) -> Option<Self> {
         let w = scenario.world.as_ref()?;
-        let session = w.draw_session(seed, w.session_of(index), scenario.robot.latency_ms);
+        Self::in_session(
+            scenario,
+            seed,
+            w.session_of(index),
+            index,
+            believed_intercept_m,
+        )
+    }
+
+    /// The world of trial `index` in session `session` (a trial run's
+    /// sessions follow the trial index; the world process keeps one session
+    /// for its life: `live::LiveWorld`); `None` for a truthful scenario.
+    pub fn in_session(
+        scenario: &Scenario,
+        seed: u64,
+        session: u64,
+        index: usize,
+        believed_intercept_m: &Vector3<f64>,
+    ) -> Option<Self> {
+        let w = scenario.world.as_ref()?;
+        let session = w.draw_session(seed, session, scenario.robot.latency_ms);
         let trial = w.draw_trial(seed, index, scenario.control.release_delay_prior_ms);
         let intercept_m = true_intercept_m(believed_intercept_m, &session);
         // Offsets are drawn around the nominal beliefs (before any calibration).

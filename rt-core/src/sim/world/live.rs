@@ -1,0 +1,544 @@
+//! The world as a lab's hardware meets it, on any clock: the world process
+//! (`isochron world`) runs it on the wall clock behind FRI, a webcam stream
+//! and the magnet firmware; its tests run it on a virtual clock.
+//!
+//! It knows only what the hardware does, never what the service thinks:
+//!
+//! - **The coil** (`coil`): when the magnet's coil switches on, the
+//!   operator hangs the ball on it (a new release: its world drawn for the
+//!   release's index, the ball held at a release angle drawn from the
+//!   scenario's range, either side); when it switches off, the ball drops
+//!   after the world's release delay (residual magnetism).
+//! - **The arm** (`step`): every controller cycle the true tool's disc (the
+//!   world's kinematics at the robot's true joints) meets the true ball
+//!   (`contact::BallOnTool`); a contact is returned for the robot's
+//!   external torques.
+//! - **The truth** (`take_truth`): each release ends with a
+//!   [`ReleaseTruth`], judged physically without the service's prediction:
+//!   the arrival is the first time after the release at which the true tool,
+//!   having moved, holds still (within [`judge::SETTLE_M`] for
+//!   [`HOLD_S`]); t* is the true pass nearest it; contact and success as
+//!   `judge::judge_physical`. A release ends [`RECORD_S`] after its drop, or
+//!   when the coil switches on again.
+//!
+//! One session for the world's life (its robot, camera and geometry are
+//! drawn once: session 0); the pendulum's per-release draws follow the
+//! release index. A scenario without `[world]` runs as a truthful world
+//! (`WorldParams::default()`: every draw the belief).
+
+use nalgebra::Vector3;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use super::contact::{BallOnTool, Contact};
+use super::judge::{self, SETTLE_M, WorldSample};
+use super::{TruePendulum, World, WorldParams};
+use crate::fri::codec::Joints;
+use crate::params::Scenario;
+
+/// A release's truth is concluded this long after the ball dropped, s.
+pub const RECORD_S: f64 = 8.0;
+/// The arrival: the true tool holds within `SETTLE_M` for this long, s.
+pub const HOLD_S: f64 = 0.2;
+/// The arm counts as moving once its tool is this far from where it was at the drop, m.
+pub const MOVED_M: f64 = 0.05;
+/// Most samples of a release's world trace (`RECORD_S` at 1 ms and more).
+const TRACE_CAP: usize = 16_384;
+/// Most true passes kept per release.
+const PASS_CAP: usize = 64;
+
+const ANGLE_STREAM: u64 = 0x6c69_7665_616e_676c;
+
+/// What the world saw of one release.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ReleaseTruth {
+    /// Release index (0, 1, ...) in the world's life.
+    pub index: usize,
+    /// When the coil switched off, world clock, s.
+    pub coil_off_s: f64,
+    /// When the ball dropped (coil off + the residual magnetism's delay), s.
+    pub drop_s: f64,
+    /// The release angle the operator hung the ball at (signed), degrees.
+    pub release_angle_deg: f64,
+    /// The true pass through the true intercept point nearest the arrival, s.
+    pub t_star_s: Option<f64>,
+    /// When the true tool came to rest at its target, s.
+    pub arrival_s: Option<f64>,
+    /// `arrival - t*`, ms (negative: early).
+    pub timing_error_ms: Option<f64>,
+    /// The ball met the tool in t*'s pass.
+    pub contact: bool,
+    /// When it did (the first sample touching), s.
+    pub contact_s: Option<f64>,
+    /// Contact and |timing error| within the scenario's tolerance.
+    pub success: bool,
+    /// Why the release was not judged (the arm never moved or never settled,
+    /// the ball never passed), else `None`.
+    pub not_judged: Option<String>,
+}
+
+struct Release {
+    index: usize,
+    angle_deg: f64,
+    coil_off_s: f64,
+    drop_s: f64,
+    passes: Vec<f64>,
+    trace: Vec<WorldSample>,
+}
+
+/// The world of a lab's hardware (module docs).
+pub struct LiveWorld {
+    scenario: Scenario,
+    seed: u64,
+    believed_intercept_m: Vector3<f64>,
+    next_index: usize,
+    world: World,
+    on_tool: BallOnTool,
+    release: Option<Release>,
+    done: Vec<ReleaseTruth>,
+    last_t_s: Option<f64>,
+}
+
+impl std::fmt::Debug for LiveWorld {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LiveWorld")
+            .field("next_index", &self.next_index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl LiveWorld {
+    /// The world of `scenario` (its `[world]`, or a truthful one) for a lab
+    /// whose pendulum is believed to hang at rest at `believed_intercept_m`;
+    /// the ball hangs at rest at `t_s`.
+    pub fn new(
+        scenario: &Scenario,
+        seed: u64,
+        believed_intercept_m: Vector3<f64>,
+        t_s: f64,
+    ) -> Self {
+        let mut scenario = scenario.clone();
+        scenario.world.get_or_insert_with(WorldParams::default);
+        let world = World::in_session(&scenario, seed, 0, 0, &believed_intercept_m)
+            .unwrap_or_else(|| unreachable!("the scenario has a [world]"));
+        let mut ball = TruePendulum::held_at(world.pendulum, 0.0, 0.0, t_s, world.trial.seed);
+        ball.release(t_s);
+        Self {
+            scenario,
+            seed,
+            believed_intercept_m,
+            next_index: 0,
+            world,
+            on_tool: BallOnTool::new(ball),
+            release: None,
+            done: Vec::new(),
+            last_t_s: None,
+        }
+    }
+
+    /// The world's session draws and the current release's (for the robot,
+    /// the camera and the geometry).
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
+    /// The true ball.
+    pub fn ball(&self) -> &TruePendulum {
+        &self.on_tool.ball
+    }
+
+    /// Releases the world has begun (hung the ball for).
+    pub fn releases(&self) -> usize {
+        self.next_index
+    }
+
+    /// The coil switched on (`true`) or off at `t_s`.
+    pub fn coil(&mut self, on: bool, t_s: f64) {
+        let held = self.on_tool.ball.is_held();
+        if on {
+            if held && self.on_tool.drop_at.is_none() {
+                return;
+            }
+            // The operator takes the ball and hangs it on the magnet.
+            self.conclude();
+            let index = self.next_index;
+            self.next_index += 1;
+            if let Some(w) = World::in_session(
+                &self.scenario,
+                self.seed,
+                0,
+                index,
+                &self.believed_intercept_m,
+            ) {
+                self.world = w;
+            }
+            let angle_deg = self.release_angle_deg(index);
+            let ball = TruePendulum::held_at(
+                self.world.pendulum,
+                angle_deg.to_radians(),
+                self.world.trial.out_of_plane_rad,
+                t_s,
+                self.world.trial.seed,
+            );
+            self.on_tool = BallOnTool::new(ball);
+            self.release = Some(Release {
+                index,
+                angle_deg,
+                coil_off_s: f64::NAN,
+                drop_s: f64::NAN,
+                passes: Vec::with_capacity(PASS_CAP),
+                trace: Vec::with_capacity(TRACE_CAP),
+            });
+        } else if held
+            && self.on_tool.drop_at.is_none()
+            && let Some(r) = self.release.as_mut()
+        {
+            let drop_s = t_s + self.world.trial.release_delay_s;
+            self.on_tool.drop_at = Some(drop_s);
+            r.coil_off_s = t_s;
+            r.drop_s = drop_s;
+        }
+    }
+
+    /// One controller cycle at `t_s` with the robot's true joints `q_true`:
+    /// moves the ball, meets the tool, records the release. Returns the
+    /// contact the robot feels, if the ball met the tool.
+    pub fn step(&mut self, t_s: f64, q_true: &Joints) -> Option<Contact> {
+        let period_s = self.last_t_s.map_or(1e-3, |l| (t_s - l).max(1e-6));
+        if self.last_t_s.is_some_and(|l| t_s <= l) {
+            return None;
+        }
+        self.last_t_s = Some(t_s);
+        let y = self.world.intercept_m.y;
+        if let Some(r) = self.release.as_mut() {
+            let ghost = &self.on_tool.ghost;
+            if !ghost.is_held()
+                && let Some(tp) = ghost.next_crossing_s(y, t_s - ghost.time_s())
+                && r.passes.len() < PASS_CAP
+            {
+                r.passes.push(tp);
+            }
+        }
+        self.on_tool.advance(t_s);
+        let disc = self.world.arm.disc(q_true);
+        let mass_kg = self
+            .scenario
+            .world
+            .as_ref()
+            .map_or(0.0, |w| w.pendulum.ball_mass_kg);
+        let contact = self.on_tool.meet(t_s, disc, period_s, mass_kg);
+        let mut over = false;
+        if let Some(r) = self.release.as_mut()
+            && r.drop_s.is_finite()
+        {
+            if r.trace.len() < TRACE_CAP {
+                r.trace.push(WorldSample {
+                    t_s,
+                    ball_m: self.on_tool.ghost.ball_position_m(),
+                    disc,
+                });
+            }
+            over = t_s > r.drop_s + RECORD_S;
+        }
+        if over {
+            self.conclude();
+        }
+        contact
+    }
+
+    /// The releases concluded since the last call, oldest first.
+    pub fn take_truth(&mut self) -> Vec<ReleaseTruth> {
+        std::mem::take(&mut self.done)
+    }
+
+    /// Concludes the release in progress (if the ball dropped), as at the end
+    /// of the world's life.
+    pub fn finish(&mut self) {
+        self.conclude();
+    }
+
+    fn release_angle_deg(&self, index: usize) -> f64 {
+        let mix = self
+            .seed
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add((index as u64).wrapping_mul(0xD1B5_4A32_D192_ED03))
+            ^ ANGLE_STREAM;
+        let mut rng = ChaCha8Rng::seed_from_u64(mix);
+        let a = self
+            .scenario
+            .pendulum
+            .release_angle_deg
+            .lerp(rng.random_range(0.0..=1.0));
+        if rng.random_bool(0.5) { a } else { -a }
+    }
+
+    fn conclude(&mut self) {
+        let Some(r) = self.release.take() else {
+            return;
+        };
+        if !r.drop_s.is_finite() {
+            // Never dropped: nothing to tell.
+            return;
+        }
+        let tolerance_ms = self.scenario.success.timing_tolerance_ms;
+        let radius_m = self.world.pendulum.ball_radius_m;
+        let mut truth = ReleaseTruth {
+            index: r.index,
+            coil_off_s: r.coil_off_s,
+            drop_s: r.drop_s,
+            release_angle_deg: r.angle_deg,
+            t_star_s: None,
+            arrival_s: None,
+            timing_error_ms: None,
+            contact: false,
+            contact_s: None,
+            success: false,
+            not_judged: None,
+        };
+        match settled_at(&r.trace) {
+            Err(why) => truth.not_judged = Some(why.into()),
+            Ok((arrival_guess, end)) => {
+                match judge::judge_physical(
+                    &r.trace[..=end],
+                    &r.passes,
+                    arrival_guess,
+                    radius_m,
+                    tolerance_ms,
+                ) {
+                    Ok(p) => {
+                        // The contact on the whole trace (the arm may have
+                        // settled before the pass): t*'s pass window.
+                        let contact_s = judge::judge_physical(
+                            &r.trace,
+                            &r.passes,
+                            p.t_star_s,
+                            radius_m,
+                            tolerance_ms,
+                        )
+                        .ok()
+                        .and_then(|full| full.contact_s);
+                        truth.t_star_s = Some(p.t_star_s);
+                        truth.arrival_s = Some(p.arrival_s);
+                        truth.timing_error_ms = Some(p.timing_error_ms);
+                        truth.contact = contact_s.is_some();
+                        truth.contact_s = contact_s;
+                        truth.success =
+                            contact_s.is_some() && p.timing_error_ms.abs() <= tolerance_ms;
+                    }
+                    Err(e) => truth.not_judged = Some(e.to_string()),
+                }
+            }
+        }
+        self.done.push(truth);
+    }
+}
+
+/// Where the tool first holds still after moving: the sample at which it
+/// starts holding (an estimate of the arrival) and the index of the sample
+/// `HOLD_S` later (the judge's trace ends there, its final point).
+fn settled_at(trace: &[WorldSample]) -> Result<(f64, usize), &'static str> {
+    let first = trace
+        .first()
+        .ok_or("the world saw no step after the drop")?;
+    let start = trace
+        .iter()
+        .position(|s| (s.disc.centre_m - first.disc.centre_m).norm() > MOVED_M)
+        .ok_or("the arm did not move after the release")?;
+    for i in start..trace.len() {
+        let Some(end) = trace[i..]
+            .iter()
+            .position(|s| s.t_s >= trace[i].t_s + HOLD_S)
+            .map(|k| i + k)
+        else {
+            break;
+        };
+        let at = trace[end].disc.centre_m;
+        if trace[i..=end]
+            .iter()
+            .all(|s| (s.disc.centre_m - at).norm() <= SETTLE_M)
+        {
+            return Ok((trace[i].t_s, end));
+        }
+    }
+    Err("the arm did not come to rest after moving")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::world::TrueArm;
+
+    fn joints_reaching(arm: &TrueArm, target: &Vector3<f64>) -> Joints {
+        // A crude search over two joints is enough for a test: the tool near
+        // `target` (within a few cm), from the lab's home posture.
+        let mut best = ([0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0], f64::INFINITY);
+        for a in 0..60 {
+            for b in 0..60 {
+                let q = [
+                    0.0,
+                    -0.2 + a as f64 * 0.025,
+                    0.0,
+                    -2.0 + b as f64 * 0.03,
+                    0.0,
+                    0.9,
+                    0.0,
+                ];
+                let d = (arm.tool_point(&q) - target).norm();
+                if d < best.1 {
+                    best = (q, d);
+                }
+            }
+        }
+        best.0
+    }
+
+    fn lab() -> (Scenario, Vector3<f64>) {
+        let s = Scenario::default();
+        let intercept = Vector3::new(s.task.distance_m.lerp(0.5), 0.0, s.task.intercept_height_m);
+        (s, intercept)
+    }
+
+    #[test]
+    fn a_release_without_the_arm_is_not_judged_and_the_ball_swings_through_the_rest_point() {
+        let (s, intercept) = lab();
+        let mut w = LiveWorld::new(&s, 1, intercept, 0.0);
+        let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+        w.coil(true, 0.1);
+        assert!(w.ball().is_held());
+        w.coil(false, 1.0);
+        let mut t = 0.1;
+        let mut min_dist = f64::INFINITY;
+        while t < 1.0 + RECORD_S + 0.1 {
+            t += 0.005;
+            assert!(w.step(t, &home).is_none(), "the arm at home is never hit");
+            min_dist = min_dist.min((w.ball().ball_position_m() - w.world().intercept_m).norm());
+        }
+        // The ball passes through its rest point (the true intercept point).
+        assert!(min_dist < 0.01, "{min_dist}");
+        let truth = w.take_truth();
+        assert_eq!(truth.len(), 1);
+        let r = &truth[0];
+        assert_eq!(r.index, 0);
+        assert!((r.coil_off_s - 1.0).abs() < 1e-12);
+        // A truthful world drops after the believed release delay.
+        let delay = r.drop_s - r.coil_off_s;
+        assert!(
+            (delay - s.control.release_delay_prior_ms * 1e-3).abs() < 1e-9,
+            "{delay}"
+        );
+        assert!(!r.success);
+        assert_eq!(
+            r.not_judged.as_deref(),
+            Some("the arm did not move after the release")
+        );
+    }
+
+    #[test]
+    fn a_tool_at_the_intercept_point_is_hit_felt_and_judged_on_the_true_pass() {
+        // Early by 300 ms: contact, not in time; by 5 ms: a success.
+        for (early_s, success) in [(0.3, false), (0.005, true)] {
+            hit_and_judge(early_s, success);
+        }
+    }
+
+    fn hit_and_judge(early_s: f64, success: bool) {
+        let (s, intercept) = lab();
+        let mut w = LiveWorld::new(&s, 2, intercept, 0.0);
+        let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+        let arm = w.world().arm;
+        let at_intercept = joints_reaching(&arm, &w.world().intercept_m);
+        let reach = (arm.tool_point(&at_intercept) - w.world().intercept_m).norm();
+        assert!(
+            reach < 0.03,
+            "the test's posture reaches {reach} m from the intercept"
+        );
+        w.coil(true, 0.0);
+        w.coil(false, 0.5);
+        // Find the first pass of the free ball (no arm in the way).
+        let mut probe = LiveWorld::new(&s, 2, intercept, 0.0);
+        probe.coil(true, 0.0);
+        probe.coil(false, 0.5);
+        let mut t = 0.0;
+        let mut first_pass = None;
+        let mut last_y = probe.ball().ball_position_m().y - probe.world().intercept_m.y;
+        while t < 5.0 && first_pass.is_none() {
+            t += 0.001;
+            probe.step(t, &home);
+            let y = probe.ball().ball_position_m().y - probe.world().intercept_m.y;
+            if !probe.ball().is_held() && y.signum() != last_y.signum() {
+                first_pass = Some(t);
+            }
+            last_y = y;
+        }
+        let first_pass = first_pass.expect("the free ball passes the intercept point");
+        // The arm jumps to the intercept point `early_s` before the pass (it
+        // was home until then) and stays.
+        let arrive = first_pass - early_s;
+        let mut contacts = Vec::new();
+        let mut t = 0.0;
+        while t < 0.5 + RECORD_S + 0.1 {
+            t += 0.001;
+            let q = if t < arrive { home } else { at_intercept };
+            if let Some(c) = w.step(t, &q) {
+                contacts.push(c);
+            }
+        }
+        assert!(!contacts.is_empty(), "the ball met the tool");
+        let c = contacts[0];
+        assert!(
+            (c.t_s - first_pass).abs() < 0.1,
+            "{} vs {first_pass}",
+            c.t_s
+        );
+        if early_s > 0.1 {
+            // The impulse on a tool at rest: a 57 g ball stopped from about
+            // 1 m/s, 0.01-0.2 N s (a tool jumping onto the ball gives more).
+            let j = c.impulse_ns.norm();
+            assert!((0.005..0.2).contains(&j), "{j}");
+        }
+        let truth = w.take_truth();
+        assert_eq!(truth.len(), 1, "{truth:?}");
+        let r = &truth[0];
+        assert!(r.not_judged.is_none(), "{r:?}");
+        assert!(r.contact, "{r:?}");
+        // t* is the first true pass; the arrival is the jump (a step), so
+        // the timing error is `-early_s`.
+        let t_star = r.t_star_s.unwrap();
+        assert!(
+            (t_star - first_pass).abs() < 0.002,
+            "{t_star} vs {first_pass}"
+        );
+        let err = r.timing_error_ms.unwrap();
+        assert!((err + early_s * 1e3).abs() < 3.0, "{err}");
+        assert_eq!(r.success, success, "{r:?}");
+    }
+
+    #[test]
+    fn the_coil_switching_on_again_concludes_the_release_and_hangs_a_new_one() {
+        let (s, intercept) = lab();
+        let mut w = LiveWorld::new(&s, 3, intercept, 0.0);
+        let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+        w.coil(true, 0.0);
+        let first = w.ball().ball_position_m();
+        w.coil(false, 0.2);
+        for k in 1..400 {
+            w.step(0.2 + k as f64 * 0.005, &home);
+        }
+        assert!(w.take_truth().is_empty(), "the release is still recorded");
+        w.coil(true, 2.5);
+        assert_eq!(w.take_truth().len(), 1);
+        assert_eq!(w.releases(), 2);
+        assert!(w.ball().is_held());
+        // Held again; a second "on" changes nothing.
+        let held = w.ball().ball_position_m();
+        w.coil(true, 2.6);
+        assert_eq!(w.ball().ball_position_m(), held);
+        assert_eq!(w.releases(), 2);
+        // Both held positions are at the pendulum's length from its pivot.
+        let l = w.world().pendulum.length_m;
+        let pivot = w.world().pendulum.pivot_m;
+        assert!(((first - pivot).norm() - l).abs() < 1e-9);
+        assert!(((held - pivot).norm() - l).abs() < 1e-9);
+    }
+}
