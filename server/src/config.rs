@@ -124,7 +124,8 @@ impl LabSection {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CameraHardware {
-    /// V4L2 device.
+    /// V4L2 device, a video file (looped at its frame rate), or a network
+    /// camera's stream URL (`http://`, `https://`, `rtsp://`: MJPEG or RTSP).
     pub device: PathBuf,
     /// Requested width, pixels.
     pub width_px: u32,

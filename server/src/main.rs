@@ -71,6 +71,10 @@ enum Command {
     Eval(cmd::eval::EvalArgs),
     /// A standalone simulated KUKA FRI controller (FRI 1.11 to 2.7, --fri-version).
     FriSim(cmd::fri_sim::FriSimArgs),
+    /// The lab's hardware as a process: a scenario's world behind a KUKA cabinet (FRI),
+    /// a webcam stream (MJPEG over HTTP) and the magnet firmware on a pty; writes the
+    /// lab configuration for `serve --config` and one truth line per release.
+    World(cmd::world::WorldArgs),
     /// The FRI link: `fri doctor` diagnoses the connection to the robot controller.
     Fri {
         #[command(subcommand)]
@@ -148,6 +152,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
         Command::Eval(args) => print_out(&cmd::eval::run(args)?),
         Command::FriSim(args) => print_out(&cmd::fri_sim::run(args)?),
+        Command::World(args) => print_out(&cmd::world::run(&args)?),
         Command::Fri {
             command: cmd::fri_doctor::FriCommand::Doctor(args),
         } => {

@@ -15,7 +15,10 @@ pub use calibration::{CalibrationReport, CameraIntrinsics, CameraPose, SwingPlan
 #[cfg(feature = "opencv")]
 pub use detector::{Detection, Detector, DetectorParams};
 #[cfg(feature = "opencv")]
-pub use source::{Frame, FrameSource, Recorder, VideoFileSource, WebcamParams, WebcamSource};
+pub use source::{
+    Frame, FrameSource, Recorder, StreamSource, VideoFileSource, WebcamParams, WebcamSource,
+    is_stream_url,
+};
 #[cfg(feature = "opencv")]
 pub use thread::{VisionPipeline, VisionStats};
 

@@ -167,6 +167,108 @@ impl FrameSource for WebcamSource {
     }
 }
 
+/// Whether a `[camera] device` names a network camera stream (`http://`,
+/// `https://`, `rtsp://`) rather than a device or a file.
+pub fn is_stream_url(device: &str) -> bool {
+    ["http://", "https://", "rtsp://"]
+        .iter()
+        .any(|scheme| device.len() > scheme.len() && device[..scheme.len()].eq_ignore_ascii_case(scheme))
+}
+
+/// How long opening a network camera stream may take, and reading one frame
+/// from it, before it counts as not answering, ms.
+pub const STREAM_TIMEOUT_MS: i32 = 3000;
+
+/// A network camera's stream (an IP camera's MJPEG over HTTP, or RTSP)
+/// through OpenCV's FFmpeg backend: frames stamped as a webcam's, at
+/// delivery minus the camera's exposure -> delivery latency.
+pub struct StreamSource {
+    cap: VideoCapture,
+    image: Mat,
+    url: String,
+    clock: Clock,
+    latency_s: f64,
+    fps: f64,
+    index: u64,
+}
+
+impl std::fmt::Debug for StreamSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StreamSource")
+            .field("url", &self.url)
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl StreamSource {
+    /// Opens the stream at `url` (at most [`STREAM_TIMEOUT_MS`]); `camera`
+    /// gives the believed frame rate and latency.
+    pub fn open(url: &str, camera: &CameraParams, clock: Clock) -> Result<Self, VisionError> {
+        camera.validate()?;
+        let open_err = |reason: String| VisionError::Open {
+            what: url.to_owned(),
+            reason,
+        };
+        if !is_stream_url(url) {
+            return Err(open_err(
+                "not a stream URL (http://, https:// or rtsp://)".into(),
+            ));
+        }
+        let params = opencv::core::Vector::<i32>::from_slice(&[
+            videoio::CAP_PROP_OPEN_TIMEOUT_MSEC,
+            STREAM_TIMEOUT_MS,
+            videoio::CAP_PROP_READ_TIMEOUT_MSEC,
+            STREAM_TIMEOUT_MS,
+        ]);
+        let cap = VideoCapture::from_file_with_params(url, videoio::CAP_FFMPEG, &params)
+            .map_err(|e| open_err(e.message))?;
+        if !cap.is_opened()? {
+            return Err(open_err(format!(
+                "no camera stream answered within {} s",
+                STREAM_TIMEOUT_MS / 1000
+            )));
+        }
+        Ok(Self {
+            cap,
+            image: Mat::default(),
+            url: url.to_owned(),
+            clock,
+            latency_s: camera.latency_ms * 1e-3,
+            fps: camera.fps,
+            index: 0,
+        })
+    }
+}
+
+impl FrameSource for StreamSource {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        if !self.cap.grab()? {
+            return Err(VisionError::Open {
+                what: self.url.clone(),
+                reason: "the camera stream stopped delivering frames".into(),
+            });
+        }
+        let t_capture_s = self.clock.now_s() - self.latency_s;
+        if !self.cap.retrieve(&mut self.image, 0)? || self.image.empty() {
+            return Err(VisionError::BadFrame(
+                "the camera stream returned an empty image".into(),
+            ));
+        }
+        let index = self.index;
+        self.index += 1;
+        Ok(Some(Frame {
+            index,
+            t_capture_s,
+            image: &self.image,
+        }))
+    }
+
+    fn fps(&self) -> f64 {
+        self.fps
+    }
+}
+
 /// A recorded video, optionally paced at its frame rate and looped.
 pub struct VideoFileSource {
     cap: VideoCapture,

@@ -13,3 +13,4 @@ pub mod magnet;
 pub mod merge;
 pub mod trials;
 pub mod tune;
+pub mod world;

@@ -10,6 +10,8 @@ pub mod live;
 pub use crate::params::world as params;
 pub mod pendulum;
 pub mod robot;
+#[cfg(feature = "opencv")]
+pub mod webcam;
 
 pub use camera::{FrameTiming, Sighting, WorldCamera};
 pub use contact::Contact;

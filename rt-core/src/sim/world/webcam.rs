@@ -1,0 +1,245 @@
+//! The world's webcam: frames of the true ball as the true camera takes
+//! them (its stamps and delivery latency, rolling shutter, exposure, lens
+//! and pose: [`WorldCamera`]), rendered (`sim::camera::SimCamera`, through
+//! the believed camera at the point the true camera sees, as the virtual
+//! lab's rendered frames) and encoded as JPEG for a network camera stream
+//! (`isochron world`). The magnet board's calibration LED (D12), when lit,
+//! shows as a small bright spot in the image's top-left corner.
+//!
+//! The true ball reaches the webcam as samples of the world's steps
+//! ([`BallSample`], one per controller cycle); the ball between two samples
+//! is their cubic Hermite interpolation (position and velocity at both
+//! ends: under 0.1 mm at 5 ms steps of a 2 m pendulum).
+
+use std::collections::VecDeque;
+
+use nalgebra::Vector3;
+use opencv::core::{Mat, MatTraitConst, Point, Scalar, Vector};
+use opencv::imgcodecs;
+use opencv::imgproc;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::camera::{FrameTiming, WorldCamera};
+use super::params::SessionDraw;
+use crate::params::Scenario;
+use crate::sim::camera::{BallState, SimCamera, SimCameraParams};
+use crate::vision::VisionError;
+
+/// The true ball at one world step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BallSample {
+    /// World clock, s.
+    pub t_s: f64,
+    /// Ball centre, base frame, m.
+    pub centre_m: Vector3<f64>,
+    /// Ball velocity, m/s.
+    pub velocity_mps: Vector3<f64>,
+}
+
+/// Samples kept (2 s at 1 ms steps).
+const HISTORY: usize = 2048;
+/// JPEG quality of the stream.
+pub const JPEG_QUALITY: i32 = 90;
+/// Where the LED shows, pixels, and its radius.
+pub const LED_PX: (i32, i32, i32) = (40, 40, 10);
+
+/// The world's webcam (module docs).
+pub struct WorldWebcam {
+    render: SimCamera,
+    camera: WorldCamera,
+    history: VecDeque<BallSample>,
+    rng: ChaCha8Rng,
+    with_led: Mat,
+    jpeg: Vector<u8>,
+    period_s: f64,
+}
+
+impl std::fmt::Debug for WorldWebcam {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorldWebcam")
+            .field("samples", &self.history.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl WorldWebcam {
+    /// The session's true camera for `scenario`'s believed one (the
+    /// simulated lab's pose, `SimCameraParams::default()`).
+    pub fn new(scenario: &Scenario, session: &SessionDraw, seed: u64) -> Result<Self, VisionError> {
+        let params = SimCameraParams::default();
+        let render = SimCamera::new(
+            &scenario.camera,
+            &params,
+            scenario.pendulum.ball_radius_m,
+            seed,
+        )?;
+        let camera = WorldCamera::from_session(
+            params.pose,
+            scenario.camera.believed_intrinsics(params.hfov_deg),
+            scenario.camera.height_px,
+            scenario.camera.latency_ms * 1e-3,
+            session,
+        );
+        Ok(Self {
+            render,
+            camera,
+            history: VecDeque::with_capacity(HISTORY),
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x7765_6263_616d),
+            with_led: Mat::default(),
+            jpeg: Vector::new(),
+            period_s: 1.0 / scenario.camera.fps,
+        })
+    }
+
+    /// Time between frames, s.
+    pub fn period_s(&self) -> f64 {
+        self.period_s
+    }
+
+    /// How long after a frame's exposure starts the truth it shows is all
+    /// known (exposure and readout), s.
+    pub fn truth_after_s(&self) -> f64 {
+        self.camera.exposure_s + self.camera.rolling_shutter_s
+    }
+
+    /// The true camera.
+    pub fn camera(&self) -> &WorldCamera {
+        &self.camera
+    }
+
+    /// One world step's true ball.
+    pub fn push(&mut self, s: BallSample) {
+        if self.history.back().is_some_and(|b| s.t_s <= b.t_s) {
+            return;
+        }
+        if self.history.len() == HISTORY {
+            self.history.pop_front();
+        }
+        self.history.push_back(s);
+    }
+
+    /// The latest sample's time, s.
+    pub fn latest_s(&self) -> Option<f64> {
+        self.history.back().map(|s| s.t_s)
+    }
+
+    /// The true ball at `t_s` (interpolated; the nearest end outside the samples).
+    pub fn ball_at(&self, t_s: f64) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        let h = &self.history;
+        let (first, last) = (h.front()?, h.back()?);
+        if t_s <= first.t_s {
+            return Some((first.centre_m, first.velocity_mps));
+        }
+        if t_s >= last.t_s {
+            return Some((last.centre_m, last.velocity_mps));
+        }
+        let i = h.partition_point(|s| s.t_s <= t_s);
+        let (a, b) = (&h[i - 1], &h[i]);
+        let dt = b.t_s - a.t_s;
+        let u = (t_s - a.t_s) / dt;
+        let (u2, u3) = (u * u, u * u * u);
+        let h00 = 2.0 * u3 - 3.0 * u2 + 1.0;
+        let h10 = u3 - 2.0 * u2 + u;
+        let h01 = -2.0 * u3 + 3.0 * u2;
+        let h11 = u3 - u2;
+        let p = a.centre_m * h00
+            + a.velocity_mps * (h10 * dt)
+            + b.centre_m * h01
+            + b.velocity_mps * (h11 * dt);
+        let v = a.velocity_mps * (1.0 - u) + b.velocity_mps * u;
+        Some((p, v))
+    }
+
+    /// When the frame whose exposure starts at `t_start_s` is delivered, and its stamp.
+    pub fn timing(&mut self, t_start_s: f64) -> FrameTiming {
+        self.camera.timing(t_start_s, &mut self.rng)
+    }
+
+    /// The JPEG of the frame whose exposure starts at `t_start_s` (the ball
+    /// where the true camera sees it; out of view: no ball), with the LED lit
+    /// when `led`.
+    pub fn frame_jpeg(&mut self, t_start_s: f64, led: bool) -> Result<&[u8], VisionError> {
+        let sight = self
+            .camera
+            .sight(t_start_s, |t| self.ball_at(t).map_or(Vector3::zeros(), |b| b.0));
+        let state = match (sight, self.ball_at(t_start_s)) {
+            (Some(s), Some((p, v))) => Some(BallState {
+                centre_m: self.camera.equivalent_centre_m(&s.px, &p),
+                velocity_mps: v,
+            }),
+            _ => None,
+        };
+        let image = self.render.render(state.as_ref())?;
+        let image = if led {
+            image.copy_to(&mut self.with_led)?;
+            let (x, y, r) = LED_PX;
+            imgproc::circle(
+                &mut self.with_led,
+                Point::new(x, y),
+                r,
+                Scalar::new(255.0, 255.0, 255.0, 0.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )?;
+            &self.with_led
+        } else {
+            image
+        };
+        let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
+        self.jpeg.clear();
+        if !imgcodecs::imencode(".jpg", image, &mut self.jpeg, &params)? {
+            return Err(VisionError::BadFrame("JPEG encoding failed".into()));
+        }
+        Ok(self.jpeg.as_slice())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::{Detector, DetectorParams, SwingPlaneCalibration};
+
+    #[test]
+    fn the_stream_shows_the_true_ball_where_the_detector_finds_it() {
+        let s = Scenario::default();
+        let session = s
+            .world
+            .clone()
+            .unwrap_or_default()
+            .draw_session(1, 0, s.robot.latency_ms);
+        let mut cam = WorldWebcam::new(&s, &session, 1).unwrap();
+        // A ball swinging along y through the believed rest point.
+        let rest = Vector3::new(s.task.distance_m.lerp(0.5), 0.0, s.task.intercept_height_m);
+        for k in 0..200 {
+            let t = k as f64 * 0.005;
+            let y = 0.3 * (3.0 * t).sin();
+            cam.push(BallSample {
+                t_s: t,
+                centre_m: rest + Vector3::new(0.0, y, 0.0),
+                velocity_mps: Vector3::new(0.0, 0.9 * (3.0 * t).cos(), 0.0),
+            });
+        }
+        // Interpolation between samples is exact to well under a mm here.
+        let (p, _) = cam.ball_at(0.5025).unwrap();
+        assert!((p.y - 0.3 * (3.0f64 * 0.5025).sin()).abs() < 1e-4, "{p}");
+        let pose = SimCameraParams::default().pose;
+        let intrinsics = s.camera.believed_intrinsics(SimCameraParams::default().hfov_deg);
+        let cal = SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, s.pendulum.ball_radius_m);
+        let mut det = Detector::new(DetectorParams::default()).unwrap();
+        for &t in &[0.2, 0.5, 0.8] {
+            let jpeg = cam.frame_jpeg(t, t > 0.6).unwrap().to_vec();
+            let img = imgcodecs::imdecode(&Vector::<u8>::from_slice(&jpeg), imgcodecs::IMREAD_COLOR)
+                .unwrap();
+            assert_eq!(img.cols() as u32, s.camera.width_px);
+            let d = det
+                .detect(&img, t)
+                .unwrap()
+                .expect("the ball is found in the stream's frame");
+            let lateral = cal.lateral_m(d.x_px, d.y_px).unwrap();
+            let truth = 0.3 * (3.0 * t).sin();
+            assert!((lateral - truth).abs() < 0.005, "t {t}: {lateral} vs {truth}");
+        }
+    }
+}
