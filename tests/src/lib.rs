@@ -4,6 +4,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 
+pub mod procs;
+
 /// A plain HTTP/1.1 response.
 #[derive(Debug)]
 pub struct HttpResponse {

@@ -30,16 +30,15 @@
 //! delivers again).
 
 use std::{
-    io::{BufRead, BufReader},
     net::{SocketAddr, UdpSocket},
-    path::{Path, PathBuf},
-    process::{Child, Command as Process, Stdio},
-    sync::mpsc,
+    path::Path,
+    process::{Command as Process, Stdio},
     time::{Duration, Instant},
 };
 
 use futures_util::StreamExt;
 use isochron_tests::http;
+use isochron_tests::procs::{Proc, firmware, start};
 use rt_core::{
     params::Scenario,
     sim::camera::{BallState, SimCamera, SimCameraParams},
@@ -48,88 +47,11 @@ use rt_core::{
 use serde_json::Value;
 use tokio_tungstenite::tungstenite::Message;
 
-/// A child process killed when dropped.
-struct Proc {
-    child: Child,
-    /// Held open: the simavr host stops at the end of its input.
-    _stdin: Option<std::process::ChildStdin>,
-}
-
-impl Proc {
-    fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    fn alive(&mut self) -> bool {
-        matches!(self.child.try_wait(), Ok(None))
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
-fn firmware() -> Option<(PathBuf, PathBuf)> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/magnet/build");
-    let (elf, host) = (dir.join("magnet.elf"), dir.join("magnet-sim"));
-    if elf.is_file() && host.is_file() {
-        return Some((elf, host));
-    }
-    let msg = format!(
-        "magnet firmware or simulator host missing in {} (run `make firmware`)",
-        dir.display()
-    );
-    assert!(std::env::var("CI").as_deref() != Ok("true"), "{msg}");
-    eprintln!("SKIPPED: {msg}");
-    None
-}
-
 fn free_udp_port() -> SocketAddr {
     UdpSocket::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
-}
-
-/// Starts a process and waits until a line of its standard output contains
-/// `ready` (returns that line); its later output is drained.
-fn start(name: &'static str, cmd: &mut Process, ready: &str, timeout: Duration) -> (Proc, String) {
-    let mut child = cmd
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
-    let out = child.stdout.take().unwrap();
-    let stdin = child.stdin.take();
-    let (tx, rx) = mpsc::sync_channel(1);
-    let ready = ready.to_owned();
-    let _ = std::thread::Builder::new()
-        .name("isochron-test-out".into())
-        .spawn(move || {
-            let mut sent = false;
-            for line in BufReader::new(out).lines() {
-                let Ok(line) = line else { break };
-                if !sent && line.contains(&ready) {
-                    let _ = tx.send(line);
-                    sent = true;
-                }
-            }
-        });
-    let mut p = Proc {
-        child,
-        _stdin: stdin,
-    };
-    match rx.recv_timeout(timeout) {
-        Ok(line) => (p, line),
-        Err(_) => {
-            let alive = p.alive();
-            panic!("{name} did not become ready within {timeout:?} (alive: {alive})")
-        }
-    }
 }
 
 /// `isochron fri-sim` as the robot cabinet.
@@ -153,10 +75,7 @@ fn start_cabinet(bin: &Path, bind: SocketAddr, client: SocketAddr) -> Proc {
         assert!(Instant::now() < deadline, "isochron fri-sim did not bind");
         std::thread::sleep(Duration::from_millis(20));
     }
-    Proc {
-        child,
-        _stdin: None,
-    }
+    Proc::from_child(child)
 }
 
 /// A video of the pendulum swinging as the camera beside it films it: whole

@@ -170,9 +170,9 @@ impl FrameSource for WebcamSource {
 /// Whether a `[camera] device` names a network camera stream (`http://`,
 /// `https://`, `rtsp://`) rather than a device or a file.
 pub fn is_stream_url(device: &str) -> bool {
-    ["http://", "https://", "rtsp://"]
-        .iter()
-        .any(|scheme| device.len() > scheme.len() && device[..scheme.len()].eq_ignore_ascii_case(scheme))
+    ["http://", "https://", "rtsp://"].iter().any(|scheme| {
+        device.len() > scheme.len() && device[..scheme.len()].eq_ignore_ascii_case(scheme)
+    })
 }
 
 /// How long opening a network camera stream may take, and reading one frame

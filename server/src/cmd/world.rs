@@ -313,7 +313,16 @@ pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
     beliefs.world = None;
     std::fs::write(&beliefs_path, beliefs.to_toml_string())
         .with_context(|| format!("cannot write {}", beliefs_path.display()))?;
-    let cfg = lab_config(&beliefs, &beliefs_path, args, &cabinet, client, &camera_url, &tty, intercept);
+    let cfg = lab_config(
+        &beliefs,
+        &beliefs_path,
+        args,
+        &cabinet,
+        client,
+        &camera_url,
+        &tty,
+        intercept,
+    );
     let text = toml::to_string_pretty(&cfg).context("the lab configuration")?;
     let tmp = args.lab_config.with_extension("toml.part");
     std::fs::write(&tmp, text).with_context(|| format!("cannot write {}", tmp.display()))?;
@@ -462,7 +471,12 @@ fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) 
     let Ok(mut list) = clients.lock() else {
         return;
     };
-    list.retain(|tx| !matches!(tx.try_send(Arc::clone(jpeg)), Err(TrySendError::Disconnected(_))));
+    list.retain(|tx| {
+        !matches!(
+            tx.try_send(Arc::clone(jpeg)),
+            Err(TrySendError::Disconnected(_))
+        )
+    });
 }
 
 /// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream

@@ -160,9 +160,9 @@ impl WorldWebcam {
     /// where the true camera sees it; out of view: no ball), with the LED lit
     /// when `led`.
     pub fn frame_jpeg(&mut self, t_start_s: f64, led: bool) -> Result<&[u8], VisionError> {
-        let sight = self
-            .camera
-            .sight(t_start_s, |t| self.ball_at(t).map_or(Vector3::zeros(), |b| b.0));
+        let sight = self.camera.sight(t_start_s, |t| {
+            self.ball_at(t).map_or(Vector3::zeros(), |b| b.0)
+        });
         let state = match (sight, self.ball_at(t_start_s)) {
             (Some(s), Some((p, v))) => Some(BallState {
                 centre_m: self.camera.equivalent_centre_m(&s.px, &p),
@@ -225,13 +225,17 @@ mod tests {
         let (p, _) = cam.ball_at(0.5025).unwrap();
         assert!((p.y - 0.3 * (3.0f64 * 0.5025).sin()).abs() < 1e-4, "{p}");
         let pose = SimCameraParams::default().pose;
-        let intrinsics = s.camera.believed_intrinsics(SimCameraParams::default().hfov_deg);
-        let cal = SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, s.pendulum.ball_radius_m);
+        let intrinsics = s
+            .camera
+            .believed_intrinsics(SimCameraParams::default().hfov_deg);
+        let cal =
+            SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, s.pendulum.ball_radius_m);
         let mut det = Detector::new(DetectorParams::default()).unwrap();
         for &t in &[0.2, 0.5, 0.8] {
             let jpeg = cam.frame_jpeg(t, t > 0.6).unwrap().to_vec();
-            let img = imgcodecs::imdecode(&Vector::<u8>::from_slice(&jpeg), imgcodecs::IMREAD_COLOR)
-                .unwrap();
+            let img =
+                imgcodecs::imdecode(&Vector::<u8>::from_slice(&jpeg), imgcodecs::IMREAD_COLOR)
+                    .unwrap();
             assert_eq!(img.cols() as u32, s.camera.width_px);
             let d = det
                 .detect(&img, t)
@@ -239,7 +243,10 @@ mod tests {
                 .expect("the ball is found in the stream's frame");
             let lateral = cal.lateral_m(d.x_px, d.y_px).unwrap();
             let truth = 0.3 * (3.0 * t).sin();
-            assert!((lateral - truth).abs() < 0.005, "t {t}: {lateral} vs {truth}");
+            assert!(
+                (lateral - truth).abs() < 0.005,
+                "t {t}: {lateral} vs {truth}"
+            );
         }
     }
 }

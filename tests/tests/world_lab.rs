@@ -1,0 +1,241 @@
+//! The real lab end to end against a world that reacts: `isochron world`
+//! is the lab's hardware (the KUKA cabinet over FRI with the world's robot
+//! and the ball's contact torques, a webcam stream of the world's ball, the
+//! magnet firmware in simavr whose coil drops that ball), and `isochron
+//! serve --config` the lab configuration it wrote, in real mode, knowing
+//! nothing of the world. Trials run over REST with an operator's heartbeat
+//! (the real lab's dead-man), are judged by the measured judge only, and
+//! are paired with the world's truth file by the coil's release time.
+//!
+//! Properties: every trial's record finishes; each judged trial has its
+//! release in the world's truth (the coil switched off while it ran); the
+//! measured judge agrees with the world's physical judge on contact and on
+//! success, and its timing error is within 3 ms of the true one. The world
+//! here is truthful (`scenarios/paper.toml`: its beliefs are its truth, so
+//! the lab runs uncalibrated, `--allow-uncalibrated`). `WORLD_LAB_TRIALS`
+//! sets the number of trials (default 3).
+
+use std::{
+    net::SocketAddr,
+    path::Path,
+    process::Command as Process,
+    sync::{
+        Arc,
+        atomic::{AtomicBool, Ordering::Relaxed},
+    },
+    time::{Duration, Instant},
+};
+
+use isochron_tests::http;
+use isochron_tests::procs::{firmware, start};
+use serde_json::Value;
+
+async fn get(addr: SocketAddr, path: &str) -> Value {
+    let r = http(addr, "GET", path, &[], b"").await.unwrap();
+    assert_eq!(
+        r.status,
+        200,
+        "GET {path}: {}",
+        String::from_utf8_lossy(&r.body)
+    );
+    r.json().unwrap()
+}
+
+/// Waits (up to `timeout`) until `GET /api/health` says a trial would start.
+async fn wait_ready(addr: SocketAddr, timeout: Duration) {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let h = get(addr, "/api/health").await;
+        if h["ready"] == true {
+            return;
+        }
+        assert!(Instant::now() < deadline, "the lab is not ready: {h}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Waits until trial `id`'s record has finished; returns it.
+async fn wait_record(addr: SocketAddr, id: u64, timeout: Duration) -> Value {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let r = get(addr, &format!("/api/trials/{id}")).await;
+        if r["status"] != "running" {
+            return r;
+        }
+        assert!(Instant::now() < deadline, "trial {id} still running: {r}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn truth_lines(path: &Path) -> Vec<Value> {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("a truth line is JSON"))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judges_them() {
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[
+        (&["world", "--help"], "--lab-config"),
+        (&["serve", "--help"], "--config"),
+    ]) else {
+        return;
+    };
+    let n: usize = std::env::var("WORLD_LAB_TRIALS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    let dir = tempfile::tempdir().unwrap();
+    let (lab, truth) = (dir.path().join("lab.toml"), dir.path().join("truth.jsonl"));
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+    let (_world, line) = start(
+        "isochron world",
+        Process::new(&bin)
+            .arg("world")
+            .arg("--scenario")
+            .arg(&scenario)
+            .arg("--lab-config")
+            .arg(&lab)
+            .arg("--truth")
+            .arg(&truth)
+            .arg("--allow-uncalibrated"),
+        "\"lab_config\"",
+        Duration::from_secs(30),
+    );
+    let ready: Value = serde_json::from_str(&line).unwrap();
+    assert_eq!(ready["world"], "truthful", "{ready}");
+    assert!(
+        lab.is_file(),
+        "the lab configuration is written once the world answers"
+    );
+    // The configuration is a real lab's: nothing in it names a world.
+    let text = std::fs::read_to_string(&lab).unwrap();
+    assert!(
+        text.contains("mode = \"real\"") && !text.contains("[world"),
+        "{text}"
+    );
+
+    let (_serve, line) = start(
+        "isochron serve",
+        Process::new(&bin)
+            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .arg(&lab)
+            .arg("--data-dir")
+            .arg(dir.path().join("data")),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr: SocketAddr = line
+        .split("http://")
+        .nth(1)
+        .and_then(|s| s.split(['/', ' ']).next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+
+    // The operator's page: a heartbeat every 200 ms (the real lab's dead-man).
+    let beating = Arc::new(AtomicBool::new(true));
+    let heart = {
+        let beating = Arc::clone(&beating);
+        tokio::spawn(async move {
+            while beating.load(Relaxed) {
+                let _ = http(addr, "POST", "/api/heartbeat", &[], b"").await;
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        })
+    };
+
+    let mut records = Vec::new();
+    for _ in 0..n {
+        wait_ready(addr, Duration::from_secs(60)).await;
+        let r = http(
+            addr,
+            "POST",
+            "/api/trials",
+            &[("Content-Type", "application/json")],
+            b"{}",
+        )
+        .await
+        .unwrap();
+        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+        let id = r.json().unwrap()["id"].as_u64().unwrap();
+        records.push(wait_record(addr, id, Duration::from_secs(60)).await);
+    }
+    beating.store(false, Relaxed);
+    let _ = heart.await;
+
+    // Each release is concluded by the world at the next hanging or 8 s
+    // after its drop: wait for the last trial's line.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let released = records.iter().filter(|r| r["status"] == "done").count();
+    let mut lines = truth_lines(&truth);
+    while lines.len() < released {
+        assert!(
+            Instant::now() < deadline,
+            "{} truth lines for {released} finished trials",
+            lines.len()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        lines = truth_lines(&truth);
+    }
+
+    let mut judged = 0;
+    let mut agree = 0;
+    let mut report = Vec::new();
+    for r in &records {
+        assert_ne!(r["status"], "running", "{r}");
+        if r["status"] != "done" {
+            report.push(format!(
+                "trial {}: {} ({})",
+                r["id"], r["status"], r["reason"]
+            ));
+            continue;
+        }
+        let (t0, t1) = (
+            r["started_unix_s"].as_f64().unwrap(),
+            r["finished_unix_s"].as_f64().unwrap(),
+        );
+        let t = lines
+            .iter()
+            .find(|l| {
+                l["coil_off_unix_s"]
+                    .as_f64()
+                    .is_some_and(|c| c >= t0 && c <= t1)
+            })
+            .unwrap_or_else(|| panic!("no release in the world's truth during trial {r}"));
+        assert_eq!(
+            r["judged_by"], "measured",
+            "a real lab is judged by what it measures: {r}"
+        );
+        let m = &r["measured"];
+        judged += 1;
+        assert_eq!(
+            m["torque_signal"], true,
+            "the world's robot reports external torques: {r}"
+        );
+        assert_eq!(m["contact"], t["contact"], "contact: record {r} truth {t}");
+        let (me, te) = (
+            m["timing_error_ms"].as_f64().unwrap(),
+            t["timing_error_ms"].as_f64().unwrap(),
+        );
+        assert!(
+            (me - te).abs() <= 3.0,
+            "measured timing error {me:.2} ms, true {te:.2} ms: record {r} truth {t}"
+        );
+        assert_eq!(r["success"], t["success"], "success: record {r} truth {t}");
+        agree += 1;
+        report.push(format!(
+            "trial {}: success {} measured {me:+.2} ms true {te:+.2} ms contact {}",
+            r["id"], t["success"], t["contact"]
+        ));
+    }
+    eprintln!(
+        "world lab: {judged} judged, {agree} agree\n{}",
+        report.join("\n")
+    );
+    assert!(judged >= 1, "no trial finished to be judged: {report:?}");
+}
