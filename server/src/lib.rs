@@ -15,6 +15,7 @@ pub mod runtime;
 pub mod serve;
 pub mod typescript;
 pub mod viz;
+pub mod world;
 pub mod ws;
 
 use std::{

@@ -52,6 +52,17 @@ enum Command {
         /// comma-separated list of `fifo`, `pin`, `isolate`, `mlock`, `spin`.
         #[arg(long, default_value = "auto")]
         rt_tuning: String,
+        /// Serve a real lab on this scenario's simulated world, run in this process
+        /// (its [world], or a truthful one; as `isochron world` runs it: FRI cabinet,
+        /// webcam stream, magnet firmware in simavr). Not with --config.
+        #[arg(long)]
+        scenario: Option<PathBuf>,
+        /// Seed of the --scenario world's draws.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Let a real lab (or a --scenario world with [world]) run trials before it is calibrated.
+        #[arg(long)]
+        allow_uncalibrated: bool,
     },
     /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
@@ -129,6 +140,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             calibration,
             foxglove,
             rt_tuning,
+            scenario,
+            seed,
+            allow_uncalibrated,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -142,6 +156,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 rt_core::fri::priority::RtTuning::parse(&rt_tuning)
                     .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?,
             ),
+            world: scenario,
+            world_seed: seed,
+            allow_uncalibrated,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),

@@ -40,14 +40,28 @@ pub struct ServeArgs {
     /// `--rt-tuning`: the FRI threads' real-time measures (default
     /// [`rt_core::fri::priority::RtTuning::auto`]).
     pub rt_tuning: Option<rt_core::fri::priority::RtTuning>,
+    /// `--scenario FILE`: serve a real lab on this scenario's world, run in
+    /// this process (`crate::world`, as `isochron world` runs it).
+    pub world: Option<PathBuf>,
+    /// `--seed`: the world's draws.
+    pub world_seed: u64,
+    /// `--allow-uncalibrated`: trials before calibrating (always so for a
+    /// truthful world, whose beliefs are its truth).
+    pub allow_uncalibrated: bool,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
-    let cfg = match &args.config {
-        Some(path) => ServeConfig::from_file(path)?,
-        None => ServeConfig::default(),
+    let cfg = match (&args.config, &args.world) {
+        (Some(_), Some(_)) => anyhow::bail!(
+            "give --config (a lab's own hardware) or --scenario (a simulated world's), not both"
+        ),
+        (None, Some(path)) => serve_world(path, &args)?,
+        (Some(path), None) => ServeConfig::from_file(path)?,
+        (None, None) => ServeConfig::default(),
     };
+    let mut cfg = cfg;
+    cfg.lab.allow_uncalibrated |= args.allow_uncalibrated;
     let bind = args.bind.unwrap_or(cfg.server.bind);
     let token = args
         .token
@@ -219,12 +233,69 @@ pub fn uncalibrated_refusal(
     ))
 }
 
+/// `serve --scenario`: starts the scenario's world in this process (its
+/// cabinet, webcam stream and magnet board, `crate::world`), and returns the
+/// real-lab configuration for it (the beliefs in the data folder's
+/// `world-beliefs.scenario.toml`; the world's truth, one line per release, in
+/// its `world-truth.jsonl`). The lab knows nothing of the world: it is served
+/// as a real lab, judged by what it measures. Its dead-man is off (the arm is
+/// the world's), and a truthful world's lab needs no calibration.
+fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<ServeConfig> {
+    use anyhow::Context;
+    let scenario = Scenario::from_file(path)?;
+    let data_dir = args
+        .data_dir
+        .clone()
+        .unwrap_or_else(|| ServeConfig::default().server.data_dir);
+    std::fs::create_dir_all(&data_dir)
+        .with_context(|| format!("cannot create {}", data_dir.display()))?;
+    let mut world = crate::world::LabWorld::start(&crate::world::WorldSpec {
+        scenario,
+        seed: args.world_seed,
+        fri_version: rt_core::fri::FriVersion::default(),
+        distance_m: None,
+        firmware_dir: crate::world::default_firmware_dir(),
+        serial_port: data_dir.join("world-magnet.tty"),
+    })?;
+    let beliefs = data_dir.join("world-beliefs.scenario.toml");
+    std::fs::write(&beliefs, world.beliefs().to_toml_string())
+        .with_context(|| format!("cannot write {}", beliefs.display()))?;
+    let mut cfg = world.lab_config(&beliefs);
+    cfg.server.data_dir = data_dir.clone();
+    cfg.lab.allow_uncalibrated = args.allow_uncalibrated || world.ready.world == "truthful";
+    cfg.lab.dead_man = Some(false);
+    let truth_path = data_dir.join("world-truth.jsonl");
+    let mut truth = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&truth_path)
+        .with_context(|| format!("cannot write {}", truth_path.display()))?;
+    tracing::info!(
+        world = world.ready.world,
+        seed = args.world_seed,
+        camera = %world.ready.camera_url,
+        truth = %truth_path.display(),
+        "serving a real lab on a simulated world"
+    );
+    std::thread::Builder::new()
+        .name("isochron-world".into())
+        .spawn(move || {
+            loop {
+                if let Err(e) = world.poll(&mut truth, std::time::Duration::from_millis(200)) {
+                    tracing::error!("the world stopped: {e:#}");
+                    return;
+                }
+            }
+        })?;
+    Ok(cfg)
+}
+
 /// Why `serve` refuses a scenario with `[world]`: its labs never simulate
 /// one (the real lab has the real world; the simulated lab in real time is a
 /// truthful world), and a figure must say which world it comes from.
 pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world that differs from the \
-    controller's beliefs) runs on the virtual clock only (`isochron trials`, `isochron eval --reality`); \
-    `serve` simulates a truthful world in real time: remove [world] from the scenario and parameter files";
+    controller's beliefs) is not a lab's beliefs: serve that world with `isochron serve --scenario FILE` \
+    (or run it as `isochron world`), or remove [world] from the scenario and parameter files";
 
 /// The real lab of `cfg` (`lab.mode = "real"`; its motion timed for the
 /// settling arrival its measured judge sees, `control.arrival_settle_m`): the same runtime as the

@@ -27,6 +27,11 @@ use std::{
 };
 
 use isochron_tests::http;
+
+/// One world and its lab at a time: each lab's FRI thread takes the last CPU
+/// for itself (`--rt-tuning auto`), and two labs side by side on a 2-core
+/// machine starve each other's camera.
+static ONE_LAB: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 use isochron_tests::procs::{firmware, start};
 use serde_json::Value;
 
@@ -77,6 +82,7 @@ fn truth_lines(path: &Path) -> Vec<Value> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judges_them() {
+    let _one = ONE_LAB.lock().await;
     let Some(_) = firmware() else {
         return;
     };
@@ -238,4 +244,119 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         report.join("\n")
     );
     assert!(judged >= 1, "no trial finished to be judged: {report:?}");
+}
+
+/// `serve --scenario` runs the world in its own process: a world that is
+/// not its beliefs (`[world]`) is a lab to calibrate, so trials are refused
+/// (409 `uncalibrated`, no record written) until `--allow-uncalibrated`;
+/// then a trial is judged by what the lab measures and the world's truth
+/// of it lands in the data folder.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
+    let _one = ONE_LAB.lock().await;
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--allow-uncalibrated")])
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
+    let serve = |extra: &[&str]| {
+        let (p, line) = start(
+            "isochron serve --scenario",
+            Process::new(&bin)
+                .args(["serve", "--bind", "127.0.0.1:0", "--scenario"])
+                .arg(&scenario)
+                .arg("--data-dir")
+                .arg(dir.path())
+                .args(extra),
+            "listening on http://",
+            Duration::from_secs(60),
+        );
+        let addr: SocketAddr = line
+            .split("http://")
+            .nth(1)
+            .and_then(|s| s.split(['/', ' ']).next())
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("no address in {line:?}"));
+        (p, addr)
+    };
+
+    let (mut p, addr) = serve(&[]);
+    let h = get(addr, "/api/health").await;
+    assert_eq!(h["not_ready"]["reason"], "uncalibrated", "{h}");
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().unwrap()["reason"], "uncalibrated");
+    assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
+    p.kill();
+
+    let (_p, addr) = serve(&["--allow-uncalibrated"]);
+    wait_ready(addr, Duration::from_secs(60)).await;
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let rec = wait_record(addr, id, Duration::from_secs(60)).await;
+    // A trial the lab could not finish on a starved machine ends aborted
+    // with its reason; one that finished is judged by what the lab measures.
+    if rec["status"] == "aborted" {
+        assert!(
+            rec["reason"].as_str().is_some_and(|r| !r.is_empty()),
+            "{rec}"
+        );
+        eprintln!("serve --scenario: the trial was aborted: {}", rec["reason"]);
+        return;
+    }
+    assert_eq!(rec["status"], "done", "{rec}");
+    assert_eq!(rec["judged_by"], "measured", "{rec}");
+    let truth = dir.path().join("world-truth.jsonl");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while truth_lines(&truth).is_empty() {
+        assert!(
+            Instant::now() < deadline,
+            "no truth line in {}",
+            truth.display()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let t = &truth_lines(&truth)[0];
+    assert_eq!(t["world"], "reality", "{t}");
+    assert_eq!(
+        rec["measured"]["contact"], t["contact"],
+        "record {rec} truth {t}"
+    );
+}
+
+/// Bad hardware descriptions get a clear error and change nothing: a world
+/// file with an unknown key is refused naming it, no lab configuration
+/// written.
+#[test]
+fn a_world_file_with_an_unknown_key_is_refused_and_nothing_is_written() {
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["world", "--help"], "--lab-config")]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        "[world.pendulum]\nlength_error_m = [0.0, 0.01]\nstring_colour = \"red\"\n",
+    )
+    .unwrap();
+    let lab = dir.path().join("lab.toml");
+    let out = Process::new(&bin)
+        .arg("world")
+        .arg("--scenario")
+        .arg(&bad)
+        .arg("--lab-config")
+        .arg(&lab)
+        .arg("--truth")
+        .arg(dir.path().join("truth.jsonl"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("string_colour"), "{err}");
+    assert!(!lab.exists(), "no lab configuration for a refused world");
 }

@@ -21,29 +21,15 @@
 //! release to `--truth` (`sim::world::live::ReleaseTruth`, times as Unix
 //! seconds). Nothing in `isochron serve --config` knows it talks to a world.
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
-use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Args;
-use nalgebra::Vector3;
 use rt_core::fri::FriVersion;
 use rt_core::params::{Scenario, check};
-use rt_core::sim::kuka::controller::WorldRobot;
-use rt_core::sim::kuka::{SimRunOptions, SimServer};
-use rt_core::sim::world::contact::TORQUE_LAG_PERIODS;
-use rt_core::sim::world::live::{LiveWorld, ReleaseTruth};
-use rt_core::sim::world::webcam::{BallSample, WorldWebcam};
-use rt_core::sim::world::{LatencyModel, WorldJoints};
-use serde::Serialize;
-
-use server::config::{LabMode, ServeConfig};
+use server::world::{LabWorld, WorldSpec, default_firmware_dir};
 
 /// Arguments of `isochron world`.
 #[derive(Debug, Args)]
@@ -82,74 +68,11 @@ pub struct WorldArgs {
     pub duration_s: Option<f64>,
 }
 
-/// What `isochron world` prints once the hardware answers (one JSON line).
-#[derive(Debug, Serialize)]
-pub struct WorldReady {
-    /// `truthful` or `reality` (the scenario has `[world]`).
-    pub world: &'static str,
-    /// The cabinet's FRI address (`fri.controller`).
-    pub fri_controller: SocketAddr,
-    /// Where the cabinet sends (`fri.local_bind` of the service).
-    pub fri_client: SocketAddr,
-    /// The webcam's stream.
-    pub camera_url: String,
-    /// The Arduino's serial port.
-    pub serial_port: PathBuf,
-    /// The lab configuration written.
-    pub lab_config: PathBuf,
-}
-
-/// One line of the truth file: a release as the world saw it, Unix seconds.
-#[derive(Debug, Serialize)]
-struct TruthLine<'a> {
-    world: &'static str,
-    index: usize,
-    coil_off_unix_s: f64,
-    drop_unix_s: f64,
-    release_angle_deg: f64,
-    t_star_unix_s: Option<f64>,
-    arrival_unix_s: Option<f64>,
-    timing_error_ms: Option<f64>,
-    contact: bool,
-    contact_unix_s: Option<f64>,
-    success: bool,
-    not_judged: Option<&'a str>,
-}
-
-/// Frames a slow stream client may have queued before it misses some.
-const CLIENT_QUEUE: usize = 2;
-/// How long a frame's truth is waited for past its exposure (two FRI
-/// periods of world steps and a scheduler's hiccup), s.
-const TRUTH_MARGIN_S: f64 = 0.012;
-
 /// Runs the world until killed (or `--duration-s`); returns a summary.
 pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
     let scenario = Scenario::from_file(&args.scenario)?;
-    let kind = if scenario.world.is_some() {
-        "reality"
-    } else {
-        "truthful"
-    };
-    let distance_m = args
-        .distance_m
-        .unwrap_or_else(|| scenario.task.distance_m.lerp(0.5));
-    check::within("--distance-m", distance_m, 0.2, 1.2)?;
     if let Some(d) = args.duration_s {
         check::within("--duration-s", d, 0.1, 30.0 * 86_400.0)?;
-    }
-    let intercept = Vector3::new(distance_m, 0.0, scenario.task.intercept_height_m);
-    let dir = args.firmware_dir.clone().unwrap_or_else(|| {
-        PathBuf::from(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../firmware/magnet/build"
-        ))
-    });
-    let (elf, host) = (dir.join("magnet.elf"), dir.join("magnet-sim"));
-    if !elf.is_file() || !host.is_file() {
-        bail!(
-            "the magnet firmware or its simavr host is missing in {} (run `make firmware`)",
-            dir.display()
-        );
     }
     let config_dir = args
         .lab_config
@@ -162,425 +85,55 @@ pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
             config_dir.display()
         );
     }
-    let tty = args.lab_config.with_extension("tty");
     let beliefs_path = args.lab_config.with_extension("scenario.toml");
     let mut truth_file = std::fs::File::create(&args.truth)
         .with_context(|| format!("--truth: cannot write {}", args.truth.display()))?;
-
-    // The Arduino.
-    let mut board = Board::spawn(&host, &elf, &tty)?;
-
-    // The world and the cabinet, which steps it every controller cycle.
-    let mut world = LiveWorld::new(&scenario, args.seed, intercept, 0.0);
-    let session = world.world().session;
-    let wp = scenario.world.clone().unwrap_or_default();
-    let mut params = rt_core::lab::robot_params(&scenario, args.seed);
-    params.fri_version = args.fri_version;
-    let period_s = f64::from(params.fri_period_ms) * 1e-3;
-    let mut joints = WorldJoints::new(
-        std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians()),
-        &session,
-        params.servo_time_constant_ms * 1e-3,
-        wp.robot.torque_limit_scale,
-        wp.robot.torque_trip,
-        wp.robot.position_noise_rad,
-        args.seed ^ 0x9E37_79B9_7F4A_7C15,
-    );
-    joints.set_interpolation_s(period_s);
-    let robot = WorldRobot::new(
-        LatencyModel::from_session(&session, 0.0),
-        joints,
-        args.seed ^ 0xD1B5_4A32_D192_ED03,
-        TORQUE_LAG_PERIODS * period_s,
-    );
-    let (mut coil_tx, mut coil_rx) = rtrb::RingBuffer::<(bool, f64)>::new(64);
-    let (mut ball_tx, mut ball_rx) = rtrb::RingBuffer::<BallSample>::new(8192);
-    let (truth_tx, truth_rx) = std::sync::mpsc::channel::<ReleaseTruth>();
-    let client = free_udp_port()?;
-    let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
-        let t = t_ns as f64 * 1e-9;
-        while let Ok((on, at)) = coil_rx.pop() {
-            world.coil(on, at);
-        }
-        if let Some(c) = world.step(t, sim.joint_rad()) {
-            sim.contact(c);
-        }
-        let b = world.ball();
-        let _ = ball_tx.push(BallSample {
-            t_s: t,
-            centre_m: b.ball_position_m(),
-            velocity_mps: b.ball_velocity_mps(),
-        });
-        for r in world.take_truth() {
-            let _ = truth_tx.send(r);
-        }
-    });
-    let cabinet = SimServer::spawn_with(
-        params,
-        "127.0.0.1:0".parse()?,
-        client,
-        SimRunOptions {
-            auto_command: true,
-            duration: None,
-            normal_priority: false,
-        },
-        Some(robot),
-        Some(hook),
-    )?;
-    let epoch = cabinet.epoch();
-    let epoch_unix_s = cabinet.epoch_unix_ns() as f64 * 1e-9;
-
-    // The board's pins reach the world.
-    let led = Arc::new(AtomicBool::new(false));
-    let board_gone = Arc::new(AtomicBool::new(false));
-    {
-        let (led, gone) = (Arc::clone(&led), Arc::clone(&board_gone));
-        let stdout = board.stdout.take().context("the board's output")?;
-        std::thread::Builder::new()
-            .name("isochron-world-board".into())
-            .spawn(move || {
-                for line in stdout.lines() {
-                    let Ok(line) = line else { break };
-                    let t = epoch.elapsed().as_secs_f64();
-                    let mut words = line.split_whitespace();
-                    if words.next() != Some("PIN") {
-                        continue;
-                    }
-                    let (pin, level) = (words.next(), words.next());
-                    match (pin, level) {
-                        (Some("D8"), Some(v)) => {
-                            let _ = coil_tx.push((v == "1", t));
-                        }
-                        (Some("D12"), Some(v)) => led.store(v == "1", Relaxed),
-                        _ => {}
-                    }
-                }
-                gone.store(true, Relaxed);
-            })?;
-    }
-
-    // The webcam.
-    let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
-    let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
-    let clients: Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>> = Arc::default();
-    {
-        let clients = Arc::clone(&clients);
-        std::thread::Builder::new()
-            .name("isochron-world-http".into())
-            .spawn(move || serve_stream(&listener, &clients))?;
-    }
-    let frames = Arc::new(AtomicU64::new(0));
-    let mut webcam = WorldWebcam::new(&scenario, &session, args.seed)?;
-    {
-        let (clients, frames, led) = (Arc::clone(&clients), Arc::clone(&frames), Arc::clone(&led));
-        std::thread::Builder::new()
-            .name("isochron-world-camera".into())
-            .spawn(move || {
-                let now = || epoch.elapsed().as_secs_f64();
-                let period = webcam.period_s();
-                let mut k: u64 = 0;
-                loop {
-                    let t_start = k as f64 * period;
-                    sleep_until(epoch, t_start + webcam.truth_after_s() + TRUTH_MARGIN_S);
-                    while let Ok(s) = ball_rx.pop() {
-                        webcam.push(s);
-                    }
-                    let timing = webcam.timing(t_start);
-                    let jpeg = match webcam.frame_jpeg(t_start, led.load(Relaxed)) {
-                        Ok(j) => Arc::new(j.to_vec()),
-                        Err(e) => {
-                            eprintln!("isochron world: the webcam failed: {e}");
-                            return;
-                        }
-                    };
-                    sleep_until(epoch, timing.t_delivered_s);
-                    publish(&clients, &jpeg);
-                    frames.fetch_add(1, Relaxed);
-                    k += 1;
-                    // Fallen behind by more than a few frames (a stalled
-                    // machine): the camera goes on from now, as a webcam
-                    // that dropped frames.
-                    let behind = now() - (k as f64 * period);
-                    if behind > 4.0 * period {
-                        k += (behind / period) as u64;
-                    }
-                }
-            })?;
-    }
-
+    let mut world = LabWorld::start(&WorldSpec {
+        scenario,
+        seed: args.seed,
+        fri_version: args.fri_version,
+        distance_m: args.distance_m,
+        firmware_dir: args
+            .firmware_dir
+            .clone()
+            .unwrap_or_else(default_firmware_dir),
+        serial_port: args.lab_config.with_extension("tty"),
+    })?;
     // The lab's configuration for this hardware: written last, once all answers.
-    let mut beliefs = scenario.clone();
-    beliefs.world = None;
-    std::fs::write(&beliefs_path, beliefs.to_toml_string())
+    std::fs::write(&beliefs_path, world.beliefs().to_toml_string())
         .with_context(|| format!("cannot write {}", beliefs_path.display()))?;
-    let cfg = lab_config(
-        &beliefs,
-        &beliefs_path,
-        args,
-        &cabinet,
-        client,
-        &camera_url,
-        &tty,
-        intercept,
-    );
+    let mut cfg = world.lab_config(&beliefs_path);
+    cfg.lab.allow_uncalibrated = args.allow_uncalibrated;
     let text = toml::to_string_pretty(&cfg).context("the lab configuration")?;
     let tmp = args.lab_config.with_extension("toml.part");
     std::fs::write(&tmp, text).with_context(|| format!("cannot write {}", tmp.display()))?;
     std::fs::rename(&tmp, &args.lab_config)
         .with_context(|| format!("cannot write {}", args.lab_config.display()))?;
-    let ready = WorldReady {
-        world: kind,
-        fri_controller: cabinet.local_addr(),
-        fri_client: client,
-        camera_url,
-        serial_port: tty.clone(),
-        lab_config: args.lab_config.clone(),
-    };
-    println!("{}", serde_json::to_string(&ready)?);
+    let mut ready = serde_json::to_value(&world.ready)?;
+    ready["lab_config"] = serde_json::to_value(&args.lab_config)?;
+    println!("{ready}");
     std::io::stdout().flush()?;
+    let r = &world.ready;
     eprintln!(
-        "isochron world: a {kind} world (seed {}): FRI {} cabinet on {} -> {}, webcam {}, Arduino on {}; lab configuration {}",
+        "isochron world: a {} world (seed {}): FRI {} cabinet on {} -> {}, webcam {}, Arduino on {}; lab configuration {}",
+        r.world,
         args.seed,
         args.fri_version,
-        ready.fri_controller,
-        client,
-        ready.camera_url,
-        tty.display(),
+        r.fri_controller,
+        r.fri_client,
+        r.camera_url,
+        r.serial_port.display(),
         args.lab_config.display()
     );
-
     let started = Instant::now();
-    let mut releases = 0usize;
-    loop {
-        match truth_rx.recv_timeout(Duration::from_millis(100)) {
-            Ok(r) => {
-                write_truth(&mut truth_file, kind, &r, epoch_unix_s)?;
-                releases += 1;
-            }
-            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
-            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
-                bail!("the cabinet stopped")
-            }
-        }
-        if board_gone.load(Relaxed) || board.exited() {
-            bail!("the magnet board's simulator ended");
-        }
-        if cabinet.is_finished() {
-            bail!("the cabinet stopped");
-        }
-        if args
-            .duration_s
-            .is_some_and(|d| started.elapsed().as_secs_f64() >= d)
-        {
-            break;
-        }
+    while args
+        .duration_s
+        .is_none_or(|d| started.elapsed().as_secs_f64() < d)
+    {
+        world.poll(&mut truth_file, Duration::from_millis(100))?;
     }
+    let (releases, frames) = world.counts();
     Ok(format!(
-        "isochron world: {releases} releases, {} frames served",
-        frames.load(Relaxed)
+        "isochron world: {releases} releases, {frames} frames served"
     ))
-}
-
-#[allow(clippy::too_many_arguments)]
-fn lab_config(
-    beliefs: &Scenario,
-    beliefs_path: &Path,
-    args: &WorldArgs,
-    cabinet: &SimServer,
-    client: SocketAddr,
-    camera_url: &str,
-    tty: &Path,
-    intercept: Vector3<f64>,
-) -> ServeConfig {
-    let mut cfg = ServeConfig::default();
-    cfg.server.bind = "127.0.0.1:8080".parse().unwrap_or(cfg.server.bind);
-    cfg.lab.mode = LabMode::Real;
-    cfg.lab.scenario = Some(absolute(beliefs_path));
-    cfg.lab.allow_uncalibrated = args.allow_uncalibrated;
-    cfg.camera.device = PathBuf::from(camera_url);
-    cfg.camera.width_px = beliefs.camera.width_px;
-    cfg.camera.height_px = beliefs.camera.height_px;
-    cfg.camera.fps = beliefs.camera.fps;
-    cfg.fri.local_bind = client;
-    cfg.fri.controller = cabinet.local_addr();
-    cfg.fri.period_ms = beliefs.robot.fri_period_ms;
-    cfg.fri.version = args.fri_version;
-    cfg.magnet.port = absolute(tty);
-    // What the lab believes of its camera and pendulum before calibrating:
-    // the camera's nominal lens and where it was put (the simulated lab's).
-    let cam = rt_core::sim::camera::SimCameraParams::default();
-    let k = beliefs.camera.believed_intrinsics(cam.hfov_deg);
-    cfg.calibration.focal_length_px = k.fx_px;
-    cfg.calibration.principal_point_px = [k.cx_px, k.cy_px];
-    cfg.calibration.pivot_m = [
-        intercept.x,
-        intercept.y,
-        intercept.z + beliefs.pendulum.length_m,
-    ];
-    cfg.calibration.plane_distance_m = (intercept.x - cam.pose.position_m[0]).max(0.1);
-    cfg.calibration.camera_pose = Some(cam.pose);
-    cfg
-}
-
-fn absolute(p: &Path) -> PathBuf {
-    std::path::absolute(p).unwrap_or_else(|_| p.to_owned())
-}
-
-fn write_truth(
-    out: &mut std::fs::File,
-    world: &'static str,
-    r: &ReleaseTruth,
-    epoch_unix_s: f64,
-) -> anyhow::Result<()> {
-    let unix = |t: f64| epoch_unix_s + t;
-    let line = TruthLine {
-        world,
-        index: r.index,
-        coil_off_unix_s: unix(r.coil_off_s),
-        drop_unix_s: unix(r.drop_s),
-        release_angle_deg: r.release_angle_deg,
-        t_star_unix_s: r.t_star_s.map(unix),
-        arrival_unix_s: r.arrival_s.map(unix),
-        timing_error_ms: r.timing_error_ms,
-        contact: r.contact,
-        contact_unix_s: r.contact_s.map(unix),
-        success: r.success,
-        not_judged: r.not_judged.as_deref(),
-    };
-    writeln!(out, "{}", serde_json::to_string(&line)?)?;
-    out.flush()?;
-    Ok(())
-}
-
-fn sleep_until(epoch: Instant, t_s: f64) {
-    let dt = t_s - epoch.elapsed().as_secs_f64();
-    if dt > 0.0 {
-        std::thread::sleep(Duration::from_secs_f64(dt.min(1.0)));
-    }
-}
-
-/// A free loopback UDP port for the service's FRI client.
-fn free_udp_port() -> anyhow::Result<SocketAddr> {
-    let s = UdpSocket::bind("127.0.0.1:0").context("a UDP port for the FRI client")?;
-    Ok(s.local_addr()?)
-}
-
-/// Hands a frame to every stream client (a client whose queue is full
-/// misses it; a gone one is dropped).
-fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) {
-    let Ok(mut list) = clients.lock() else {
-        return;
-    };
-    list.retain(|tx| {
-        !matches!(
-            tx.try_send(Arc::clone(jpeg)),
-            Err(TrySendError::Disconnected(_))
-        )
-    });
-}
-
-/// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream
-/// (`multipart/x-mixed-replace`), anything else 404.
-fn serve_stream(listener: &TcpListener, clients: &Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>>) {
-    for stream in listener.incoming() {
-        let Ok(stream) = stream else { continue };
-        let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
-        let clients = Arc::clone(clients);
-        let _ = std::thread::Builder::new()
-            .name("isochron-world-client".into())
-            .spawn(move || {
-                let _ = stream_client(stream, &clients, tx, &rx);
-            });
-    }
-}
-
-fn stream_client(
-    mut stream: TcpStream,
-    clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>,
-    tx: SyncSender<Arc<Vec<u8>>>,
-    rx: &Receiver<Arc<Vec<u8>>>,
-) -> std::io::Result<()> {
-    stream.set_read_timeout(Some(Duration::from_secs(2)))?;
-    stream.set_write_timeout(Some(Duration::from_secs(2)))?;
-    stream.set_nodelay(true)?;
-    let mut head = Vec::new();
-    let mut buf = [0u8; 512];
-    while !head.windows(4).any(|w| w == b"\r\n\r\n") {
-        let n = stream.read(&mut buf)?;
-        if n == 0 || head.len() > 8192 {
-            return Ok(());
-        }
-        head.extend_from_slice(&buf[..n]);
-    }
-    let line = String::from_utf8_lossy(&head);
-    let mut words = line.split_whitespace();
-    if (words.next(), words.next()) != (Some("GET"), Some("/video.mjpg")) {
-        return stream.write_all(
-            b"HTTP/1.0 404 Not Found\r\nContent-Type: text/plain\r\n\r\nthe stream is /video.mjpg\n",
-        );
-    }
-    stream.write_all(
-        b"HTTP/1.0 200 OK\r\nCache-Control: no-cache\r\nContent-Type: multipart/x-mixed-replace; boundary=frame\r\n\r\n",
-    )?;
-    if let Ok(mut list) = clients.lock() {
-        list.push(tx);
-    }
-    while let Ok(jpeg) = rx.recv() {
-        let part = format!(
-            "--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\n\r\n",
-            jpeg.len()
-        );
-        stream.write_all(part.as_bytes())?;
-        stream.write_all(&jpeg)?;
-        stream.write_all(b"\r\n")?;
-    }
-    Ok(())
-}
-
-/// The magnet board: the firmware in its simavr host behind a pty.
-struct Board {
-    child: Child,
-    stdout: Option<BufReader<std::process::ChildStdout>>,
-}
-
-impl Board {
-    fn spawn(host: &Path, elf: &Path, tty: &Path) -> anyhow::Result<Self> {
-        let mut child = Command::new(host)
-            .arg(elf)
-            .arg(tty)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .with_context(|| format!("cannot start {}", host.display()))?;
-        let stdout = child.stdout.take().context("the board's output")?;
-        let mut reader = BufReader::new(stdout);
-        // simavr says what it loaded, the host its pins' first levels, then READY.
-        let mut line = String::new();
-        for _ in 0..32 {
-            line.clear();
-            if reader.read_line(&mut line)? == 0 || line.starts_with("READY") {
-                break;
-            }
-        }
-        if !line.starts_with("READY") {
-            let _ = child.kill();
-            bail!("the magnet board's simulator did not start: {line:?}");
-        }
-        Ok(Self {
-            child,
-            stdout: Some(reader),
-        })
-    }
-
-    fn exited(&mut self) -> bool {
-        !matches!(self.child.try_wait(), Ok(None))
-    }
-}
-
-impl Drop for Board {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }

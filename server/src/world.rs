@@ -1,0 +1,553 @@
+//! The lab's hardware as a world (`isochron world`, and `isochron serve
+//! --scenario` in-process): the world
+//! of a scenario (its `[world]`, or a truthful one) on the wall clock behind
+//! the interfaces a real lab has, and nothing else:
+//!
+//! - **the KUKA cabinet** over FRI UDP: the simulated controller
+//!   (`sim::kuka`) with the world's robot (latency and drift, servo, joint
+//!   noise, torque trip) and the external torques of the ball's contacts;
+//! - **the webcam**: frames of the world's true ball as its true camera takes
+//!   them (`sim::world::webcam`), served as MJPEG over HTTP
+//!   (`http://127.0.0.1:PORT/video.mjpg`, what an IP camera serves and
+//!   OpenCV's `VideoCapture` opens), each delivered at its true latency;
+//! - **the Arduino**: the magnet firmware in simavr behind a pseudo-terminal
+//!   (`firmware/magnet`, `make firmware`); its coil pin lets the world's ball
+//!   go after the world's release delay, and switching it on hangs the ball
+//!   on the magnet (the operator's hands); its LED pin lights a spot in the
+//!   frames.
+//!
+//! It writes `--lab-config` (the real-lab configuration for this hardware,
+//! read by `isochron serve --config`, with the lab's beliefs beside it as
+//! `<name>.scenario.toml`) once everything answers, and one JSON line per
+//! release to `--truth` (`sim::world::live::ReleaseTruth`, times as Unix
+//! seconds). Nothing in `isochron serve --config` knows it talks to a world.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use nalgebra::Vector3;
+use rt_core::fri::FriVersion;
+use rt_core::params::{Scenario, check};
+use rt_core::sim::kuka::controller::WorldRobot;
+use rt_core::sim::kuka::{SimRunOptions, SimServer};
+use rt_core::sim::world::contact::TORQUE_LAG_PERIODS;
+use rt_core::sim::world::live::{LiveWorld, ReleaseTruth};
+use rt_core::sim::world::webcam::{BallSample, WorldWebcam};
+use rt_core::sim::world::{LatencyModel, WorldJoints};
+use serde::Serialize;
+
+use crate::config::{LabMode, ServeConfig};
+
+/// What the world is and where its hardware answers.
+#[derive(Debug, Clone, Serialize)]
+pub struct WorldReady {
+    /// `truthful` or `reality` (the scenario has `[world]`).
+    pub world: &'static str,
+    /// The cabinet's FRI address (`fri.controller`).
+    pub fri_controller: SocketAddr,
+    /// Where the cabinet sends (`fri.local_bind` of the service).
+    pub fri_client: SocketAddr,
+    /// The webcam's stream.
+    pub camera_url: String,
+    /// The Arduino's serial port.
+    pub serial_port: PathBuf,
+}
+
+/// One line of the truth file: a release as the world saw it, Unix seconds.
+#[derive(Debug, Serialize)]
+struct TruthLine<'a> {
+    world: &'static str,
+    index: usize,
+    coil_off_unix_s: f64,
+    drop_unix_s: f64,
+    release_angle_deg: f64,
+    t_star_unix_s: Option<f64>,
+    arrival_unix_s: Option<f64>,
+    timing_error_ms: Option<f64>,
+    contact: bool,
+    contact_unix_s: Option<f64>,
+    success: bool,
+    not_judged: Option<&'a str>,
+}
+
+/// Frames a slow stream client may have queued before it misses some.
+const CLIENT_QUEUE: usize = 2;
+/// How long a frame's truth is waited for past its exposure (two FRI
+/// periods of world steps and a scheduler's hiccup), s.
+const TRUTH_MARGIN_S: f64 = 0.012;
+
+/// The world to run.
+#[derive(Debug, Clone)]
+pub struct WorldSpec {
+    /// The scenario (its `[world]`; without one, a truthful world).
+    pub scenario: Scenario,
+    /// Seed of the world's draws.
+    pub seed: u64,
+    /// The FRI version the cabinet speaks.
+    pub fri_version: FriVersion,
+    /// The distance from the robot's base to the ball at rest, m (default:
+    /// the middle of the scenario's `task.distance_m`).
+    pub distance_m: Option<f64>,
+    /// The folder of the magnet firmware and its simavr host.
+    pub firmware_dir: PathBuf,
+    /// Where the Arduino's serial port appears (a symlink to its pty).
+    pub serial_port: PathBuf,
+}
+
+/// This source tree's magnet firmware build (`make firmware`).
+pub fn default_firmware_dir() -> PathBuf {
+    PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../firmware/magnet/build"
+    ))
+}
+
+/// A running world: its cabinet, board, webcam and the truth of its releases.
+pub struct LabWorld {
+    /// Where its hardware answers.
+    pub ready: WorldReady,
+    scenario: Scenario,
+    intercept_m: Vector3<f64>,
+    fri_version: FriVersion,
+    cabinet: SimServer,
+    board: Board,
+    board_gone: Arc<AtomicBool>,
+    truth_rx: Receiver<ReleaseTruth>,
+    epoch_unix_s: f64,
+    frames: Arc<AtomicU64>,
+    releases: usize,
+}
+
+impl std::fmt::Debug for LabWorld {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LabWorld")
+            .field("ready", &self.ready)
+            .finish_non_exhaustive()
+    }
+}
+
+impl LabWorld {
+    /// Starts the world's board, cabinet and webcam.
+    pub fn start(spec: &WorldSpec) -> anyhow::Result<Self> {
+        let scenario = &spec.scenario;
+        let kind = if scenario.world.is_some() {
+            "reality"
+        } else {
+            "truthful"
+        };
+        let distance_m = spec
+            .distance_m
+            .unwrap_or_else(|| scenario.task.distance_m.lerp(0.5));
+        check::within("--distance-m", distance_m, 0.2, 1.2)?;
+        let intercept = Vector3::new(distance_m, 0.0, scenario.task.intercept_height_m);
+        let dir = &spec.firmware_dir;
+        let (elf, host) = (dir.join("magnet.elf"), dir.join("magnet-sim"));
+        if !elf.is_file() || !host.is_file() {
+            bail!(
+                "the magnet firmware or its simavr host is missing in {} (run `make firmware`)",
+                dir.display()
+            );
+        }
+        let tty = spec.serial_port.clone();
+        // The Arduino.
+        let mut board = Board::spawn(&host, &elf, &tty)?;
+        // The world and the cabinet, which steps it every controller cycle.
+        let mut world = LiveWorld::new(scenario, spec.seed, intercept, 0.0);
+        let session = world.world().session;
+        let wp = scenario.world.clone().unwrap_or_default();
+        let mut params = rt_core::lab::robot_params(scenario, spec.seed);
+        params.fri_version = spec.fri_version;
+        let period_s = f64::from(params.fri_period_ms) * 1e-3;
+        let mut joints = WorldJoints::new(
+            std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians()),
+            &session,
+            params.servo_time_constant_ms * 1e-3,
+            wp.robot.torque_limit_scale,
+            wp.robot.torque_trip,
+            wp.robot.position_noise_rad,
+            spec.seed ^ 0x9E37_79B9_7F4A_7C15,
+        );
+        joints.set_interpolation_s(period_s);
+        let robot = WorldRobot::new(
+            LatencyModel::from_session(&session, 0.0),
+            joints,
+            spec.seed ^ 0xD1B5_4A32_D192_ED03,
+            TORQUE_LAG_PERIODS * period_s,
+        );
+        let (mut coil_tx, mut coil_rx) = rtrb::RingBuffer::<(bool, f64)>::new(64);
+        let (mut ball_tx, mut ball_rx) = rtrb::RingBuffer::<BallSample>::new(8192);
+        let (truth_tx, truth_rx) = std::sync::mpsc::channel::<ReleaseTruth>();
+        let client = free_udp_port()?;
+        let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
+            let t = t_ns as f64 * 1e-9;
+            while let Ok((on, at)) = coil_rx.pop() {
+                world.coil(on, at);
+            }
+            if let Some(c) = world.step(t, sim.joint_rad()) {
+                sim.contact(c);
+            }
+            let b = world.ball();
+            let _ = ball_tx.push(BallSample {
+                t_s: t,
+                centre_m: b.ball_position_m(),
+                velocity_mps: b.ball_velocity_mps(),
+            });
+            for r in world.take_truth() {
+                let _ = truth_tx.send(r);
+            }
+        });
+        let cabinet = SimServer::spawn_with(
+            params,
+            "127.0.0.1:0".parse()?,
+            client,
+            SimRunOptions {
+                auto_command: true,
+                duration: None,
+                normal_priority: false,
+            },
+            Some(robot),
+            Some(hook),
+        )?;
+        let epoch = cabinet.epoch();
+        let epoch_unix_s = cabinet.epoch_unix_ns() as f64 * 1e-9;
+
+        // The board's pins reach the world.
+        let led = Arc::new(AtomicBool::new(false));
+        let board_gone = Arc::new(AtomicBool::new(false));
+        {
+            let (led, gone) = (Arc::clone(&led), Arc::clone(&board_gone));
+            let stdout = board.stdout.take().context("the board's output")?;
+            std::thread::Builder::new()
+                .name("isochron-world-board".into())
+                .spawn(move || {
+                    for line in stdout.lines() {
+                        let Ok(line) = line else { break };
+                        let t = epoch.elapsed().as_secs_f64();
+                        let mut words = line.split_whitespace();
+                        if words.next() != Some("PIN") {
+                            continue;
+                        }
+                        let (pin, level) = (words.next(), words.next());
+                        match (pin, level) {
+                            (Some("D8"), Some(v)) => {
+                                let _ = coil_tx.push((v == "1", t));
+                            }
+                            (Some("D12"), Some(v)) => led.store(v == "1", Relaxed),
+                            _ => {}
+                        }
+                    }
+                    gone.store(true, Relaxed);
+                })?;
+        }
+
+        // The webcam.
+        let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
+        let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
+        let clients: Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>> = Arc::default();
+        {
+            let clients = Arc::clone(&clients);
+            std::thread::Builder::new()
+                .name("isochron-world-http".into())
+                .spawn(move || serve_stream(&listener, &clients))?;
+        }
+        let frames = Arc::new(AtomicU64::new(0));
+        let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
+        {
+            let (clients, frames, led) =
+                (Arc::clone(&clients), Arc::clone(&frames), Arc::clone(&led));
+            std::thread::Builder::new()
+                .name("isochron-world-camera".into())
+                .spawn(move || {
+                    let now = || epoch.elapsed().as_secs_f64();
+                    let period = webcam.period_s();
+                    let mut k: u64 = 0;
+                    loop {
+                        let t_start = k as f64 * period;
+                        sleep_until(epoch, t_start + webcam.truth_after_s() + TRUTH_MARGIN_S);
+                        while let Ok(s) = ball_rx.pop() {
+                            webcam.push(s);
+                        }
+                        let timing = webcam.timing(t_start);
+                        let jpeg = match webcam.frame_jpeg(t_start, led.load(Relaxed)) {
+                            Ok(j) => Arc::new(j.to_vec()),
+                            Err(e) => {
+                                eprintln!("isochron world: the webcam failed: {e}");
+                                return;
+                            }
+                        };
+                        sleep_until(epoch, timing.t_delivered_s);
+                        publish(&clients, &jpeg);
+                        frames.fetch_add(1, Relaxed);
+                        k += 1;
+                        // Fallen behind by more than a few frames (a stalled
+                        // machine): the camera goes on from now, as a webcam
+                        // that dropped frames.
+                        let behind = now() - (k as f64 * period);
+                        if behind > 4.0 * period {
+                            k += (behind / period) as u64;
+                        }
+                    }
+                })?;
+        }
+
+        let ready = WorldReady {
+            world: kind,
+            fri_controller: cabinet.local_addr(),
+            fri_client: client,
+            camera_url,
+            serial_port: tty,
+        };
+        Ok(Self {
+            ready,
+            scenario: scenario.clone(),
+            intercept_m: intercept,
+            fri_version: spec.fri_version,
+            cabinet,
+            board,
+            board_gone,
+            truth_rx,
+            epoch_unix_s,
+            frames,
+            releases: 0,
+        })
+    }
+
+    /// The lab's configuration for this hardware (`isochron serve --config`):
+    /// a real lab's, its beliefs the scenario's (at `beliefs_path`, without
+    /// `[world]`), uncalibrated as a lab that has not yet calibrated.
+    pub fn lab_config(&self, beliefs_path: &Path) -> ServeConfig {
+        let beliefs = self.beliefs();
+        let mut cfg = ServeConfig::default();
+        cfg.lab.mode = LabMode::Real;
+        cfg.lab.scenario = Some(absolute(beliefs_path));
+        cfg.camera.device = PathBuf::from(&self.ready.camera_url);
+        cfg.camera.width_px = beliefs.camera.width_px;
+        cfg.camera.height_px = beliefs.camera.height_px;
+        cfg.camera.fps = beliefs.camera.fps;
+        cfg.fri.local_bind = self.ready.fri_client;
+        cfg.fri.controller = self.ready.fri_controller;
+        cfg.fri.period_ms = beliefs.robot.fri_period_ms;
+        cfg.fri.version = self.fri_version;
+        cfg.magnet.port = absolute(&self.ready.serial_port);
+        // What the lab believes of its camera and pendulum before calibrating:
+        // the camera's nominal lens and where it was put (the simulated lab's).
+        let cam = rt_core::sim::camera::SimCameraParams::default();
+        let k = beliefs.camera.believed_intrinsics(cam.hfov_deg);
+        let i = self.intercept_m;
+        cfg.calibration.focal_length_px = k.fx_px;
+        cfg.calibration.principal_point_px = [k.cx_px, k.cy_px];
+        cfg.calibration.pivot_m = [i.x, i.y, i.z + beliefs.pendulum.length_m];
+        cfg.calibration.plane_distance_m = (i.x - cam.pose.position_m[0]).max(0.1);
+        cfg.calibration.camera_pose = Some(cam.pose);
+        cfg
+    }
+
+    /// The lab's beliefs: the scenario without `[world]`.
+    pub fn beliefs(&self) -> Scenario {
+        let mut b = self.scenario.clone();
+        b.world = None;
+        b
+    }
+
+    /// Writes the releases concluded since the last call to `out`, one JSON
+    /// line each (waits up to `wait` for the first); fails when the board or
+    /// the cabinet has stopped.
+    pub fn poll(&mut self, out: &mut dyn Write, wait: Duration) -> anyhow::Result<usize> {
+        let mut n = 0;
+        let mut wait = wait;
+        loop {
+            match self.truth_rx.recv_timeout(wait) {
+                Ok(r) => {
+                    write_truth(out, self.ready.world, &r, self.epoch_unix_s)?;
+                    n += 1;
+                    wait = Duration::ZERO;
+                }
+                Err(RecvTimeoutError::Timeout) => break,
+                Err(RecvTimeoutError::Disconnected) => bail!("the cabinet stopped"),
+            }
+        }
+        self.releases += n;
+        if self.board_gone.load(Relaxed) || self.board.exited() {
+            bail!("the magnet board's simulator ended");
+        }
+        if self.cabinet.is_finished() {
+            bail!("the cabinet stopped");
+        }
+        Ok(n)
+    }
+
+    /// Releases written so far and frames served.
+    pub fn counts(&self) -> (usize, u64) {
+        (self.releases, self.frames.load(Relaxed))
+    }
+}
+
+fn absolute(p: &Path) -> PathBuf {
+    std::path::absolute(p).unwrap_or_else(|_| p.to_owned())
+}
+
+fn write_truth(
+    out: &mut dyn Write,
+    world: &'static str,
+    r: &ReleaseTruth,
+    epoch_unix_s: f64,
+) -> anyhow::Result<()> {
+    let unix = |t: f64| epoch_unix_s + t;
+    let line = TruthLine {
+        world,
+        index: r.index,
+        coil_off_unix_s: unix(r.coil_off_s),
+        drop_unix_s: unix(r.drop_s),
+        release_angle_deg: r.release_angle_deg,
+        t_star_unix_s: r.t_star_s.map(unix),
+        arrival_unix_s: r.arrival_s.map(unix),
+        timing_error_ms: r.timing_error_ms,
+        contact: r.contact,
+        contact_unix_s: r.contact_s.map(unix),
+        success: r.success,
+        not_judged: r.not_judged.as_deref(),
+    };
+    writeln!(out, "{}", serde_json::to_string(&line)?)?;
+    out.flush()?;
+    Ok(())
+}
+
+fn sleep_until(epoch: Instant, t_s: f64) {
+    let dt = t_s - epoch.elapsed().as_secs_f64();
+    if dt > 0.0 {
+        std::thread::sleep(Duration::from_secs_f64(dt.min(1.0)));
+    }
+}
+
+/// A free loopback UDP port for the service's FRI client.
+fn free_udp_port() -> anyhow::Result<SocketAddr> {
+    let s = UdpSocket::bind("127.0.0.1:0").context("a UDP port for the FRI client")?;
+    Ok(s.local_addr()?)
+}
+
+/// Hands a frame to every stream client (a client whose queue is full
+/// misses it; a gone one is dropped).
+fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) {
+    let Ok(mut list) = clients.lock() else {
+        return;
+    };
+    list.retain(|tx| {
+        !matches!(
+            tx.try_send(Arc::clone(jpeg)),
+            Err(TrySendError::Disconnected(_))
+        )
+    });
+}
+
+/// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream
+/// (`multipart/x-mixed-replace`), anything else 404.
+fn serve_stream(listener: &TcpListener, clients: &Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>>) {
+    for stream in listener.incoming() {
+        let Ok(stream) = stream else { continue };
+        let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
+        let clients = Arc::clone(clients);
+        let _ = std::thread::Builder::new()
+            .name("isochron-world-client".into())
+            .spawn(move || {
+                let _ = stream_client(stream, &clients, tx, &rx);
+            });
+    }
+}
+
+fn stream_client(
+    mut stream: TcpStream,
+    clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>,
+    tx: SyncSender<Arc<Vec<u8>>>,
+    rx: &Receiver<Arc<Vec<u8>>>,
+) -> std::io::Result<()> {
+    stream.set_read_timeout(Some(Duration::from_secs(2)))?;
+    stream.set_write_timeout(Some(Duration::from_secs(2)))?;
+    stream.set_nodelay(true)?;
+    let mut head = Vec::new();
+    let mut buf = [0u8; 512];
+    while !head.windows(4).any(|w| w == b"\r\n\r\n") {
+        let n = stream.read(&mut buf)?;
+        if n == 0 || head.len() > 8192 {
+            return Ok(());
+        }
+        head.extend_from_slice(&buf[..n]);
+    }
+    let line = String::from_utf8_lossy(&head);
+    let mut words = line.split_whitespace();
+    if (words.next(), words.next()) != (Some("GET"), Some("/video.mjpg")) {
+        return stream.write_all(
+            b"HTTP/1.0 404 Not Found\r\nContent-Type: text/plain\r\n\r\nthe stream is /video.mjpg\n",
+        );
+    }
+    stream.write_all(
+        b"HTTP/1.0 200 OK\r\nCache-Control: no-cache\r\nContent-Type: multipart/x-mixed-replace; boundary=frame\r\n\r\n",
+    )?;
+    if let Ok(mut list) = clients.lock() {
+        list.push(tx);
+    }
+    while let Ok(jpeg) = rx.recv() {
+        let part = format!(
+            "--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\n\r\n",
+            jpeg.len()
+        );
+        stream.write_all(part.as_bytes())?;
+        stream.write_all(&jpeg)?;
+        stream.write_all(b"\r\n")?;
+    }
+    Ok(())
+}
+
+/// The magnet board: the firmware in its simavr host behind a pty.
+struct Board {
+    child: Child,
+    stdout: Option<BufReader<std::process::ChildStdout>>,
+}
+
+impl Board {
+    fn spawn(host: &Path, elf: &Path, tty: &Path) -> anyhow::Result<Self> {
+        let mut child = Command::new(host)
+            .arg(elf)
+            .arg(tty)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .with_context(|| format!("cannot start {}", host.display()))?;
+        let stdout = child.stdout.take().context("the board's output")?;
+        let mut reader = BufReader::new(stdout);
+        // simavr says what it loaded, the host its pins' first levels, then READY.
+        let mut line = String::new();
+        for _ in 0..32 {
+            line.clear();
+            if reader.read_line(&mut line)? == 0 || line.starts_with("READY") {
+                break;
+            }
+        }
+        if !line.starts_with("READY") {
+            let _ = child.kill();
+            bail!("the magnet board's simulator did not start: {line:?}");
+        }
+        Ok(Self {
+            child,
+            stdout: Some(reader),
+        })
+    }
+
+    fn exited(&mut self) -> bool {
+        !matches!(self.child.try_wait(), Ok(None))
+    }
+}
+
+impl Drop for Board {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
