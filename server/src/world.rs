@@ -77,6 +77,9 @@ struct TruthLine<'a> {
     not_judged: Option<&'a str>,
 }
 
+/// The webcam stream's clients: each one's queue of JPEG frames.
+type Clients = Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>>;
+
 /// Frames a slow stream client may have queued before it misses some.
 const CLIENT_QUEUE: usize = 2;
 /// How long a frame's truth is waited for past its exposure (two FRI
@@ -183,7 +186,8 @@ impl LabWorld {
         );
         let (mut coil_tx, mut coil_rx) = rtrb::RingBuffer::<(bool, f64)>::new(64);
         let (mut ball_tx, mut ball_rx) = rtrb::RingBuffer::<BallSample>::new(8192);
-        let (truth_tx, truth_rx) = std::sync::mpsc::channel::<ReleaseTruth>();
+        // A release every few seconds, drained every 100 ms: never full.
+        let (truth_tx, truth_rx) = std::sync::mpsc::sync_channel::<ReleaseTruth>(256);
         let client = free_udp_port()?;
         let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
             let t = t_ns as f64 * 1e-9;
@@ -200,7 +204,7 @@ impl LabWorld {
                 velocity_mps: b.ball_velocity_mps(),
             });
             for r in world.take_truth() {
-                let _ = truth_tx.send(r);
+                let _ = truth_tx.try_send(r);
             }
         });
         let cabinet = SimServer::spawn_with(
@@ -250,7 +254,7 @@ impl LabWorld {
         // The webcam.
         let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
         let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
-        let clients: Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>> = Arc::default();
+        let clients: Clients = Arc::default();
         {
             let clients = Arc::clone(&clients);
             std::thread::Builder::new()
@@ -448,7 +452,7 @@ fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) 
 
 /// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream
 /// (`multipart/x-mixed-replace`), anything else 404.
-fn serve_stream(listener: &TcpListener, clients: &Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>>) {
+fn serve_stream(listener: &TcpListener, clients: &Clients) {
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
         let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
