@@ -37,6 +37,7 @@ fn controller(client: SocketAddr, normal_priority: bool) -> SimServer {
             auto_command: true,
             duration: None,
             normal_priority,
+            keep_commanding: false,
         },
     )
     .unwrap()

@@ -215,6 +215,7 @@ impl LabWorld {
                 auto_command: true,
                 duration: None,
                 normal_priority: false,
+                keep_commanding: true,
             },
             Some(robot),
             Some(hook),

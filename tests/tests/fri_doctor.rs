@@ -53,6 +53,7 @@ fn run_case(bin: &PathBuf, case: &Case) -> (serde_json::Value, bool) {
                 auto_command: false,
                 duration: None,
                 normal_priority: false,
+                keep_commanding: false,
             },
         )
         .unwrap()

@@ -94,6 +94,7 @@ fn start(
             auto_command: true,
             duration: None,
             normal_priority: false,
+            keep_commanding: false,
         },
     )
     .unwrap();
@@ -366,6 +367,7 @@ fn garbage_to_the_controller_is_counted_and_a_raw_client_completes_a_session() {
             auto_command: true,
             duration: None,
             normal_priority: false,
+            keep_commanding: false,
         },
     )
     .unwrap();

@@ -429,6 +429,7 @@ fn a_kuka_style_client_with_receive_multiplier_2_started_late() {
         auto_command: true,
         duration: Some(Duration::from_millis(1500)),
         normal_priority: false,
+        keep_commanding: false,
     };
     let server = SimServer::spawn(params, "127.0.0.1:0".parse().unwrap(), client, opts).unwrap();
     let sim = Arc::clone(server.stats());
@@ -477,6 +478,7 @@ fn answers_in_flight_when_the_session_closes_are_counted() {
         auto_command: false,
         duration: Some(Duration::from_millis(300)),
         normal_priority: false,
+        keep_commanding: false,
     };
     let server = SimServer::spawn(params, "127.0.0.1:0".parse().unwrap(), client, opts).unwrap();
     sock.set_read_timeout(Some(Duration::from_secs(2))).unwrap();

@@ -765,6 +765,7 @@ fn every_version_completes_a_session_over_udp_at_1_and_5_ms() {
                     auto_command: true,
                     duration: None,
                     normal_priority: false,
+                    keep_commanding: false,
                 },
             )
             .unwrap();

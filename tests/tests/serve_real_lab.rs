@@ -69,6 +69,7 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
             auto_command: true,
             duration: None,
             normal_priority: false,
+            keep_commanding: false,
         },
     )
     .unwrap();

@@ -59,6 +59,36 @@ async fn wait_ready(addr: SocketAddr, timeout: Duration) {
     }
 }
 
+/// Starts a trial (202, its id). A robot that stops commanding for a
+/// moment (a silence of the controller on a loaded machine) refuses with 409
+/// `robot_not_commanding`, as a lab's script sees it: retried for up to 10 s.
+async fn post_trial(addr: SocketAddr) -> u64 {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let r = http(
+            addr,
+            "POST",
+            "/api/trials",
+            &[("Content-Type", "application/json")],
+            b"{}",
+        )
+        .await
+        .unwrap();
+        if r.status == 202 {
+            return r.json().unwrap()["id"].as_u64().unwrap();
+        }
+        let body = r.json().unwrap_or(Value::Null);
+        assert!(
+            r.status == 409
+                && body["reason"] == "robot_not_commanding"
+                && Instant::now() < deadline,
+            "POST /api/trials: {} {body}",
+            r.status
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// Waits until trial `id`'s record has finished; returns it.
 async fn wait_record(addr: SocketAddr, id: u64, timeout: Duration) -> Value {
     let deadline = Instant::now() + timeout;
@@ -126,7 +156,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         "{text}"
     );
 
-    let (_serve, line) = start(
+    let (mut serve, line) = start(
         "isochron serve",
         Process::new(&bin)
             .args(["serve", "--bind", "127.0.0.1:0", "--config"])
@@ -158,17 +188,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     let mut records = Vec::new();
     for _ in 0..n {
         wait_ready(addr, Duration::from_secs(60)).await;
-        let r = http(
-            addr,
-            "POST",
-            "/api/trials",
-            &[("Content-Type", "application/json")],
-            b"{}",
-        )
-        .await
-        .unwrap();
-        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-        let id = r.json().unwrap()["id"].as_u64().unwrap();
+        let id = post_trial(addr).await;
         records.push(wait_record(addr, id, Duration::from_secs(60)).await);
     }
     beating.store(false, Relaxed);
@@ -232,7 +252,11 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
             (me - te).abs() <= 3.0,
             "measured timing error {me:.2} ms, true {te:.2} ms: record {r} truth {t}"
         );
-        assert_eq!(r["success"], t["success"], "success: record {r} truth {t}");
+        // Success agrees, but where the true error lies within the judges'
+        // 3 ms of the 20 ms tolerance (either verdict is then right).
+        if (te.abs() - 20.0).abs() > 3.0 {
+            assert_eq!(r["success"], t["success"], "success: record {r} truth {t}");
+        }
         agree += 1;
         report.push(format!(
             "trial {}: success {} measured {me:+.2} ms true {te:+.2} ms contact {}",
@@ -244,6 +268,59 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         report.join("\n")
     );
     assert!(judged >= 1, "no trial finished to be judged: {report:?}");
+
+    // The same lab with a camera URL that does not answer: the service
+    // starts and answers, shows the camera lost, refuses trials (409
+    // `device_unavailable`) and writes no record.
+    serve.kill();
+    let camera = ready["camera_url"].as_str().unwrap();
+    let nocam = dir.path().join("nocam.toml");
+    std::fs::write(
+        &nocam,
+        text.replace(camera, "http://127.0.0.1:9/video.mjpg"),
+    )
+    .unwrap();
+    let (_serve, line) = start(
+        "isochron serve (no camera)",
+        Process::new(&bin)
+            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .arg(&nocam)
+            .arg("--data-dir")
+            .arg(dir.path().join("data-nocam")),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr: SocketAddr = line
+        .split("http://")
+        .nth(1)
+        .and_then(|s| s.split(['/', ' ']).next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        // 503 until the lab publishes its first state.
+        let r = http(addr, "GET", "/api/state", &[], b"").await.unwrap();
+        let s = if r.status == 200 {
+            r.json().unwrap()
+        } else {
+            Value::Null
+        };
+        if s["camera"]["lost"] == true && s["fri"]["session"] == "commanding_active" {
+            assert_eq!(s["ready"]["reason"], "device_unavailable", "{}", s["ready"]);
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "camera {} fri {}",
+            s["camera"],
+            s["fri"]
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().unwrap()["reason"], "device_unavailable");
+    assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
 }
 
 /// `serve --scenario` runs the world in its own process: a world that is
@@ -295,9 +372,7 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
 
     let (_p, addr) = serve(&["--allow-uncalibrated"]);
     wait_ready(addr, Duration::from_secs(60)).await;
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let id = post_trial(addr).await;
     let rec = wait_record(addr, id, Duration::from_secs(60)).await;
     // A trial the lab could not finish on a starved machine ends aborted
     // with its reason; one that finished is judged by what the lab measures.

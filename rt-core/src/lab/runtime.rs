@@ -421,7 +421,17 @@ impl LabRuntime {
                 mut open,
                 calibration,
             } => {
-                let source = open(clock)?;
+                // A camera that does not answer at start (unplugged, its
+                // stream not up) is a lost camera, not a service that does
+                // not start: tried again every REOPEN_EVERY_S, trials
+                // refused until it delivers.
+                let source = open(clock).unwrap_or_else(|e| {
+                    eprintln!(
+                        "isochron: the camera does not deliver ({e}); trying again every {} s",
+                        super::vision::REOPEN_EVERY_S
+                    );
+                    Box::new(super::vision::NoCamera(e.to_string()))
+                });
                 reopen = Some(open);
                 (source, calibration, None, None)
             }
@@ -487,6 +497,7 @@ impl LabRuntime {
                     auto_command: true,
                     duration: None,
                     normal_priority: false,
+                    keep_commanding: false,
                 },
             )?)),
             Some(_) => None,

@@ -474,11 +474,11 @@ impl LabStep {
     /// The camera stopped delivering frames (none for over
     /// [`CAMERA_LOST_AFTER_S`] after some arrived; on the wall clock, where
     /// a real camera can be unplugged).
+    /// No frame for `CAMERA_LOST_AFTER_S` (wall clock), counted from the
+    /// lab's start when none ever came (a camera that does not answer).
     fn camera_lost(&self, t: f64) -> bool {
         matches!(self.p.clock, LabClock::Wall(_))
-            && self
-                .last_frame_s
-                .is_some_and(|l| t - l > CAMERA_LOST_AFTER_S)
+            && t - self.last_frame_s.unwrap_or(0.0) > CAMERA_LOST_AFTER_S
     }
 
     fn magnet_lost(&self) -> bool {

@@ -103,6 +103,25 @@ pub struct VisionParts {
     pub reopen: Option<SourceFactory>,
 }
 
+/// A camera that could not be opened (why): it delivers nothing, so the
+/// vision thread takes it as stopped and opens it again every
+/// [`REOPEN_EVERY_S`].
+#[derive(Debug)]
+pub struct NoCamera(pub String);
+
+impl FrameSource for NoCamera {
+    fn next_frame(&mut self) -> Result<Option<crate::vision::Frame<'_>>, VisionError> {
+        Err(VisionError::Open {
+            what: "camera".into(),
+            reason: self.0.clone(),
+        })
+    }
+
+    fn fps(&self) -> f64 {
+        0.0
+    }
+}
+
 /// A stopped camera is tried again this often, seconds.
 pub const REOPEN_EVERY_S: f64 = 0.5;
 

@@ -618,6 +618,7 @@ fn controller_against(
             auto_command: true,
             duration: Some(window),
             normal_priority,
+            keep_commanding: false,
         },
     )?;
     let stats = Arc::clone(server.stats());

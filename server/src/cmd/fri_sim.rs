@@ -71,6 +71,7 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
             auto_command: true,
             duration: Some(duration),
             normal_priority: false,
+            keep_commanding: false,
         },
     )?;
     if !args.json {

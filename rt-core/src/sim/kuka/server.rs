@@ -21,6 +21,10 @@ use crate::fri::proto::SessionState;
 pub struct SimRunOptions {
     /// Ask for commanding as soon as the session is MONITORING_READY.
     pub auto_command: bool,
+    /// Ask again every time the session is back in MONITORING_READY (a
+    /// robot application that loops its FRI motion: `isochron world`'s
+    /// cabinet, which outlives the services that connect to it).
+    pub keep_commanding: bool,
     /// Close the session (send IDLE) after this long.
     pub duration: Option<Duration>,
     /// Keep the thread at normal priority and unpinned even when the process
@@ -244,7 +248,9 @@ fn run(
             if closing {
                 sim.request_close();
             }
-            if command.load(Relaxed) && sim.state() == SessionState::MonitoringReady {
+            if (command.load(Relaxed) || opts.keep_commanding)
+                && sim.state() == SessionState::MonitoringReady
+            {
                 sim.request_commanding();
                 command.store(false, Relaxed);
             }

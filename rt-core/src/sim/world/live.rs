@@ -335,8 +335,10 @@ impl LiveWorld {
 }
 
 /// Where the tool first holds still after moving: the sample at which it
-/// starts holding (an estimate of the arrival) and the index of the sample
-/// `HOLD_S` later (the judge's trace ends there, its final point).
+/// starts holding (an estimate of the arrival) and the index of the hold's
+/// last sample (within `SETTLE_M` of where it was `HOLD_S` after it began,
+/// before the tool leaves again: the judge's trace ends there, its final
+/// point).
 fn settled_at(trace: &[WorldSample]) -> Result<(f64, usize), &'static str> {
     let first = trace
         .first()
@@ -358,7 +360,14 @@ fn settled_at(trace: &[WorldSample]) -> Result<(f64, usize), &'static str> {
             .iter()
             .all(|s| (s.disc.centre_m - at).norm() <= SETTLE_M)
         {
-            return Ok((trace[i].t_s, end));
+            // The final point is where the tool rests last before it leaves
+            // (home again): the end of the hold, as a judge that watches the
+            // arm until it returns sees it.
+            let last = trace[end..]
+                .iter()
+                .position(|s| (s.disc.centre_m - at).norm() > SETTLE_M)
+                .map_or(trace.len() - 1, |k| end + k - 1);
+            return Ok((trace[i].t_s, last));
         }
     }
     Err("the arm did not come to rest after moving")
