@@ -749,6 +749,7 @@ mod tests {
             contact_t_s: Some(10.01),
             success: false,
             torque_signal: true,
+            robot_gap_ms: None,
         };
         // The measured judge's verdict is read from `judged_by`, not from
         // a missing position error: a finite one does not hide it.

@@ -421,6 +421,13 @@ pub struct MeasuredJudgement {
     /// judge does not decide (records written before this field: `true`).
     #[serde(default = "yes")]
     pub torque_signal: bool,
+    /// The longest pause of the robot's messages (its measured joints or
+    /// external torques) around the pass or the arrival, when it was longer
+    /// than [`ROBOT_GAP_LIMIT_PERIODS`] torque periods: the arrival and the
+    /// contact cannot be seen through it, so the judge does not decide
+    /// (a starved machine's FRI silence), ms.
+    #[serde(default)]
+    pub robot_gap_ms: Option<f64>,
 }
 
 fn yes() -> bool {
@@ -432,7 +439,9 @@ impl MeasuredJudgement {
     /// signal, and a timing error was measured or no contact was seen (a
     /// miss whatever the timing).
     pub fn judged(&self) -> bool {
-        self.torque_signal && (self.timing_error_ms.is_some() || !self.contact)
+        self.torque_signal
+            && self.robot_gap_ms.is_none()
+            && (self.timing_error_ms.is_some() || !self.contact)
     }
 }
 
@@ -484,6 +493,19 @@ pub struct MeasuredInputs<'a> {
 
 /// Settling radius of the measured arrival, m.
 pub const ARRIVAL_SETTLE_M: f64 = 0.002;
+/// The robot's messages may pause this many torque periods around the pass
+/// or the arrival (a busy machine's scheduler) before the judge cannot see
+/// through the pause.
+pub const ROBOT_GAP_LIMIT_PERIODS: f64 = 4.0;
+
+/// The longest gap between consecutive times of `t_s` within `[lo, hi]`
+/// (the gaps reaching into the window from either side count), s.
+fn longest_gap(t_s: &[f64], lo: f64, hi: f64) -> f64 {
+    t_s.windows(2)
+        .filter(|w| w[1] >= lo && w[0] <= hi)
+        .map(|w| w[1] - w[0])
+        .fold(0.0, f64::max)
+}
 /// Contact threshold on the external torques' departure (Euclidean norm
 /// over the joints), N m: about 5.5 standard deviations of the norm of
 /// seven joints' noise of 0.2 N m each.
@@ -543,6 +565,17 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
         _ => camera_pass,
     };
     let arrival_t_s = measured_arrival(m.tool_t_s, m.tool_m, m.settle_m);
+    // The robot's messages around the pass's window and the arrival.
+    let window_hi = arrival_t_s.map_or(hi, |a| hi.max(a + 0.05));
+    let window_lo = arrival_t_s.map_or(lo, |a| lo.min(a - 0.1));
+    let gap_s = longest_gap(m.tool_t_s, window_lo, window_hi).max(longest_gap(
+        m.torque_t_s,
+        window_lo,
+        window_hi,
+    ));
+    let robot_gap_ms = (m.contact_period_s > 0.0
+        && gap_s > ROBOT_GAP_LIMIT_PERIODS * m.contact_period_s)
+        .then_some(gap_s * 1e3);
     let timing_error_ms = match (pass, arrival_t_s) {
         (Some(p), Some(a)) => Some((a - p.t_s) * 1e3),
         _ => None,
@@ -559,6 +592,7 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
         success: contact_t_s.is_some()
             && timing_error_ms.is_some_and(|e| e.abs() <= m.tolerance_ms),
         torque_signal: torque_signal(m.torques_nm),
+        robot_gap_ms,
     }
 }
 
@@ -957,6 +991,36 @@ mod tests {
         assert!(!miss.contact && !miss.success && miss.judged(), "{miss:?}");
         assert!(miss.timing_error_ms.is_some());
         assert!(j.torque_signal && miss.torque_signal);
+    }
+
+    #[test]
+    fn a_pause_of_the_robots_messages_at_the_arrival_is_not_judged() {
+        let sightings = pendulum(1.5, 0.002, 5, 0.5);
+        let noise = |k: usize| [0.01 * ((k * 7919) % 13) as f64 - 0.06; 7];
+        // Samples every 5 ms, but none from 1.40 to 1.52 s (the arrival at
+        // 1.5 s inside the pause): a starved machine's FRI silence.
+        let t: Vec<f64> = (0..500)
+            .map(|k| k as f64 * 0.005)
+            .filter(|&t| !(1.40..1.52).contains(&t))
+            .collect();
+        let tool: Vec<[f64; 3]> = t
+            .iter()
+            .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
+            .collect();
+        let torques: Vec<[f64; 7]> = (0..t.len()).map(noise).collect();
+        let j = judge_measured(&inputs(&sightings, (&t, &tool), (&t, &torques)));
+        let gap = j.robot_gap_ms.expect("the pause is seen");
+        assert!((gap - 125.0).abs() < 6.0, "{j:?}");
+        assert!(j.torque_signal && !j.judged(), "{j:?}");
+        // The same without the pause: judged.
+        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        let tool: Vec<[f64; 3]> = t
+            .iter()
+            .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
+            .collect();
+        let torques: Vec<[f64; 7]> = (0..t.len()).map(noise).collect();
+        let j = judge_measured(&inputs(&sightings, (&t, &tool), (&t, &torques)));
+        assert!(j.robot_gap_ms.is_none() && j.judged(), "{j:?}");
     }
 
     #[test]

@@ -78,6 +78,9 @@ pub const NOT_JUDGED_MEASURED: &str =
 /// nor a miss (the record still carries the measured timing).
 pub const NOT_JUDGED_NO_TORQUE: &str = "not judged (measured): the robot reported no external \
      joint torques, so contact cannot be seen";
+/// The robot's messages paused around the pass or the arrival.
+pub const NOT_JUDGED_ROBOT_GAP: &str = "not judged (measured): the robot's messages paused around \
+     the pass or the arrival (a busy machine's FRI silence), so contact and arrival cannot be seen";
 /// A finished motion the judge could not fit.
 pub const NOT_JUDGED_TRACE: &str = "not judged: the recorded motion could not be judged";
 /// A trial that ended without a committed motion.
@@ -1406,6 +1409,8 @@ impl LabStep {
             None
         } else if trial.ball.is_none() && o.measured.is_some_and(|m| !m.torque_signal) {
             Some(NOT_JUDGED_NO_TORQUE)
+        } else if trial.ball.is_none() && o.measured.is_some_and(|m| m.robot_gap_ms.is_some()) {
+            Some(NOT_JUDGED_ROBOT_GAP)
         } else if trial.ball.is_none() && o.measured.is_some() {
             Some(NOT_JUDGED_MEASURED)
         } else if trial.ball.is_none() && no_motion(&o) {

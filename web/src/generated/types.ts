@@ -477,7 +477,15 @@ success: boolean,
  * ([`torque_signal`]); without one no contact can be seen and the
  * judge does not decide (records written before this field: `true`).
  */
-torque_signal: boolean, };
+torque_signal: boolean, 
+/**
+ * The longest pause of the robot's messages (its measured joints or
+ * external torques) around the pass or the arrival, when it was longer
+ * than [`ROBOT_GAP_LIMIT_PERIODS`] torque periods: the arrival and the
+ * contact cannot be seen through it, so the judge does not decide
+ * (a starved machine's FRI silence), ms.
+ */
+robot_gap_ms: number | null, };
 
 export type JudgedBy = "truth" | "physical" | "measured";
 
