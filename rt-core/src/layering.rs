@@ -1,7 +1,9 @@
 //! The import rules between the core's parts (issue #19), checked on the
 //! source text: `params` composes the parts' sections into a `Scenario`, so
 //! `control` never imports `params`, and the parts `control` builds on import
-//! neither `params` nor `control` (their `tests.rs` files may: test code only).
+//! neither `params` nor `control` (their `tests.rs` files may: test code only);
+//! `control` never imports `sim` (issue #35: the controller and its judges
+//! know the world only by measurement).
 
 use std::path::{Path, PathBuf};
 
@@ -21,6 +23,14 @@ const RULES: &[Rule] = &[
         modules: &["params"],
         names: &["Scenario"],
         tests_too: true,
+    },
+    // The controller and its judges never see the simulated world (issue
+    // #35): only its beliefs, measurements and calibration.
+    Rule {
+        part: "control",
+        modules: &["sim"],
+        names: &[],
+        tests_too: false,
     },
     Rule {
         part: "ekf",
