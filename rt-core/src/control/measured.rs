@@ -425,8 +425,9 @@ pub struct MeasuredJudgement {
     /// external torques) around the pass or the arrival, when it was longer
     /// than [`ROBOT_GAP_LIMIT_PERIODS`] torque periods: the arrival and the
     /// contact cannot be seen through it, so the judge does not decide
-    /// (a starved machine's FRI silence), ms.
-    #[serde(default)]
+    /// (a starved machine's FRI silence), ms. Absent when there was none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[ts(optional)]
     pub robot_gap_ms: Option<f64>,
 }
 

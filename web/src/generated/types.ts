@@ -483,9 +483,9 @@ torque_signal: boolean,
  * external torques) around the pass or the arrival, when it was longer
  * than [`ROBOT_GAP_LIMIT_PERIODS`] torque periods: the arrival and the
  * contact cannot be seen through it, so the judge does not decide
- * (a starved machine's FRI silence), ms.
+ * (a starved machine's FRI silence), ms. Absent when there was none.
  */
-robot_gap_ms: number | null, };
+robot_gap_ms?: number, };
 
 export type JudgedBy = "truth" | "physical" | "measured";
 
