@@ -158,9 +158,9 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
     drop(sim);
 }
 
-/// `serve` never simulates the reality lab's `[world]` (it runs on the
-/// virtual clock): a scenario with one is refused at start with the reason,
-/// before anything listens.
+/// A lab's beliefs never hold a `[world]`: a parameter file with one is
+/// refused at start with the reason and where a world is served (`serve
+/// --scenario`, `isochron world`), before anything listens.
 #[test]
 fn serve_refuses_a_scenario_with_a_world_and_says_where_it_runs() {
     let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--params")]) else {
@@ -178,7 +178,7 @@ fn serve_refuses_a_scenario_with_a_world_and_says_where_it_runs() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
-    assert!(err.contains("runs on the virtual clock only"), "{err}");
+    assert!(err.contains("isochron serve --scenario"), "{err}");
     assert!(
         !String::from_utf8_lossy(&out.stdout).contains("listening"),
         "{err}"
