@@ -52,6 +52,14 @@ enum Command {
         /// comma-separated list of `fifo`, `pin`, `isolate`, `mlock`, `spin`.
         #[arg(long, default_value = "auto")]
         rt_tuning: String,
+        /// Demo mode: run trials unattended with varied distances and movement
+        /// times (the kiosk page /demo; GET /api/demo). A real lab runs them only
+        /// while an operator's heartbeat holds the demo enabled.
+        #[arg(long)]
+        demo: bool,
+        /// Seconds from one demo trial's start to the next (default 10; with --demo).
+        #[arg(long)]
+        demo_interval_s: Option<f64>,
     },
     /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
@@ -125,6 +133,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             calibration,
             foxglove,
             rt_tuning,
+            demo,
+            demo_interval_s,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -138,6 +148,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 rt_core::fri::priority::RtTuning::parse(&rt_tuning)
                     .map_err(|e| anyhow::anyhow!("--rt-tuning: {e}"))?,
             ),
+            demo,
+            demo_interval_s,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),

@@ -17,6 +17,7 @@ use rt_core::control::measured::MeasuredJudgement;
 use ts_rs::TS;
 
 use crate::{
+    demo::DemoStatus,
     calibration::{CalibrationJob, CalibrationStatus, Change, StepStatus},
     lab::{EventMessage, StateMessage, StreamCounters},
     records::TrialRecord,
@@ -63,6 +64,7 @@ pub fn declarations() -> String {
         Distances::decl(),
         RunRequest::decl(),
         RunStatus::decl(),
+        DemoStatus::decl(),
         ViewKind::decl(),
         StepView::decl(),
         StepStatus::decl(),
