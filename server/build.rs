@@ -32,7 +32,8 @@ fn param_docs() {
     let mut files = Vec::new();
     walk(&root, &mut files);
     files.sort();
-    let mut out = String::from("/// (struct, field, type, doc) of rt-core's documented struct fields.\n");
+    let mut out =
+        String::from("/// (struct, field, type, doc) of rt-core's documented struct fields.\n");
     out.push_str("pub const PARAM_DOCS: &[(&str, &str, &str, &str)] = &[\n");
     for f in &files {
         println!("cargo:rerun-if-changed={}", f.display());

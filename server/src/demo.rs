@@ -86,6 +86,9 @@ pub struct DemoStatus {
     pub reason: Option<String>,
     /// The state as a sentence a visitor reads.
     pub message: String,
+    /// The lab's own sentence for why it is paused (an operator's detail;
+    /// null when not paused).
+    pub detail: Option<String>,
     /// Seconds from one trial's start to the next.
     pub interval_s: f64,
     /// Trials run only while an operator holds the demo enabled (a real lab).
@@ -135,8 +138,8 @@ impl Default for Demo {
                 enabled: false,
                 state: "off",
                 reason: None,
-                message: "demo mode is off (start the service with `isochron serve --demo`)"
-                    .into(),
+                message: "demo mode is off (start the service with `isochron serve --demo`)".into(),
+                detail: None,
                 interval_s: DEFAULT_INTERVAL_S,
                 operator_required: false,
                 trial_id: None,
@@ -177,8 +180,36 @@ pub fn plan(k: u64) -> (f64, f64) {
 
 /// What the demo does when it is not running a trial of its own: the lab's
 /// readiness and the operator's hold decide. `None`: start the next trial.
-/// `Some((state, reason, message))` otherwise.
+/// `Some(Hold)` otherwise.
 pub fn hold(
+    not_ready: Option<&crate::NotReady>,
+    operator_required: bool,
+    operator_present: bool,
+) -> Option<Hold> {
+    hold_inner(not_ready, operator_required, operator_present).map(|(state, reason, message)| {
+        Hold {
+            state,
+            reason,
+            message,
+            detail: not_ready.map(|n| n.message.clone()),
+        }
+    })
+}
+
+/// Why the demo does not start a trial now.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Hold {
+    /// `waiting`, `paused` or `operator_needed`.
+    pub state: &'static str,
+    /// The readiness' reason, or `operator`.
+    pub reason: Option<String>,
+    /// A sentence a visitor reads.
+    pub message: String,
+    /// The lab's own sentence (`/api/health`'s `not_ready.message`).
+    pub detail: Option<String>,
+}
+
+fn hold_inner(
     not_ready: Option<&crate::NotReady>,
     operator_required: bool,
     operator_present: bool,
@@ -194,7 +225,7 @@ pub fn hold(
         return Some((
             "paused",
             Some(n.reason.to_owned()),
-            format!("paused: {}", visitor_sentence(n.reason, &n.message)),
+            format!("paused: {}", visitor_sentence(n.reason)),
         ));
     }
     if operator_required && !operator_present {
@@ -209,8 +240,8 @@ pub fn hold(
     None
 }
 
-/// The lab's reason in words a visitor reads, with the lab's own sentence.
-fn visitor_sentence(reason: &str, message: &str) -> String {
+/// The lab's reason in words a visitor reads.
+fn visitor_sentence(reason: &str) -> &'static str {
     let lead = match reason {
         "uncalibrated" => "the lab needs its calibration before it can run",
         "calibrating" => "the lab is being calibrated",
@@ -220,7 +251,7 @@ fn visitor_sentence(reason: &str, message: &str) -> String {
         "no_lab" => "no lab runs in this service",
         _ => "the lab cannot run a trial now",
     };
-    format!("{lead} ({message})")
+    lead
 }
 
 fn load(path: Option<&PathBuf>) -> Counts {
@@ -279,7 +310,10 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
     let operator_timeout = Duration::from_secs_f64(opts.operator_timeout_s.max(0.05));
     let mut next_at = Instant::now();
     let mut current: Option<Current> = None;
-    let mut beats = state.lab.as_ref().map_or(0, |l| l.bridge_counters().heartbeats);
+    let mut beats = state
+        .lab
+        .as_ref()
+        .map_or(0, |l| l.bridge_counters().heartbeats);
     let mut last_beat: Option<Instant> = None;
     let mut ticker = tokio::time::interval(TICK);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -346,13 +380,12 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         }
         let not_ready = crate::not_ready(&state);
         let (d, t) = plan(counts.started);
-        if let Some((st, reason, message)) =
-            hold(not_ready.as_ref(), opts.operator_required, operator_present)
-        {
+        if let Some(h) = hold(not_ready.as_ref(), opts.operator_required, operator_present) {
             state.demo.set(|s| {
-                s.state = st;
-                s.reason = reason;
-                s.message = message;
+                s.state = h.state;
+                s.reason = h.reason;
+                s.message = h.message;
+                s.detail = h.detail;
                 s.next_in_s = None;
                 s.next_distance_m = Some(d);
                 s.next_movement_time_s = Some(t);
@@ -365,6 +398,7 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
             state.demo.set(|s| {
                 s.state = "waiting";
                 s.reason = None;
+                s.detail = None;
                 s.message = format!("next trial in {left:.0} s: {d:.2} m in {t:.1} s");
                 s.next_in_s = Some(left);
                 s.next_distance_m = Some(d);
@@ -403,6 +437,7 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
                 state.demo.set(|s| {
                     s.state = "running";
                     s.reason = None;
+                    s.detail = None;
                     s.message = format!("trial {id}: {d:.2} m in {t:.1} s");
                     s.trial_id = Some(id);
                     s.next_in_s = None;
@@ -443,20 +478,27 @@ mod tests {
         };
         assert!(hold(None, false, false).is_none());
         assert!(hold(None, true, true).is_none());
-        let (st, r, m) = hold(None, true, false).unwrap();
-        assert_eq!((st, r.as_deref()), ("operator_needed", Some("operator")));
-        assert!(m.contains("operator"), "{m}");
+        let h = hold(None, true, false).unwrap();
+        assert_eq!(
+            (h.state, h.reason.as_deref()),
+            ("operator_needed", Some("operator"))
+        );
+        assert!(h.message.contains("operator"), "{h:?}");
         for reason in ["uncalibrated", "robot_not_commanding", "device_unavailable"] {
-            let (st, r, m) = hold(Some(&nr(reason)), false, true).unwrap();
-            assert_eq!((st, r.as_deref()), ("paused", Some(reason)));
-            assert!(m.starts_with("paused: ") && m.contains("why"), "{m}");
+            let h = hold(Some(&nr(reason)), false, true).unwrap();
+            assert_eq!((h.state, h.reason.as_deref()), ("paused", Some(reason)));
+            assert!(h.message.starts_with("paused: "), "{h:?}");
+            assert_eq!(h.detail.as_deref(), Some("why"));
         }
         // The lab's refusal comes first, even with an operator holding it.
         assert_eq!(
-            hold(Some(&nr("calibrating")), true, true).unwrap().0,
+            hold(Some(&nr("calibrating")), true, true).unwrap().state,
             "paused"
         );
-        assert_eq!(hold(Some(&nr("busy")), false, true).unwrap().0, "waiting");
+        assert_eq!(
+            hold(Some(&nr("busy")), false, true).unwrap().state,
+            "waiting"
+        );
     }
 
     #[test]

@@ -17,8 +17,8 @@ use rt_core::control::measured::MeasuredJudgement;
 use ts_rs::TS;
 
 use crate::{
-    demo::DemoStatus,
     calibration::{CalibrationJob, CalibrationStatus, Change, StepStatus},
+    demo::DemoStatus,
     lab::{EventMessage, StateMessage, StreamCounters},
     records::TrialRecord,
     runs::{Distances, RunRequest, RunStatus},

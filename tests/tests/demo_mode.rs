@@ -150,8 +150,14 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
         assert_eq!(t["status"], "done", "{t}");
         let got_d = t["distance_m"].as_f64().unwrap();
         let got_t = t["movement_time_s"].as_f64().unwrap();
-        assert!((got_d - dist).abs() < 0.005, "trial {k}: {got_d} m, planned {dist}");
-        assert!((got_t - mt).abs() < 0.05, "trial {k}: {got_t} s, planned {mt}");
+        assert!(
+            (got_d - dist).abs() < 0.005,
+            "trial {k}: {got_d} m, planned {dist}"
+        );
+        assert!(
+            (got_t - mt).abs() < 0.05,
+            "trial {k}: {got_t} s, planned {mt}"
+        );
     }
 
     // A calibration step makes the lab refuse trials: the demo pauses and says
@@ -163,10 +169,7 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
             break;
         }
         assert_eq!(code, 409, "{r}");
-        assert!(
-            Instant::now() < deadline,
-            "no gap between demo trials: {r}"
-        );
+        assert!(Instant::now() < deadline, "no gap between demo trials: {r}");
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     let p = wait_for(
@@ -180,7 +183,10 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     println!("demo paused: {p}");
     assert_eq!(p["reason"], "calibrating", "{p}");
     let msg = p["message"].as_str().unwrap();
-    assert!(msg.starts_with("paused: ") && msg.contains("calibrat"), "{msg}");
+    assert!(
+        msg.starts_with("paused: ") && msg.contains("calibrat"),
+        "{msg}"
+    );
     // Resumes by itself when the step has finished.
     let before = p["trials"].as_u64().unwrap();
     wait_for(
@@ -222,13 +228,23 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     let (code, _) = request(svc.addr, "GET", "/api/health", "").await;
     assert_eq!(code, 200);
     let out = Command::new(&bin)
-        .args(["serve", "--bind", "127.0.0.1:0", "--demo", "--demo-interval-s", "0"])
+        .args([
+            "serve",
+            "--bind",
+            "127.0.0.1:0",
+            "--demo",
+            "--demo-interval-s",
+            "0",
+        ])
         .arg("--data-dir")
         .arg(tmp.path().join("other"))
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--demo-interval-s"), "{err}");
+    assert!(
+        !out.status.success() && err.contains("--demo-interval-s"),
+        "{err}"
+    );
 }
 
 // ---- A real lab ------------------------------------------------------------
@@ -323,7 +339,14 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
     println!("real lab, not calibrated: {p}");
     assert_eq!(p["reason"], "uncalibrated", "{p}");
     assert_eq!(p["operator_required"], true, "{p}");
-    assert!(p["message"].as_str().unwrap().contains("calibration"), "{p}");
+    assert!(
+        p["message"].as_str().unwrap().contains("calibration"),
+        "{p}"
+    );
+    assert!(
+        p["detail"].as_str().unwrap().contains("not calibrated"),
+        "{p}"
+    );
     drop(svc);
     drop(lab);
 
@@ -364,7 +387,11 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
     .unwrap();
     let lab = real_lab(&dir, client, robot.local_addr(), true);
     let cfg = lab.config.to_str().unwrap().to_owned();
-    let svc = serve(&bin, &dir.join("data"), &["--config", &cfg, "--demo-interval-s", "1"]);
+    let svc = serve(
+        &bin,
+        &dir.join("data"),
+        &["--config", &cfg, "--demo-interval-s", "1"],
+    );
     let w = wait_for(
         svc.addr,
         "/api/demo",
@@ -385,7 +412,10 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
         if d["state"] == "running" {
             break d["trial_id"].as_u64().unwrap();
         }
-        assert!(Instant::now() < deadline, "no demo trial with an operator: {d}");
+        assert!(
+            Instant::now() < deadline,
+            "no demo trial with an operator: {d}"
+        );
         tokio::time::sleep(Duration::from_millis(200)).await;
     };
     // The operator lets go: the trial ends (stopped), and nothing new starts.
@@ -410,7 +440,10 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
     tokio::time::sleep(Duration::from_secs(2)).await;
     let (_, d2) = request(svc.addr, "GET", "/api/demo", "").await;
     assert_eq!(d2["state"], "operator_needed", "{d2}");
-    assert_eq!(d2["trial_id"], d["trial_id"], "a trial started without an operator: {d2}");
+    assert_eq!(
+        d2["trial_id"], d["trial_id"],
+        "a trial started without an operator: {d2}"
+    );
     drop(svc);
     drop(robot);
 }

@@ -940,6 +940,11 @@ reason: string | null,
  */
 message: string, 
 /**
+ * The lab's own sentence for why it is paused (an operator's detail;
+ * null when not paused).
+ */
+detail: string | null, 
+/**
  * Seconds from one trial's start to the next.
  */
 interval_s: number, 
