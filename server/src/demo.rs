@@ -82,7 +82,8 @@ pub struct DemoStatus {
     pub state: &'static str,
     /// Why it is paused or waiting: `/api/health`'s `not_ready.reason`
     /// (`uncalibrated`, `calibrating`, `robot_not_commanding`,
-    /// `device_unavailable`, `busy`, ...), or `operator` (no heartbeat).
+    /// `device_unavailable`, `busy`, ...), `operator` (no heartbeat) or
+    /// `infeasible` (the parameters in force make its motions infeasible).
     pub reason: Option<String>,
     /// The state as a sentence a visitor reads.
     pub message: String,
@@ -418,8 +419,17 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         let setup = match setup {
             Ok(s) => s,
             Err(e) => {
-                // Not feasible with the parameters in force: the next one.
-                tracing::info!(distance_m = d, movement_time_s = t, error = %e, "demo: skipping an infeasible trial");
+                // Not feasible with the parameters in force: the next one
+                // (said, in case the parameters make every one infeasible).
+                tracing::debug!(distance_m = d, movement_time_s = t, error = %e, "demo: skipping an infeasible trial");
+                state.demo.set(|s| {
+                    s.state = "paused";
+                    s.reason = Some("infeasible".into());
+                    s.message = "paused: the parameters in force do not let the arm make \
+                                 the demo's motions"
+                        .into();
+                    s.detail = Some(e.to_string());
+                });
                 counts.started += 1;
                 continue;
             }

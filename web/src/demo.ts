@@ -46,7 +46,7 @@ const speedHost = $("demo-speed");
 const speedPlot = new uPlot(
   {
     width: Math.max(300, speedHost.clientWidth),
-    height: 220,
+    height: 200,
     legend: { live: false },
     scales: {
       x: { time: false, range: () => [(latest?.t_s ?? 0) - WINDOW_S, latest?.t_s ?? 0] },
@@ -69,7 +69,7 @@ let isoPoints = 0;
 const isoPlot = new uPlot(
   {
     width: Math.max(300, isoHost.clientWidth),
-    height: 220,
+    height: 200,
     legend: { live: false },
     scales: { x: { time: false, range: [0.3, 0.85] }, y: { range: [1.0, 2.5] } },
     axes: [axis("distance the arm moves (m)"), { ...axis("time taken (s)"), size: 60 }],
@@ -89,8 +89,8 @@ const isoPlot = new uPlot(
 );
 
 new ResizeObserver(() => {
-  speedPlot.setSize({ width: Math.max(300, speedHost.clientWidth), height: 220 });
-  isoPlot.setSize({ width: Math.max(300, isoHost.clientWidth), height: 220 });
+  speedPlot.setSize({ width: Math.max(300, speedHost.clientWidth), height: 200 });
+  isoPlot.setSize({ width: Math.max(300, isoHost.clientWidth), height: 200 });
 }).observe(document.body);
 
 function showTrials(trials: TrialRecord[]): void {
