@@ -243,7 +243,7 @@ fn hold_inner(
 
 /// The lab's reason in words a visitor reads.
 fn visitor_sentence(reason: &str) -> &'static str {
-    let lead = match reason {
+    match reason {
         "uncalibrated" => "the lab needs its calibration before it can run",
         "calibrating" => "the lab is being calibrated",
         "robot_not_commanding" => "the robot is not taking commands",
@@ -251,8 +251,7 @@ fn visitor_sentence(reason: &str) -> &'static str {
         "starting" => "the lab is starting",
         "no_lab" => "no lab runs in this service",
         _ => "the lab cannot run a trial now",
-    };
-    lead
+    }
 }
 
 fn load(path: Option<&PathBuf>) -> Counts {

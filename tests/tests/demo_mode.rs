@@ -51,13 +51,16 @@ fn serve(bin: &Path, data: &Path, extra: &[&str]) -> Service {
         .expect("isochron serve starts");
     let out = child.stdout.take().unwrap();
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("http://").nth(1) {
-                let _ = tx.try_send(rest.trim_end_matches('/').to_owned());
+    std::thread::Builder::new()
+        .name("isochron-test-demo-out".into())
+        .spawn(move || {
+            for line in BufReader::new(out).lines().map_while(Result::ok) {
+                if let Some(rest) = line.split("http://").nth(1) {
+                    let _ = tx.try_send(rest.trim_end_matches('/').to_owned());
+                }
             }
-        }
-    });
+        })
+        .unwrap();
     let addr = rx
         .recv_timeout(Duration::from_secs(60))
         .expect("isochron serve prints its address")

@@ -932,7 +932,8 @@ state: "off" | "running" | "waiting" | "paused" | "operator_needed",
 /**
  * Why it is paused or waiting: `/api/health`'s `not_ready.reason`
  * (`uncalibrated`, `calibrating`, `robot_not_commanding`,
- * `device_unavailable`, `busy`, ...), or `operator` (no heartbeat).
+ * `device_unavailable`, `busy`, ...), `operator` (no heartbeat) or
+ * `infeasible` (the parameters in force make its motions infeasible).
  */
 reason: string | null, 
 /**
