@@ -206,6 +206,11 @@ try {
       measured.soak_trials = s.trials - trials0;
       measured.trials_total = s.trials;
       measured.demo = await page.evaluate(() => window.__demo.status());
+      // Why any trial was aborted (reported: a loaded machine can make the lab
+      // abort one, e.g. the controller's messages pausing).
+      const recs = (await api("GET", "/api/trials?limit=1000")).json ?? [];
+      measured.aborted = recs.filter((t) => t.status === "aborted").map((t) => `${t.id}: ${t.reason}`);
+      measured.not_successful = recs.filter((t) => t.status === "done" && t.success !== true).map((t) => `${t.id}: ${t.reason}`);
       measured.heap_mb_30s = +(h30 / 1e6).toFixed(2);
       measured.heap_mb_end = +(hEnd / 1e6).toFixed(2);
       measured.heap_growth = +((hEnd - h30) / h30).toFixed(3);
