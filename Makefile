@@ -14,11 +14,12 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv curl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
 	@echo "make test   install what is missing, then formatting, lints and every test"
+	@echo "make demo   serve the simulated lab in demo mode: trials run unattended, the kiosk page at http://$(BIND)/demo"
 	@echo "make bench  criterion benches and 'isochron bench'"
 	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
 	@echo "make fuzz   each FRI fuzz target for FUZZ_SECONDS (default 60; fuzz/README.md)"
@@ -151,6 +152,13 @@ run: deps web release
 	@echo "isochron: the simulated lab and dashboard at http://$(BIND)/ (Ctrl-C stops)"
 	./target/release/isochron serve --bind $(BIND)
 
+## demo: the simulated lab in demo mode (a trial every DEMO_INTERVAL_S seconds,
+## unattended); the kiosk page for a screen in the hall at /demo.
+DEMO_INTERVAL_S ?= 10
+demo: deps web release
+	@echo "isochron demo: the kiosk page at http://$(BIND)/demo, the dashboard at http://$(BIND)/ (Ctrl-C stops)"
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" serve --bind $(BIND) --demo --demo-interval-s $(DEMO_INTERVAL_S)
+
 lint: deps
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
@@ -183,13 +191,21 @@ test-build: deps firmware
 
 # The soak in `make test` checks the heap for 30 s and reports the frame rate;
 # `make soak` runs it for SOAK_S (default 300) and gates the frame rate too.
+# The demo page's short test (>= 2 unattended trials, a pause, a restart) runs
+# here too; its 10-minute soak only in `make soak`.
 test-browser: web test-build
 	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
+	node web/e2e/demo.mjs "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
+# Then the demo page unattended for DEMO_SOAK_S (default 600): >= 40 trials,
+# the heap, no console error, fps; it saves docs/demo.png.
 SOAK_S ?= 300
+DEMO_SOAK_S ?= 600
 soak: web
 	$(CARGO) build --bin isochron
 	ISOCHRON_SOAK_S=$(SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
+	ISOCHRON_DEMO_SOAK_S=$(DEMO_SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 ISOCHRON_DEMO_SCREENSHOT=docs/demo.png \
+	  node web/e2e/demo.mjs "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
 ## test-api-fuzz: schemathesis against `isochron serve`'s own OpenAPI document, for
 ## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).

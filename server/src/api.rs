@@ -1042,6 +1042,16 @@ pub async fn stop_run(
         .ok_or_else(|| AppError::NotFound(format!("no run {id}")))
 }
 
+/// Demo mode: whether the service runs trials unattended (`isochron serve
+/// --demo`), what it does now (running, waiting, paused and why, waiting for
+/// an operator's hold in a real lab) and its demo trials' counts with the
+/// Wilson 95% interval of the precisely timed share.
+#[utoipa::path(get, path = "/api/demo", tag = "trials",
+    responses((status = 200, description = "the demo's status (state `off` without --demo)", body = crate::demo::DemoStatus)))]
+pub async fn get_demo(State(state): State<Arc<AppState>>) -> Json<crate::demo::DemoStatus> {
+    Json(state.demo.status())
+}
+
 /// A trial's signals at the control rate, as CSV (header row; NaN when unknown).
 #[utoipa::path(get, path = "/api/trials/{id}/recording.csv", tag = "trials",
     params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
@@ -1209,8 +1219,59 @@ pub fn openapi_document() -> serde_json::Value {
             doc.pointer_mut("/paths/~1api~1params/put/requestBody/content/application~1json")
     {
         media["schema"] = patch_schema(&scenario);
+        describe_params(&mut media["schema"], &scenario);
     }
     doc
+}
+
+/// The doc comments of rt-core's struct fields (`server/build.rs`).
+mod param_docs {
+    include!(concat!(env!("OUT_DIR"), "/param_docs.rs"));
+}
+
+/// The description of a scenario section's field (its doc comment's first
+/// paragraph), if it has one.
+pub fn param_description(section: &str, key: &str) -> Option<&'static str> {
+    let docs = param_docs::PARAM_DOCS;
+    let ty = docs
+        .iter()
+        .find(|(s, f, _, _)| *s == "Scenario" && *f == section)?
+        .2;
+    docs.iter()
+        .find(|(s, f, _, _)| *s == ty && *f == key)
+        .map(|d| d.3)
+}
+
+/// Gives every `section.key` of the partial scenario's schema its description
+/// and its built-in default (`Scenario::default()`), which the dashboard's
+/// Parameters panel shows beside each field.
+fn describe_params(schema: &mut serde_json::Value, defaults: &serde_json::Value) {
+    let Some(sections) = defaults.as_object() else {
+        return;
+    };
+    for (section, values) in sections {
+        let Some(values) = values.as_object() else {
+            continue;
+        };
+        if let Some(d) = param_docs::PARAM_DOCS
+            .iter()
+            .find(|(s, f, _, _)| *s == "Scenario" && f == section)
+        {
+            schema["properties"][section]["description"] = d.3.into();
+        }
+        for (key, value) in values {
+            let Some(prop) = schema
+                .pointer_mut(&format!("/properties/{section}/properties/{key}"))
+                .and_then(|p| p.as_object_mut())
+            else {
+                continue;
+            };
+            prop.insert("default".into(), value.clone());
+            if let Some(d) = param_description(section, key) {
+                prop.insert("description".into(), d.into());
+            }
+        }
+    }
 }
 
 /// A JSON schema every partial version of `v` satisfies: objects with only
@@ -1257,12 +1318,12 @@ impl utoipa::Modify for BearerAuth {
     info(title = "isochron lab service", description = "Timed interception of a swinging ball by a KUKA LBR iiwa 7: state, commands, trials and recordings. Commands need `Authorization: Bearer TOKEN` when the service has a token; viewers can watch without one."),
     paths(crate::health, get_state, get_fri, get_params, put_params, arm, disarm, magnet, stop, heartbeat,
           get_calibration, start_calibration,
-          start_trial, list_trials, get_trial, start_run, list_runs, get_run, stop_run, recording_csv, recording_mcap, robot_urdf, openapi_json,
+          start_trial, list_trials, get_trial, start_run, list_runs, get_run, stop_run, get_demo, recording_csv, recording_mcap, robot_urdf, openapi_json,
           ws_doc, ws_camera_doc),
     components(schemas(crate::Health, crate::error::ErrorBody, Accepted, MagnetRequest, StopAnswer, HeartbeatAnswer,
                        TrialStarted, TrialRecord, NoFields, TrialRequest,
                        crate::runs::RunRequest, crate::runs::RunStatus, crate::runs::RunStarted,
-                       crate::runs::Distances, CalibrationRequest, CalibrationStarted,
+                       crate::runs::Distances, crate::demo::DemoStatus, CalibrationRequest, CalibrationStarted,
                        crate::calibration::CalibrationStatus, crate::calibration::StepStatus,
                        crate::calibration::CalibrationJob, crate::calibration::Change,
                        rt_core::calibration::StepView, rt_core::calibration::ViewKind, crate::lab::StreamCounters, FriInfo,

@@ -7,6 +7,7 @@
 pub mod api;
 pub mod calibration;
 pub mod config;
+pub mod demo;
 pub mod error;
 pub mod lab;
 pub mod records;
@@ -91,6 +92,8 @@ pub struct AppState {
     pub fri_doctor_report: Option<PathBuf>,
     /// Batch runs (`/api/runs`).
     pub runs: Arc<runs::Runs>,
+    /// Demo mode (`--demo`, `/api/demo`): off unless the runner was started.
+    pub demo: Arc<demo::Demo>,
 }
 
 impl AppState {
@@ -109,6 +112,7 @@ impl AppState {
             fri_version: rt_core::fri::FriVersion::default(),
             fri_doctor_report: None,
             runs: Arc::default(),
+            demo: Arc::default(),
         }
     }
 
@@ -251,6 +255,7 @@ async fn api_not_found() -> AppError {
 /// dashboard everywhere else.
 pub fn app(state: Arc<AppState>) -> Router {
     let index = state.web_dir.join("index.html");
+    let demo_page = ServeFile::new(state.web_dir.join("demo.html"));
     let web = ServeDir::new(&state.web_dir).fallback(ServeFile::new(index));
     let api = Router::new()
         .route("/health", get(health))
@@ -268,6 +273,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/trials/{id}", get(api::get_trial))
         .route("/runs", get(api::list_runs).post(api::start_run))
         .route("/runs/{id}", get(api::get_run).delete(api::stop_run))
+        .route("/demo", get(api::get_demo))
         .route("/trials/{id}/recording.csv", get(api::recording_csv))
         .route("/trials/{id}/recording.mcap", get(api::recording_mcap))
         .route("/robot.urdf", get(api::robot_urdf))
@@ -277,6 +283,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .nest("/api", api)
         .route("/ws", get(ws::state_stream))
         .route("/ws/camera", get(ws::camera_stream))
+        .route_service("/demo", demo_page)
         .fallback_service(web)
         .layer(DefaultBodyLimit::max(state.body_limit_bytes));
     // CORS is closed unless origins are listed: browsers then refuse cross-origin

@@ -63,6 +63,14 @@ enum Command {
         /// Let a real lab (or a --scenario world with [world]) run trials before it is calibrated.
         #[arg(long)]
         allow_uncalibrated: bool,
+        /// Demo mode: run trials unattended with varied distances and movement
+        /// times (the kiosk page /demo; GET /api/demo). A real lab runs them only
+        /// while an operator's heartbeat holds the demo enabled.
+        #[arg(long)]
+        demo: bool,
+        /// Seconds from one demo trial's start to the next (default 10; with --demo).
+        #[arg(long)]
+        demo_interval_s: Option<f64>,
     },
     /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
@@ -143,6 +151,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             scenario,
             seed,
             allow_uncalibrated,
+            demo,
+            demo_interval_s,
         } => server::serve::run(server::serve::ServeArgs {
             config,
             bind,
@@ -159,6 +169,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             world: scenario,
             world_seed: seed,
             allow_uncalibrated,
+            demo,
+            demo_interval_s,
         }),
         Command::Tune(args) => print_out(&cmd::tune::run(args)?),
         Command::Calibrate(args) => print_out(&cmd::calibrate::run(&args)?),

@@ -48,6 +48,10 @@ pub struct ServeArgs {
     /// `--allow-uncalibrated`: trials before calibrating (always so for a
     /// truthful world, whose beliefs are its truth).
     pub allow_uncalibrated: bool,
+    /// `--demo`: run trials unattended (`/demo`, `GET /api/demo`).
+    pub demo: bool,
+    /// `--demo-interval-s`: seconds from one demo trial's start to the next.
+    pub demo_interval_s: Option<f64>,
 }
 
 /// Runs the service until SIGINT/SIGTERM.
@@ -68,6 +72,20 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .or_else(|| cfg.server.token.clone())
         .filter(|t| !t.is_empty());
     check_bind(bind, token.as_deref())?;
+    let demo = args.demo.then(|| crate::demo::DemoOptions {
+        interval_s: args
+            .demo_interval_s
+            .unwrap_or(crate::demo::DEFAULT_INTERVAL_S),
+        operator_required: cfg.lab.mode == LabMode::Real,
+        operator_timeout_s: cfg.lab.operator_timeout_s,
+        state_file: None,
+    });
+    if args.demo_interval_s.is_some() && !args.demo {
+        anyhow::bail!("--demo-interval-s needs --demo");
+    }
+    if let Some(d) = &demo {
+        d.check()?;
+    }
     // The lab's FRI threads: SCHED_FIFO and memory locked; with cores to spare
     // also pinned to their own CPU with the other threads kept off it (each
     // refused measure is said once).
@@ -176,7 +194,14 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .with_fri(fri_version, data_dir.join(crate::FRI_DOCTOR_REPORT_FILE)),
     );
     let foxglove_lab = Arc::clone(&lab);
+    let demo = demo.map(|d| crate::demo::DemoOptions {
+        state_file: Some(data_dir.join(crate::demo::STATE_FILE)),
+        ..d
+    });
     let result = runtime.block_on(async move {
+        if let Some(d) = demo {
+            crate::demo::spawn(Arc::clone(&state), d);
+        }
         let _foxglove = match args.foxglove {
             Some(addr) => {
                 let h = crate::viz::start_server(&foxglove_lab, addr).await?;

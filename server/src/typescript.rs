@@ -18,6 +18,7 @@ use ts_rs::TS;
 
 use crate::{
     calibration::{CalibrationJob, CalibrationStatus, Change, StepStatus},
+    demo::DemoStatus,
     lab::{EventMessage, StateMessage, StreamCounters},
     records::TrialRecord,
     runs::{Distances, RunRequest, RunStatus},
@@ -63,6 +64,7 @@ pub fn declarations() -> String {
         Distances::decl(),
         RunRequest::decl(),
         RunStatus::decl(),
+        DemoStatus::decl(),
         ViewKind::decl(),
         StepView::decl(),
         StepStatus::decl(),

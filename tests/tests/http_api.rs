@@ -651,6 +651,47 @@ async fn a_trial_is_recorded_survives_a_restart_and_its_recordings_open() {
 }
 
 #[tokio::test]
+async fn without_demo_mode_the_demo_status_says_off_and_the_parameters_schema_describes_each_field()
+{
+    let svc = start_service(None, opts()).await;
+    let r = http(svc.addr, "GET", "/api/demo", &[], b"").await.unwrap();
+    assert_eq!(r.status, 200);
+    let d = r.json().unwrap();
+    assert_eq!(d["enabled"], false, "{d}");
+    assert_eq!(d["state"], "off", "{d}");
+    assert!(d["message"].as_str().unwrap().contains("--demo"), "{d}");
+    let doc = http(svc.addr, "GET", "/api/openapi.json", &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    let schema =
+        &doc["paths"]["/api/params"]["put"]["requestBody"]["content"]["application/json"]["schema"];
+    let len = &schema["properties"]["pendulum"]["properties"]["length_m"];
+    assert_eq!(len["default"], 1.93, "{len}");
+    assert!(
+        len["description"]
+            .as_str()
+            .unwrap()
+            .contains("Pivot to ball centre"),
+        "{len}"
+    );
+    // Every section's every field has its default and a description.
+    let mut fields = 0;
+    for (section, sec) in schema["properties"].as_object().unwrap() {
+        for (key, p) in sec["properties"].as_object().into_iter().flatten() {
+            fields += 1;
+            assert!(!p["default"].is_null(), "{section}.{key}: no default");
+            assert!(
+                p["description"].as_str().is_some_and(|d| d.len() > 3),
+                "{section}.{key}: no description"
+            );
+        }
+    }
+    assert!(fields > 40, "{fields} fields");
+}
+
+#[tokio::test]
 async fn the_openapi_document_validates_and_lists_every_endpoint() {
     let svc = start_service(None, opts()).await;
     let r = http(svc.addr, "GET", "/api/openapi.json", &[], b"")
@@ -682,6 +723,7 @@ async fn the_openapi_document_validates_and_lists_every_endpoint() {
         ("get", "/api/runs"),
         ("get", "/api/runs/{id}"),
         ("delete", "/api/runs/{id}"),
+        ("get", "/api/demo"),
         ("get", "/api/robot.urdf"),
         ("get", "/api/openapi.json"),
         ("get", "/ws"),

@@ -138,6 +138,71 @@ try {
     const hint = await visitor.page.textContent('#fri .fri-doctor li[data-code="no_datagrams"]');
     assert(hint.includes("ip -br addr"), `no hint in ${hint}`);
   });
+  await check("visitor: at 1280, 1400 and 1920 px no panel stands mostly empty or alone beside an empty stretch", async () => {
+    const report = {};
+    for (const width of [1280, 1400, 1920]) {
+      await visitor.page.setViewportSize({ width, height: 1000 });
+      await visitor.page.waitForTimeout(300);
+      const panels = await visitor.page.evaluate(() => {
+        const main = document.querySelector("main").getBoundingClientRect();
+        const boxes = [...document.querySelectorAll("main > .panel")].map((el) => {
+          const r = el.getBoundingClientRect();
+          let bottom = r.top;
+          for (const c of el.querySelectorAll(":scope > *")) {
+            const cr = c.getBoundingClientRect();
+            if (cr.height > 0) bottom = Math.max(bottom, cr.bottom);
+          }
+          return { name: el.getAttribute("aria-label"), left: r.left, right: r.right, top: r.top, bottom: r.bottom, fill: (bottom - r.top) / r.height };
+        });
+        return boxes.map((b) => ({
+          ...b,
+          // Empty width right of the panel on its rows (no other panel there).
+          emptyRight: boxes.some((o) => o !== b && o.left >= b.right - 1 && o.top < b.bottom && o.bottom > b.top) ? 0 : main.right - b.right,
+        }));
+      });
+      report[width] = Object.fromEntries(panels.map((p) => [p.name, +p.fill.toFixed(2)]));
+      for (const p of panels) {
+        assert(p.fill >= 0.75, `${width} px: the ${p.name} panel's content fills ${(p.fill * 100).toFixed(0)}% of it`);
+        assert(p.emptyRight < 60, `${width} px: ${p.emptyRight.toFixed(0)} px empty beside the ${p.name} panel`);
+      }
+    }
+    measured.panel_fill = report;
+    await visitor.page.setViewportSize({ width: 1400, height: 1000 });
+  });
+  await check("visitor: the calibration view says what it will show before a step runs", async () => {
+    const v = await visitor.page.evaluate(() => {
+      const c = document.querySelector("#calibration canvas.cal-view");
+      const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+      let light = 0;
+      for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] > 450) light += 1;
+      return { placeholder: c.dataset.placeholder, light };
+    });
+    assert(v.placeholder === "true" && v.light > 200, JSON.stringify(v));
+  });
+  await check("visitor: parameters are grouped by section with units and descriptions; the filter box filters", async () => {
+    await visitor.page.waitForSelector('.field[data-path="pendulum.length_m"] .field-doc', { state: "attached", timeout: 10_000 });
+    const sections = await visitor.page.$$eval("#params details[data-section]", (d) => d.map((x) => x.dataset.section));
+    assert(["pendulum", "task", "camera", "robot", "ekf"].every((s) => sections.includes(s)), `sections ${sections}`);
+    const unit = await visitor.page.textContent('.field[data-path="pendulum.length_m"] .unit');
+    assert(unit.trim() === "(m)", `unit ${unit}`);
+    const docs = await visitor.page.$$eval("#params .field", (f) => [f.length, f.filter((x) => (x.querySelector(".field-doc")?.textContent ?? "").length > 5).length]);
+    assert(docs[0] > 40 && docs[1] / docs[0] > 0.9, `${docs[1]} of ${docs[0]} fields have a description`);
+    await visitor.page.fill("#param-filter", "latency");
+    const shown = await visitor.page.$$eval("#params .field", (f) => f.filter((x) => x.offsetParent !== null).map((x) => `${x.dataset.path} ${x.querySelector(".field-doc")?.textContent ?? ""}`));
+    assert(shown.length > 0 && shown.length < docs[0] / 3 && shown.every((t) => /latency/i.test(t)), `filter "latency" shows ${shown.length}: ${shown.slice(0, 5)}`);
+    await visitor.page.fill("#param-filter", "");
+    const hidden = await visitor.page.$$eval("#params .field", (f) => f.filter((x) => x.hidden).length);
+    assert(hidden === 0, `${hidden} fields still hidden with the filter cleared`);
+  });
+  await check("visitor: the executed path speed is filtered, the caption says how, the raw one is a checkbox away", async () => {
+    const cap = await visitor.page.textContent("#plot-speed .plot-caption");
+    assert(/centered moving average of 9 samples/.test(cap), cap);
+    const rawOff = () => visitor.page.evaluate(() => [...document.querySelectorAll("#plot-speed .u-legend .u-series")].find((e) => /raw/.test(e.textContent))?.classList.contains("u-off"));
+    assert((await rawOff()) === true, "the raw series is shown by default");
+    await visitor.page.check("#speed-raw");
+    assert((await rawOff()) === false, "the checkbox does not show the raw series");
+    await visitor.page.uncheck("#speed-raw");
+  });
   await check("visitor: no console errors", async () => {
     assert(visitor.errors.length === 0, visitor.errors.join(" | "));
   });
@@ -153,6 +218,7 @@ try {
   });
   await check("operator: an invalid parameter shows the server's message beside the field, nothing changes", async () => {
     const before = await api("GET", "/api/params");
+    await page.fill("#param-filter", "length_m");
     await page.waitForSelector('input[name="pendulum.length_m"]', { timeout: 5_000 });
     await page.fill('input[name="pendulum.length_m"]', "-1");
     await page.click("#params button[type=submit]");
@@ -164,11 +230,32 @@ try {
     assert(JSON.stringify(before.json) === JSON.stringify(after.json), "parameters changed");
     await page.fill('input[name="pendulum.length_m"]', String(before.json.pendulum.length_m));
   });
+  await check("operator: a parameter changed from its default is marked; set back, the mark goes", async () => {
+    const mark = '.field[data-path="success.timing_tolerance_ms"] .changed-mark';
+    const was = (await api("GET", "/api/params")).json.success.timing_tolerance_ms;
+    await page.fill("#param-filter", "timing_tolerance_ms");
+    assert((await page.locator(mark).count()) === 0, "marked before any change");
+    await page.fill('input[name="success.timing_tolerance_ms"]', String(was + 5));
+    await page.click("#params button[type=submit]");
+    await page.waitForSelector(mark, { timeout: 5_000 });
+    const title = await page.getAttribute(mark, "title");
+    assert(title === `default: ${was}`, `mark's title ${title}`);
+    assert((await api("GET", "/api/params")).json.success.timing_tolerance_ms === was + 5, "not saved");
+    await page.fill('input[name="success.timing_tolerance_ms"]', String(was));
+    await page.click("#params button[type=submit]");
+    await page.waitForSelector(mark, { state: "detached", timeout: 5_000 });
+    await page.fill("#param-filter", "");
+  });
   let rowsBefore = 0;
   await check("operator: Run trial releases the ball", async () => {
     rowsBefore = await page.locator("#trials tbody tr").count();
     await page.click("#btn-trial");
     await page.waitForFunction(() => ["tracking", "intercepting"].includes(window.__isochron.state()), null, { timeout: 60_000 });
+  });
+  await check("operator: above a running trial's row the summary does not say 'no trials yet'", async () => {
+    await page.waitForFunction(() => [...document.querySelectorAll("#trials tbody td[data-col=result]")].some((td) => td.textContent === "running"), null, { timeout: 10_000 });
+    const summary = await page.textContent("#trials .summary");
+    assert(summary !== "no trials yet" && /running|precisely timed/.test(summary), `summary: ${summary}`);
   });
   await check("operator: the camera view shows changing frames with the ball overlay on the ball", async () => {
     // The canvas's pixels (subsampled luminance), the yellow ball's pixels near the
@@ -294,6 +381,12 @@ try {
     const contact = m.torque_signal === false ? "no torques" : m.contact ? "yes" : "no";
     assert(row.contact === contact, `contact cell ${row.contact}, record ${JSON.stringify(m)}`);
     measured.trial_measured = { timing_error_ms: m.timing_error_ms, timing_std_ms: m.timing_std_ms, contact: m.contact, torque_signal: m.torque_signal, true_timing_error_ms: rec.timing_error_ms };
+    // A truthful world: the measured judge's columns are named and explained as such.
+    const heads = await page.$$eval("#trials thead th", (th) => th.map((x) => x.textContent));
+    assert(heads.includes("measured judge: timing (ms)") && heads.includes("measured judge: contact"), heads.join(" | "));
+    await page.waitForSelector("#trials .judge-note:not([hidden])", { timeout: 5_000 });
+    const note = await page.textContent("#trials .judge-note");
+    assert(/^Truthful simulated world/.test(note) && /for comparison/.test(note), note);
   });
   await check("operator: when the trial ended the speed axis fit the planned peak and the pendulum axis read distinct labels in a unit that fits (mm below 1 m)", async () => {
     await page.waitForFunction(() => window.__isochron.trialEndAxes() !== null, null, { timeout: 5_000 });

@@ -44,14 +44,28 @@ export function headline(name: string, result: Record<string, unknown> | null | 
 
 /** Draws a step's view: image points in the camera frame, or a time series
  * with autoscaled axes; the fit as a line (series) or crosses (image). */
-export function drawView(canvas: HTMLCanvasElement, view: StepView | null): void {
+export function drawView(canvas: HTMLCanvasElement, view: StepView | null, running = false): void {
   const ctx = canvas.getContext("2d");
   if (!ctx) return;
   const { width: w, height: h } = canvas;
   ctx.clearRect(0, 0, w, h);
   ctx.fillStyle = "#10151c";
   ctx.fillRect(0, 0, w, h);
-  if (!view) return;
+  if (!view) {
+    // Say what the view will show, rather than an empty black box.
+    ctx.fillStyle = "#c9d1d9";
+    ctx.font = "14px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    const lines = [
+      running ? "The step is measuring: its points appear here." : "No step has run yet.",
+      "Run a step: this view then shows what it measures,",
+      "the chessboard corners or tool marker in the camera image,",
+      "the LED's switch times, or the swing and the fitted model.",
+    ];
+    lines.forEach((l, i) => ctx.fillText(l, w / 2, h / 2 - 30 + 22 * i));
+    ctx.textAlign = "left";
+    return;
+  }
   const pad = 24;
   let sx: (x: number) => number;
   let sy: (y: number) => number;
@@ -118,6 +132,8 @@ export class CalibrationPanel {
   ) {
     this.list = root.querySelector(".cal-steps") as HTMLElement;
     this.canvas = root.querySelector("canvas.cal-view") as HTMLCanvasElement;
+    drawView(this.canvas, null);
+    this.canvas.dataset.placeholder = "true";
   }
 
   start(): void {
@@ -168,7 +184,8 @@ export class CalibrationPanel {
     const key = JSON.stringify([job.id, job.progress, job.view?.points.length, job.view?.fit.length, job.state]);
     if (key !== this.drawnView) {
       this.drawnView = key;
-      drawView(this.canvas, job.view ?? null);
+      drawView(this.canvas, job.view ?? null, running);
+      this.canvas.dataset.placeholder = job.view ? "" : "true";
       this.canvas.dataset.points = String(job.view?.points.length ?? 0);
       this.canvas.dataset.fit = String(job.view?.fit.length ?? 0);
       this.canvas.dataset.kind = job.view?.kind ?? "";

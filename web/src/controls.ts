@@ -92,17 +92,71 @@ export class Controls {
   }
 }
 
-/** The parameters panel: one input per number, the server's validation errors beside the field. */
+/** The unit a parameter's key names by its suffix (the project's naming rule), or "". */
+export function unitOf(key: string): string {
+  const units: [RegExp, string][] = [
+    [/_mps2$/, "m/s²"],
+    [/_mps$/, "m/s"],
+    [/_radps$/, "rad/s"],
+    [/_per_s$/, "1/s"],
+    [/_mm$/, "mm"],
+    [/_ms$/, "ms"],
+    [/_us$/, "µs"],
+    [/_ns$/, "ns"],
+    [/_m$/, "m"],
+    [/_s$/, "s"],
+    [/_deg$/, "deg"],
+    [/_rad$/, "rad"],
+    [/_hz$/, "Hz"],
+    [/_px$/, "px"],
+    [/^fps$/, "frames/s"],
+  ];
+  return units.find(([re]) => re.test(key))?.[1] ?? "";
+}
+
+/** What the OpenAPI document says of each `section.key`: its description and built-in default. */
+export type ParamSchema = Record<string, { description?: string; default?: unknown }>;
+
+/** Reads the partial scenario's schema of `PUT /api/params` into `section.key` entries. */
+export function paramSchema(openapi: unknown): ParamSchema {
+  const out: ParamSchema = {};
+  const doc = openapi as { paths?: Record<string, { put?: { requestBody?: { content?: Record<string, { schema?: unknown }> } } }> };
+  const schema = doc.paths?.["/api/params"]?.put?.requestBody?.content?.["application/json"]?.schema as
+    | { properties?: Record<string, { description?: string; properties?: Record<string, { description?: string; default?: unknown }> }> }
+    | undefined;
+  for (const [section, sec] of Object.entries(schema?.properties ?? {})) {
+    if (sec.description) out[section] = { description: sec.description };
+    for (const [key, prop] of Object.entries(sec.properties ?? {})) {
+      out[`${section}.${key}`] = { description: prop.description, default: prop.default };
+    }
+  }
+  return out;
+}
+
+const show = (v: unknown): string => (Array.isArray(v) ? v.join(", ") : typeof v === "object" && v !== null ? JSON.stringify(v) : String(v));
+
+/**
+ * The parameters panel: one input per value, grouped by section, each with its
+ * unit, its description from the schema and a mark when it differs from the
+ * built-in default; a filter box; the server's validation errors beside the field.
+ */
 export class ParamsPanel {
   private current: Record<string, Record<string, unknown>> = {};
+  private schema: ParamSchema = {};
+  private filterText = "";
 
   constructor(
     private readonly form: HTMLFormElement,
     private readonly notify: Notify,
+    filter: HTMLInputElement | null = null,
   ) {
     form.addEventListener("submit", (e) => {
       e.preventDefault();
       void this.save();
+    });
+    filter?.addEventListener("input", () => {
+      this.filterText = filter.value.trim().toLowerCase();
+      this.applyFilter();
     });
   }
 
@@ -113,7 +167,12 @@ export class ParamsPanel {
 
   async load(): Promise<void> {
     try {
-      this.current = await call<Record<string, Record<string, unknown>>>("GET", "/api/params");
+      const [current, openapi] = await Promise.all([
+        call<Record<string, Record<string, unknown>>>("GET", "/api/params"),
+        call<unknown>("GET", "/api/openapi.json").catch(() => null),
+      ]);
+      this.current = current;
+      if (openapi) this.schema = paramSchema(openapi);
       this.render();
     } catch (e) {
       this.notify(`parameters: ${(e as Error).message}`, "error");
@@ -122,34 +181,100 @@ export class ParamsPanel {
 
   private render(): void {
     const fields = this.form.querySelector(".fields") as HTMLElement;
+    const open = new Set((Array.from(fields.querySelectorAll("details[open]")) as HTMLElement[]).map((d) => d.dataset.section));
     fields.replaceChildren();
     for (const [section, values] of Object.entries(this.current)) {
       if (typeof values !== "object" || values === null || Array.isArray(values)) continue;
-      const fs = document.createElement("fieldset");
-      const lg = document.createElement("legend");
+      const fs = document.createElement("details");
+      fs.dataset.section = section;
+      fs.open = open.has(section);
+      const lg = document.createElement("summary");
       lg.textContent = section;
+      const secDoc = this.schema[section]?.description;
+      if (secDoc) {
+        const d = document.createElement("span");
+        d.className = "muted";
+        d.textContent = ` · ${secDoc.replace(/\.$/, "")}`;
+        lg.append(d);
+      }
+      const count = document.createElement("span");
+      count.className = "muted section-count";
+      lg.append(count);
       fs.append(lg);
+      let changedHere = 0;
       for (const [key, value] of Object.entries(values)) {
         const path = `${section}.${key}`;
+        const meta = this.schema[path] ?? {};
         const row = document.createElement("div");
         row.className = "field";
+        row.dataset.path = path;
         const label = document.createElement("label");
         const id = `param-${section}-${key}`;
         label.htmlFor = id;
         label.textContent = key;
+        const unit = unitOf(key);
+        if (unit) {
+          const u = document.createElement("span");
+          u.className = "unit";
+          u.textContent = ` (${unit})`;
+          label.append(u);
+        }
         const input = document.createElement("input");
         input.id = id;
         input.name = path;
-        input.value = Array.isArray(value) ? value.join(", ") : String(value);
+        input.value = show(value);
         input.dataset.kind = Array.isArray(value) ? "array" : typeof value;
+        const changed = meta.default !== undefined && JSON.stringify(meta.default) !== JSON.stringify(value);
+        row.classList.toggle("changed", changed);
+        if (changed) {
+          changedHere += 1;
+          const mark = document.createElement("span");
+          mark.className = "changed-mark";
+          mark.textContent = "changed";
+          mark.title = `default: ${show(meta.default)}`;
+          label.append(" ", mark);
+        }
         const err = document.createElement("span");
         err.className = "field-error";
         err.setAttribute("role", "alert");
         err.dataset.field = path;
-        row.append(label, input, err);
+        row.append(label, input);
+        if (meta.description) {
+          const d = document.createElement("small");
+          d.className = "field-doc";
+          d.textContent = meta.description;
+          row.append(d);
+        }
+        row.append(err);
         fs.append(row);
       }
+      const n = Object.keys(values).length;
+      count.textContent = ` · ${n} values${changedHere ? `, ${changedHere} changed` : ""}`;
+      if (changedHere) {
+        const mark = document.createElement("span");
+        mark.className = "changed-mark";
+        mark.textContent = "changed";
+        lg.append(" ", mark);
+      }
       fields.append(fs);
+    }
+    this.applyFilter();
+  }
+
+  /** Shows only the fields whose name, section or description holds the filter's text. */
+  private applyFilter(): void {
+    const q = this.filterText;
+    for (const fs of Array.from(this.form.querySelectorAll("details")) as HTMLDetailsElement[]) {
+      let any = false;
+      for (const row of Array.from(fs.querySelectorAll(".field")) as HTMLElement[]) {
+        const text = `${row.dataset.path ?? ""} ${row.querySelector(".field-doc")?.textContent ?? ""}`.toLowerCase();
+        const hit = q === "" || text.includes(q);
+        row.hidden = !hit;
+        any ||= hit;
+      }
+      fs.hidden = !any;
+      // A filter opens the sections it finds something in.
+      if (q !== "") fs.open = any;
     }
   }
 

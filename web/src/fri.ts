@@ -68,13 +68,18 @@ export class FriPanel {
       li.dataset.code = f.code;
       li.textContent = f.text;
       if (f.fix.length) {
+        // The steps to check fold away (the panel stays beside the twin).
+        const more = document.createElement("details");
+        const sum = document.createElement("summary");
+        sum.textContent = `what to check (${f.fix.length})`;
         const ul = document.createElement("ul");
         for (const step of f.fix) {
           const s = document.createElement("li");
           s.textContent = step;
           ul.append(s);
         }
-        li.append(ul);
+        more.append(sum, ul);
+        li.append(more);
       }
       list.append(li);
     }

@@ -27,7 +27,7 @@ const plots = new Plots($("plots"), $<HTMLCanvasElement>("phase"));
 const twin = new Twin($("twin"));
 const camera = new CameraView($("camera"));
 const trials = new TrialsView($("trials"));
-const params = new ParamsPanel($<HTMLFormElement>("params"), notify);
+const params = new ParamsPanel($<HTMLFormElement>("params"), notify, $<HTMLInputElement>("param-filter"));
 const controls = new Controls(notify, () => {
   void trials.refresh();
   void calibration.refresh();

@@ -3,6 +3,7 @@ import "uplot/dist/uPlot.min.css";
 import { lengthRange, lengthUnit, speedRange, tickLabels } from "./axes";
 import { leads, PhaseTrail, type Lead } from "./hopf";
 import { SeriesWindow } from "./series";
+import { centeredMovingAverage, SMOOTH_HALF } from "./smooth";
 import { num, type StateMessage } from "./types";
 
 /** Okabe-Ito: distinguishable with the common colour-vision deficiencies. */
@@ -25,6 +26,8 @@ interface Chart {
   plot: uPlot;
   win: SeriesWindow;
   row: (s: StateMessage) => number[];
+  /** Turns the window's columns into the plotted series (default: as they are). */
+  shape?: (cols: (number | null)[][]) => (number | null)[][];
 }
 
 function size(el: HTMLElement): { width: number; height: number } {
@@ -117,10 +120,14 @@ export class Plots {
       });
     }
     // 2. Path speed: planned vs executed, arrival marked. The axis fits the
-    // planned motion in view (a lone executed sample cannot stretch it).
+    // planned motion in view (a lone executed sample cannot stretch it). The
+    // executed speed is drawn through a centered moving average (smooth.ts);
+    // the raw samples on request (the checkbox under the plot).
     {
-      const el = host("plot-speed", "Path speed: planned vs executed (m/s)");
+      const el = host("plot-speed", "Path speed: planned (Hopf) vs executed (m/s)");
       const win = new SeriesWindow(3, CAPACITY);
+      const smoothed: (number | null)[] = [];
+      const shaped: (number | null)[][] = [[], [], [], []];
       const plot = new uPlot(
         {
           ...size(el),
@@ -134,16 +141,44 @@ export class Plots {
               },
             },
           },
-          series: [{ label: "t (s)" }, line("planned", COLORS.blue), line("executed", COLORS.red, { dash: [6, 3] })],
+          series: [
+            { label: "t (s)" },
+            line("planned (Hopf)", COLORS.blue),
+            line(`executed, mean of ${2 * SMOOTH_HALF + 1} samples`, COLORS.red, { width: 2, dash: [6, 3] }),
+            line("executed, raw", COLORS.grey, { width: 1, show: false }),
+          ],
           hooks: { draw: [(u) => this.drawArrival(u)] },
         },
-        [[], [], []],
+        [[], [], [], []],
         el,
       );
+      const caption = document.createElement("p");
+      caption.className = "plot-caption";
+      const toggle = document.createElement("label");
+      const box = document.createElement("input");
+      box.type = "checkbox";
+      box.id = "speed-raw";
+      box.addEventListener("change", () => {
+        plot.setSeries(3, { show: box.checked });
+        this.dirty = true;
+      });
+      toggle.append(box, " show the raw executed speed");
+      caption.append(
+        `Executed: the measured tool path differentiated at the 100 Hz state rate, drawn as a centered moving average of ${2 * SMOOTH_HALF + 1} samples (±${SMOOTH_HALF * 10} ms, no lag). `,
+        toggle,
+      );
+      el.append(caption);
       this.charts.push({
         plot,
         win,
         row: (s) => [s.t_s, s.path.speed_planned_mps, s.path.speed_executed_mps],
+        shape: (cols) => {
+          shaped[0] = cols[0];
+          shaped[1] = cols[1];
+          shaped[2] = centeredMovingAverage(cols[2], SMOOTH_HALF, smoothed);
+          shaped[3] = cols[2];
+          return shaped;
+        },
       });
     }
     // 3. Neurons.
@@ -231,7 +266,10 @@ export class Plots {
   draw(): void {
     if (!this.dirty) return;
     this.dirty = false;
-    for (const c of this.charts) c.plot.setData(c.win.plotData() as uPlot.AlignedData);
+    for (const c of this.charts) {
+      const cols = c.win.plotData();
+      c.plot.setData((c.shape ? c.shape(cols) : cols) as uPlot.AlignedData);
+    }
     const y = this.charts[0].plot.scales.y;
     const unit = lengthUnit(y.min ?? 0, y.max ?? 0).unit;
     const title = `Pendulum: lateral position x = l sin φ (${unit})`;

@@ -30,9 +30,24 @@ export class TrialsView {
     const ok = judged.filter((t) => verdict(t) === "hit").length;
     const [lo, hi] = wilson(ok, judged.length);
     const summary = this.root.querySelector(".summary") as HTMLElement;
+    const running = this.trials.filter((t) => t.status === "running");
     summary.textContent = judged.length
       ? `${ok} of ${judged.length} precisely timed: ${pct(ok / judged.length)} (95% CI ${pct(lo)}–${pct(hi)})`
-      : "no trials yet";
+      : running.length
+        ? `trial ${running.map((t) => t.id).join(", ")} running: none judged yet`
+        : this.trials.length
+          ? `${this.trials.length} trials, none judged (aborted or not judged)`
+          : "no trials yet";
+    // In a truthful world the verdict is the truth's; the measured judge's
+    // columns are what a real lab would see of the same trials.
+    const note = this.root.querySelector(".judge-note") as HTMLElement | null;
+    if (note) {
+      const truthful = judged.length > 0 && judged.every((t) => t.judged_by === "truth");
+      note.hidden = !truthful;
+      note.textContent = truthful
+        ? "Truthful simulated world: each verdict and its timing error are judged on the ground truth. The two \"measured judge\" columns are what a real lab's measured judge (camera and joint torques) says of the same trials, shown for comparison only."
+        : "";
+    }
     const body = this.root.querySelector("tbody") as HTMLElement;
     body.replaceChildren();
     const newestFirst = [...this.trials].sort((a, b) => b.id - a.id);

@@ -925,6 +925,79 @@ finished_unix_s: number | null,
  */
 message: string | null, };
 
+export type DemoStatus = { 
+/**
+ * The service was started with `--demo`.
+ */
+enabled: boolean, 
+/**
+ * `off` (no `--demo`), `running` (a demo trial runs), `waiting` (for the
+ * next trial's time, or for another trial to finish), `paused` (the lab
+ * cannot run a trial now: `reason` and `message` say why) or
+ * `operator_needed` (a real lab: no operator holds the demo enabled).
+ */
+state: "off" | "running" | "waiting" | "paused" | "operator_needed", 
+/**
+ * Why it is paused or waiting: `/api/health`'s `not_ready.reason`
+ * (`uncalibrated`, `calibrating`, `robot_not_commanding`,
+ * `device_unavailable`, `busy`, ...), `operator` (no heartbeat) or
+ * `infeasible` (the parameters in force make its motions infeasible).
+ */
+reason: string | null, 
+/**
+ * The state as a sentence a visitor reads.
+ */
+message: string, 
+/**
+ * The lab's own sentence for why it is paused (an operator's detail;
+ * null when not paused).
+ */
+detail: string | null, 
+/**
+ * Seconds from one trial's start to the next.
+ */
+interval_s: number, 
+/**
+ * Trials run only while an operator holds the demo enabled (a real lab).
+ */
+operator_required: boolean, 
+/**
+ * The demo trial running now, or the last one.
+ */
+trial_id: number | null, 
+/**
+ * Seconds until the next trial may start (null: not waiting for time).
+ */
+next_in_s: number | null, 
+/**
+ * The next trial's distance, metres.
+ */
+next_distance_m: number | null, 
+/**
+ * The next trial's planned movement time, seconds.
+ */
+next_movement_time_s: number | null, 
+/**
+ * Demo trials whose records finished (across restarts: `demo.json`).
+ */
+trials: number, 
+/**
+ * Of them, judged (not aborted, not `not judged`).
+ */
+judged: number, 
+/**
+ * Of the judged, precisely timed (the judge's success).
+ */
+successes: number, 
+/**
+ * Wilson 95% interval of successes / judged (`[0, 1]` before any).
+ */
+success_ci95: [number, number], 
+/**
+ * Demo trials aborted (the lab stopped them: a device, the operator, ...).
+ */
+aborted: number, };
+
 export type ViewKind = "image" | "series";
 
 export type StepView = { 
