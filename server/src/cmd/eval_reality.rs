@@ -414,7 +414,7 @@ pub fn write_reality(
         dir.join(name),
         plot::histogram(
             "Reality lab: signed timing error arrival - t* (negative: early)",
-            "ms",
+            "signed timing error (ms)",
             &signed,
             30,
         )?,
