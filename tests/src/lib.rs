@@ -4,6 +4,9 @@ use std::time::Duration;
 
 use anyhow::Context;
 
+mod served;
+pub use served::{ServedLab, TrialEnds};
+
 /// A plain HTTP/1.1 response.
 #[derive(Debug)]
 pub struct HttpResponse {
