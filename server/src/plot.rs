@@ -102,11 +102,6 @@ fn decimal(m: i64, e: i32) -> f64 {
 }
 
 impl Ticks {
-    /// The step between neighbouring ticks.
-    pub fn step(&self) -> f64 {
-        decimal(self.mantissa, self.exponent)
-    }
-
     /// The axis range: first tick to last.
     pub fn range(&self) -> std::ops::Range<f64> {
         let first = self.values.first().copied().unwrap_or(0.0);
@@ -718,7 +713,7 @@ mod tests {
             "{} ticks: {ctx}",
             t.values.len()
         );
-        let step = t.step();
+        let step = decimal(t.mantissa, t.exponent);
         for (i, v) in t.values.iter().enumerate() {
             // Every tick a whole multiple of the step, one step after the other.
             let k = v / step;
