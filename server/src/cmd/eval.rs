@@ -282,13 +282,7 @@ pub fn write_report(
             .filter(|x| x.is_finite())
             .collect();
         te.sort_by(f64::total_cmp);
-        let q = |p: f64| {
-            if te.is_empty() {
-                f64::NAN
-            } else {
-                te[((te.len() - 1) as f64 * p).round() as usize]
-            }
-        };
+        let q = |p: f64| rt_core::quantile::quantile(&te, p).unwrap_or(f64::NAN);
         let mt: Vec<f64> = trials
             .iter()
             .map(|v| field(v, "movement_time_s"))
