@@ -5,7 +5,10 @@
 //! period of the last heartbeat, the arm comes to rest, and the trial is
 //! recorded as aborted for that reason. With heartbeats a trial is not stopped.
 
-use std::time::{Duration, Instant};
+use std::{
+    sync::Arc,
+    time::{Duration, Instant},
+};
 
 use isochron_tests::{ServedLab, http};
 use rt_core::{bridge::TrialState, lab::LabSetup, params::Scenario};
@@ -23,13 +26,11 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
     let served = ServedLab::start(setup, &data).await;
     // Commanding, and the lab would take a trial.
     served.until_ready().await;
-    let ServedLab {
-        addr,
-        lab,
-        records,
-        server,
-        runtime: sim,
-    } = served;
+    let (addr, lab, records) = (
+        served.addr,
+        Arc::clone(&served.lab),
+        Arc::clone(&served.records),
+    );
     let mut events = lab.subscribe_events();
     let beat = || async {
         let r = http(addr, "POST", "/api/heartbeat", &[], b"")
@@ -158,8 +159,6 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
             "stopped {after:.4} s after the last heartbeat (dead-man {TIMEOUT_S} s + period {period_s} s)"
         );
     }
-    server.abort();
-    lab.shutdown();
-    drop(sim);
+    served.stop();
     let _ = std::fs::remove_dir_all(&data);
 }

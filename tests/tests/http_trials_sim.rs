@@ -19,13 +19,11 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     // The FRI session over loopback UDP reaches COMMANDING_ACTIVE and the lab
     // would take a trial (the camera delivering).
     served.until_ready().await;
-    let ServedLab {
-        addr,
-        lab,
-        records,
-        server,
-        runtime: sim,
-    } = served;
+    let (addr, lab, records) = (
+        served.addr,
+        Arc::clone(&served.lab),
+        Arc::clone(&served.records),
+    );
     let st = http(addr, "GET", "/api/state", &[], b"")
         .await
         .unwrap()
@@ -75,9 +73,7 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
         Some(timing <= 20.0 && position <= 0.02 && rec.limit_violations == Some(0))
     );
     assert!(rec.samples > 300, "a few seconds at 200 Hz: {rec:?}");
-    server.abort();
-    lab.shutdown();
-    drop(sim);
+    served.stop();
 
     // The record and its recordings survive a restart.
     let records = Arc::new(Records::open(&data).unwrap());
@@ -133,17 +129,12 @@ async fn until(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     let tmp = tempfile::tempdir().unwrap();
-    let ServedLab {
-        addr,
-        records,
-        server,
-        runtime: _sim,
-        ..
-    } = ServedLab::start(
+    let served = ServedLab::start(
         LabSetup::simulated(Scenario::default(), 11),
         &tmp.path().join("data"),
     )
     .await;
+    let (addr, records) = (served.addr, Arc::clone(&served.records));
     until(addr, "/api/health", Duration::from_secs(30), |h| {
         h["ready"] == true
     })
@@ -279,5 +270,5 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     }
     let (code, _) = json(addr, "GET", "/api/runs/999", "").await;
     assert_eq!(code, 404);
-    server.abort();
+    served.stop();
 }
