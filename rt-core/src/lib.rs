@@ -35,6 +35,7 @@ pub mod lab;
 pub mod magnet;
 pub mod params;
 pub mod pendulum;
+pub mod quantile;
 pub mod sim;
 pub mod timing;
 pub mod trajectory;

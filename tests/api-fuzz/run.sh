@@ -15,21 +15,11 @@ if [ ! -x "$st" ]; then
   echo "api fuzz: no schemathesis at $st (make deps installs it)" >&2
   exit 1
 fi
-data=$(mktemp -d)
-token="fuzz-$RANDOM$RANDOM"
-out="$data/serve.out"
-"$bin" serve --bind 127.0.0.1:0 --token "$token" --data-dir "$data/db" >"$out" 2>"$data/serve.err" &
-pid=$!
-cleanup() { kill "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true; rm -rf "$data"; }
-trap cleanup EXIT
-url=""
-for _ in $(seq 1 300); do   # up to 30 s for the service to print its address
-  url=$(grep -o 'http://[0-9.:]*/' "$out" | head -n1 || true)
-  [ -n "$url" ] && break
-  kill -0 "$pid" 2>/dev/null || { cat "$data/serve.err" >&2; echo "isochron serve exited" >&2; exit 1; }
-  sleep 0.1
-done
-[ -n "$url" ] || { echo "isochron serve printed no address" >&2; exit 1; }
+# shellcheck source=../serve.sh
+. "$root/tests/serve.sh"
+serve_init fuzz
+serve_start "$bin"
+url=$serve_url token=$serve_token data=$serve_data pid=$serve_pid
 # /api/stop is excluded: it is always accepted (any body, no token) by design
 # and would abort the other operations' trials; tests/tests/http_api.rs covers it.
 set +e

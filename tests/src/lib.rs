@@ -5,6 +5,8 @@ use std::time::Duration;
 use anyhow::Context;
 
 pub mod procs;
+mod served;
+pub use served::{ServedLab, TrialEnds};
 
 /// A plain HTTP/1.1 response.
 #[derive(Debug)]

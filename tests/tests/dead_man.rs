@@ -10,13 +10,8 @@ use std::{
     time::{Duration, Instant},
 };
 
-use isochron_tests::http;
-use rt_core::{
-    bridge::{FriSessionState, TrialState},
-    lab::LabSetup,
-    params::Scenario,
-};
-use server::{AppState, LabOptions, Records, app, runtime::start_lab};
+use isochron_tests::{ServedLab, http};
+use rt_core::{bridge::TrialState, lab::LabSetup, params::Scenario};
 
 const TIMEOUT_S: f64 = 0.25;
 
@@ -24,36 +19,18 @@ const TIMEOUT_S: f64 = 0.25;
 async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is_recorded() {
     let data = std::env::temp_dir().join(format!("isochron-deadman-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&data);
-    let records = Arc::new(Records::open(&data).unwrap());
     let scenario = Scenario::default();
     let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
     let mut setup = LabSetup::simulated(scenario, 11);
     setup.operator_timeout_s = Some(TIMEOUT_S);
-    let (lab, sim) = start_lab(setup, Some(Arc::clone(&records)), LabOptions::default()).unwrap();
-    let web = data.join("web");
-    std::fs::create_dir_all(&web).unwrap();
-    let state = AppState::new(web)
-        .with_lab(Arc::clone(&lab))
-        .with_records(Arc::clone(&records));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let server = tokio::spawn(async move {
-        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
-    });
-    let deadline = Instant::now() + Duration::from_secs(30);
-    // Commanding, and the lab would take a trial (the camera delivering: a
-    // loaded machine's vision thread can take a while to start).
-    while lab
-        .latest()
-        .is_none_or(|(s, _)| s.fri.session != FriSessionState::CommandingActive || !s.ready.trial)
-    {
-        assert!(
-            Instant::now() < deadline,
-            "the lab does not take a trial: {:?}",
-            lab.latest().map(|(s, _)| (s.fri.session, s.ready))
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let served = ServedLab::start(setup, &data).await;
+    // Commanding, and the lab would take a trial.
+    served.until_ready().await;
+    let (addr, lab, records) = (
+        served.addr,
+        Arc::clone(&served.lab),
+        Arc::clone(&served.records),
+    );
     let mut events = lab.subscribe_events();
     let beat = || async {
         let r = http(addr, "POST", "/api/heartbeat", &[], b"")
@@ -182,8 +159,6 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
             "stopped {after:.4} s after the last heartbeat (dead-man {TIMEOUT_S} s + period {period_s} s)"
         );
     }
-    server.abort();
-    lab.shutdown();
-    drop(sim);
+    served.stop();
     let _ = std::fs::remove_dir_all(&data);
 }

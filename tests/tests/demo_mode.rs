@@ -385,6 +385,7 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
             auto_command: true,
             duration: None,
             normal_priority: false,
+            keep_commanding: false,
         },
     )
     .unwrap();

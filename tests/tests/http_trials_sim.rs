@@ -7,45 +7,23 @@ use std::{
     time::{Duration, Instant},
 };
 
-use isochron_tests::http;
-use rt_core::params::Scenario;
-use server::{AppState, LabOptions, Records, app, runtime::start_simulated};
+use isochron_tests::{ServedLab, http};
+use rt_core::{lab::LabSetup, params::Scenario};
+use server::Records;
 
 #[tokio::test]
 async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let records = Arc::new(Records::open(&data).unwrap());
-    let (lab, sim) = start_simulated(
-        Scenario::default(),
-        Some(Arc::clone(&records)),
-        LabOptions::default(),
-        7,
-    )
-    .unwrap();
-    let web = data.join("web");
-    std::fs::create_dir_all(&web).unwrap();
-    let state = AppState::new(web)
-        .with_lab(Arc::clone(&lab))
-        .with_records(Arc::clone(&records));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let server = tokio::spawn(async move {
-        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
-    });
-    let deadline = Instant::now() + Duration::from_secs(30);
+    let served = ServedLab::start(LabSetup::simulated(Scenario::default(), 7), &data).await;
     // The FRI session over loopback UDP reaches COMMANDING_ACTIVE and the lab
     // would take a trial (the camera delivering).
-    while lab.latest().is_none_or(|(s, _)| {
-        s.fri.session != rt_core::bridge::FriSessionState::CommandingActive || !s.ready.trial
-    }) {
-        assert!(
-            Instant::now() < deadline,
-            "the simulated lab's FRI session is not commanding: {:?}",
-            lab.latest().map(|(s, _)| s.fri)
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    served.until_ready().await;
+    let (addr, lab, records) = (
+        served.addr,
+        Arc::clone(&served.lab),
+        Arc::clone(&served.records),
+    );
     let st = http(addr, "GET", "/api/state", &[], b"")
         .await
         .unwrap()
@@ -95,9 +73,7 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
         Some(timing <= 20.0 && position <= 0.02 && rec.limit_violations == Some(0))
     );
     assert!(rec.samples > 300, "a few seconds at 200 Hz: {rec:?}");
-    server.abort();
-    lab.shutdown();
-    drop(sim);
+    served.stop();
 
     // The record and its recordings survive a restart.
     let records = Arc::new(Records::open(&data).unwrap());
@@ -109,38 +85,6 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     let mcap = server::records::csv_to_mcap(&records.recording_path(id)).unwrap();
     let n = mcap::MessageStream::new(&mcap).unwrap().count();
     assert_eq!(n as u64, rec.samples);
-}
-
-/// The simulated lab behind the service, as `isochron serve` runs it, with records.
-async fn simulated_service(
-    tmp: &std::path::Path,
-) -> (
-    std::net::SocketAddr,
-    Arc<server::Lab>,
-    Arc<Records>,
-    tokio::task::JoinHandle<()>,
-    impl Drop,
-) {
-    let data = tmp.join("data");
-    let records = Arc::new(Records::open(&data).unwrap());
-    let (lab, sim) = start_simulated(
-        Scenario::default(),
-        Some(Arc::clone(&records)),
-        LabOptions::default(),
-        11,
-    )
-    .unwrap();
-    let web = data.join("web");
-    std::fs::create_dir_all(&web).unwrap();
-    let state = AppState::new(web)
-        .with_lab(Arc::clone(&lab))
-        .with_records(Arc::clone(&records));
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    let server = tokio::spawn(async move {
-        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
-    });
-    (addr, lab, records, server, sim)
 }
 
 async fn json(
@@ -185,7 +129,12 @@ async fn until(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     let tmp = tempfile::tempdir().unwrap();
-    let (addr, _lab, records, server, _sim) = simulated_service(tmp.path()).await;
+    let served = ServedLab::start(
+        LabSetup::simulated(Scenario::default(), 11),
+        &tmp.path().join("data"),
+    )
+    .await;
+    let (addr, records) = (served.addr, Arc::clone(&served.records));
     until(addr, "/api/health", Duration::from_secs(30), |h| {
         h["ready"] == true
     })
@@ -321,5 +270,5 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     }
     let (code, _) = json(addr, "GET", "/api/runs/999", "").await;
     assert_eq!(code, 404);
-    server.abort();
+    served.stop();
 }

@@ -21,12 +21,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use futures_util::StreamExt;
-use isochron_tests::{http, isochron_bin};
+use isochron_tests::{TrialEnds, http, isochron_bin};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
-use tokio_tungstenite::tungstenite::Message;
 
 const TOKEN: &str = "lifecycle-token";
 
@@ -122,67 +120,6 @@ async fn wait_for(
     }
 }
 
-/// The WebSocket's trial ends (`trial_finished`, `aborted`): trial id -> count.
-struct Ends {
-    rx: tokio::sync::mpsc::Receiver<u64>,
-    seen: BTreeMap<u64, u32>,
-    _task: tokio::task::JoinHandle<()>,
-}
-
-impl Ends {
-    async fn connect(addr: SocketAddr) -> Self {
-        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
-            .await
-            .unwrap();
-        let (tx, rx) = tokio::sync::mpsc::channel(4096);
-        let task = tokio::spawn(async move {
-            let (_sink, mut stream) = ws.split();
-            while let Some(Ok(m)) = stream.next().await {
-                if let Message::Text(t) = m
-                    && let Ok(v) = serde_json::from_str::<Value>(&t)
-                    && v["type"] == "event"
-                    && matches!(
-                        v["event"]["kind"].as_str(),
-                        Some("aborted" | "trial_finished")
-                    )
-                    && let Some(id) = v["trial_id"].as_u64()
-                    && id != 0
-                {
-                    let _ = tx.send(id).await;
-                }
-            }
-        });
-        Self {
-            rx,
-            seen: BTreeMap::new(),
-            _task: task,
-        }
-    }
-
-    fn take(&mut self) {
-        while let Ok(id) = self.rx.try_recv() {
-            *self.seen.entry(id).or_default() += 1;
-        }
-    }
-
-    /// Waits until every id in `ids` has an end (at most `timeout`).
-    async fn wait_all(&mut self, ids: &[u64], timeout: Duration) {
-        let deadline = Instant::now() + timeout;
-        loop {
-            self.take();
-            if ids.iter().all(|i| self.seen.contains_key(i)) {
-                return;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "the WebSocket announced the ends of {:?} only, of {ids:?}",
-                self.seen
-            );
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    }
-}
-
 fn finished(r: &Value) -> bool {
     matches!(r["status"].as_str(), Some("done" | "aborted"))
 }
@@ -227,7 +164,7 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     let addr = svc.addr;
     let h = ready(addr, Duration::from_secs(30)).await;
     assert_eq!(h["not_ready"], Value::Null, "{h}");
-    let mut ends = Ends::connect(addr).await;
+    let mut ends = TrialEnds::connect(addr).await;
     let n: usize = std::env::var("ISOCHRON_POST_ON_DONE_TRIALS")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -270,7 +207,7 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     for r in list {
         assert_eq!(r["status"], "done", "{r}");
         let id = r["id"].as_u64().unwrap();
-        assert_eq!(ends.seen.get(&id), Some(&1), "one end event for trial {id}");
+        assert_eq!(ends.count(id), 1, "one end event for trial {id}");
     }
     assert!(
         on_done > 0,
@@ -324,7 +261,7 @@ async fn random_rest_sequences_lose_no_trial_record() {
     let svc = serve(&bin, &tmp.path().join("data"));
     let addr = svc.addr;
     ready(addr, Duration::from_secs(30)).await;
-    let mut ends = Ends::connect(addr).await;
+    let mut ends = TrialEnds::connect(addr).await;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let (mut accepted, mut refused, mut commands) = (Vec::new(), 0u32, 0u32);
     let mut codes: BTreeMap<String, u32> = BTreeMap::new();
@@ -419,14 +356,18 @@ async fn random_rest_sequences_lose_no_trial_record() {
             "limit violations: {r}"
         );
         assert_eq!(
-            ends.seen.get(&id),
-            Some(&1),
+            ends.count(id),
+            1,
             "one end event for trial {id}\n{}",
             log.join("; ")
         );
     }
-    ends.take();
-    let unknown: Vec<_> = ends.seen.keys().filter(|i| !want.contains(i)).collect();
+    // Ends of trials that were not accepted (an event without a trial id aside).
+    let unknown: Vec<u64> = ends
+        .ids()
+        .into_iter()
+        .filter(|i| *i != 0 && !want.contains(i))
+        .collect();
     assert!(
         unknown.is_empty(),
         "end events for unknown trials {unknown:?}"

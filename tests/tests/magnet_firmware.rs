@@ -204,9 +204,9 @@ fn connected(h: &MagnetHandle) {
     );
 }
 
+/// The `p`-quantile of a sorted, non-empty sample ([`rt_core::quantile`]).
 fn percentile(sorted: &[f64], p: f64) -> f64 {
-    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
-    sorted[i]
+    rt_core::quantile::quantile(sorted, p).expect("a sample")
 }
 
 #[test]

@@ -36,16 +36,14 @@ use std::{
     time::{Duration, Instant},
 };
 
-use futures_util::StreamExt;
-use isochron_tests::http;
 use isochron_tests::procs::{Proc, firmware, start};
+use isochron_tests::{TrialEnds, http};
 use rt_core::{
     params::Scenario,
     sim::camera::{BallState, SimCamera, SimCameraParams},
     vision::Recorder,
 };
 use serde_json::Value;
-use tokio_tungstenite::tungstenite::Message;
 
 fn free_udp_port() -> SocketAddr {
     UdpSocket::bind("127.0.0.1:0")
@@ -345,25 +343,7 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
         .unwrap();
 
     // The WebSocket: every trial's end is announced, an abort with its reason.
-    let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws"))
-        .await
-        .unwrap();
-    let (ev_tx, mut ev_rx) = tokio::sync::mpsc::channel::<Value>(1024);
-    let ws_task = tokio::spawn(async move {
-        let (_sink, mut stream) = ws.split();
-        while let Some(Ok(m)) = stream.next().await {
-            if let Message::Text(t) = m
-                && let Ok(v) = serde_json::from_str::<Value>(&t)
-                && v["type"] == "event"
-                && matches!(
-                    v["event"]["kind"].as_str(),
-                    Some("aborted" | "trial_finished")
-                )
-            {
-                let _ = ev_tx.send(v).await;
-            }
-        }
-    });
+    let mut ends = TrialEnds::connect(addr).await;
 
     // Before the cabinet sends anything: the lab publishes its state, the
     // link is down, and a trial is refused with a clear reason (no record).
@@ -568,19 +548,13 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
 
     // The WebSocket announced each trial's end; the list has every trial
     // finished, none left running.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
-    let mut ended = Vec::new();
-    while ended.len() < ids.len() {
-        match tokio::time::timeout_at(deadline, ev_rx.recv()).await {
-            Ok(Some(v)) => {
-                if v["event"]["kind"] == "aborted" {
-                    assert!(v["message"].is_string(), "{v}");
-                }
-                ended.push(v["trial_id"].as_u64().unwrap());
-            }
-            _ => panic!("the WebSocket announced only the ends of {ended:?}"),
+    ends.wait_all(&ids, Duration::from_secs(5)).await;
+    for v in ends.events() {
+        if v["event"]["kind"] == "aborted" {
+            assert!(v["message"].is_string(), "{v}");
         }
     }
+    let ended: Vec<u64> = ends.ids().into_iter().take(ids.len()).collect();
     assert_eq!(ended, ids);
     let list = get(addr, "/api/trials?limit=1000").await;
     let list = list.as_array().unwrap();
@@ -609,7 +583,7 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
     );
     assert!(serve.alive(), "isochron serve died");
     drop(board);
-    ws_task.abort();
+    drop(ends);
     drop(serve);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -27,21 +27,11 @@ pub struct Moments {
     pub max: f64,
 }
 
-/// The `q`-quantile (`q` in `[0, 1]`) of an ascending-sorted sample, linearly
-/// interpolated between closest ranks; 0 for an empty sample.
+/// The `q`-quantile (`q` in `[0, 1]`) of an ascending-sorted sample by the one
+/// rule of [`crate::quantile`] (numpy's default: linear between the closest
+/// ranks); 0 for an empty sample (the summaries' JSON has no NaN).
 pub fn quantile_sorted(sorted: &[f64], q: f64) -> f64 {
-    match sorted.len() {
-        0 => 0.0,
-        1 => sorted[0],
-        n => {
-            let pos = q.clamp(0.0, 1.0) * (n - 1) as f64;
-            // pos is in [0, n-1]; floor is a valid index.
-            let lo = pos.floor() as usize;
-            let hi = (lo + 1).min(n - 1);
-            let frac = pos - lo as f64;
-            sorted[lo] + (sorted[hi] - sorted[lo]) * frac
-        }
-    }
+    crate::quantile::quantile(sorted, q).unwrap_or(0.0)
 }
 
 /// Sorts finite values of `values` ascending (non-finite ones are dropped).

@@ -30,10 +30,10 @@ fn gauss(rng: &mut ChaCha8Rng) -> f64 {
     (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
+/// The `q`-quantile of a non-empty sample ([`crate::quantile`], numpy's default rule); sorts it.
 fn percentile(v: &mut [f64], q: f64) -> f64 {
-    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    let i = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1;
-    v[i]
+    v.sort_by(f64::total_cmp);
+    crate::quantile::quantile(v, q).expect("a sample")
 }
 
 /// The camera: frames at `fps` from a random phase, Gaussian lateral noise, dropped

@@ -456,12 +456,9 @@ pub fn run(params: &DoctorParams) -> io::Result<DoctorReport> {
     Ok(report)
 }
 
+/// [`crate::quantile::quantile`] of a sorted sample, NaN when it is empty.
 fn quantile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
+    crate::quantile::quantile(sorted, q).unwrap_or(f64::NAN)
 }
 
 fn no_datagram_hints(params: &DoctorParams, listen: SocketAddr) -> Vec<String> {

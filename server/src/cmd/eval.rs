@@ -282,13 +282,7 @@ pub fn write_report(
             .filter(|x| x.is_finite())
             .collect();
         te.sort_by(f64::total_cmp);
-        let q = |p: f64| {
-            if te.is_empty() {
-                f64::NAN
-            } else {
-                te[((te.len() - 1) as f64 * p).round() as usize]
-            }
-        };
+        let q = |p: f64| rt_core::quantile::quantile(&te, p).unwrap_or(f64::NAN);
         let mt: Vec<f64> = trials
             .iter()
             .map(|v| field(v, "movement_time_s"))
@@ -371,9 +365,12 @@ pub fn write_report(
                 .count();
             let ci = wilson_ci95(ok, n);
             Bar {
-                label: format!("{}s {:.2}-{:.2}", c.movement_time_s, c.band_m.0, c.band_m.1),
-                value: ok as f64 / n.max(1) as f64,
-                interval: Some((ci[0], ci[1])),
+                label: format!(
+                    "{} s\n{:.2}-{:.2}",
+                    c.movement_time_s, c.band_m.0, c.band_m.1
+                ),
+                value: 100.0 * ok as f64 / n.max(1) as f64,
+                interval: Some((100.0 * ci[0], 100.0 * ci[1])),
                 note: format!("{ok}/{n}"),
             }
         })
@@ -382,10 +379,10 @@ pub fn write_report(
         "success_by_distance.svg",
         plot::bar_chart(
             "Success rate with 95% CI by movement time and distance band",
-            "movement time, distance band (m)",
-            "precisely timed",
+            "movement time (s), distance band (m)",
+            "precisely timed (% of trials)",
             &bars,
-            (0.0, 1.0),
+            (0.0, 100.0),
         )?,
         "Success rate (Wilson 95% interval) per cell; the paper reached 93% at 0.70 m in 1.5 s.",
     ));
@@ -396,7 +393,12 @@ pub fn write_report(
         .collect();
     figs.push((
         "timing_error_histogram.svg",
-        plot::histogram("Timing error |arrival - t*|", "ms", &all_te, 30)?,
+        plot::histogram(
+            "Timing error |arrival - t*|",
+            "|timing error| (ms)",
+            &all_te,
+            30,
+        )?,
         "Timing error of every judged trial.",
     ));
     let series: Vec<Series> = times

@@ -283,12 +283,10 @@ fn judge_cell(r: &RealityRow) -> &'static str {
     }
 }
 
+/// The report's quantile ([`rt_core::quantile`], numpy's default rule) of a
+/// sorted sample, NaN ("–") when it is empty.
 fn quantile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        f64::NAN
-    } else {
-        sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-    }
+    rt_core::quantile::quantile(sorted, p).unwrap_or(f64::NAN)
 }
 
 /// One table line: trials, successes, rate, CI, |error| p50/p95, signed mean,
@@ -414,7 +412,7 @@ pub fn write_reality(
         dir.join(name),
         plot::histogram(
             "Reality lab: signed timing error arrival - t* (negative: early)",
-            "ms",
+            "signed timing error (ms)",
             &signed,
             30,
         )?,
