@@ -332,18 +332,38 @@ async fn foxglove_live_and_the_trials_mcap_carry_every_channel_with_its_schema()
         "only {matched} ticks matched between /tf and /joint_states"
     );
 
-    // 2. A trial recorded live as MCAP.
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let id = r.json().unwrap()["id"].as_u64().unwrap();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let rec = loop {
-        let rec = records.get(id).unwrap().unwrap();
-        if rec.status != "running" {
-            break rec;
+    // 2. A trial recorded live as MCAP. A machine too busy to answer the
+    // simulated controller in time grades the link poor and the controller
+    // leaves commanding, as KUKA's does: the lab aborts that trial as fri_lost
+    // (and asks to command again). That is not what this test is about, so such
+    // a trial is run again (at most 4 tries), saying so.
+    let mut tries = 0;
+    let (id, rec) = loop {
+        tries += 1;
+        let ready_by = Instant::now() + Duration::from_secs(30);
+        let r = loop {
+            let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+            if r.status != 409 || Instant::now() > ready_by {
+                break r;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        };
+        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+        let id = r.json().unwrap()["id"].as_u64().unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let rec = loop {
+            let rec = records.get(id).unwrap().unwrap();
+            if rec.status != "running" {
+                break rec;
+            }
+            assert!(Instant::now() < deadline, "trial {id} did not end");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        };
+        if rec.abort_reason.as_deref() == Some("fri_lost") && tries < 4 {
+            println!("trial {id} aborted as fri_lost (a busy machine), again: {rec:?}");
+            continue;
         }
-        assert!(Instant::now() < deadline, "trial {id} did not end");
-        tokio::time::sleep(Duration::from_millis(20)).await;
+        break (id, rec);
     };
     drop(ws);
     println!("trial: {rec:?}");
