@@ -186,6 +186,26 @@ pub struct Lab {
     shutdown: Arc<AtomicBool>,
     thread: Mutex<Option<JoinHandle<()>>>,
     foxglove: Arc<foxglove::Context>,
+    devices: std::sync::OnceLock<Devices>,
+}
+
+/// The lab's devices as the service reads them for people (off the real-time
+/// path): why a camera or a magnet board does not deliver.
+#[derive(Debug)]
+pub struct Devices {
+    /// The vision thread's counters (its camera's problem).
+    pub vision: Option<Arc<rt_core::vision::VisionStats>>,
+    /// The magnet driver.
+    pub magnet: Option<rt_core::magnet::MagnetHandle>,
+}
+
+/// One device that keeps the lab from running trials, and why.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+pub struct DeviceProblem {
+    /// `robot`, `camera` or `magnet`.
+    pub device: &'static str,
+    /// What is wrong, naming the device (its address, stream or port).
+    pub message: String,
 }
 
 /// What the bridge thread owns.
@@ -244,6 +264,7 @@ impl Lab {
             shutdown: Arc::new(AtomicBool::new(false)),
             thread: Mutex::new(None),
             foxglove: Arc::clone(fox.context()),
+            devices: std::sync::OnceLock::new(),
         });
         let pump = Pump {
             lab: Arc::clone(&lab),
@@ -264,6 +285,61 @@ impl Lab {
             *t = Some(handle);
         }
         Ok(lab)
+    }
+
+    /// Tells the lab where to read its devices' problems (once; later calls
+    /// change nothing).
+    pub fn set_devices(&self, devices: Devices) {
+        let _ = self.devices.set(devices);
+    }
+
+    /// The devices that keep the lab from running trials now, each with why
+    /// (empty when every device delivers): the robot when its FRI session
+    /// is not commanding, the camera when it delivers no frames, the magnet
+    /// when its board does not answer.
+    pub fn device_problems(&self) -> Vec<DeviceProblem> {
+        use rt_core::bridge::FriSessionState as S;
+        let mut out = Vec::new();
+        if let Some((s, _)) = self.latest() {
+            let why = match s.fri.session {
+                S::CommandingActive => None,
+                S::Disconnected => Some("no message from the robot's controller (FRI)"),
+                S::Idle => Some("the robot's FRI session ended (IDLE)"),
+                S::MonitoringWait => {
+                    Some("the robot's FRI session is MONITORING_WAIT (connection quality too low)")
+                }
+                S::MonitoringReady => Some(
+                    "the robot's FRI session is MONITORING_READY: its application has not \
+                     started commanding",
+                ),
+                S::CommandingWait => Some("the robot's FRI session is COMMANDING_WAIT"),
+            };
+            if let Some(why) = why {
+                out.push(DeviceProblem {
+                    device: "robot",
+                    message: why.to_owned(),
+                });
+            }
+        }
+        if let Some(d) = self.devices.get() {
+            if let Some(p) = d.vision.as_ref().and_then(|v| v.problem()) {
+                out.push(DeviceProblem {
+                    device: "camera",
+                    message: format!("the camera delivers no frames: {p}"),
+                });
+            }
+            if let Some(p) = d
+                .magnet
+                .as_ref()
+                .and_then(rt_core::magnet::MagnetHandle::problem)
+            {
+                out.push(DeviceProblem {
+                    device: "magnet",
+                    message: p,
+                });
+            }
+        }
+        out
     }
 
     /// Stops the bridge thread (it finishes any open recording) and waits for it.

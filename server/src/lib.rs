@@ -189,6 +189,9 @@ pub struct Health {
     pub ready: bool,
     /// Why not (null when `ready`): what a script waits on instead of retrying 409s.
     pub not_ready: Option<NotReady>,
+    /// The devices that keep the lab from running trials now, each naming
+    /// what is wrong (empty when every device delivers, or without a lab).
+    pub devices: Vec<crate::lab::DeviceProblem>,
 }
 
 /// Why the lab would not take a trial now.
@@ -222,7 +225,15 @@ pub(crate) fn not_ready(state: &AppState) -> Option<NotReady> {
     };
     snapshot.ready.reason.map(|r| NotReady {
         reason: r.as_str(),
-        message: r.message().to_owned(),
+        // "A device is not available": say which and why.
+        message: match lab
+            .device_problems()
+            .into_iter()
+            .find(|p| p.device != "robot")
+        {
+            Some(p) if r == rt_core::bridge::Refusal::DeviceUnavailable => p.message,
+            _ => r.message().to_owned(),
+        },
     })
 }
 
@@ -244,6 +255,11 @@ pub async fn health(State(state): State<Arc<AppState>>) -> Json<Health> {
         token_required: state.token.is_some(),
         ready: not_ready.is_none(),
         not_ready,
+        devices: state
+            .lab
+            .as_ref()
+            .map(|l| l.device_problems())
+            .unwrap_or_default(),
     })
 }
 

@@ -29,6 +29,10 @@ pub fn start_lab(
     let (frame_tx, frame_rx) = bridge::frame_channel(FRAME_RING, Arc::clone(&end.stats));
     let runtime = LabRuntime::start(setup, control, Some(frame_tx))?;
     let lab = crate::Lab::start(end, Some(frame_rx), scenario, records, options)?;
+    lab.set_devices(crate::lab::Devices {
+        vision: runtime.vision_stats().cloned(),
+        magnet: Some(runtime.magnet().clone()),
+    });
     Ok((lab, runtime))
 }
 

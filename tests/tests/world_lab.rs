@@ -500,3 +500,90 @@ fn a_world_file_with_an_unknown_key_is_refused_and_nothing_is_written() {
     assert!(err.contains("string_colour"), "{err}");
     assert!(!lab.exists(), "no lab configuration for a refused world");
 }
+
+/// A lab configuration pointing at nothing (no controller at its address, a
+/// camera URL where nothing listens, a serial port that does not exist): the
+/// service starts and answers, `/api/health` names each device and why, a
+/// trial is refused with the reason, and no trial is recorded.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lab_config_pointing_at_nothing_names_each_device_and_starts_nothing() {
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--config")]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // Ports nobody listens on: bound, then let go.
+    let free_tcp = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let free_udp = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let tty = dir.path().join("no-such-tty");
+    let data = dir.path().join("data");
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+    let cfg = dir.path().join("lab.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[server]\nbind = \"127.0.0.1:0\"\ndata_dir = {data:?}\n\
+             [lab]\nmode = \"real\"\nallow_uncalibrated = true\nscenario = {scenario:?}\ndead_man = false\n\
+             [camera]\ndevice = \"http://{free_tcp}/stream.mjpg\"\n\
+             [fri]\nlocal_bind = \"127.0.0.1:0\"\ncontroller = \"{free_udp}\"\nperiod_ms = 5\n\
+             [magnet]\nport = {tty:?}\n",
+        ),
+    )
+    .unwrap();
+    let (_p, line) = start(
+        "isochron serve --config (pointing at nothing)",
+        Process::new(&bin).args(["serve", "--config"]).arg(&cfg),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr: SocketAddr = line
+        .split("http://")
+        .nth(1)
+        .and_then(|s| s.split(['/', ' ']).next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    // Each device is named with why, once each has been tried (the camera's
+    // first attempt and the magnet's take a moment).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let h = loop {
+        let h = get(addr, "/api/health").await;
+        let devices = h["devices"].as_array().cloned().unwrap_or_default();
+        let named = |d: &str| devices.iter().any(|p| p["device"] == d);
+        if (named("robot") && named("camera") && named("magnet")) || Instant::now() > deadline {
+            break h;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(h["status"], "ok", "{h}");
+    assert_eq!(h["ready"], false, "{h}");
+    let message = |d: &str| {
+        h["devices"]
+            .as_array()
+            .and_then(|a| a.iter().find(|p| p["device"] == d))
+            .and_then(|p| p["message"].as_str())
+            .unwrap_or_else(|| panic!("no {d} in {h}"))
+            .to_owned()
+    };
+    assert!(message("robot").contains("no message"), "{h}");
+    let camera = message("camera");
+    assert!(
+        camera.contains(&format!("http://{free_tcp}/stream.mjpg"))
+            && camera.contains("nothing answers"),
+        "{camera}"
+    );
+    let magnet = message("magnet");
+    assert!(
+        magnet.contains(&*tty.to_string_lossy()) && magnet.contains("No such file"),
+        "{magnet}"
+    );
+    // A trial is refused with the reason; nothing is recorded.
+    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().unwrap()["reason"], "robot_not_commanding");
+    assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
+}

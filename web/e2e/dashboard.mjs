@@ -246,6 +246,27 @@ try {
     await page.waitForSelector(mark, { state: "detached", timeout: 5_000 });
     await page.fill("#param-filter", "");
   });
+  await check("operator: the Controls panel lists the devices that keep the lab from trials, and none when all deliver", async () => {
+    // The simulated lab's devices all deliver once it commands: no list.
+    await page.waitForFunction(() => document.querySelector("#devices")?.hidden === true, null, { timeout: 20_000 });
+    // A lab whose camera and magnet do not answer (the health answer as a
+    // real lab pointing at nothing gives it): each named with why.
+    const problems = [
+      { device: "camera", message: "the camera delivers no frames: cannot open http://10.0.0.9/mjpg: nothing answers" },
+      { device: "magnet", message: "the magnet's board on /dev/ttyACM0 does not answer: No such file or directory" },
+    ];
+    await page.route("**/api/health", async (route) => {
+      const real = await route.fetch();
+      const body = { ...(await real.json()), ready: false, devices: problems };
+      await route.fulfill({ response: real, json: body });
+    });
+    await page.waitForFunction(() => document.querySelectorAll("#devices li").length === 2, null, { timeout: 10_000 });
+    const items = await page.$$eval("#devices li", (lis) => lis.map((li) => [li.dataset.device, li.textContent]));
+    assert(items[0][0] === "camera" && /nothing answers/.test(items[0][1]), JSON.stringify(items));
+    assert(items[1][0] === "magnet" && /ttyACM0/.test(items[1][1]), JSON.stringify(items));
+    await page.unroute("**/api/health");
+    await page.waitForFunction(() => document.querySelector("#devices")?.hidden === true, null, { timeout: 10_000 });
+  });
   let rowsBefore = 0;
   await check("operator: Run trial releases the ball", async () => {
     rowsBefore = await page.locator("#trials tbody tr").count();

@@ -2,6 +2,15 @@ import { ApiError, call, getToken, setToken } from "./api";
 
 type Notify = (text: string, kind?: "info" | "error") => void;
 
+/** How often the page asks which devices keep the lab from running trials, ms. */
+const DEVICES_MS = 2000;
+
+/** A device that keeps the lab from running trials (`/api/health`'s `devices`). */
+interface DeviceProblem {
+  device: string;
+  message: string;
+}
+
 /** How often the page sends its operator heartbeat, ms (well inside the dead-man time). */
 const HEARTBEAT_MS = 200;
 
@@ -44,6 +53,15 @@ export class Controls {
       }
     });
     this.refresh();
+    // The devices that keep the lab from running trials, each with why
+    // (`/api/health`'s `devices`: the robot's FRI session, a camera that
+    // delivers nothing, a magnet board that does not answer).
+    const pollDevices = () =>
+      call("GET", "/api/health")
+        .then((h) => this.showDevices((h as { devices?: DeviceProblem[] }).devices ?? []))
+        .catch(() => undefined);
+    void pollDevices();
+    window.setInterval(() => void pollDevices(), DEVICES_MS);
     // The operator dead-man: while this page can command, it tells the lab an
     // operator is watching (the lab stops a running motion when no operator's
     // heartbeat came within its dead-man time, 1 s by default in the real lab).
@@ -56,6 +74,23 @@ export class Controls {
         .catch(() => undefined)
         .finally(() => (inFlight = false));
     }, HEARTBEAT_MS);
+  }
+
+  /** Lists the devices' problems (hidden when there are none). */
+  showDevices(problems: DeviceProblem[]): void {
+    const list = document.getElementById("devices");
+    if (!list) return;
+    list.replaceChildren(
+      ...problems.map((p) => {
+        const li = document.createElement("li");
+        li.dataset.device = p.device;
+        const name = document.createElement("strong");
+        name.textContent = `${p.device}: `;
+        li.append(name, p.message);
+        return li;
+      }),
+    );
+    list.hidden = problems.length === 0;
   }
 
   /** True when commands may be sent (a token is set, or the server needs none). */

@@ -487,7 +487,9 @@ impl LabStep {
     fn magnet_lost(&self) -> bool {
         #[cfg(feature = "serial")]
         if let Some(v) = self.p.magnet.as_ref().and_then(MagnetHandle::try_view) {
-            return v.link == view::LinkState::Lost;
+            // Lost, or never connected (a port where no board answers): a
+            // trial would arm a magnet nobody hears.
+            return v.link != view::LinkState::Connected;
         }
         false
     }

@@ -228,18 +228,26 @@ fn run(
                 // REOPEN_EVERY_S; the control thread sees no frames (a
                 // running trial aborts as camera_lost, new ones are refused).
                 stats.lost.store(true, Ordering::Relaxed);
+                stats.set_problem(Some(match ended {
+                    Err(e) => e.to_string(),
+                    Ok(_) => "the camera's stream ended".to_owned(),
+                }));
                 loop {
                     if stop.load(Ordering::Relaxed) {
                         return Ok(());
                     }
                     std::thread::sleep(std::time::Duration::from_secs_f64(REOPEN_EVERY_S));
-                    if let Ok(source) = open(clock) {
-                        parts.source = source;
-                        break;
+                    match open(clock) {
+                        Ok(source) => {
+                            parts.source = source;
+                            break;
+                        }
+                        Err(e) => stats.set_problem(Some(e.to_string())),
                     }
                 }
                 stats.reopened.fetch_add(1, Ordering::Relaxed);
                 stats.lost.store(false, Ordering::Relaxed);
+                stats.set_problem(None);
                 // A fresh detector: the old track is stale.
                 pipeline = VisionPipeline::new(parts.detector.clone(), *pipeline.calibration())?;
                 continue;

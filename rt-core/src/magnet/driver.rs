@@ -107,6 +107,9 @@ impl Pending {
 
 struct Shared {
     view: ViewCell,
+    /// Why the link last failed (cleared on connecting), for people: read
+    /// off the real-time path ([`MagnetHandle::problem`]).
+    last_error: std::sync::Mutex<Option<String>>,
     stop: AtomicBool,
     tx: SyncSender<Inbox>,
     thread: std::sync::Mutex<Option<JoinHandle<()>>>,
@@ -161,6 +164,7 @@ impl MagnetHandle {
         let port: Arc<str> = Arc::from(params.port.as_str());
         let shared = Arc::new(Shared {
             view: ViewCell::new(&MagnetView::default()),
+            last_error: std::sync::Mutex::new(None),
             stop: AtomicBool::new(false),
             tx: tx.clone(),
             thread: std::sync::Mutex::new(None),
@@ -268,6 +272,28 @@ impl MagnetHandle {
     /// The configured port path.
     pub fn port(&self) -> &str {
         &self.port
+    }
+
+    /// What keeps the board from answering, as a sentence naming the port
+    /// (`None` while it is connected): why the last connection attempt or
+    /// the link failed, or that it is still connecting. Locks briefly: not
+    /// for the control thread.
+    pub fn problem(&self) -> Option<String> {
+        let v = self.try_view()?;
+        if v.link == LinkState::Connected {
+            return None;
+        }
+        let why = self
+            .shared
+            .last_error
+            .lock()
+            .ok()
+            .and_then(|e| e.clone())
+            .unwrap_or_else(|| "connecting".to_owned());
+        Some(format!(
+            "the magnet's board on {} does not answer: {why}",
+            self.port
+        ))
     }
 
     /// Waits until `pred` holds for the view (polling every millisecond) or
@@ -418,7 +444,7 @@ impl Worker {
     fn lost(&mut self, reason: &str) -> MagnetError {
         self.conn = None;
         self.need_config = false;
-        self.last_error = Some(reason.to_owned());
+        self.set_last_error(Some(reason));
         self.next_connect = Instant::now() + ms(self.params.reconnect_interval_ms);
         let was = self.view.link;
         self.view.link = LinkState::Lost;
@@ -523,6 +549,7 @@ impl Worker {
                 // Connected means configured and the state known.
                 self.configure();
                 if self.conn.is_some() {
+                    self.set_last_error(None);
                     self.view.link = LinkState::Connected;
                     self.view.connects += 1;
                     self.event(Instant::now(), EventKind::Connected);
@@ -563,7 +590,16 @@ impl Worker {
                 _ => {}
             }
         }
-        self.last_error = Some(reason.to_owned());
+        self.set_last_error(Some(reason));
+    }
+
+    fn set_last_error(&mut self, reason: Option<&str>) {
+        self.last_error = reason.map(str::to_owned);
+        if let Some(s) = self.shared.upgrade()
+            && let Ok(mut e) = s.last_error.lock()
+        {
+            e.clone_from(&self.last_error);
+        }
     }
 
     fn stop_soon(&self) {

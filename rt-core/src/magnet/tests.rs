@@ -459,8 +459,12 @@ fn unplugging_fails_at_once_and_replugging_reconnects() {
         }
         other => panic!("expected NotConnected, got {other:?}"),
     }
+    // Said for people, naming the port, while unplugged; nothing once back.
+    let problem = h.problem().expect("a problem while unplugged");
+    assert!(problem.contains(&*path.to_string_lossy()), "{problem}");
     fake.replug().unwrap();
     let v = connected(&h);
+    assert_eq!(h.problem(), None);
     assert_eq!(v.connects, 2);
     assert!(h.set_magnet(true).unwrap().magnet_on);
     assert!(fake.magnet_on());
@@ -544,4 +548,17 @@ fn a_missing_device_is_a_clear_error() {
     assert!(matches!(e, MagnetError::NotConnected { .. }), "{e}");
     assert!(text.contains(&*path.to_string_lossy()), "{text}");
     assert_eq!(h.view().magnet, MagnetState::Unknown);
+    // The problem names the port and why (no such file), once tried.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let problem = loop {
+        let p = h.problem().expect("never connected: a problem");
+        if p.contains("No such file") || Instant::now() > deadline {
+            break p;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert!(
+        problem.contains(&*path.to_string_lossy()) && problem.contains("No such file"),
+        "{problem}"
+    );
 }

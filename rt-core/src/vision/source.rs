@@ -175,6 +175,59 @@ pub fn is_stream_url(device: &str) -> bool {
     })
 }
 
+/// The `host:port` a stream URL connects to (`http` 80, `https` 443, `rtsp`
+/// 554 when the URL names none); `None` when the URL names no host.
+pub fn stream_authority(url: &str) -> Option<(String, u16)> {
+    let (scheme, rest) = url.split_once("://")?;
+    let default = match scheme.to_ascii_lowercase().as_str() {
+        "http" => 80,
+        "https" => 443,
+        "rtsp" => 554,
+        _ => return None,
+    };
+    let authority = rest.split(['/', '?', '#']).next()?;
+    let host_port = authority.rsplit_once('@').map_or(authority, |(_, h)| h);
+    let (host, port) = if let Some(v6) = host_port.strip_prefix('[') {
+        let (host, after) = v6.split_once(']')?;
+        (host, after.strip_prefix(':'))
+    } else {
+        match host_port.rsplit_once(':') {
+            Some((h, p)) => (h, Some(p)),
+            None => (host_port, None),
+        }
+    };
+    if host.is_empty() {
+        return None;
+    }
+    let port = match port {
+        Some(p) => p.parse().ok()?,
+        None => default,
+    };
+    Some((host.to_owned(), port))
+}
+
+/// Whether something accepts a TCP connection at the stream URL's host and
+/// port within `timeout`: the clear reason when not (FFmpeg would only log
+/// its own lines, once per attempt, on the service's standard error).
+fn probe_stream(url: &str, timeout: std::time::Duration) -> Result<(), String> {
+    use std::net::{TcpStream, ToSocketAddrs};
+    let Some((host, port)) = stream_authority(url) else {
+        return Err("the URL names no host".into());
+    };
+    let addrs: Vec<_> = (host.as_str(), port)
+        .to_socket_addrs()
+        .map_err(|e| format!("cannot resolve {host}: {e}"))?
+        .collect();
+    let mut last = format!("{host} resolves to no address");
+    for a in addrs {
+        match TcpStream::connect_timeout(&a, timeout) {
+            Ok(_) => return Ok(()),
+            Err(e) => last = format!("nothing answers at {a}: {e}"),
+        }
+    }
+    Err(last)
+}
+
 /// How long opening a network camera stream may take, and reading one frame
 /// from it, before it counts as not answering, ms.
 pub const STREAM_TIMEOUT_MS: i32 = 3000;
@@ -215,6 +268,11 @@ impl StreamSource {
                 "not a stream URL (http://, https:// or rtsp://)".into(),
             ));
         }
+        probe_stream(
+            url,
+            std::time::Duration::from_millis(STREAM_TIMEOUT_MS as u64),
+        )
+        .map_err(open_err)?;
         let params = opencv::core::Vector::<i32>::from_slice(&[
             videoio::CAP_PROP_OPEN_TIMEOUT_MSEC,
             STREAM_TIMEOUT_MS,
@@ -455,5 +513,51 @@ impl Recorder {
     pub fn finish(mut self) -> Result<u64, VisionError> {
         self.writer.release()?;
         Ok(self.frames)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stream_urls_host_and_port_are_read_with_the_schemes_defaults() {
+        let a = |u: &str| stream_authority(u);
+        assert_eq!(a("http://cam.lab/stream"), Some(("cam.lab".into(), 80)));
+        assert_eq!(
+            a("HTTPS://cam.lab:8443/x?y"),
+            Some(("cam.lab".into(), 8443))
+        );
+        assert_eq!(
+            a("rtsp://user:pw@10.0.0.7/live"),
+            Some(("10.0.0.7".into(), 554))
+        );
+        assert_eq!(a("http://[::1]:8081/mjpg"), Some(("::1".into(), 8081)));
+        assert_eq!(a("http://127.0.0.1:9"), Some(("127.0.0.1".into(), 9)));
+        assert_eq!(a("http:///stream"), None);
+        assert_eq!(a("http://cam:port/"), None);
+        assert_eq!(a("/dev/video0"), None);
+    }
+
+    #[test]
+    fn a_stream_url_where_nothing_listens_is_refused_naming_the_address() {
+        // A port nobody listens on: bound, then let go.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let url = format!("http://127.0.0.1:{port}/stream.mjpg");
+        let clock = Clock::new(std::time::Instant::now());
+        let e = StreamSource::open(&url, &CameraParams::default(), clock).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            msg.contains(&url) && msg.contains(&format!("nothing answers at 127.0.0.1:{port}")),
+            "{msg}"
+        );
+        // A listener that answers passes the probe (OpenCV then finds no stream).
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}/x", l.local_addr().unwrap());
+        assert!(probe_stream(&url, std::time::Duration::from_secs(3)).is_ok());
     }
 }

@@ -69,4 +69,22 @@ pub struct VisionStats {
     pub lost: std::sync::atomic::AtomicBool,
     /// Times the camera was opened again after it stopped.
     pub reopened: AtomicU64,
+    /// Why the camera delivers nothing (its latest failure to open or read,
+    /// naming the device), `None` while it delivers: for people, read off
+    /// the real-time path.
+    pub problem: std::sync::Mutex<Option<String>>,
+}
+
+impl VisionStats {
+    /// Why the camera delivers nothing (`None` while it delivers).
+    pub fn problem(&self) -> Option<String> {
+        self.problem.lock().ok().and_then(|p| p.clone())
+    }
+
+    /// Sets (or with `None` clears) why the camera delivers nothing.
+    pub fn set_problem(&self, problem: Option<String>) {
+        if let Ok(mut p) = self.problem.lock() {
+            *p = problem;
+        }
+    }
 }
