@@ -689,13 +689,25 @@ pub async fn start_calibration(
     })?;
     tokio::spawn(async move {
         let scenario = lab.params();
-        let world = rt_core::calibration::simworld::HiddenWorld::truthful(&scenario);
-        let worker = Arc::clone(&desk);
-        let beliefs =
+        let beliefs = if desk.real_lab() {
+            // Through the lab's own camera and magnet (`claim` let only the
+            // steps whose real-lab procedure is built through).
+            crate::calibration::run_real_pendulum(
+                &lab,
+                &desk,
+                id,
+                &scenario,
+                crate::calibration::REAL_SWING_RECORD_S,
+            )
+            .await
+        } else {
+            let world = rt_core::calibration::simworld::HiddenWorld::truthful(&scenario);
+            let worker = Arc::clone(&desk);
             tokio::task::spawn_blocking(move || worker.run(id, step, &scenario, &world, opts))
                 .await
                 .ok()
-                .flatten();
+                .flatten()
+        };
         if let Some(beliefs) = beliefs {
             let _guard = lab.params_update.lock().await;
             let busy = lab.latest().is_some_and(|(s, _)| s.trial_state.busy());

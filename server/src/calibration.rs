@@ -57,6 +57,23 @@ impl Step {
         }
     }
 
+    /// The prerequisites where the steps run: on a real lab the pendulum step
+    /// needs no camera step (whose real-lab procedure is not built): the
+    /// configuration's focal length and principal point stand in for it.
+    pub fn prerequisites_on(self, real_lab: bool) -> &'static [Self] {
+        if real_lab && self == Self::Pendulum {
+            &[]
+        } else {
+            self.prerequisites()
+        }
+    }
+
+    /// Whether the step's real-lab procedure is built (through the lab's own
+    /// camera, magnet and robot): the pendulum's free swing.
+    pub fn real_lab_procedure(self) -> bool {
+        matches!(self, Self::Pendulum)
+    }
+
     /// Whether the calibration file holds this step's result.
     pub fn done_in(self, file: &CalibrationFile) -> bool {
         match self {
@@ -191,6 +208,26 @@ impl StepOutcome {
     pub fn record_into(self, file: &mut CalibrationFile, stamp: Stamp) {
         (self.write)(file, stamp);
     }
+}
+
+/// The pendulum step's outcome from a free swing recorded on the real lab:
+/// no truth to compare with (`truth` and `error` null).
+pub fn real_pendulum_outcome(
+    track: &[rt_core::calibration::swing::TrackedSwingSample],
+    scenario: &Scenario,
+) -> anyhow::Result<StepOutcome> {
+    let p = &scenario.pendulum;
+    let c = rt_core::calibration::swing::pendulum_from_swing(track, p.gravity_mps2, p.length_m)
+        .context("calibrate pendulum")?;
+    Ok(StepOutcome {
+        result: serde_json::to_value(&c)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: ("length_m", c.swing.length_m, f64::NAN, TARGET_LENGTH_M),
+        write: Box::new(move |file, stamp| {
+            file.pendulum = Some(step_record(stamp, c));
+        }),
+    })
 }
 
 /// Runs one step's procedure on the simulated world `world` (session `seed`);
@@ -584,6 +621,11 @@ impl CalibrationDesk {
         }
     }
 
+    /// Whether the steps run on a real lab (else on the simulated world).
+    pub fn real_lab(&self) -> bool {
+        self.real_lab
+    }
+
     /// The calibration file.
     pub fn path(&self) -> &std::path::Path {
         &self.path
@@ -607,9 +649,13 @@ impl CalibrationDesk {
             .map(|&s| StepStatus {
                 name: s.name().into(),
                 title: s.title().into(),
-                prerequisites: s.prerequisites().iter().map(|p| p.name().into()).collect(),
+                prerequisites: s
+                    .prerequisites_on(self.real_lab)
+                    .iter()
+                    .map(|p| p.name().into())
+                    .collect(),
                 missing: s
-                    .prerequisites()
+                    .prerequisites_on(self.real_lab)
                     .iter()
                     .filter(|p| !p.done_in(&file))
                     .map(|p| p.name().into())
@@ -634,17 +680,17 @@ impl CalibrationDesk {
     /// Claims the job for `step` if nothing runs, the prerequisites are in the
     /// file and the lab can run it; returns the job's number.
     pub fn claim(&self, step: Step) -> Result<u64, StartRefused> {
-        if self.real_lab {
+        if self.real_lab && !step.real_lab_procedure() {
             return Err(StartRefused::NotAvailable(format!(
-                "calibrate {}: the real-lab procedure of this step is not built yet; \
-                 the panel runs the steps on the simulated lab",
+                "calibrate {}: the real-lab procedure of this step is not built yet \
+                 (on a real lab: pendulum); the panel runs every step on the simulated lab",
                 step.name()
             )));
         }
         let file = CalibrationFile::load_or_empty(&self.path)
             .map_err(|e| StartRefused::NotAvailable(format!("the calibration file: {e}")))?;
         let missing: Vec<&str> = step
-            .prerequisites()
+            .prerequisites_on(self.real_lab)
             .iter()
             .filter(|p| !p.done_in(&file))
             .map(|p| p.name())
@@ -684,23 +730,45 @@ impl CalibrationDesk {
         world: &HiddenWorld,
         opts: StepOptions,
     ) -> Option<Scenario> {
+        let mut watch = |view: rt_core::calibration::StepView| self.progress(id, view);
+        let out = run_step(step, scenario, world, id, opts, &mut watch);
+        self.conclude(
+            id,
+            step,
+            scenario,
+            out,
+            "simulated world (the lab's own simulators)",
+        )
+    }
+
+    /// Shows what the running job `id` sees.
+    pub fn progress(&self, id: u64, view: rt_core::calibration::StepView) {
+        let mut job = lock(&self.job);
+        if job.id == id {
+            job.progress = view.progress.clamp(0.0, 1.0);
+            job.message.clone_from(&view.message);
+            job.view = Some(view);
+        }
+    }
+
+    /// Ends job `id` with the step's outcome measured on `source`: a result is
+    /// written into the file (atomically, validated against the scenario) and
+    /// the lab's beliefs with it are returned; on failure the file is
+    /// unchanged and the job says why.
+    pub fn conclude(
+        &self,
+        id: u64,
+        step: Step,
+        scenario: &Scenario,
+        outcome: anyhow::Result<StepOutcome>,
+        source: &str,
+    ) -> Option<Scenario> {
         let outcome = (|| -> anyhow::Result<(Scenario, serde_json::Value, Vec<Change>, bool)> {
+            let out = outcome?;
             let mut file = CalibrationFile::load_or_empty(&self.path)?;
             let before = step.record_in(&file);
-            let mut watch = |view: rt_core::calibration::StepView| {
-                let mut job = lock(&self.job);
-                if job.id == id {
-                    job.progress = view.progress.clamp(0.0, 1.0);
-                    job.message.clone_from(&view.message);
-                    job.view = Some(view);
-                }
-            };
-            let out = run_step(step, scenario, world, id, opts, &mut watch)?;
             let result = out.result.clone();
-            out.record_into(
-                &mut file,
-                stamp("simulated world (the lab's own simulators)"),
-            );
+            out.record_into(&mut file, stamp(source));
             let beliefs = file
                 .apply(scenario)
                 .with_context(|| format!("calibrate {}: the result", step.name()))?;
@@ -716,6 +784,10 @@ impl CalibrationDesk {
             Ok((beliefs, result, changes, first))
         })();
         let mut job = lock(&self.job);
+        if job.id != id {
+            // Not this job's to end (claimed jobs run one at a time).
+            return None;
+        }
         match outcome {
             Ok((beliefs, result, changes, first)) => {
                 job.state = "done".into();
@@ -740,4 +812,187 @@ impl CalibrationDesk {
             job.message = message;
         }
     }
+}
+
+/// How long the real lab's pendulum step records the free swing, seconds.
+pub const REAL_SWING_RECORD_S: f64 = 20.0;
+/// How long the real lab's pendulum step waits for the ball held on the magnet, seconds.
+pub const REAL_HOLD_WAIT_S: f64 = 60.0;
+/// Time given to hang the ball before a ball the camera does not see counts
+/// as held out of its view, seconds.
+pub const HANG_TIME_S: f64 = 5.0;
+/// No detection for this long (after [`HANG_TIME_S`]): the ball is held out
+/// of the camera's view, seconds.
+pub const HELD_UNSEEN_S: f64 = 3.0;
+
+/// The pendulum step on the real lab, through its own robot, camera and
+/// magnet (job `id`, claimed): the arm moves home, out of the swing (arm,
+/// then disarm: an operator's heartbeat must come meanwhile when the lab's
+/// dead-man is on), the magnet is switched on and the step waits (at most
+/// [`REAL_HOLD_WAIT_S`]) until the camera sees the ball held still at least
+/// 5 cm from the rest point (an operator hangs it there: the job's message
+/// says so), or, after [`HANG_TIME_S`], sees no ball for [`HELD_UNSEEN_S`]
+/// (held out of its view); then the magnet lets go and the free swing is recorded for
+/// `record_s` (the lab's detections: capture time, lateral on the believed
+/// plane, image centre) and fitted ([`real_pendulum_outcome`]). Refused,
+/// nothing written, when the camera or the magnet does not deliver, the ball
+/// is never seen held, or the fit refuses the swing.
+pub async fn run_real_pendulum(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+    record_s: f64,
+) -> Option<Scenario> {
+    use rt_core::bridge::Command;
+    use rt_core::calibration::{StepView, ViewKind, swing::TrackedSwingSample};
+    use std::time::{Duration, Instant};
+    let view = |progress: f64, message: String, track: &[TrackedSwingSample]| StepView {
+        progress,
+        message,
+        kind: ViewKind::Series,
+        points: rt_core::calibration::view::thin(
+            &track
+                .iter()
+                .map(|s| [s.t_s, s.lateral_m])
+                .collect::<Vec<_>>(),
+            400,
+        ),
+        fit: Vec::new(),
+    };
+    let outcome = async {
+        if let Some(p) = lab.device_problems().into_iter().find(|p| p.device != "robot") {
+            anyhow::bail!("calibrate pendulum: {}", p.message);
+        }
+        // 0. The arm out of the swing: armed (home, in the coming motion's
+        // posture, the magnet on), then disarmed where it stands.
+        desk.progress(
+            id,
+            view(
+                0.01,
+                "moving the arm home, out of the ball's swing (arm, then disarm)".into(),
+                &[],
+            ),
+        );
+        lab.command(Command::Arm).await.map_err(|e| {
+            anyhow::anyhow!("calibrate pendulum: the arm must move home first, out of the swing: {e}")
+        })?;
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            match lab.latest().map(|(s, _)| s.trial_state) {
+                Some(rt_core::bridge::TrialState::Armed) => break,
+                Some(rt_core::bridge::TrialState::Aborted) => anyhow::bail!(
+                    "calibrate pendulum: moving the arm home was stopped (GET /api/state's abort says why)"
+                ),
+                _ if Instant::now() > deadline => {
+                    anyhow::bail!("calibrate pendulum: the arm did not reach home within 60 s")
+                }
+                _ => tokio::time::sleep(Duration::from_millis(20)).await,
+            }
+        }
+        lab.command(Command::Disarm)
+            .await
+            .map_err(|e| anyhow::anyhow!("calibrate pendulum: disarm: {e}"))?;
+        // New detections: one sample per camera frame in which the ball was found.
+        let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
+        let mut next = move || -> Option<TrackedSwingSample> {
+            let (s, _) = lab.latest()?;
+            if s.camera.frame == last_frame {
+                return None;
+            }
+            last_frame = s.camera.frame;
+            let m = s.pendulum.measured;
+            (s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(TrackedSwingSample {
+                t_s: m.t_s,
+                lateral_m: m.x_m,
+                px: [s.camera.x_px, s.camera.y_px],
+            })
+        };
+        // 1. The ball held on the magnet, away from the rest point.
+        desk.progress(
+            id,
+            view(
+                0.02,
+                "magnet on: hang the ball on the magnet (at least 5 cm from where it hangs at rest); \
+                 the swing is recorded when it lets go"
+                    .into(),
+                &[],
+            ),
+        );
+        lab.command(Command::Magnet { on: true })
+            .await
+            .map_err(|e| anyhow::anyhow!("calibrate pendulum: the magnet: {e}"))?;
+        let on_at = Instant::now();
+        let deadline = on_at + Duration::from_secs_f64(REAL_HOLD_WAIT_S);
+        let mut last_seen = on_at;
+        let mut recent: std::collections::VecDeque<TrackedSwingSample> = Default::default();
+        loop {
+            // Held where the camera does not see it (a magnet at the view's
+            // edge): no detection for HELD_UNSEEN_S, at least HANG_TIME_S
+            // after the magnet went on. An empty magnet shows in the
+            // recording: no swing, refused.
+            let now = Instant::now();
+            if now.duration_since(on_at).as_secs_f64() >= HANG_TIME_S
+                && now.duration_since(last_seen).as_secs_f64() >= HELD_UNSEEN_S
+            {
+                break;
+            }
+            if let Some(s) = next() {
+                last_seen = Instant::now();
+                recent.push_back(s);
+                while recent.front().is_some_and(|f| s.t_s - f.t_s > 1.0) {
+                    recent.pop_front();
+                }
+                let (lo, hi) = recent.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r| {
+                    (a.min(r.lateral_m), b.max(r.lateral_m))
+                });
+                let span_s = recent.back().map_or(0.0, |b| b.t_s) - recent.front().map_or(0.0, |f| f.t_s);
+                if recent.len() >= 8
+                    && span_s >= 0.8
+                    && hi - lo < 0.003
+                    && lo.abs().min(hi.abs()) >= rt_core::calibration::swing::MIN_AMPLITUDE_M
+                {
+                    break;
+                }
+            }
+            if Instant::now() > deadline {
+                let _ = lab.command(Command::Magnet { on: false }).await;
+                anyhow::bail!(
+                    "calibrate pendulum: the ball moved in view for {REAL_HOLD_WAIT_S:.0} s and was \
+                     never held still on the magnet at least {:.0} cm from the rest point (is it hung \
+                     on the magnet, and the pendulum otherwise still?)",
+                    rt_core::calibration::swing::MIN_AMPLITUDE_M * 100.0
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(4)).await;
+        }
+        // 2. The free swing.
+        lab.command(Command::Magnet { on: false })
+            .await
+            .map_err(|e| anyhow::anyhow!("calibrate pendulum: the magnet: {e}"))?;
+        let start = Instant::now();
+        let mut track = Vec::new();
+        let mut shown = 0.0;
+        while start.elapsed().as_secs_f64() < record_s {
+            if let Some(s) = next() {
+                track.push(s);
+            }
+            let t = start.elapsed().as_secs_f64();
+            if t - shown >= 1.0 {
+                shown = t;
+                desk.progress(
+                    id,
+                    view(
+                        0.05 + 0.9 * t / record_s,
+                        format!("free swing: {t:.0} of {record_s:.0} s recorded, {} detections", track.len()),
+                        &track,
+                    ),
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(4)).await;
+        }
+        real_pendulum_outcome(&track, scenario)
+    }
+    .await;
+    desk.conclude(id, Step::Pendulum, scenario, outcome, "the real lab")
 }

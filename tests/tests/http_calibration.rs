@@ -214,9 +214,36 @@ async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
 fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     let tmp = tempfile::tempdir().unwrap();
     let desk = CalibrationDesk::new(tmp.path().join("c.toml"), true, Box::new(|_| None));
-    let e = desk.claim(Step::Robot).unwrap_err();
-    assert!(e.to_string().contains("real-lab procedure"), "{e}");
+    for step in [Step::Camera, Step::Latency, Step::CameraRobot, Step::Robot] {
+        let e = desk.claim(step).unwrap_err();
+        assert!(e.to_string().contains("real-lab procedure"), "{e}");
+        assert!(!desk.running());
+    }
+    // The pendulum's free swing is built on a real lab, without the camera
+    // step (the configuration's intrinsics stand in for it).
+    assert!(Step::Pendulum.prerequisites_on(true).is_empty());
+    assert_eq!(Step::Pendulum.prerequisites_on(false), [Step::Camera]);
+    let id = desk
+        .claim(Step::Pendulum)
+        .expect("the pendulum step on a real lab");
+    assert!(desk.running());
+    // A failed step writes nothing and says why.
+    let scenario = rt_core::params::Scenario::default();
+    assert!(
+        desk.conclude(
+            id,
+            Step::Pendulum,
+            &scenario,
+            Err(anyhow::anyhow!(
+                "calibrate pendulum: the camera delivers no frames"
+            )),
+            "the real lab"
+        )
+        .is_none()
+    );
     assert!(!desk.running());
+    assert!(!desk.path().exists(), "nothing written");
+    assert!(desk.status().unwrap().job.message.contains("no frames"));
     let a = serde_json::json!({"x": 1.0, "s": {"y": [1.0, 2.0]}, "t": "a", "only_a": 3.0});
     let b = serde_json::json!({"x": 1.0, "s": {"y": [1.0, 2.5]}, "t": "b", "only_b": 4.0});
     let c = changes(&a, &b);

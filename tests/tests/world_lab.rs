@@ -587,3 +587,143 @@ async fn a_lab_config_pointing_at_nothing_names_each_device_and_starts_nothing()
     assert_eq!(r.json().unwrap()["reason"], "robot_not_commanding");
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
 }
+
+/// The pendulum step on a real lab, through `isochron world`'s cabinet,
+/// webcam and Arduino: a world whose string is 5 cm longer than the lab
+/// believes. `POST /api/calibration/pendulum` moves the arm home, switches the
+/// magnet on (the world's operator hangs the ball), lets go, records the free
+/// swing through the lab's own camera and fits it: the length the world has,
+/// not the one the lab believed, written with its source and taken by the
+/// lab's beliefs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
+    let _one = ONE_LAB.lock().await;
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[
+        (&["world", "--help"], "--lab-config"),
+        (&["serve", "--help"], "--config"),
+    ]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
+    let believed = rt_core::params::Scenario::from_file(&paper)
+        .unwrap()
+        .pendulum
+        .length_m;
+    let scenario = dir.path().join("longer.toml");
+    std::fs::write(
+        &scenario,
+        std::fs::read_to_string(&paper).unwrap()
+            + "\n[world.pendulum]\nlength_error_m = [0.05, 0.05]\n",
+    )
+    .unwrap();
+    let (lab, truth) = (dir.path().join("lab.toml"), dir.path().join("truth.jsonl"));
+    let (_world, _) = start(
+        "isochron world",
+        Process::new(&bin)
+            .arg("world")
+            .arg("--scenario")
+            .arg(&scenario)
+            .arg("--lab-config")
+            .arg(&lab)
+            .arg("--truth")
+            .arg(&truth),
+        "\"lab_config\"",
+        Duration::from_secs(30),
+    );
+    let (_serve, line) = start(
+        "isochron serve",
+        Process::new(&bin)
+            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .arg(&lab)
+            .arg("--data-dir")
+            .arg(dir.path().join("data")),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr: SocketAddr = line
+        .split("http://")
+        .nth(1)
+        .and_then(|s| s.split(['/', ' ']).next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    // Uncalibrated, the real lab refuses trials; the other steps' real-lab
+    // procedures are not built (409 not_available, nothing written).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let mut h = get(addr, "/api/health").await;
+    while h["not_ready"]["reason"] == "starting" && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        h = get(addr, "/api/health").await;
+    }
+    assert_eq!(h["not_ready"]["reason"], "uncalibrated", "{h}");
+    let r = http(addr, "POST", "/api/calibration/robot", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(r.json().unwrap()["reason"], "not_available");
+
+    // The operator's page: a heartbeat every 200 ms (the real lab's dead-man).
+    let beating = Arc::new(AtomicBool::new(true));
+    let heart = {
+        let beating = Arc::clone(&beating);
+        tokio::spawn(async move {
+            while beating.load(Relaxed) {
+                let _ = http(addr, "POST", "/api/heartbeat", &[], b"").await;
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        })
+    };
+    // The robot commands before the step moves the arm home.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while http(addr, "GET", "/api/state", &[], b"")
+        .await
+        .ok()
+        .and_then(|r| r.json().ok())
+        .is_none_or(|s| s["fri"]["session"] != "commanding_active")
+    {
+        assert!(Instant::now() < deadline, "the robot does not command");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let r = http(addr, "POST", "/api/calibration/pendulum", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let deadline = Instant::now() + Duration::from_secs(180);
+    let status = loop {
+        let c = get(addr, "/api/calibration").await;
+        if c["job"]["state"] != "running" {
+            break c;
+        }
+        assert!(Instant::now() < deadline, "the step did not end: {c}");
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    };
+    beating.store(false, Relaxed);
+    let _ = heart.await;
+    assert_eq!(status["source"], "the real lab", "{status}");
+    assert_eq!(status["job"]["state"], "done", "{status}");
+    let swing = &status["job"]["result"]["swing"];
+    let length = swing["length_m"].as_f64().unwrap();
+    let true_length = believed + 0.05;
+    println!(
+        "pendulum step through isochron world: length {length:.4} m (world {true_length:.4}, \
+         believed {believed:.4}), damping {} /s, residual {} m, {} samples",
+        swing["damping_per_s"], swing["residual_rms_m"], swing["samples"]
+    );
+    assert!(
+        (length - true_length).abs() < 0.005,
+        "length {length} vs the world's {true_length} (believed {believed})"
+    );
+    // Written with where it was measured; the lab's beliefs took it.
+    let file =
+        std::fs::read_to_string(status["file"].as_str().unwrap()).expect("the calibration file");
+    assert!(file.contains("source = \"the real lab\""), "{file}");
+    let p = get(addr, "/api/params").await;
+    let taken = p["pendulum"]["length_m"].as_f64().unwrap();
+    assert!(
+        (taken - length).abs() < 1e-9,
+        "beliefs {taken} vs step {length}"
+    );
+}

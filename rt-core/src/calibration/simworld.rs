@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use super::file::PendulumCalibration;
 use super::latency::{LedEdge, LedFrame};
 use super::robot::JointSample;
+use super::swing::{mean_std, principal_angle_deg};
 use super::view::{StepView, ViewKind, Watch, thin};
 use super::{
     CalibrationError, LedLatency, RobotLatency, SwingSample, estimate_led_latency,
@@ -421,27 +422,6 @@ fn swing_curve(fit: &super::SwingFit, samples: &[SwingSample], g: f64) -> Vec<[f
             ]
         })
         .collect()
-}
-
-fn mean_std(points: &[(f64, f64)]) -> (f64, f64, f64, f64) {
-    let n = points.len().max(1) as f64;
-    let mu = points.iter().map(|p| p.0).sum::<f64>() / n;
-    let mv = points.iter().map(|p| p.1).sum::<f64>() / n;
-    let su = (points.iter().map(|p| (p.0 - mu).powi(2)).sum::<f64>() / n).sqrt();
-    let sv = (points.iter().map(|p| (p.1 - mv).powi(2)).sum::<f64>() / n).sqrt();
-    (mu, mv, su, sv)
-}
-
-/// Angle of the track's principal axis from the image x axis, degrees (-90..90).
-fn principal_angle_deg(points: &[(f64, f64)]) -> f64 {
-    let (mu, mv, _, _) = mean_std(points);
-    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
-    for (u, v) in points {
-        sxx += (u - mu).powi(2);
-        syy += (v - mv).powi(2);
-        sxy += (u - mu) * (v - mv);
-    }
-    0.5 * (2.0 * sxy).atan2(sxx - syy).to_degrees()
 }
 
 /// The camera latency step on the simulated world.

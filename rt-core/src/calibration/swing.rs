@@ -55,6 +55,89 @@ pub struct SwingFit {
     pub duration_s: f64,
 }
 
+/// One detection of the swinging ball: when, where on the swing plane, where
+/// in the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackedSwingSample {
+    /// Capture time (middle of the exposure), seconds.
+    pub t_s: f64,
+    /// Lateral position on the swing plane, metres (base +y, zero at the believed rest point).
+    pub lateral_m: f64,
+    /// The ball's centre in the image, pixels (column, row).
+    pub px: [f64; 2],
+}
+
+/// Fewest passes through the fitted rest point the pendulum step needs.
+pub const MIN_REST_PASSES: usize = 5;
+
+/// The pendulum step from a recorded free swing alone (a real lab, where no
+/// one need hold the ball still): the swing fit; the rest point's image
+/// position where the track passes the fitted rest point (the bottom of the
+/// arc: at each pass, between the two detections on either side of it at most
+/// two frames apart, interpolated linearly; the passes averaged: a chord of
+/// 6 cm misses the arc's bottom by 0.2 mm); the swing's axis in the image.
+/// Refused as [`fit_swing`] refuses, and with fewer than [`MIN_REST_PASSES`]
+/// passes.
+pub fn pendulum_from_swing(
+    track: &[TrackedSwingSample],
+    gravity_mps2: f64,
+    length_guess_m: f64,
+) -> Result<super::file::PendulumCalibration, CalibrationError> {
+    let samples: Vec<SwingSample> = track
+        .iter()
+        .map(|s| SwingSample {
+            t_s: s.t_s,
+            lateral_m: s.lateral_m,
+        })
+        .collect();
+    let swing = fit_swing(&samples, gravity_mps2, length_guess_m)?;
+    for (index, s) in track.iter().enumerate() {
+        if !(s.px[0].is_finite() && s.px[1].is_finite()) {
+            return Err(CalibrationError::NotFinite {
+                what: "pendulum swing (image)",
+                index,
+            });
+        }
+    }
+    let mut sorted: Vec<&TrackedSwingSample> = track.iter().collect();
+    sorted.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+    // Frame spacing: the median gap between detections.
+    let mut gaps: Vec<f64> = sorted.windows(2).map(|w| w[1].t_s - w[0].t_s).collect();
+    gaps.sort_by(f64::total_cmp);
+    let frame_s = gaps.get(gaps.len() / 2).copied().unwrap_or(0.0);
+    let b = swing.rest_offset_m;
+    let rest: Vec<(f64, f64)> = sorted
+        .windows(2)
+        .filter(|w| {
+            let (d0, d1) = (w[0].lateral_m - b, w[1].lateral_m - b);
+            d0 * d1 <= 0.0 && d0 != d1 && w[1].t_s - w[0].t_s <= 2.5 * frame_s
+        })
+        .map(|w| {
+            let (d0, d1) = (w[0].lateral_m - b, w[1].lateral_m - b);
+            let a = d0 / (d0 - d1);
+            (
+                w[0].px[0] + a * (w[1].px[0] - w[0].px[0]),
+                w[0].px[1] + a * (w[1].px[1] - w[0].px[1]),
+            )
+        })
+        .collect();
+    if rest.len() < MIN_REST_PASSES {
+        return Err(CalibrationError::TooFewSamples {
+            what: "pendulum rest point (passes of the track through the fitted rest point)",
+            got: rest.len(),
+            need: MIN_REST_PASSES,
+        });
+    }
+    let (mu, mv, su, sv) = mean_std(&rest);
+    let all: Vec<(f64, f64)> = track.iter().map(|s| (s.px[0], s.px[1])).collect();
+    Ok(super::file::PendulumCalibration {
+        swing,
+        rest_px: [mu, mv],
+        rest_std_px: [su, sv],
+        swing_image_angle_deg: principal_angle_deg(&all),
+    })
+}
+
 /// Fits the damped pendulum to a free swing's samples (any order; sorted here).
 /// `gravity_mps2` is the local gravity; `length_guess_m` a starting length (the
 /// tape measure). Refuses too few samples, too short a recording and too small a swing.
@@ -255,4 +338,26 @@ fn residuals(p: &[f64], s: &[SwingSample], t0: f64, g: f64, r: &mut [f64]) -> bo
         *ri = l * state[0].sin() + b - x.lateral_m;
     }
     true
+}
+
+/// Mean and standard deviation of image points: `(mean u, mean v, std u, std v)`.
+pub fn mean_std(points: &[(f64, f64)]) -> (f64, f64, f64, f64) {
+    let n = points.len().max(1) as f64;
+    let mu = points.iter().map(|p| p.0).sum::<f64>() / n;
+    let mv = points.iter().map(|p| p.1).sum::<f64>() / n;
+    let su = (points.iter().map(|p| (p.0 - mu).powi(2)).sum::<f64>() / n).sqrt();
+    let sv = (points.iter().map(|p| (p.1 - mv).powi(2)).sum::<f64>() / n).sqrt();
+    (mu, mv, su, sv)
+}
+
+/// Angle of the track's principal axis from the image x axis, degrees (-90..90).
+pub fn principal_angle_deg(points: &[(f64, f64)]) -> f64 {
+    let (mu, mv, _, _) = mean_std(points);
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for (u, v) in points {
+        sxx += (u - mu).powi(2);
+        syy += (v - mv).powi(2);
+        sxy += (u - mu) * (v - mv);
+    }
+    0.5 * (2.0 * sxy).atan2(sxx - syy).to_degrees()
 }

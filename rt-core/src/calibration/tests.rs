@@ -40,6 +40,62 @@ fn swing(length_m: f64, alpha: f64, release_deg: f64, secs: f64, noise_m: f64) -
 }
 
 #[test]
+fn a_recorded_swing_alone_gives_the_pendulum_step_rest_pixel_and_axis() {
+    // A camera 1.5 m before the plane, 900 px focal length, its image x along
+    // the swing, tilted 3 deg: the ball's image from its lateral and height.
+    let (l, b) = (1.93, 0.004);
+    let (f, cx, cy, tilt) = (900.0, 640.0, 360.0, 3f64.to_radians());
+    let image = |lat: f64, up: f64| {
+        let (u, v) = (f * lat / 1.5, -f * up / 1.5);
+        [
+            cx + u * tilt.cos() - v * tilt.sin(),
+            cy + u * tilt.sin() + v * tilt.cos(),
+        ]
+    };
+    let track: Vec<swing::TrackedSwingSample> = swing(l, 0.03, 25.0, 20.0, 0.0005)
+        .into_iter()
+        .map(|s| {
+            let phi = ((s.lateral_m - b) / l).clamp(-1.0, 1.0).asin();
+            swing::TrackedSwingSample {
+                t_s: s.t_s,
+                lateral_m: s.lateral_m,
+                px: image(s.lateral_m - b, l * (1.0 - phi.cos())),
+            }
+        })
+        .collect();
+    let c = swing::pendulum_from_swing(&track, 9.81, 1.9).expect("the step");
+    assert!((c.swing.length_m - l).abs() < 1e-3, "{}", c.swing.length_m);
+    let want = image(0.0, 0.0);
+    // The rest pixel: where the ball hangs.
+    assert!(
+        (c.rest_px[0] - want[0]).abs() < 1.0 && (c.rest_px[1] - want[1]).abs() < 1.0,
+        "rest {:?} vs {want:?}",
+        c.rest_px
+    );
+    assert!(
+        (c.swing_image_angle_deg - 3.0).abs() < 0.5,
+        "{}",
+        c.swing_image_angle_deg
+    );
+    // Too few passes near the rest point (a track that never comes back to
+    // it): refused, naming what.
+    let one_side: Vec<_> = track
+        .iter()
+        .copied()
+        .filter(|s| s.lateral_m > 0.05)
+        .collect();
+    let e = swing::pendulum_from_swing(&one_side, 9.81, 1.9).unwrap_err();
+    assert!(e.to_string().contains("pendulum"), "{e}");
+    // A NaN pixel is refused.
+    let mut nan = track.clone();
+    nan[7].px[1] = f64::NAN;
+    assert!(matches!(
+        swing::pendulum_from_swing(&nan, 9.81, 1.9),
+        Err(CalibrationError::NotFinite { index: 7, .. })
+    ));
+}
+
+#[test]
 fn swing_fit_recovers_length_and_damping_at_large_angles() {
     for (l, release) in [(1.93, 35.0), (1.96, 15.0), (1.2, 25.0)] {
         let samples = swing(l, 0.03, release, 20.0, 0.0005);
