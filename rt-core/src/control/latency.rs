@@ -85,6 +85,16 @@ impl LatencyEstimator {
         }
     }
 
+    /// Whether `other` estimates under the same settings (period, prior,
+    /// memory): what it learned then holds here too.
+    pub fn same_settings(&self, other: &Self) -> bool {
+        self.period_s == other.period_s
+            && self.prior_s == other.prior_s
+            && self.forget == other.forget
+            && self.min_speed_radps == other.min_speed_radps
+            && self.min_weight == other.min_weight
+    }
+
     /// The FRI period this estimator counts lags in, seconds.
     pub fn period_s(&self) -> f64 {
         self.period_s

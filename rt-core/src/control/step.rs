@@ -671,6 +671,27 @@ impl Controller {
         self.learning = TrialLearning::default();
     }
 
+    /// Takes over what `old` learned in this session where the new beliefs
+    /// keep what it was learned against (new parameters replacing a
+    /// controller between trials: a calibration step's result, a changed
+    /// movement time): the robot latency estimate when the estimator's
+    /// settings are the same (a lab whose arm is already home would otherwise
+    /// plan its next trial with the prior: 20 ms late through `isochron
+    /// world` after the pendulum step); the pendulum's learned frequency (the
+    /// same pendulum swung); the camera offsets of the releases when
+    /// `camera_latency_same` (they are offsets from that belief). Copies
+    /// fixed-size state only: no allocation on the control thread.
+    pub fn carry_session(&mut self, old: &Self, camera_latency_same: bool) {
+        if self.latency.same_settings(&old.latency) {
+            self.latency.clone_from(&old.latency);
+        }
+        self.session.k = old.session.k;
+        if camera_latency_same {
+            self.session.offset_sum_s = old.session.offset_sum_s;
+            self.session.offset_n = old.session.offset_n;
+        }
+    }
+
     /// The tool this controller plans with.
     pub fn tool(&self) -> &Tool {
         &self.tool
@@ -1306,6 +1327,53 @@ mod tests {
             c.step(&input, ready, &mut out);
             q = out.q_command_rad;
         }
+    }
+
+    #[test]
+    fn new_beliefs_carry_what_the_session_learned_where_its_basis_holds() {
+        let mut s = Beliefs::default();
+        s.control.camera_offset_from_release = true;
+        s.control.release_delay_prior_ms = 15.0;
+        s.control.release_delay_std_ms = 0.5;
+        s.control.learn_frequency = true;
+        s.ekf.estimate_frequency = true;
+        let mut old = Controller::new(&s, 0.005).unwrap();
+        // The robot answers 25 ms late (prior 0): a moving joint teaches it.
+        let lag = 5;
+        let cmd = |i: usize| {
+            let mut q = [0.0; JOINTS];
+            q[0] = 0.3 * (i as f64 * 0.005 * 3.0).sin();
+            q
+        };
+        for i in 0..2000usize {
+            old.latency.observe(&cmd(i.saturating_sub(lag)));
+            old.latency.commanded(&cmd(i));
+        }
+        assert!(old.latency().report().confident);
+        release_and_track(&mut old, &s, 0.020, 0.008);
+        old.abort(10.0, AbortReason::StopRequested);
+        old.reset(10.0).unwrap();
+        assert_eq!(old.session_memory().offset_n, 1);
+        let learned = old.latency().report();
+        // A calibrated pendulum length: everything carries.
+        let mut t = s.clone();
+        t.pendulum.length_m += 0.01;
+        let mut new = Controller::new(&t, 0.005).unwrap();
+        assert_ne!(new.latency().report(), learned);
+        new.carry_session(&old, true);
+        assert_eq!(new.latency().report(), learned);
+        assert_eq!(new.session_memory(), old.session_memory());
+        // A new camera latency belief: the releases' offsets (from the old
+        // belief) do not carry; a new robot latency prior: its estimate
+        // starts again from the prior.
+        let mut u = s.clone();
+        u.control.latency_prior_ms = 10.0;
+        let mut fresh = Controller::new(&u, 0.005).unwrap();
+        let before = fresh.latency().report();
+        fresh.carry_session(&old, false);
+        assert_eq!(fresh.latency().report(), before);
+        assert_eq!(fresh.session_memory().offset_n, 0);
+        assert_eq!(fresh.session_memory().k, old.session_memory().k);
     }
 
     #[test]

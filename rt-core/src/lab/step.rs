@@ -994,6 +994,11 @@ impl LabStep {
             }
             IoReply::Params { ack, result } => match result {
                 Ok((mut controller, mut scenario)) if !cancelled => {
+                    // What this session taught the old controller carries
+                    // over where the new beliefs keep its basis.
+                    let same_camera =
+                        scenario.camera.latency_ms == self.p.scenario.camera.latency_ms;
+                    controller.carry_session(self.controller(), same_camera);
                     std::mem::swap(self.controller(), &mut *controller);
                     std::mem::swap(&mut self.p.scenario, &mut scenario);
                     // The old controller is freed off this thread.
