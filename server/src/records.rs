@@ -750,6 +750,8 @@ mod tests {
             success: false,
             torque_signal: true,
             robot_gap_ms: None,
+            camera_clock_error_ms: None,
+            camera_clock_error_std_ms: None,
         };
         // The measured judge's verdict is read from `judged_by`, not from
         // a missing position error: a finite one does not hide it.

@@ -429,6 +429,18 @@ pub struct MeasuredJudgement {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[ts(optional)]
     pub robot_gap_ms: Option<f64>,
+    /// How late the camera's stamps (after the controller's offset) showed
+    /// the pass against the contact's, ms: the camera pass minus the pass
+    /// anchored on the contact (the robot's clock). What the controller's
+    /// camera offset still missed, whatever the magnet's release delay
+    /// (`control.camera_offset_from_contact`). Absent without an anchored pass.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[ts(optional)]
+    pub camera_clock_error_ms: Option<f64>,
+    /// Its standard deviation (both passes'), ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[ts(optional)]
+    pub camera_clock_error_std_ms: Option<f64>,
 }
 
 fn yes() -> bool {
@@ -561,10 +573,18 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
     let camera_pass = measured_pass_sine(m.sightings, &pass_window(m, before), m.sigma_x_m);
     // A contact anchors the pass to the robot's clock: the camera's clock is
     // only as good as the offset the controller learned for it.
-    let pass = match (began, camera_pass) {
-        (Some(tc), Some(p)) => anchored_pass(m, tc, &p, before).or(camera_pass),
-        _ => camera_pass,
+    let anchored = match (began, camera_pass) {
+        (Some(tc), Some(p)) => anchored_pass(m, tc, &p, before),
+        _ => None,
     };
+    let pass = anchored.or(camera_pass);
+    // The camera's clock against the robot's, at this contact.
+    let clock = anchored.zip(camera_pass).map(|(a, c)| {
+        (
+            (c.t_s - a.t_s) * 1e3,
+            (c.std_s * c.std_s + a.std_s * a.std_s).sqrt() * 1e3,
+        )
+    });
     let arrival_t_s = measured_arrival(m.tool_t_s, m.tool_m, m.settle_m);
     // The robot's messages around the pass's window and the arrival.
     let window_hi = arrival_t_s.map_or(hi, |a| hi.max(a + 0.05));
@@ -594,6 +614,8 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
             && timing_error_ms.is_some_and(|e| e.abs() <= m.tolerance_ms),
         torque_signal: torque_signal(m.torques_nm),
         robot_gap_ms,
+        camera_clock_error_ms: clock.map(|c| c.0),
+        camera_clock_error_std_ms: clock.map(|c| c.1),
     }
 }
 

@@ -67,6 +67,14 @@ pub struct ControlParams {
     /// went off (`delta`: the stamps' error, `d`: the magnet's release delay);
     /// the motion starts `delta` earlier.
     pub camera_offset_from_release: bool,
+    /// Track the camera's time offset per session from the contacts too: the
+    /// measured judge's pass anchored on the contact (the robot's clock)
+    /// against the camera's pass shows what the offset missed, whatever the
+    /// magnet's release delay; each such trial pairs with its release's
+    /// turning time to learn the release delay itself (its mean and spread,
+    /// kept across sessions: the same magnet), which then replaces
+    /// `release_delay_prior_ms` / `release_delay_std_ms` from the third one.
+    pub camera_offset_from_contact: bool,
     /// The magnet's release delay believed (coil off -> ball falls), mean, ms.
     pub release_delay_prior_ms: f64,
     /// Its trial-to-trial standard deviation, ms.
@@ -94,6 +102,7 @@ impl Default for ControlParams {
             arrival_settle_m: 0.0,
             learn_frequency: false,
             camera_offset_from_release: false,
+            camera_offset_from_contact: false,
             release_delay_prior_ms: 0.0,
             release_delay_std_ms: 5.0,
             camera_offset_std_ms: 10.0,
@@ -332,10 +341,54 @@ struct PredictionCache {
 pub struct SessionMemory {
     /// `k = g/l` and its variance, 1/s^2 and 1/s^4 (`learn_frequency`).
     pub k: Option<(f64, f64)>,
-    /// Sum of the camera offsets the releases of this session showed, seconds.
-    pub offset_sum_s: f64,
+    /// Sum of the releases' turning lags `t_turn - t_release` this session
+    /// (each the camera offset plus the release delay), seconds.
+    pub lag_sum_s: f64,
     /// How many releases.
     pub offset_n: u32,
+    /// Sum of the contacts' camera offsets over their variances, 1/s.
+    pub contact_weighted_sum: f64,
+    /// Sum of their inverse variances, 1/s^2.
+    pub contact_weight: f64,
+    /// How many contacts.
+    pub contact_n: u32,
+}
+
+/// What the lab's releases taught about its magnet: the release delay's
+/// mean and spread (Welford), paired release by release with the camera
+/// offset a contact measured. Kept across sessions (a reboot leaves the
+/// magnet as it was).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct MagnetMemory {
+    /// Releases measured.
+    pub n: u32,
+    /// Mean release delay, seconds.
+    pub mean_s: f64,
+    /// Sum of squared deviations, s^2.
+    pub m2_s2: f64,
+}
+
+impl MagnetMemory {
+    /// Releases measured before the learned delay replaces the prior.
+    pub const MIN_RELEASES: u32 = 3;
+    /// Smallest spread believed, seconds (the turning time's own noise).
+    pub const MIN_STD_S: f64 = 0.002;
+
+    fn add(&mut self, d_s: f64) {
+        self.n += 1;
+        let dev = d_s - self.mean_s;
+        self.mean_s += dev / f64::from(self.n);
+        self.m2_s2 += dev * (d_s - self.mean_s);
+    }
+
+    /// The learned mean and standard deviation, seconds, once there are
+    /// [`Self::MIN_RELEASES`].
+    pub fn learned(&self) -> Option<(f64, f64)> {
+        (self.n >= Self::MIN_RELEASES).then(|| {
+            let var = self.m2_s2 / f64::from(self.n - 1);
+            (self.mean_s, var.sqrt().max(Self::MIN_STD_S))
+        })
+    }
 }
 
 /// What the running trial shows (folded into the session at its end).
@@ -344,8 +397,11 @@ struct TrialLearning {
     /// Posterior time the snapshot was taken from, seconds.
     posterior_t_s: f64,
     k: Option<(f64, f64)>,
-    /// `t_turn - t_release - d`: this release's camera offset, seconds.
-    offset_s: Option<f64>,
+    /// `t_turn - t_release`: this release's turning lag (camera offset
+    /// plus release delay), seconds.
+    lag_s: Option<f64>,
+    /// Whether a contact's camera offset has been taken for this trial.
+    contact_taken: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -398,6 +454,7 @@ pub struct Controller {
     counters: ControlCounters,
     abort_reason: Option<AbortReason>,
     session: SessionMemory,
+    magnet: MagnetMemory,
     learning: TrialLearning,
 }
 
@@ -444,6 +501,7 @@ impl Controller {
             counters: ControlCounters::default(),
             abort_reason: None,
             session: SessionMemory::default(),
+            magnet: MagnetMemory::default(),
             learning: TrialLearning::default(),
         })
     }
@@ -579,28 +637,97 @@ impl Controller {
         self.learning = TrialLearning::default();
     }
 
-    /// The camera time offset to compensate: the session's releases and this
-    /// trial's, each `t_turn - t_release - d_prior` with variance `sigma_d^2`,
-    /// shrunk towards 0 by the prior `sigma_delta` (0 when off), seconds.
+    /// What the lab's releases taught about its magnet so far.
+    pub fn magnet_memory(&self) -> &MagnetMemory {
+        &self.magnet
+    }
+
+    /// The release delay believed now, its mean and standard deviation,
+    /// seconds: learned from the contacts (`camera_offset_from_contact`)
+    /// once there are enough, the prior until then.
+    pub fn release_delay_belief_s(&self) -> (f64, f64) {
+        let prior = (
+            self.params.release_delay_prior_ms * 1e-3,
+            self.params.release_delay_std_ms * 1e-3,
+        );
+        if !self.params.camera_offset_from_contact {
+            return prior;
+        }
+        self.magnet.learned().unwrap_or(prior)
+    }
+
+    /// The camera time offset to compensate, seconds (0 when neither source
+    /// is on): the precision-weighted mean of the session's releases and
+    /// this trial's (each `t_turn - t_release - d` with variance `sigma_d^2`,
+    /// `d` and `sigma_d` the release delay believed) and of the session's
+    /// contacts (each the offset the measured judge saw, with its variance),
+    /// shrunk towards 0 by the prior `sigma_delta`.
     pub fn camera_offset_s(&self) -> f64 {
-        if !self.params.camera_offset_from_release {
+        let (release, contact) = (
+            self.params.camera_offset_from_release,
+            self.params.camera_offset_from_contact,
+        );
+        if !release && !contact {
             return 0.0;
         }
-        let (mut sum, mut n) = (self.session.offset_sum_s, f64::from(self.session.offset_n));
-        if let Some(o) = self.learning.offset_s {
-            sum += o;
-            n += 1.0;
+        let sp = self.params.camera_offset_std_ms * 1e-3;
+        let (mut num, mut den) = (0.0, 1.0 / (sp * sp));
+        if release {
+            let (mut lag_sum, mut n) = (self.session.lag_sum_s, f64::from(self.session.offset_n));
+            if let Some(l) = self.learning.lag_s {
+                lag_sum += l;
+                n += 1.0;
+            }
+            let (d, sd) = self.release_delay_belief_s();
+            num += (lag_sum - n * d) / (sd * sd);
+            den += n / (sd * sd);
         }
-        let sd = self.params.release_delay_std_ms;
-        let sp = self.params.camera_offset_std_ms;
-        sum / (n + (sd * sd) / (sp * sp))
+        if contact {
+            num += self.session.contact_weighted_sum;
+            den += self.session.contact_weight;
+        }
+        num / den
+    }
+
+    /// A contact showed the camera's time offset of the trial that ended:
+    /// `offset_s` (the offset the trial compensated plus what the measured
+    /// judge saw it miss) with standard deviation `std_s`. Taken once a
+    /// trial, into the session's contacts, and paired with the trial's
+    /// release (its turning lag minus this offset: one release delay) into
+    /// the magnet's memory. Ignored unless `camera_offset_from_contact`, or
+    /// when not finite, beyond 0.2 s or `std_s` not positive. Allocation-free.
+    pub fn learn_from_contact(&mut self, offset_s: f64, std_s: f64) {
+        if !self.params.camera_offset_from_contact
+            || self.learning.contact_taken
+            || !offset_s.is_finite()
+            || offset_s.abs() > 0.2
+            || !std_s.is_finite()
+            || std_s <= 0.0
+        {
+            return;
+        }
+        // Not sharper than a millisecond: the contact's own model error.
+        let var = std_s.max(1e-3).powi(2);
+        self.session.contact_weighted_sum += offset_s / var;
+        self.session.contact_weight += 1.0 / var;
+        self.session.contact_n += 1;
+        self.learning.contact_taken = true;
+        if let Some(lag) = self.learning.lag_s {
+            let d = lag - offset_s;
+            if (0.0..=0.5).contains(&d) {
+                self.magnet.add(d);
+            }
+        }
     }
 
     /// Takes what the filter shows about the constants of the session (its
     /// frequency, and the release's turning time against the coil's switch).
     /// Not real-time critical but allocation-free: three predictions.
     fn learn_from_filter(&mut self) {
-        if !self.params.learn_frequency && !self.params.camera_offset_from_release {
+        if !self.params.learn_frequency
+            && !self.params.camera_offset_from_release
+            && !self.params.camera_offset_from_contact
+        {
             return;
         }
         let Some(ekf) = self.ekf.as_ref() else {
@@ -621,9 +748,9 @@ impl Controller {
                 self.learning.k = Some((k, var));
             }
         }
-        if self.params.camera_offset_from_release {
+        if self.params.camera_offset_from_release || self.params.camera_offset_from_contact {
             // Newton on phi'(t) = 0 from the believed drop time.
-            let d = self.params.release_delay_prior_ms * 1e-3;
+            let d = self.release_delay_belief_s().0;
             let mut t = self.t_release + d;
             let mut pred = crate::ekf::Prediction::default();
             let mut found = None;
@@ -645,10 +772,10 @@ impl Controller {
                 }
             }
             if let Some(t_turn) = found {
-                let o = t_turn - self.t_release - d;
-                // A turning point far from the release is not this release's.
-                if o.abs() < 0.1 {
-                    self.learning.offset_s = Some(o);
+                // A turning point far from the believed drop is not this
+                // release's (the next is half a period, ~1.4 s, away).
+                if (t_turn - self.t_release - d).abs() < 0.2 {
+                    self.learning.lag_s = Some(t_turn - self.t_release);
                 }
             }
         }
@@ -663,8 +790,8 @@ impl Controller {
                 let drift = 2e-4 * k;
                 self.session.k = Some((k, var + drift * drift));
             }
-            if let Some(o) = self.learning.offset_s {
-                self.session.offset_sum_s += o;
+            if let Some(l) = self.learning.lag_s {
+                self.session.lag_sum_s += l;
                 self.session.offset_n += 1;
             }
         }
@@ -678,18 +805,21 @@ impl Controller {
     /// settings are the same (a lab whose arm is already home would otherwise
     /// plan its next trial with the prior: 20 ms late through `isochron
     /// world` after the pendulum step); the pendulum's learned frequency (the
-    /// same pendulum swung); the camera offsets of the releases when
-    /// `camera_latency_same` (they are offsets from that belief). Copies
+    /// same pendulum swung); the camera offsets of the releases and the
+    /// contacts when `camera_latency_same` (they are offsets from that
+    /// belief); the magnet's learned release delay (the same magnet). Copies
     /// fixed-size state only: no allocation on the control thread.
     pub fn carry_session(&mut self, old: &Self, camera_latency_same: bool) {
         if self.latency.same_settings(&old.latency) {
             self.latency.clone_from(&old.latency);
         }
-        self.session.k = old.session.k;
         if camera_latency_same {
-            self.session.offset_sum_s = old.session.offset_sum_s;
-            self.session.offset_n = old.session.offset_n;
+            self.session = old.session;
+        } else {
+            self.session.k = old.session.k;
         }
+        // The same magnet.
+        self.magnet = old.magnet;
     }
 
     /// The tool this controller plans with.
@@ -1258,10 +1388,10 @@ mod tests {
 
     /// Arms `c` with a perfect robot (measured = commanded) until `Armed`;
     /// returns the time and the joints.
-    fn arm_perfectly(c: &mut Controller, plan: &ArmPlan) -> (f64, [f64; JOINTS]) {
+    fn arm_perfectly_at(c: &mut Controller, plan: &ArmPlan, t0: f64) -> (f64, [f64; JOINTS]) {
         let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];
         let mut out = StepOutput::default();
-        let mut t = 0.0;
+        let mut t = t0;
         let input = |t, q| StepInput {
             t_s: t,
             q_measured_rad: q,
@@ -1269,7 +1399,7 @@ mod tests {
         };
         c.step(&input(t, q), std::iter::empty(), &mut out);
         c.arm(t, plan).unwrap();
-        while c.state() != TrialState::Armed && t < 20.0 {
+        while c.state() != TrialState::Armed && t < t0 + 20.0 {
             t += 0.005;
             c.step(&input(t, q), std::iter::empty(), &mut out);
             q = out.q_command_rad;
@@ -1282,7 +1412,18 @@ mod tests {
     /// falls `delay_s` later) and runs 2.4 s with frames whose stamps are
     /// `offset_s` late.
     fn release_and_track(c: &mut Controller, s: &Beliefs, delay_s: f64, offset_s: f64) {
-        let (mut t, mut q) = arm_perfectly(c, &Controller::plan(s, 0.6).unwrap());
+        release_and_track_at(c, s, delay_s, offset_s, 0.0);
+    }
+
+    /// [`release_and_track`] arming at `t0`; returns the time it ended.
+    fn release_and_track_at(
+        c: &mut Controller,
+        s: &Beliefs,
+        delay_s: f64,
+        offset_s: f64,
+        t0: f64,
+    ) -> f64 {
+        let (mut t, mut q) = arm_perfectly_at(c, &Controller::plan(s, 0.6).unwrap(), t0);
         let model = PendulumModel::from_params(&s.pendulum).unwrap();
         let geometry =
             PendulumGeometry::new(model.length_m, 0.6, s.task.intercept_height_m).unwrap();
@@ -1327,6 +1468,61 @@ mod tests {
             c.step(&input, ready, &mut out);
             q = out.q_command_rad;
         }
+        t
+    }
+
+    #[test]
+    fn contacts_read_the_camera_offset_whatever_the_release_delay_and_learn_the_magnet() {
+        let mut s = Beliefs::default();
+        s.control.camera_offset_from_release = true;
+        s.control.camera_offset_from_contact = true;
+        // Believed 15 +- 7 ms; this magnet lets go 60..90 ms after the coil.
+        s.control.release_delay_prior_ms = 15.0;
+        s.control.release_delay_std_ms = 7.0;
+        s.control.learn_frequency = true;
+        s.ekf.estimate_frequency = true;
+        let delays = [0.060, 0.090, 0.075, 0.080];
+        // The stamps are 8 ms late.
+        let offset = 0.008;
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        let mut t = 0.0;
+        let mut first_release_only = None;
+        for d in delays {
+            t = release_and_track_at(&mut c, &s, d, offset, t) + 0.5;
+            first_release_only.get_or_insert(c.camera_offset_s());
+            // The measured judge's contact shows the offset (1 ms); a
+            // second reading of the same trial is not taken, nor garbage.
+            c.learn_from_contact(offset, 0.001);
+            c.learn_from_contact(0.1, 0.001);
+            c.learn_from_contact(f64::NAN, 0.001);
+            c.abort(t, AbortReason::StopRequested);
+            c.reset(t).unwrap();
+            t += 0.5;
+        }
+        // The releases alone read delay + offset - 15 ms, shrunk by the prior: ~27 ms off.
+        let first = first_release_only.unwrap();
+        assert!((first - offset).abs() > 0.02, "{first}");
+        assert_eq!(c.session_memory().contact_n, 4);
+        let got = c.camera_offset_s();
+        assert!((got - offset).abs() < 0.0015, "camera offset {got}");
+        // The magnet: its mean and spread, from the releases paired with the contacts.
+        let (mean, sd) = c.magnet_memory().learned().expect("4 releases");
+        assert!((mean - 0.07625).abs() < 0.004, "release delay {mean}");
+        assert!(sd > 0.005 && sd < 0.02, "spread {sd}");
+        assert_eq!(c.release_delay_belief_s(), (mean, sd));
+        // A reboot: the camera's offset is forgotten, the magnet is not;
+        // the next session's first release reads the offset about right.
+        c.new_session();
+        assert_eq!(c.camera_offset_s(), 0.0);
+        assert_eq!(c.magnet_memory().n, 4);
+        release_and_track_at(&mut c, &s, 0.070, offset, t);
+        let next = c.camera_offset_s();
+        assert!((next - offset).abs() < 0.008, "{next}");
+        // Off: contacts are ignored.
+        s.control.camera_offset_from_contact = false;
+        let mut off = Controller::new(&s, 0.005).unwrap();
+        off.learn_from_contact(offset, 0.001);
+        assert_eq!(off.session_memory().contact_n, 0);
     }
 
     #[test]

@@ -1392,6 +1392,15 @@ impl LabStep {
                 self.judge_world(w, commit.predicted_pass_s, &mut o);
             }
         }
+        // A contact shows what the camera offset missed (whatever the
+        // magnet's release delay): the controller learns from it.
+        if let (Some(m), Some(used_ms)) = (o.measured, o.camera_offset_estimate_ms)
+            && let (Some(e_ms), Some(sd_ms)) =
+                (m.camera_clock_error_ms, m.camera_clock_error_std_ms)
+        {
+            self.controller()
+                .learn_from_contact((used_ms + e_ms) * 1e-3, sd_ms * 1e-3);
+        }
         self.outcome = Some(o);
         self.snap.trial_id = 0;
         if state != TrialState::Done {

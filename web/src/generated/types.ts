@@ -485,7 +485,19 @@ torque_signal: boolean,
  * contact cannot be seen through it, so the judge does not decide
  * (a starved machine's FRI silence), ms. Absent when there was none.
  */
-robot_gap_ms?: number, };
+robot_gap_ms?: number, 
+/**
+ * How late the camera's stamps (after the controller's offset) showed
+ * the pass against the contact's, ms: the camera pass minus the pass
+ * anchored on the contact (the robot's clock). What the controller's
+ * camera offset still missed, whatever the magnet's release delay
+ * (`control.camera_offset_from_contact`). Absent without an anchored pass.
+ */
+camera_clock_error_ms?: number, 
+/**
+ * Its standard deviation (both passes'), ms.
+ */
+camera_clock_error_std_ms?: number, };
 
 export type JudgedBy = "truth" | "physical" | "measured";
 
