@@ -792,6 +792,10 @@ impl JudgedBy {
 /// Something that happened, as the control thread reports it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 #[serde(tag = "kind", rename_all = "snake_case")]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "events cross a bounded ring from the control thread by value: no box, no allocation"
+)]
 pub enum Event {
     /// The trial state changed.
     StateChanged {
