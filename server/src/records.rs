@@ -90,6 +90,10 @@ pub struct TrialRecord {
 
 /// How a trial ended.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "built from a bridge::Event by value, once a trial: no box needed"
+)]
 pub enum TrialEnd {
     /// With a result.
     Done(TrialResult),
