@@ -360,9 +360,32 @@ fn kuka_like_client(sock: &UdpSocket, timeout: Duration) -> KukaRun {
 #[test]
 fn a_kuka_style_client_started_late_completes_a_session_against_fri_sim() {
     let Some(bin) = isochron() else { return };
+    // A busy machine (the whole suite beside it) can starve the client for
+    // milliseconds: fri-sim's connection quality falls and it aborts the
+    // commanding (seen: 9 late replies, 8 overruns, "connection quality fell
+    // to FAIR"). That is the robot's rule working, not this session's fault:
+    // such a run is run again (at most 4 tries); any other outcome is judged.
+    for attempt in 1..=4 {
+        let (run, out, j) = kuka_client_started_late(&bin);
+        let starved = j["aborts"] == 1
+            && j["abort_reason"]
+                .as_str()
+                .is_some_and(|r| r.contains("connection quality"))
+            && (j["late_replies"].as_u64().unwrap_or(0) > 0
+                || j["overruns"].as_u64().unwrap_or(0) > 0);
+        if starved && attempt < 4 {
+            eprintln!("attempt {attempt}: a starved session, run again: {out}");
+            continue;
+        }
+        check_kuka_client_started_late(&run, &out, &j);
+        return;
+    }
+}
+
+fn kuka_client_started_late(bin: &std::path::Path) -> (KukaRun, String, serde_json::Value) {
     let port = free_port();
     let controller = SocketAddr::from(([127, 0, 0, 1], free_port()));
-    let mut child = Command::new(&bin)
+    let mut child = Command::new(bin)
         .args(["fri-sim", "--bind", &controller.to_string()])
         .args(["--client", &format!("127.0.0.1:{port}")])
         .args(["--period-ms", "2", "--duration-s", "1.5", "--json"])
@@ -387,6 +410,10 @@ fn a_kuka_style_client_started_late_completes_a_session_against_fri_sim() {
     assert!(status.success());
     eprintln!("KUKA-style client: {run:?}\n{out}");
     let j: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    (run, out, j)
+}
+
+fn check_kuka_client_started_late(run: &KukaRun, out: &str, j: &serde_json::Value) {
     assert!(run.idle_seen, "{run:?}");
     assert_eq!(
         run.states,
