@@ -1255,6 +1255,15 @@ mod tests {
             (camera.t_s - t_pass - camera_late).abs() < 0.003,
             "{camera:?}"
         );
+        // The judgement reports the camera's clock against the robot's:
+        // what a controller's camera offset (`learn_from_contact`) takes.
+        let clock = j.camera_clock_error_ms.expect("an anchored pass");
+        assert!((clock - camera_late * 1e3).abs() < 3.0, "{j:?}");
+        assert!(
+            j.camera_clock_error_std_ms
+                .is_some_and(|s| s > 0.0 && s < 3.0),
+            "{j:?}"
+        );
     }
 
     #[test]
