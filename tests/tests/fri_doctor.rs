@@ -15,13 +15,12 @@ fn isochron() -> Option<PathBuf> {
     isochron_tests::isochron_bin(&[(&["fri", "doctor", "--help"], "--scan-ports")])
 }
 
-/// A free loopback UDP port (bound, read and released).
-fn free_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+/// Distinct free loopback UDP ports (all bound at once, read and released).
+fn free_ports<const N: usize>() -> [u16; N] {
+    let sockets: Vec<UdpSocket> = (0..N)
+        .map(|_| UdpSocket::bind("127.0.0.1:0").unwrap())
+        .collect();
+    std::array::from_fn(|i| sockets[i].local_addr().unwrap().port())
 }
 
 struct Case {
@@ -39,25 +38,34 @@ struct Case {
 }
 
 fn run_case(bin: &PathBuf, case: &Case) -> (serde_json::Value, bool) {
-    let listen = free_port();
-    let other = free_port();
-    let ctl_port = free_port();
-    let controller = SocketAddr::from(([127, 0, 0, 1], ctl_port));
-    let target_port = if case.port_offset == 0 { listen } else { other };
-    let server = case.sim.clone().map(|p| {
-        SimServer::spawn(
-            p,
-            controller,
-            SocketAddr::from(([127, 0, 0, 1], target_port)),
-            SimRunOptions {
-                auto_command: false,
-                duration: None,
-                normal_priority: false,
-                keep_commanding: false,
-            },
-        )
-        .unwrap()
-    });
+    // A port released by `free_ports` can be taken by another process
+    // before the controller binds it: then new ports, a few times.
+    let mut tries = 0;
+    let (listen, other, controller, server) = loop {
+        let [listen, other, ctl_port] = free_ports::<3>();
+        let controller = SocketAddr::from(([127, 0, 0, 1], ctl_port));
+        let target_port = if case.port_offset == 0 { listen } else { other };
+        let server = case.sim.clone().map(|p| {
+            SimServer::spawn(
+                p,
+                controller,
+                SocketAddr::from(([127, 0, 0, 1], target_port)),
+                SimRunOptions {
+                    auto_command: false,
+                    duration: None,
+                    normal_priority: false,
+                    keep_commanding: false,
+                },
+            )
+        });
+        match server.transpose() {
+            Ok(server) => break (listen, other, controller, server),
+            Err(e) => {
+                tries += 1;
+                assert!(tries < 5, "{}: the controller cannot bind: {e}", case.name);
+            }
+        }
+    };
     let data = tempdir(case.name);
     let out = Command::new(bin)
         .args(["fri", "doctor", "--json", "--seconds", "1.5"])

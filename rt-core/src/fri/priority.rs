@@ -1,10 +1,11 @@
 //! Real-time priority (`SCHED_FIFO`) for the threads that carry the FRI cycle:
 //! the client session (`isochron-fri`) and the simulated controller
 //! (`isochron-fri-sim`). Once the process has asked for it ([`enable`], done by
-//! the lab runtime that `serve` and `bench` start) each raises itself when it
-//! starts (`thread-priority`, i.e. `pthread_setschedparam`; no `chrt` child
-//! process). Other users of the session and the simulated controller (tests,
-//! `fri-sim`) keep the normal policy, as before.
+//! the lab runtime that `serve` and `bench` start, and by `fri-sim` and
+//! `world`, whose cabinet stands in for a machine of its own) each raises
+//! itself when it starts (`thread-priority`, i.e. `pthread_setschedparam`; no
+//! `chrt` child process). Other users of the session and the simulated
+//! controller (tests) keep the normal policy.
 //!
 //! Without the privilege (`CAP_SYS_NICE` or an `rtprio` limit) the thread keeps
 //! the normal policy and the lab runs: other load on the machine can then delay
@@ -78,7 +79,7 @@ impl RtTuning {
         mlock: true,
         spin: true,
     };
-    /// The priority only (the default: tests, `fri-sim`).
+    /// The priority only (the default: tests, `fri-sim`, `world`).
     pub const FIFO: Self = Self {
         fifo: true,
         pin: false,

@@ -63,6 +63,11 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
         )
     })?;
     let duration = Duration::from_secs_f64(args.duration_s);
+    // The cabinet stands in for a machine of its own: its controller thread
+    // takes SCHED_FIFO when allowed, so that other load here (a lab, a board
+    // simulator, a camera) does not make it grade its own slowness as the
+    // client's late replies.
+    rt_core::fri::priority::enable();
     let server = SimServer::spawn(
         params,
         args.bind,
@@ -83,6 +88,35 @@ pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
             args.period_ms,
             args.duration_s
         );
+    }
+    if !args.json {
+        // Say each abort as it happens: a client that loses commanding learns
+        // why from the cabinet's console, as from a real one's.
+        let stats = std::sync::Arc::clone(server.stats());
+        std::thread::Builder::new()
+            .name("fri-sim-aborts".into())
+            .spawn(move || {
+                let mut seen = 0;
+                loop {
+                    let n = stats.aborts.load(std::sync::atomic::Ordering::Relaxed);
+                    if n > seen {
+                        seen = n;
+                        if let Some(r) = stats.last_abort() {
+                            let l = |a: &std::sync::atomic::AtomicU64| {
+                                a.load(std::sync::atomic::Ordering::Relaxed)
+                            };
+                            eprintln!(
+                                "isochron fri-sim: commanding aborted: {r} (so far: {} late \
+                                 replies, {} missing, {} overruns of this controller)",
+                                l(&stats.late_replies),
+                                l(&stats.missing_replies),
+                                l(&stats.overruns)
+                            );
+                        }
+                    }
+                    std::thread::sleep(Duration::from_millis(20));
+                }
+            })?;
     }
     let report = server
         .wait(duration + Duration::from_secs(5))

@@ -88,6 +88,9 @@ pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
     let beliefs_path = args.lab_config.with_extension("scenario.toml");
     let mut truth_file = std::fs::File::create(&args.truth)
         .with_context(|| format!("--truth: cannot write {}", args.truth.display()))?;
+    // The cabinet's controller thread takes SCHED_FIFO when allowed (see
+    // `fri-sim`): a real cabinet is a machine of its own.
+    rt_core::fri::priority::enable();
     let mut world = LabWorld::start(&WorldSpec {
         scenario,
         seed: args.seed,
