@@ -75,6 +75,22 @@ pub struct ControlParams {
     /// kept across sessions: the same magnet), which then replaces
     /// `release_delay_prior_ms` / `release_delay_std_ms` from the third one.
     pub camera_offset_from_contact: bool,
+    /// Trim the motion's start per session by the robot's own lateness: each
+    /// judged contact shows when the tool arrived against the camera's pass
+    /// (the measured timing error less the camera clock error, both on the
+    /// robot's clock: what the arm added to the plan, e.g. a servo slower
+    /// than the latency estimate sees); their precision-weighted mean, shrunk
+    /// towards 0 ([`ARRIVAL_TRIM_PRIOR_STD_S`], each trial
+    /// [`ARRIVAL_TRIM_TRIAL_STD_S`]), starts the motion that much earlier.
+    pub arrival_trim_from_contact: bool,
+    /// Keep the detections of a ball the magnet still holds out of the
+    /// filter: after the coil went off, a detection within
+    /// [`HELD_GATE_SIGMAS`] measurement noises (and [`HELD_GATE_MIN_M`]) of
+    /// where the ball hung while armed is a ball not yet let go (a release
+    /// delay of tens of ms is one to three frames), and the filter starts
+    /// from the first two that moved. Without it a held pair starts the
+    /// swing too early and the filter may gate the real one out.
+    pub skip_held_detections: bool,
     /// The magnet's release delay believed (coil off -> ball falls), mean, ms.
     pub release_delay_prior_ms: f64,
     /// Its trial-to-trial standard deviation, ms.
@@ -103,6 +119,8 @@ impl Default for ControlParams {
             learn_frequency: false,
             camera_offset_from_release: false,
             camera_offset_from_contact: false,
+            arrival_trim_from_contact: false,
+            skip_held_detections: false,
             release_delay_prior_ms: 0.0,
             release_delay_std_ms: 5.0,
             camera_offset_std_ms: 10.0,
@@ -352,7 +370,30 @@ pub struct SessionMemory {
     pub contact_weight: f64,
     /// How many contacts.
     pub contact_n: u32,
+    /// Sum of the contacts' arrival lateness readings over their
+    /// variances, 1/s (`arrival_trim_from_contact`).
+    pub trim_weighted_sum: f64,
+    /// Sum of their inverse variances, 1/s^2.
+    pub trim_weight: f64,
+    /// How many.
+    pub trim_n: u32,
 }
+
+/// A detection after the release within this many measurement noises of
+/// the held ball's position is a ball still held
+/// (`skip_held_detections`) ...
+pub const HELD_GATE_SIGMAS: f64 = 4.0;
+/// ... and within at least this, metres.
+pub const HELD_GATE_MIN_M: f64 = 0.002;
+/// Detections of the held ball needed (while armed) before any is skipped.
+pub const HELD_MIN_DETECTIONS: u32 = 3;
+
+/// Prior standard deviation of the arrival trim, seconds.
+pub const ARRIVAL_TRIM_PRIOR_STD_S: f64 = 0.010;
+/// Trial-to-trial standard deviation of the robot's lateness (its jitter,
+/// the servo's response to each motion) added to each reading's own,
+/// seconds.
+pub const ARRIVAL_TRIM_TRIAL_STD_S: f64 = 0.003;
 
 /// What the lab's releases taught about its magnet: the release delay's
 /// mean and spread (Welford), paired release by release with the camera
@@ -402,6 +443,10 @@ struct TrialLearning {
     lag_s: Option<f64>,
     /// Whether a contact's camera offset has been taken for this trial.
     contact_taken: bool,
+    /// The arrival trim this trial's motion used, seconds.
+    trim_used_s: f64,
+    /// Whether a contact's arrival lateness has been taken for this trial.
+    arrival_taken: bool,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -456,6 +501,12 @@ pub struct Controller {
     session: SessionMemory,
     magnet: MagnetMemory,
     learning: TrialLearning,
+    /// The held ball's detections while armed: sum of lateral positions,
+    /// metres, and count (`skip_held_detections`).
+    held_sum_m: f64,
+    held_n: u32,
+    /// Post-release detections skipped as still held, this trial.
+    held_skipped: u32,
 }
 
 impl Controller {
@@ -503,6 +554,9 @@ impl Controller {
             session: SessionMemory::default(),
             magnet: MagnetMemory::default(),
             learning: TrialLearning::default(),
+            held_sum_m: 0.0,
+            held_n: 0,
+            held_skipped: 0,
         })
     }
 
@@ -637,6 +691,12 @@ impl Controller {
         self.learning = TrialLearning::default();
     }
 
+    /// Detections after this trial's release skipped as a ball still held
+    /// (`skip_held_detections`).
+    pub fn held_skipped(&self) -> u32 {
+        self.held_skipped
+    }
+
     /// What the lab's releases taught about its magnet so far.
     pub fn magnet_memory(&self) -> &MagnetMemory {
         &self.magnet
@@ -718,6 +778,41 @@ impl Controller {
                 self.magnet.add(d);
             }
         }
+    }
+
+    /// The arrival trim, seconds (0 unless `arrival_trim_from_contact`):
+    /// the session's readings of the robot's lateness, precision-weighted,
+    /// shrunk towards 0.
+    pub fn arrival_trim_s(&self) -> f64 {
+        if !self.params.arrival_trim_from_contact {
+            return 0.0;
+        }
+        let prior = 1.0 / (ARRIVAL_TRIM_PRIOR_STD_S * ARRIVAL_TRIM_PRIOR_STD_S);
+        self.session.trim_weighted_sum / (prior + self.session.trim_weight)
+    }
+
+    /// A contact showed the trial's arrival against the camera's pass:
+    /// `lateness_s` late (the measured timing error less the camera clock
+    /// error) with standard deviation `std_s`. With the trim the motion
+    /// used, one reading of the robot's lateness; taken once a trial.
+    /// Ignored unless `arrival_trim_from_contact`, or when not finite,
+    /// beyond 50 ms or `std_s` not positive. Allocation-free.
+    pub fn learn_from_arrival(&mut self, lateness_s: f64, std_s: f64) {
+        if !self.params.arrival_trim_from_contact
+            || self.learning.arrival_taken
+            || !lateness_s.is_finite()
+            || lateness_s.abs() > 0.05
+            || !std_s.is_finite()
+            || std_s <= 0.0
+        {
+            return;
+        }
+        let reading = self.learning.trim_used_s + lateness_s;
+        let var = std_s * std_s + ARRIVAL_TRIM_TRIAL_STD_S * ARRIVAL_TRIM_TRIAL_STD_S;
+        self.session.trim_weighted_sum += reading / var;
+        self.session.trim_weight += 1.0 / var;
+        self.session.trim_n += 1;
+        self.learning.arrival_taken = true;
     }
 
     /// Takes what the filter shows about the constants of the session (its
@@ -818,6 +913,12 @@ impl Controller {
         } else {
             self.session.k = old.session.k;
         }
+        if !self.latency.same_settings(&old.latency) {
+            // The robot's lateness was read against the old latency beliefs.
+            self.session.trim_weighted_sum = 0.0;
+            self.session.trim_weight = 0.0;
+            self.session.trim_n = 0;
+        }
         // The same magnet.
         self.magnet = old.magnet;
     }
@@ -896,6 +997,9 @@ impl Controller {
             })?;
         self.t_state = t_s;
         self.ekf = Some(ekf);
+        self.held_sum_m = 0.0;
+        self.held_n = 0;
+        self.held_skipped = 0;
         self.plan = Some(*plan);
         self.commit = None;
         self.prediction = None;
@@ -1054,10 +1158,26 @@ impl Controller {
         // trial (done, aborted, back to idle): the ball keeps swinging, and the
         // dashboard's estimate and its band continue between trials. A new
         // filter is built when the next trial arms.
-        let active = !matches!(self.machine.state(), TrialState::Arming | TrialState::Armed);
+        let state = self.machine.state();
+        let active = !matches!(state, TrialState::Arming | TrialState::Armed);
+        let gate = (HELD_GATE_SIGMAS * self.ekf_params.measurement_noise_m).max(HELD_GATE_MIN_M);
         for m in meas {
             self.counters.measurements += 1;
+            if state == TrialState::Armed && m.lateral_m.is_finite() {
+                self.held_sum_m += m.lateral_m;
+                self.held_n += 1;
+            }
             if !active {
+                continue;
+            }
+            if self.params.skip_held_detections
+                && self.held_n >= HELD_MIN_DETECTIONS
+                && m.t_capture_s >= self.t_release
+                && self.ekf.as_ref().is_some_and(|e| !e.is_initialised())
+                && (m.lateral_m - self.held_sum_m / f64::from(self.held_n)).abs() <= gate
+            {
+                // The magnet has not let go yet.
+                self.held_skipped += 1;
                 continue;
             }
             let Some(ekf) = self.ekf.as_mut() else {
@@ -1109,8 +1229,11 @@ impl Controller {
         };
         let robot_latency_s = self.latency.latency_s();
         let camera_offset_s = self.camera_offset_s();
-        // Stamps late by the camera offset put the predicted pass as late.
-        let latency_s = (robot_latency_s + camera_offset_s).max(0.0);
+        let trim_s = self.arrival_trim_s();
+        self.learning.trim_used_s = trim_s;
+        // Stamps late by the camera offset put the predicted pass as late;
+        // a robot that arrives late by the trim starts as much earlier.
+        let latency_s = (robot_latency_s + camera_offset_s + trim_s).max(0.0);
         let duration_s = (plan.duration_s + plan.arrival_offset_s).max(0.0);
         let filter = ekf.counters();
         let posterior = ekf.posterior();
@@ -1429,11 +1552,26 @@ mod tests {
             PendulumGeometry::new(model.length_m, 0.6, s.task.intercept_height_m).unwrap();
         let mut truth =
             crate::pendulum::PendulumSim::held_at(model, geometry, 25f64.to_radians(), t).unwrap();
+        let held = truth.lateral_m();
+        let mut out = StepOutput::default();
+        // The camera sees the ball hang on the magnet while armed.
+        for i in 0..10 {
+            t += 0.033;
+            let input = StepInput {
+                t_s: t,
+                q_measured_rad: q,
+                commanding: true,
+            };
+            let m = Measurement {
+                t_capture_s: t - 0.035 + offset_s + 1e-4 * f64::from(i % 3),
+                lateral_m: held,
+            };
+            c.step(&input, [m], &mut out);
+            q = out.q_command_rad;
+        }
         let t_pin = t;
         c.release(t_pin).unwrap();
-        let held = truth.lateral_m();
         truth.release(t_pin + delay_s).unwrap();
-        let mut out = StepOutput::default();
         let mut next_frame = t_pin + 0.01;
         let mut frames: Vec<(f64, Measurement)> = Vec::new();
         while t < t_pin + 2.4 {
@@ -1523,6 +1661,111 @@ mod tests {
         let mut off = Controller::new(&s, 0.005).unwrap();
         off.learn_from_contact(offset, 0.001);
         assert_eq!(off.session_memory().contact_n, 0);
+    }
+
+    #[test]
+    fn detections_of_a_ball_still_held_are_kept_out_of_the_filter() {
+        // This magnet lets go 90 ms after the coil (up to three frames of a
+        // ball that has not moved); the stamps are right.
+        let delay = 0.090;
+        let run = |skip: bool| {
+            let mut s = Beliefs::default();
+            s.control.skip_held_detections = skip;
+            let mut c = Controller::new(&s, 0.005).unwrap();
+            release_and_track_at(&mut c, &s, delay, 0.0, 0.0);
+            let t_init = c.ekf().and_then(Ekf::initialised_at_s);
+            let pass = c.commit().map(|k| k.predicted_pass_s);
+            (c.held_skipped(), t_init, pass, c.t_release)
+        };
+        let (skipped, t_init, pass, t_pin) = run(true);
+        // Three held frames, and one or two that moved less than the gate.
+        assert!((3..=5).contains(&skipped), "{skipped}");
+        // The filter started from detections of the falling ball.
+        let t_init = t_init.expect("initialised");
+        assert!(t_init > t_pin + delay, "{t_init} vs {}", t_pin + delay);
+        // The true first pass of the rest point.
+        let s = Beliefs::default();
+        let model = PendulumModel::from_params(&s.pendulum).unwrap();
+        let geometry =
+            PendulumGeometry::new(model.length_m, 0.6, s.task.intercept_height_m).unwrap();
+        let mut truth =
+            crate::pendulum::PendulumSim::held_at(model, geometry, 25f64.to_radians(), t_pin)
+                .unwrap();
+        truth.release(t_pin + delay).unwrap();
+        // Its passes of the rest point; the predicted one is the nearest.
+        let pass = pass.expect("a commit");
+        let (mut t, mut y, mut passes) = (t_pin + delay, truth.lateral_m(), Vec::new());
+        while t < pass + 1.0 {
+            t += 1e-4;
+            truth.advance_to(t).unwrap();
+            if truth.lateral_m().signum() != y.signum() {
+                passes.push(t);
+            }
+            y = truth.lateral_m();
+        }
+        let error = |p: f64| {
+            passes
+                .iter()
+                .map(|t| (p - t).abs())
+                .fold(f64::INFINITY, f64::min)
+        };
+        let err_skip = error(pass);
+        assert!(err_skip < 0.004, "{err_skip}");
+        // Fed to the filter, the held detections start the swing early.
+        let (skipped, _, pass, _) = run(false);
+        assert_eq!(skipped, 0);
+        let err_fed = pass.map_or(f64::INFINITY, error);
+        println!(
+            "held detections: skipped, pass error {:.2} ms; fed, {:.2} ms",
+            err_skip * 1e3,
+            err_fed * 1e3
+        );
+        assert!(err_fed > 2.0 * err_skip, "fed {err_fed} skipped {err_skip}");
+    }
+
+    #[test]
+    fn contacts_teach_the_robots_lateness_and_the_motion_starts_that_much_earlier() {
+        let mut s = Beliefs::default();
+        s.control.arrival_trim_from_contact = true;
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        // The arm arrives 15 ms after the plan (a servo slower than its
+        // latency shows); each contact reads what is left after the trim.
+        let late = 0.015;
+        let mut t = 0.0;
+        let mut leads = Vec::new();
+        for trial in 0..5 {
+            let used = c.arrival_trim_s();
+            t = release_and_track_at(&mut c, &s, 0.0, 0.0, t);
+            let k = *c.commit().expect("a commit");
+            leads.push((k.predicted_pass_s - k.motion_start_s, used));
+            c.learn_from_arrival(late - used, 0.001);
+            // Once a trial; garbage changes nothing.
+            c.learn_from_arrival(0.04, 0.001);
+            c.learn_from_arrival(f64::NAN, 0.001);
+            c.learn_from_arrival(0.2, 0.001);
+            c.learn_from_arrival(0.01, 0.0);
+            assert_eq!(c.session_memory().trim_n, trial + 1);
+            c.abort(t, AbortReason::StopRequested);
+            c.reset(t).unwrap();
+            t += 0.5;
+        }
+        // Five readings of 15 ms (each +-3.2 ms) against the prior 0 +- 10 ms.
+        let trim = c.arrival_trim_s();
+        assert!((trim - late).abs() < 0.0006, "trim {trim}");
+        // Each motion started earlier by the trim it used.
+        let (lead0, _) = leads[0];
+        for &(lead, used) in &leads[1..] {
+            assert!(used > 0.01, "{leads:?}");
+            assert!((lead - lead0 - used).abs() < 1e-6, "{leads:?}");
+        }
+        // A new session starts from the prior; off, contacts teach nothing.
+        c.new_session();
+        assert_eq!(c.arrival_trim_s(), 0.0);
+        s.control.arrival_trim_from_contact = false;
+        let mut off = Controller::new(&s, 0.005).unwrap();
+        off.learn_from_arrival(late, 0.001);
+        assert_eq!(off.session_memory().trim_n, 0);
+        assert_eq!(off.arrival_trim_s(), 0.0);
     }
 
     #[test]

@@ -82,6 +82,15 @@ pub struct EkfParams {
     pub max_measurement_age_s: f64,
     /// A motion plan is confident only if its pass time's standard deviation is below this, ms.
     pub commit_max_time_std_ms: f64,
+    /// How much a swing that leaves the believed plane bends the lateral
+    /// reading, 1/m: the camera back-projects onto the believed plane, so a
+    /// swing plane turned by `psi` about the vertical reads `y + y^2
+    /// tan(psi) / D` (`D` the camera's distance), an error that grows with
+    /// the square of the distance from the rest point and vanishes there.
+    /// The measurement's variance gains `(plane_noise_per_m * y^2)^2`: the
+    /// filter times the swing by the readings near the rest point and does not
+    /// bend its offset or phase to fit the far ones. 0: off.
+    pub plane_noise_per_m: f64,
 }
 
 impl Default for EkfParams {
@@ -109,6 +118,7 @@ impl Default for EkfParams {
             min_observation_s: 0.5,
             max_measurement_age_s: 0.25,
             commit_max_time_std_ms: 5.0,
+            plane_noise_per_m: 0.0,
         }
     }
 }
@@ -162,7 +172,8 @@ impl EkfParams {
             self.commit_max_time_std_ms,
             1e-3,
             1000.0,
-        )
+        )?;
+        check::within("ekf.plane_noise_per_m", self.plane_noise_per_m, 0.0, 1.0)
     }
 }
 
@@ -620,8 +631,8 @@ impl Ekf {
         let w2 = w_mid + 0.5 * dt * (-k * p2.sin() - alpha * w_mid);
         let c2 = l * p2.cos();
         let c1 = l * p1.cos();
-        let var2 = self.r / (c2 * c2);
-        let var1 = self.r / (c1 * c1);
+        let var2 = self.r_at(z2) / (c2 * c2);
+        let var1 = self.r_at(z1) / (c1 * c1);
         // Rate variance from the difference, plus a floor for the model's error.
         let var_w = (var1 + var2) / (dt * dt) + (0.05 * k * dt).powi(2);
         let cov_pw = var2 / dt;
@@ -736,6 +747,13 @@ impl Ekf {
     }
 
     /// Predict from `prev` to `t`, then the gated Joseph-form update with `z`.
+    /// The measurement's variance at lateral reading `z`: the noise's, plus
+    /// the out-of-plane bend's (`plane_noise_per_m`).
+    fn r_at(&self, z: f64) -> f64 {
+        let bend = self.params.plane_noise_per_m * z * z;
+        self.r + bend * bend
+    }
+
     fn filter_step(&self, prev: &Entry, t: f64, z: f64) -> (Entry, f64) {
         let (x, p) = self.propagate(&prev.x, &prev.p, t - prev.t);
         let l = self.model.length_m;
@@ -751,7 +769,8 @@ impl Ekf {
         }
         let (zh, c) = model::measure(l, &x);
         let pct = p * c.transpose();
-        let s = (c * pct)[0] + self.r;
+        let r = self.r_at(z);
+        let s = (c * pct)[0] + r;
         let innov = z - zh;
         let nis = innov * innov / s;
         if nis.is_nan() || nis > self.params.gate_nis {
@@ -766,7 +785,7 @@ impl Ekf {
         for _ in 0..MAX_IEKF_ITERATIONS {
             let (zi, ci) = model::measure(l, &xi);
             let pci = p * ci.transpose();
-            let si = (ci * pci)[0] + self.r;
+            let si = (ci * pci)[0] + r;
             let next = x + pci * ((z - zi - (ci * (x - xi))[0]) / si);
             let change = (next[0] - xi[0]).abs();
             xi = next;
@@ -781,7 +800,7 @@ impl Ekf {
         // by I - k c done as rank-one updates: (I - k c) P = P - k (c P), then
         // M (I - k c)^T = M - (M c^T) k^T.
         let m = p - k * (c_i * p);
-        let pn = m - (m * c_i.transpose()) * k.transpose() + k * k.transpose() * self.r;
+        let pn = m - (m * c_i.transpose()) * k.transpose() + k * k.transpose() * r;
         entry.x = xi;
         entry.p = (pn + pn.transpose()) * 0.5;
         entry.kind = EntryKind::Fused;

@@ -1401,6 +1401,18 @@ impl LabStep {
             self.controller()
                 .learn_from_contact((used_ms + e_ms) * 1e-3, sd_ms * 1e-3);
         }
+        // The arrival against the camera's pass: what the robot added to
+        // the plan (the measured timing error less the camera's clock error).
+        if let Some(m) = o.measured
+            && let (Some(t_ms), Some(e_ms), Some(sd_ms)) = (
+                m.timing_error_ms,
+                m.camera_clock_error_ms,
+                m.camera_clock_error_std_ms,
+            )
+        {
+            self.controller()
+                .learn_from_arrival((t_ms - e_ms) * 1e-3, sd_ms * 1e-3);
+        }
         self.outcome = Some(o);
         self.snap.trial_id = 0;
         if state != TrialState::Done {
