@@ -432,6 +432,62 @@ impl MagnetMemory {
     }
 }
 
+/// What the sessions before this one ended with: the camera offset and the
+/// arrival trim each learned from at least [`SessionPriors::MIN_CONTACTS`]
+/// contacts (mean and spread, Welford). From the second such session on they
+/// replace the zero-mean priors of the next session's first trials: a reboot
+/// changes the latencies "slightly" (the paper), not from scratch. Kept
+/// across sessions, as the magnet's memory.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SessionPriors {
+    /// Sessions folded in.
+    pub n: u32,
+    /// Mean camera offset, seconds, and sum of squared deviations, s^2.
+    pub offset_mean_s: f64,
+    /// Sum of squared deviations of the offsets, s^2.
+    pub offset_m2_s2: f64,
+    /// Mean arrival trim, seconds.
+    pub trim_mean_s: f64,
+    /// Sum of squared deviations of the trims, s^2.
+    pub trim_m2_s2: f64,
+}
+
+impl SessionPriors {
+    /// Contacts a session needs before it is folded in.
+    pub const MIN_CONTACTS: u32 = 3;
+    /// Sessions needed before the priors are used.
+    pub const MIN_SESSIONS: u32 = 2;
+    /// Smallest spread believed, seconds.
+    pub const MIN_STD_S: f64 = 0.002;
+
+    fn add(&mut self, offset_s: f64, trim_s: f64) {
+        self.n += 1;
+        let n = f64::from(self.n);
+        let d = offset_s - self.offset_mean_s;
+        self.offset_mean_s += d / n;
+        self.offset_m2_s2 += d * (offset_s - self.offset_mean_s);
+        let d = trim_s - self.trim_mean_s;
+        self.trim_mean_s += d / n;
+        self.trim_m2_s2 += d * (trim_s - self.trim_mean_s);
+    }
+
+    /// The camera offset's prior (mean, std), seconds, once learned.
+    pub fn offset(&self) -> Option<(f64, f64)> {
+        (self.n >= Self::MIN_SESSIONS).then(|| {
+            let sd = (self.offset_m2_s2 / f64::from(self.n - 1)).sqrt();
+            (self.offset_mean_s, sd.max(Self::MIN_STD_S))
+        })
+    }
+
+    /// The arrival trim's prior (mean, std), seconds, once learned.
+    pub fn trim(&self) -> Option<(f64, f64)> {
+        (self.n >= Self::MIN_SESSIONS).then(|| {
+            let sd = (self.trim_m2_s2 / f64::from(self.n - 1)).sqrt();
+            (self.trim_mean_s, sd.max(Self::MIN_STD_S))
+        })
+    }
+}
+
 /// What the running trial shows (folded into the session at its end).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct TrialLearning {
@@ -500,6 +556,8 @@ pub struct Controller {
     abort_reason: Option<AbortReason>,
     session: SessionMemory,
     magnet: MagnetMemory,
+    /// What earlier sessions ended with (kept across sessions).
+    priors: SessionPriors,
     learning: TrialLearning,
     /// The held ball's detections while armed: sum of lateral positions,
     /// metres, and count (`skip_held_detections`).
@@ -553,6 +611,7 @@ impl Controller {
             abort_reason: None,
             session: SessionMemory::default(),
             magnet: MagnetMemory::default(),
+            priors: SessionPriors::default(),
             learning: TrialLearning::default(),
             held_sum_m: 0.0,
             held_n: 0,
@@ -687,8 +746,22 @@ impl Controller {
     /// the robot's latency and the pendulum may have changed): forgets what
     /// the earlier trials taught (`learn_frequency`, `camera_offset_from_release`).
     pub fn new_session(&mut self) {
+        // What the ending session learned from its contacts becomes part of
+        // the next sessions' priors.
+        let m = &self.session;
+        if m.contact_n >= SessionPriors::MIN_CONTACTS || m.trim_n >= SessionPriors::MIN_CONTACTS {
+            let (offset, trim) = (self.camera_offset_s(), self.arrival_trim_s());
+            if offset.is_finite() && trim.is_finite() {
+                self.priors.add(offset, trim);
+            }
+        }
         self.session = SessionMemory::default();
         self.learning = TrialLearning::default();
+    }
+
+    /// What the earlier sessions ended with (the next sessions' priors).
+    pub fn session_priors(&self) -> &SessionPriors {
+        &self.priors
     }
 
     /// Detections after this trial's release skipped as a ball still held
@@ -730,8 +803,13 @@ impl Controller {
         if !release && !contact {
             return 0.0;
         }
-        let sp = self.params.camera_offset_std_ms * 1e-3;
-        let (mut num, mut den) = (0.0, 1.0 / (sp * sp));
+        let param_sp = self.params.camera_offset_std_ms * 1e-3;
+        let (m0, sp) = if contact {
+            self.priors.offset().unwrap_or((0.0, param_sp))
+        } else {
+            (0.0, param_sp)
+        };
+        let (mut num, mut den) = (m0 / (sp * sp), 1.0 / (sp * sp));
         if release {
             let (mut lag_sum, mut n) = (self.session.lag_sum_s, f64::from(self.session.offset_n));
             if let Some(l) = self.learning.lag_s {
@@ -787,8 +865,12 @@ impl Controller {
         if !self.params.arrival_trim_from_contact {
             return 0.0;
         }
-        let prior = 1.0 / (ARRIVAL_TRIM_PRIOR_STD_S * ARRIVAL_TRIM_PRIOR_STD_S);
-        self.session.trim_weighted_sum / (prior + self.session.trim_weight)
+        let (m0, sd0) = self
+            .priors
+            .trim()
+            .unwrap_or((0.0, ARRIVAL_TRIM_PRIOR_STD_S));
+        let prior = 1.0 / (sd0 * sd0);
+        (m0 * prior + self.session.trim_weighted_sum) / (prior + self.session.trim_weight)
     }
 
     /// A contact showed the trial's arrival against the camera's pass:
@@ -921,6 +1003,7 @@ impl Controller {
         }
         // The same magnet.
         self.magnet = old.magnet;
+        self.priors = old.priors;
     }
 
     /// The tool this controller plans with.
@@ -1758,9 +1841,27 @@ mod tests {
             assert!(used > 0.01, "{leads:?}");
             assert!((lead - lead0 - used).abs() < 1e-6, "{leads:?}");
         }
-        // A new session starts from the prior; off, contacts teach nothing.
+        // A new session starts from the prior (one session is not yet a
+        // spread) ...
         c.new_session();
+        assert_eq!(c.session_priors().n, 1);
         assert_eq!(c.arrival_trim_s(), 0.0);
+        // ... a second one like it makes the earlier sessions' trims the
+        // next session's prior.
+        for _ in 0..5 {
+            let used = c.arrival_trim_s();
+            t = release_and_track_at(&mut c, &s, 0.0, 0.0, t);
+            c.learn_from_arrival(late - used, 0.001);
+            c.abort(t, AbortReason::StopRequested);
+            c.reset(t).unwrap();
+            t += 0.5;
+        }
+        c.new_session();
+        let (mean, sd) = c.session_priors().trim().expect("two sessions");
+        assert!((mean - late).abs() < 0.0006, "{mean}");
+        assert_eq!(sd, SessionPriors::MIN_STD_S);
+        assert_eq!(c.arrival_trim_s(), mean);
+        // Off, contacts teach nothing.
         s.control.arrival_trim_from_contact = false;
         let mut off = Controller::new(&s, 0.005).unwrap();
         off.learn_from_arrival(late, 0.001);

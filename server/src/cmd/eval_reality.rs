@@ -73,8 +73,9 @@ pub fn check_judge_fits(s: &Scenario) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The controller's online estimation of issue #20 and the filter's damping
-/// estimate, all off (the robot latency estimator always runs).
+/// The controller's online estimation and coping (issues #20 and #36) and
+/// the filter's damping estimate, all off (the robot latency estimator
+/// always runs).
 pub fn estimation_off(s: &Scenario) -> Scenario {
     let mut s = s.clone();
     s.ekf.estimate_frequency = false;
@@ -82,6 +83,10 @@ pub fn estimation_off(s: &Scenario) -> Scenario {
     s.ekf.estimate_damping = false;
     s.control.learn_frequency = false;
     s.control.camera_offset_from_release = false;
+    s.control.camera_offset_from_contact = false;
+    s.control.arrival_trim_from_contact = false;
+    s.control.skip_held_detections = false;
+    s.ekf.plane_noise_per_m = 0.0;
     s.control.retime = false;
     s
 }
@@ -188,7 +193,7 @@ pub fn reality_scenarios(
         estimation_off(&base),
     ));
     type Switch = (&'static str, fn(&mut Scenario));
-    let switches: [Switch; 5] = [
+    let switches: [Switch; 9] = [
         ("ekf.estimate_frequency", |s| {
             s.ekf.estimate_frequency = false
         }),
@@ -199,6 +204,16 @@ pub fn reality_scenarios(
         ("control.camera_offset_from_release", |s| {
             s.control.camera_offset_from_release = false;
         }),
+        ("control.camera_offset_from_contact", |s| {
+            s.control.camera_offset_from_contact = false;
+        }),
+        ("control.arrival_trim_from_contact", |s| {
+            s.control.arrival_trim_from_contact = false;
+        }),
+        ("control.skip_held_detections", |s| {
+            s.control.skip_held_detections = false;
+        }),
+        ("ekf.plane_noise_per_m", |s| s.ekf.plane_noise_per_m = 0.0),
         ("control.retime", |s| s.control.retime = false),
     ];
     for (name, off) in switches {
