@@ -1391,18 +1391,24 @@ mod tests {
     fn the_controller_cannot_read_the_world() {
         // Whole trials in the reality lab (a hidden world unlike the
         // beliefs; the controller learns across them: the pendulum's
-        // frequency, the camera's offset from the releases, the latency):
+        // frequency, the camera's offset from the releases, the latency),
+        // in two sessions:
         // every exchange of the control side is logged from the lab's start,
         // and a control side built from the beliefs alone, with no world
         // behind it, fed the logged inputs at their times, gives every reply
         // datagram, commit, request, event, ack and trial verdict bit for
         // bit: its outputs are a function of its inputs.
-        let s = reality_lab();
+        // A reboot after two trials: the second session's robot latency and
+        // camera offset differ, and the controller is told of the reboot.
+        let mut s = reality_lab();
+        if let Some(w) = s.world.as_mut() {
+            w.sessions.trials_per_session = 2;
+        }
         let mut beliefs = s.clone();
         beliefs.world = None;
         let seed = 6;
         let mut lab = VirtualLab::recorded(&s, seed).unwrap();
-        let trials = 3;
+        let trials = 4;
         let recs: Vec<TrialRecord> = (0..trials).map(|i| lab.run_trial(i)).collect();
         let log = lab.replay_log.take().unwrap();
         // The run went through every channel: whole trials, each committed
@@ -1417,7 +1423,7 @@ mod tests {
         assert!(count(&log, |e| matches!(e, Exchange::Measurement(_))) > 100 * trials);
         let notes = |on| count(&log, |e| matches!(e, Exchange::MagnetNote(n) if n.on == on));
         assert_eq!((notes(true), notes(false)), (trials, trials));
-        assert_eq!(count(&log, |e| matches!(e, Exchange::NewSession)), 1);
+        assert_eq!(count(&log, |e| matches!(e, Exchange::NewSession)), 2);
         assert_eq!(
             count(&log, |e| matches!(e, Exchange::Commit(Some(_)))),
             trials
