@@ -1,7 +1,7 @@
 //! The controller cannot read the world: a run's exchanges with the control
 //! side, and their replay.
 //!
-//! A recorded virtual lab ([`super::VirtualLab::recorded`]) logs, in its
+//! A recorded virtual lab (`VirtualLab::recorded`, tests) logs, in its
 //! driver and never in the control step, every [`Exchange`] of the control
 //! side (the FRI client, the trial driver and the controller) from the lab's
 //! start, in order and with their times: the inputs the driver hands it and

@@ -312,7 +312,7 @@ pub struct VirtualLab {
     /// and the current trial's camera.
     world_session: Option<u64>,
     world_view: Option<WorldView>,
-    /// When `Some` ([`Self::recorded`]), every exchange of the control side
+    /// When `Some` (`Self::recorded`, tests), every exchange of the control side
     /// from the lab's start, in order: what the driver hands it (FRI
     /// datagrams, silence checks and idle calls with their times, camera
     /// measurements, magnet notes, the operator's commands, the session's
@@ -376,6 +376,7 @@ impl VirtualLab {
 
     /// [`Self::new`], every exchange of its control side logged from the
     /// start ([`Self::replay_log`]; the replay test).
+    #[cfg(test)]
     pub(crate) fn recorded(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
         Self::build(scenario, seed, robot_params(scenario, seed), true)
     }
@@ -1433,6 +1434,33 @@ mod tests {
             trials
         );
         assert!(count(&log, |e| matches!(e, Exchange::Event(_))) > 5 * trials);
+        // What the records take from the control side is what the replay
+        // must give again.
+        let verdicts: Vec<&Verdict> = log
+            .iter()
+            .filter_map(|e| match e {
+                Exchange::Outcome(Some(v)) => Some(v),
+                _ => None,
+            })
+            .collect();
+        for (r, v) in recs.iter().zip(&verdicts) {
+            assert_eq!(
+                (
+                    r.measured,
+                    r.latency_estimate_ms,
+                    r.camera_offset_estimate_ms
+                ),
+                (
+                    v.measured,
+                    v.latency_estimate_ms,
+                    v.camera_offset_estimate_ms
+                )
+            );
+            assert_eq!(
+                (r.length_estimate_m, r.planned_movement_time_s),
+                (v.length_estimate_m, v.planned_movement_time_s)
+            );
+        }
         assert_replays(&log, &beliefs, seed);
 
         // Two labs that differ only in `[world]` (the pendulum's true length
