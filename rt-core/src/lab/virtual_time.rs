@@ -1392,15 +1392,16 @@ mod tests {
     fn the_controller_cannot_read_the_world() {
         // Whole trials in the reality lab (a hidden world unlike the
         // beliefs; the controller learns across them: the pendulum's
-        // frequency, the camera's offset from the releases, the latency),
-        // in two sessions:
+        // frequency, the camera's offset from the releases, the latency):
         // every exchange of the control side is logged from the lab's start,
         // and a control side built from the beliefs alone, with no world
         // behind it, fed the logged inputs at their times, gives every reply
-        // datagram, commit, request, event, ack and trial verdict bit for
-        // bit: its outputs are a function of its inputs.
-        // A reboot after two trials: the second session's robot latency and
-        // camera offset differ, and the controller is told of the reboot.
+        // datagram, commit, request, answer, event, ack and trial verdict
+        // bit for bit: its outputs are a function of its inputs. A reboot
+        // after two trials (the second session's robot latency and camera
+        // offset differ; the controller is told of the reboot, not what
+        // changed), and a 100 ms robot silence while tracking in trial 1
+        // (the session's silence checks and the driver's idle calls).
         let mut s = reality_lab();
         if let Some(w) = s.world.as_mut() {
             w.sessions.trials_per_session = 2;
@@ -1410,7 +1411,16 @@ mod tests {
         let seed = 6;
         let mut lab = VirtualLab::recorded(&s, seed).unwrap();
         let trials = 4;
-        let recs: Vec<TrialRecord> = (0..trials).map(|i| lab.run_trial(i)).collect();
+        let recs: Vec<TrialRecord> = (0..trials)
+            .map(|i| {
+                lab.robot_pause = (i == 1).then_some(RobotPause {
+                    in_state: TrialState::Tracking,
+                    for_s: 0.1,
+                    started_s: None,
+                });
+                lab.run_trial(i)
+            })
+            .collect();
         let log = lab.replay_log.take().unwrap();
         // The run went through every channel: whole trials, each committed
         // and judged by the world (one hit at least), the releases' notes.
@@ -1425,6 +1435,7 @@ mod tests {
         let notes = |on| count(&log, |e| matches!(e, Exchange::MagnetNote(n) if n.on == on));
         assert_eq!((notes(true), notes(false)), (trials, trials));
         assert_eq!(count(&log, |e| matches!(e, Exchange::NewSession)), 2);
+        assert!(count(&log, |e| matches!(e, Exchange::Idle(_))) >= 19);
         assert_eq!(
             count(&log, |e| matches!(e, Exchange::Commit(Some(_)))),
             trials
