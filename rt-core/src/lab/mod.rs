@@ -4,6 +4,7 @@ pub mod fri_step;
 pub mod lifecycle;
 pub mod loop_step;
 mod measured;
+mod replay;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
 pub mod step;

@@ -26,6 +26,7 @@ use rtrb::{Consumer, Producer};
 
 use super::fri_step::FriLoopStep;
 use super::loop_step::LoopStep;
+use super::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
 use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
     TrialOutcome, Truth, plan_or_params,
@@ -93,6 +94,105 @@ pub fn robot_params(scenario: &Scenario, seed: u64) -> FriSimParams {
     p.initial_joint_position_deg = INITIAL_JOINTS_DEG;
     p.seed = seed;
     p
+}
+
+/// The controller's period in the lab of `robot`: its send period times its
+/// receive multiplier, seconds.
+pub(super) fn control_period_s(robot: &FriSimParams) -> f64 {
+    f64::from(robot.fri_period_ms * robot.receive_multiplier) * 1e-3
+}
+
+/// The believed camera: its geometry (the rendered camera's; the model
+/// camera needs none, but the dashboard's overlay and the calibration ring
+/// do) and its calibration at the nearest rest point.
+pub(super) fn believed_camera(scenario: &Scenario) -> (CameraModel, SwingPlaneCalibration) {
+    let sim_camera = SimCameraParams::default();
+    // The believed intrinsics (calibrated, or the nominal pinhole): the
+    // detector's calibration undistorts with them.
+    let model = CameraModel {
+        intrinsics: scenario.camera.believed_intrinsics(sim_camera.hfov_deg),
+        pose: sim_camera.pose,
+        ball_radius_m: scenario.pendulum.ball_radius_m,
+    };
+    let rest = nalgebra::Vector3::new(
+        scenario.task.distance_m.lo,
+        0.0,
+        scenario.task.intercept_height_m,
+    );
+    let calibration =
+        SwingPlaneCalibration::from_pose(model.intrinsics, &model.pose, &rest, model.ball_radius_m);
+    (model, calibration)
+}
+
+/// The control side of a lab: what the real lab runs on its FRI thread (the
+/// FRI client session and the trial driver around the controller), with the
+/// other ends of its rings (the operator's bridge, the camera's
+/// measurements, the magnet's notes, `isochron-lab-io`'s requests and
+/// replies). Built from the scenario's beliefs; `truth`: the simulated world
+/// the driver follows and judges on (`None`: none, as in the real lab).
+pub(super) struct ControlSide {
+    pub client: FriClient,
+    pub step: LabStep,
+    pub server: ServerEnd,
+    pub measurements: Producer<Measurement>,
+    pub notes: Producer<MagnetNote>,
+    pub io_requests: Consumer<IoRequest>,
+    pub io_replies: Producer<IoReply>,
+}
+
+impl ControlSide {
+    pub(super) fn new(
+        scenario: &Scenario,
+        seed: u64,
+        period_s: f64,
+        calibration: SwingPlaneCalibration,
+        truth: Option<Truth>,
+    ) -> Result<Self, LabError> {
+        // The controller is built from the beliefs only: it never holds
+        // `[world]`. Every believed section is checked, `[camera]` and
+        // `[success]` too (the controller checks only those it reads).
+        scenario.validate_but_world().map_err(ControlError::from)?;
+        let controller = Controller::new(&scenario.beliefs(), period_s)?;
+        let client = FriClient::new(FriClientParams::default())
+            .map_err(|e| LabError::Robot(e.to_string()))?;
+        let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
+        let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
+        let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
+        let (req_tx, req_rx) = rtrb::RingBuffer::<IoRequest>::new(16);
+        let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
+        let cell = std::sync::Arc::new(std::sync::OnceLock::new());
+        let _ = cell.set(client.stats().clone());
+        let step = LabStep::new(
+            controller,
+            LabParts {
+                scenario: Box::new(scenario.clone()),
+                seed,
+                fixed_distance_m: None,
+                bridge: control,
+                clock: LabClock::Virtual,
+                measurements: meas_rx,
+                magnet_notes: note_rx,
+                io_requests: req_tx,
+                io_replies: reply_rx,
+                #[cfg(feature = "serial")]
+                magnet: None,
+                session: cell,
+                truth,
+                calibration,
+                // No operator in virtual time: no dead-man.
+                operator_timeout_s: None,
+            },
+        );
+        Ok(Self {
+            client,
+            step,
+            server,
+            measurements: meas_tx,
+            notes: note_tx,
+            io_requests: req_rx,
+            io_replies: reply_tx,
+        })
+    }
 }
 
 /// Wraps the handling of one controller message: called with the trial
@@ -212,10 +312,18 @@ pub struct VirtualLab {
     /// and the current trial's camera.
     world_session: Option<u64>,
     world_view: Option<WorldView>,
-    /// When `Some`, every byte the controller reads (FRI messages, then the
-    /// measurements handed to it) is appended (tests: the controller cannot
-    /// read the world).
-    pub input_log: Option<Vec<u8>>,
+    /// When `Some` (`Self::recorded`, tests), every exchange of the control side
+    /// from the lab's start, in order: what the driver hands it (FRI
+    /// datagrams, silence checks and idle calls with their times, camera
+    /// measurements, magnet notes, the operator's commands, the session's
+    /// reboots, `isochron-lab-io`'s turns) and what it gives back (replies,
+    /// commits, requests, events, acks, trial outcomes). Logged here, in the
+    /// driver, never in the control step ([`super::replay`]: the controller
+    /// cannot read the world). Commands sent through [`Self::server`] and
+    /// changes through [`Self::loop_step`] are not logged.
+    pub(crate) replay_log: Option<Vec<Exchange>>,
+    /// The controller's commit last logged.
+    last_commit: Option<crate::control::Commit>,
     /// When true, each period leaves the control thread's events in the
     /// server end for the caller ([`Self::server`]; the lifecycle fuzzer)
     /// instead of dropping them.
@@ -263,80 +371,51 @@ impl VirtualLab {
         seed: u64,
         robot: FriSimParams,
     ) -> Result<Self, LabError> {
-        let period_ms = robot.fri_period_ms * robot.receive_multiplier;
-        let period_s = f64::from(period_ms) * 1e-3;
-        // The controller is built from the beliefs only: it never holds `[world]`.
-        // Every believed section is checked, `[camera]` and `[success]` too
-        // (the controller checks only those it reads).
-        scenario.validate_but_world().map_err(ControlError::from)?;
-        let controller = Controller::new(&scenario.beliefs(), period_s)?;
-        let robot_period_ns = robot.period_ns();
-        let robot =
-            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
-        let client = FriClient::new(FriClientParams::default())
-            .map_err(|e| LabError::Robot(e.to_string()))?;
-        // The camera's geometry (the rendered camera's; the model camera
-        // needs none, but the dashboard's overlay and the calibration ring do).
-        let sim_camera = SimCameraParams::default();
-        // The believed intrinsics (calibrated, or the nominal pinhole): the
-        // detector's calibration undistorts with them.
-        let model = CameraModel {
-            intrinsics: scenario.camera.believed_intrinsics(sim_camera.hfov_deg),
-            pose: sim_camera.pose,
-            ball_radius_m: scenario.pendulum.ball_radius_m,
-        };
-        let rest = nalgebra::Vector3::new(
-            scenario.task.distance_m.lo,
-            0.0,
-            scenario.task.intercept_height_m,
-        );
-        let calibration = SwingPlaneCalibration::from_pose(
-            model.intrinsics,
-            &model.pose,
-            &rest,
-            model.ball_radius_m,
-        );
-        let camera = Camera::new(scenario, seed, calibration)?;
-        let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
-        let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
-        let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
-        let (req_tx, req_rx) = rtrb::RingBuffer::<IoRequest>::new(16);
-        let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
+        Self::build(scenario, seed, robot, false)
+    }
+
+    /// [`Self::new`], every exchange of its control side logged from the
+    /// start ([`Self::replay_log`]; the replay test).
+    #[cfg(test)]
+    pub(crate) fn recorded(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
+        Self::build(scenario, seed, robot_params(scenario, seed), true)
+    }
+
+    fn build(
+        scenario: &Scenario,
+        seed: u64,
+        robot: FriSimParams,
+        record: bool,
+    ) -> Result<Self, LabError> {
+        let period_s = control_period_s(&robot);
+        let (model, calibration) = believed_camera(scenario);
         let (truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
         let (contact_tx, contact_rx) = rtrb::RingBuffer::<Contact>::new(64);
         let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
         let true_joints = std::sync::Arc::new(crate::fri::stats::AtomicJoints::default());
-        let session = client.stats().clone();
-        let cell = std::sync::Arc::new(std::sync::OnceLock::new());
-        let _ = cell.set(session);
-        let step = LabStep::new(
-            controller,
-            LabParts {
-                scenario: Box::new(scenario.clone()),
-                seed,
-                fixed_distance_m: None,
-                bridge: control,
-                clock: LabClock::Virtual,
-                measurements: meas_rx,
-                magnet_notes: note_rx,
-                io_requests: req_tx,
-                io_replies: reply_rx,
-                #[cfg(feature = "serial")]
-                magnet: None,
-                session: cell,
-                truth: Some(Truth {
-                    to_camera: truth_tx,
-                    calibrations: cal_tx,
-                    camera: model,
-                    world: scenario.world.is_some(),
-                    joints: Some(std::sync::Arc::clone(&true_joints)),
-                    contacts: Some(contact_tx),
-                }),
-                calibration,
-                // No operator in virtual time: no dead-man.
-                operator_timeout_s: None,
-            },
-        );
+        let truth = Truth {
+            to_camera: truth_tx,
+            calibrations: cal_tx,
+            camera: model,
+            world: scenario.world.is_some(),
+            joints: Some(std::sync::Arc::clone(&true_joints)),
+            contacts: Some(contact_tx),
+        };
+        // The controller is built from the beliefs only: it never holds `[world]`.
+        let side = ControlSide::new(scenario, seed, period_s, calibration, Some(truth))?;
+        let robot_period_ns = robot.period_ns();
+        let robot =
+            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
+        let camera = Camera::new(scenario, seed, calibration)?;
+        let ControlSide {
+            client,
+            step,
+            server,
+            measurements: meas_tx,
+            notes: note_tx,
+            io_requests: req_rx,
+            io_replies: reply_tx,
+        } = side;
         let mut lab = Self {
             scenario: scenario.clone(),
             robot,
@@ -363,7 +442,8 @@ impl VirtualLab {
             true_joints,
             world_session: None,
             world_view: None,
-            input_log: None,
+            replay_log: record.then(|| Vec::with_capacity(1 << 16)),
+            last_commit: None,
             keep_events: false,
             robot_pause: None,
         };
@@ -522,25 +602,32 @@ impl VirtualLab {
         self.last_release = None;
         self.plan_error = None;
         self.magnet_error = None;
-        let _ = self.step.take_outcome();
+        if let Some(o) = self.step.take_outcome() {
+            self.log_outcome(&o);
+        }
         self.step.set_next_trial(index);
+        self.log(|| Exchange::NextTrial(index));
         let fri_before = self.fri_counts();
-        let Ok(ack) = self.server.commands.send(Command::RunTrial {
+        let command = Command::RunTrial {
             trial_id: index as u64 + 1,
             setup: crate::bridge::TrialSetup::default(),
-        }) else {
+        };
+        let Ok(ack) = self.server.commands.send(command.clone()) else {
             rec.failure = Some("the command ring is full".to_owned());
             rec.decide(&self.scenario.success);
             return rec;
         };
+        self.log(|| Exchange::Command(command));
         let t0 = self.t_s();
         let outcome = loop {
             self.period(around);
             if let Some(o) = self.step.take_outcome() {
+                self.log_outcome(&o);
                 break Ok(o);
             }
             let mut refused = None;
             while let Some(a) = self.server.acks.pop() {
+                self.log(|| Exchange::Ack(format!("{a:?}")));
                 if a.id == ack
                     && let Err(r) = a.outcome
                 {
@@ -572,12 +659,28 @@ impl VirtualLab {
                     .inner_mut()
                     .controller_mut()
                     .abort(t, crate::control::AbortReason::StopRequested);
+                self.log(|| Exchange::Abort(t));
                 rec.decide(&self.scenario.success);
                 return rec;
             }
         };
         self.record(&mut rec, &o, fri_before);
         rec
+    }
+
+    /// Appends an exchange to the replay log, when there is one.
+    fn log(&mut self, exchange: impl FnOnce() -> Exchange) {
+        if let Some(log) = self.replay_log.as_mut() {
+            log.push(exchange());
+        }
+    }
+
+    /// Logs a trial's outcome as the driver takes it: what the control side
+    /// decided (never the judges' truth).
+    fn log_outcome(&mut self, o: &TrialOutcome) {
+        if let Some(log) = self.replay_log.as_mut() {
+            log.push(Exchange::Outcome(Some(Verdict::of(o, &self.client))));
+        }
     }
 
     /// Fills `rec` from the trial driver's outcome and the FRI side's counts.
@@ -636,7 +739,9 @@ impl VirtualLab {
         while i < self.notes_due.len() {
             if self.notes_due[i].t_s <= t_next {
                 let n = self.notes_due.remove(i);
-                let _ = self.notes.push(n);
+                if self.notes.push(n).is_ok() {
+                    self.log(|| Exchange::MagnetNote(n));
+                }
             } else {
                 i += 1;
             }
@@ -655,7 +760,9 @@ impl VirtualLab {
             // The session thread's receive timeout: the silence check, then
             // the driver between messages.
             self.client.poll(now, &mut self.step);
+            self.log(|| Exchange::Poll(now));
             ControlStep::idle(&mut self.step, now);
+            self.log(|| Exchange::Idle(now));
             self.serve_requests(t_next);
             self.drain_server();
             return;
@@ -665,11 +772,15 @@ impl VirtualLab {
             robot,
             step,
             true_joints,
-            input_log,
+            replay_log,
+            last_commit,
             contacts,
             ..
         } = self;
         client.poll(now, step);
+        if let Some(log) = replay_log.as_mut() {
+            log.push(Exchange::Poll(now));
+        }
         // The contacts of the trial driver's last step (the reality lab's
         // ball against the tool) reach the robot's torque sensing.
         while let Ok(c) = contacts.pop() {
@@ -685,8 +796,11 @@ impl VirtualLab {
             let bytes = &datagram[..n];
             // The robot's true joints as this message leaves it (the judge's).
             true_joints.store(robot.joint_rad());
-            if let Some(log) = input_log.as_mut() {
-                log.extend_from_slice(bytes);
+            if let Some(log) = replay_log.as_mut() {
+                log.push(Exchange::Datagram {
+                    now_ns: now,
+                    bytes: bytes.to_vec(),
+                });
             }
             let mut reply = [0u8; MAX_DATAGRAM_BYTES];
             let mut len = None;
@@ -708,6 +822,14 @@ impl VirtualLab {
             if let Some(n) = len {
                 robot.on_reply(&reply[..n], now + LOOPBACK_NS);
             }
+            if let Some(log) = replay_log.as_mut() {
+                log.push(Exchange::Reply(len.map(|n| reply[..n].to_vec())));
+                let commit = step.inner().controller().commit().copied();
+                if commit != *last_commit {
+                    *last_commit = commit;
+                    log.push(Exchange::Commit(commit));
+                }
+            }
         }
         self.serve_requests(t_next);
         self.drain_server();
@@ -717,14 +839,18 @@ impl VirtualLab {
     /// the caller keeps them.
     fn drain_server(&mut self) {
         if !self.keep_events {
-            while self.server.events.pop().is_some() {}
+            while let Some(e) = self.server.events.pop() {
+                self.log(|| Exchange::Event(describe_event(&e)));
+            }
         }
         while self.server.telemetry.pop().is_some() {}
     }
 
     /// What `isochron-lab-io` does in real time, in line.
     fn serve_requests(&mut self, t: f64) {
+        self.log(|| Exchange::Serve(t));
         while let Ok(req) = self.io_requests.pop() {
+            self.log(|| Exchange::Request(describe_request(&req)));
             match req {
                 IoRequest::Magnet(on) => match self.magnet.switch(t, on, &mut self.magnet_rng) {
                     Ok(sw) => {
@@ -767,7 +893,12 @@ impl VirtualLab {
                         {
                             self.world_trial(t, *index, draw, plan);
                         }
-                        let _ = self.io_replies.push(reply);
+                        let answer = self.replay_log.is_some().then(|| describe_reply(&reply));
+                        if self.io_replies.push(reply).is_ok()
+                            && let Some(answer) = answer
+                        {
+                            self.log(|| Exchange::Answer(answer));
+                        }
                     }
                 }
             }
@@ -833,6 +964,7 @@ impl VirtualLab {
         self.world_session = Some(world.session.session);
         // The controller is told of the reboot (not what changed).
         self.step.inner_mut().controller_mut().new_session();
+        self.log(|| Exchange::NewSession);
         let Some(w) = self.scenario.world.as_ref() else {
             return;
         };
@@ -907,13 +1039,17 @@ impl VirtualLab {
                 }
                 camera.deliver(t_next, delivered);
                 for m in delivered.drain(..) {
-                    let _ = self.measurements.push(Measurement {
-                        t_capture_s: m.t_capture_s,
-                        t_available_s: t_next,
-                        found: true,
-                        lateral_m: m.lateral_m,
-                        ..Measurement::default()
-                    });
+                    deliver(
+                        &mut self.measurements,
+                        &mut self.replay_log,
+                        Measurement {
+                            t_capture_s: m.t_capture_s,
+                            t_available_s: t_next,
+                            found: true,
+                            lateral_m: m.lateral_m,
+                            ..Measurement::default()
+                        },
+                    );
                 }
             }
             #[cfg(feature = "opencv")]
@@ -937,7 +1073,7 @@ impl VirtualLab {
                     if m.t_available_s > t_next {
                         break;
                     }
-                    let _ = self.measurements.push(*m);
+                    deliver(&mut self.measurements, &mut self.replay_log, *m);
                     in_flight.pop_front();
                 }
             }
@@ -1032,10 +1168,7 @@ impl VirtualLab {
             if avail > t_next {
                 break;
             }
-            if let Some(log) = self.input_log.as_mut() {
-                log.extend_from_slice(format!("{m:?}").as_bytes());
-            }
-            let _ = self.measurements.push(m);
+            deliver(&mut self.measurements, &mut self.replay_log, m);
             w.in_flight.pop_front();
         }
     }
@@ -1054,6 +1187,15 @@ impl VirtualLab {
                 + r.violations.load(Relaxed),
             aborts: r.aborts.load(Relaxed),
         }
+    }
+}
+
+/// A camera measurement into the control side's ring, logged once it is there.
+fn deliver(ring: &mut Producer<Measurement>, log: &mut Option<Vec<Exchange>>, m: Measurement) {
+    if ring.push(m).is_ok()
+        && let Some(log) = log.as_mut()
+    {
+        log.push(Exchange::Measurement(m));
     }
 }
 
@@ -1229,39 +1371,160 @@ mod tests {
         assert!(lab.robot().stats().commanding_entered.load(Relaxed) >= 2);
     }
 
+    /// Replays `log` on a control side built from `beliefs` alone (no world,
+    /// truth or simulated robot) and asserts that it gives every output of
+    /// the recorded one, bit for bit, at the same places.
+    fn assert_replays(log: &[Exchange], beliefs: &Scenario, seed: u64) {
+        let replayed = super::super::replay::Replay::new(beliefs, seed)
+            .unwrap()
+            .run(log);
+        if let Some(d) = super::super::replay::first_difference(log, &replayed) {
+            panic!("the replay on the beliefs alone diverged: {d}");
+        }
+    }
+
+    /// How many entries of `log` match `f`.
+    fn count(log: &[Exchange], f: impl Fn(&Exchange) -> bool) -> usize {
+        log.iter().filter(|e| f(e)).count()
+    }
+
     #[test]
     fn the_controller_cannot_read_the_world() {
+        // Whole trials in the reality lab (a hidden world unlike the
+        // beliefs; the controller learns across them: the pendulum's
+        // frequency, the camera's offset from the releases, the latency):
+        // every exchange of the control side is logged from the lab's start,
+        // and a control side built from the beliefs alone, with no world
+        // behind it, fed the logged inputs at their times, gives every reply
+        // datagram, commit, request, answer, event, ack and trial verdict
+        // bit for bit: its outputs are a function of its inputs. A reboot
+        // after two trials (the second session's robot latency and camera
+        // offset differ; the controller is told of the reboot, not what
+        // changed), and a 100 ms robot silence while tracking in trial 1
+        // (the session's silence checks and the driver's idle calls).
+        let mut s = reality_lab();
+        if let Some(w) = s.world.as_mut() {
+            w.sessions.trials_per_session = 2;
+        }
+        let mut beliefs = s.clone();
+        beliefs.world = None;
+        let seed = 6;
+        let mut lab = VirtualLab::recorded(&s, seed).unwrap();
+        let trials = 4;
+        let recs: Vec<TrialRecord> = (0..trials)
+            .map(|i| {
+                lab.robot_pause = (i == 1).then_some(RobotPause {
+                    in_state: TrialState::Tracking,
+                    for_s: 0.1,
+                    started_s: None,
+                });
+                lab.run_trial(i)
+            })
+            .collect();
+        let log = lab.replay_log.take().unwrap();
+        // The run went through every channel: whole trials, each committed
+        // and judged by the world (one hit at least), the releases' notes.
+        for r in &recs {
+            assert_eq!(r.final_state, "done", "{r:?}");
+            assert!(r.physical.is_some() && r.measured.is_some(), "{r:?}");
+        }
+        assert!(recs.iter().any(|r| r.success), "{recs:?}");
+        let replies = count(&log, |e| matches!(e, Exchange::Reply(Some(_))));
+        assert!(replies > 1000 * trials, "{replies} replies");
+        assert!(count(&log, |e| matches!(e, Exchange::Measurement(_))) > 100 * trials);
+        let notes = |on| count(&log, |e| matches!(e, Exchange::MagnetNote(n) if n.on == on));
+        assert_eq!((notes(true), notes(false)), (trials, trials));
+        assert_eq!(count(&log, |e| matches!(e, Exchange::NewSession)), 2);
+        assert!(count(&log, |e| matches!(e, Exchange::Idle(_))) >= 19);
+        assert_eq!(
+            count(&log, |e| matches!(e, Exchange::Commit(Some(_)))),
+            trials
+        );
+        assert_eq!(
+            count(&log, |e| matches!(e, Exchange::Outcome(Some(_)))),
+            trials
+        );
+        assert!(count(&log, |e| matches!(e, Exchange::Event(_))) > 5 * trials);
+        // What the records take from the control side is what the replay
+        // must give again.
+        let verdicts: Vec<&Verdict> = log
+            .iter()
+            .filter_map(|e| match e {
+                Exchange::Outcome(Some(v)) => Some(v),
+                _ => None,
+            })
+            .collect();
+        for (r, v) in recs.iter().zip(&verdicts) {
+            assert_eq!(
+                (
+                    r.measured,
+                    r.latency_estimate_ms,
+                    r.camera_offset_estimate_ms
+                ),
+                (
+                    v.measured,
+                    v.latency_estimate_ms,
+                    v.camera_offset_estimate_ms
+                )
+            );
+            assert_eq!(
+                (r.length_estimate_m, r.planned_movement_time_s),
+                (v.length_estimate_m, v.planned_movement_time_s)
+            );
+        }
+        assert_replays(&log, &beliefs, seed);
+
         // Two labs that differ only in `[world]` (the pendulum's true length
         // and the camera's true latency): the controller's inputs are
-        // byte-identical until the first measurement, and the outcomes differ.
+        // identical until the first measurement, the outcomes differ, and
+        // each run replays on the same beliefs.
         let run = |world: &str| {
             let mut s =
                 Scenario::from_toml_str(&format!("[camera]\nvision = \"model\"\n{world}")).unwrap();
             s.name = "x".into();
-            let mut lab = VirtualLab::new(&s, 4).unwrap();
-            lab.input_log = Some(Vec::new());
+            let mut lab = VirtualLab::recorded(&s, 4).unwrap();
             let r = lab.run_trial(0);
-            (lab.input_log.take().unwrap(), r)
+            s.world = None;
+            (lab.replay_log.take().unwrap(), r, s)
         };
-        let (a, ra) = run("[world.pendulum]\nlength_error_m = 0.0\n");
-        let (b, rb) =
+        let (a, ra, beliefs) = run("[world.pendulum]\nlength_error_m = 0.0\n");
+        let (b, rb, beliefs_b) =
             run("[world.pendulum]\nlength_error_m = 0.02\n[world.camera]\nlatency_ms = 12.0\n");
-        let first = |log: &[u8]| {
-            let key = b"Measurement";
-            log.windows(key.len()).position(|w| w == key).unwrap()
+        let first = |log: &[Exchange]| {
+            log.iter()
+                .position(|e| matches!(e, Exchange::Measurement(_)))
+                .unwrap()
         };
         let (fa, fb) = (first(&a), first(&b));
-        assert!(fa > 1000, "{fa}");
-        let n = fa.min(fb);
-        assert_eq!(
-            a[..n],
-            b[..n],
-            "the inputs differ before the first measurement"
+        assert!(fa > 100, "{fa}");
+        let inputs = |log: &[Exchange]| -> Vec<String> {
+            log.iter()
+                .filter(|e| e.is_input())
+                .map(|e| format!("{e:?}"))
+                .collect()
+        };
+        // (The camera's latency differs: the first measurement comes later in
+        // one world.)
+        let (ia, ib) = (inputs(&a[..fa]), inputs(&b[..fb]));
+        let n = ia.len().min(ib.len());
+        if let Some(i) = (0..n).find(|&i| ia[i] != ib[i]) {
+            panic!(
+                "the inputs differ before the first measurement, at input {i} of {n}:\n{}\n{}",
+                ia[i], ib[i]
+            );
+        }
+        let seen = |key: &str| ia[..n].iter().any(|e| e.starts_with(key));
+        assert!(
+            seen("Command") && seen("NewSession") && seen("MagnetNote"),
+            "{n} inputs"
         );
-        assert_ne!(a, b);
+        assert_ne!(inputs(&a), inputs(&b));
         let (pa, pb) = (ra.physical.unwrap(), rb.physical.unwrap());
         assert_ne!(pa.t_star_s, pb.t_star_s);
         assert_ne!(pa.timing_error_ms, pb.timing_error_ms);
+        assert_eq!(format!("{beliefs:?}"), format!("{beliefs_b:?}"));
+        assert_replays(&a, &beliefs, 4);
+        assert_replays(&b, &beliefs, 4);
     }
 
     #[test]
