@@ -19,6 +19,10 @@ use super::stats::{AtomicJoints, LatencyHistogram, LatencySummary};
 use super::version::FriVersion;
 use crate::check::{self, ParamError};
 
+/// Most receive periods a command's step may cover in the guard (after lost
+/// messages; the simulated controller's `missing_after_periods`).
+const MAX_GUARD_PERIODS: u32 = 3;
+
 /// Client settings, units in the names.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -370,6 +374,9 @@ pub struct FriClient {
     send_period_ns: u64,
     last_command: Joints,
     have_command: bool,
+    /// The controller's counter of the message the last command answered
+    /// (`None` until a command in this commanding).
+    last_command_ref: Option<u32>,
 }
 
 impl FriClient {
@@ -397,6 +404,7 @@ impl FriClient {
             send_period_ns: 0,
             last_command: [0.0; 7],
             have_command: false,
+            last_command_ref: None,
         })
     }
 
@@ -568,6 +576,7 @@ impl FriClient {
                 self.last_command = q;
                 self.have_command = true;
             }
+            self.last_command_ref = None;
         }
 
         let commanding = new_state == LinkState::CommandingActive && reply_due && self.have_command;
@@ -587,7 +596,19 @@ impl FriClient {
         let joints: Option<Joints> = match new_state {
             LinkState::CommandingActive if self.have_command => {
                 if self.params.guard_enabled {
-                    let g: GuardOutcome = self.guard.apply(&mut cmd, &self.last_command, period_s);
+                    // The step may cover the receive periods since the
+                    // message the last command answered (a lost message in
+                    // between: two), as the controller's own check does, at
+                    // most three.
+                    let periods = self.last_command_ref.map_or(1, |last| {
+                        (m.sequence_counter.wrapping_sub(last) / m.receive_multiplier.max(1))
+                            .clamp(1, MAX_GUARD_PERIODS)
+                    });
+                    let g: GuardOutcome = self.guard.apply(
+                        &mut cmd,
+                        &self.last_command,
+                        period_s * f64::from(periods),
+                    );
                     if g.held_non_finite {
                         self.stats.guard_non_finite.fetch_add(1, Relaxed);
                     }
@@ -599,6 +620,7 @@ impl FriClient {
                     }
                 }
                 self.last_command = cmd;
+                self.last_command_ref = Some(m.sequence_counter);
                 self.stats.commands.fetch_add(1, Relaxed);
                 Some(cmd)
             }
