@@ -37,10 +37,8 @@ use rt_core::fri::FriVersion;
 use rt_core::params::{Scenario, check};
 use rt_core::sim::kuka::controller::WorldRobot;
 use rt_core::sim::kuka::{SimRunOptions, SimServer};
-use rt_core::sim::world::contact::TORQUE_LAG_PERIODS;
 use rt_core::sim::world::live::{LiveWorld, ReleaseTruth};
 use rt_core::sim::world::webcam::{BallSample, WorldWebcam};
-use rt_core::sim::world::{LatencyModel, WorldJoints};
 use serde::Serialize;
 
 use crate::config::{LabMode, ServeConfig};
@@ -168,27 +166,24 @@ impl LabWorld {
         let mut params = rt_core::lab::robot_params(scenario, spec.seed);
         params.fri_version = spec.fri_version;
         let period_s = f64::from(params.fri_period_ms) * 1e-3;
-        let mut joints = WorldJoints::new(
-            std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians()),
+        let robot = WorldRobot::for_session(
+            &wp,
             &session,
+            std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians()),
             params.servo_time_constant_ms * 1e-3,
-            wp.robot.torque_limit_scale,
-            wp.robot.torque_trip,
-            wp.robot.position_noise_rad,
-            spec.seed ^ 0x9E37_79B9_7F4A_7C15,
-        );
-        joints.set_interpolation_s(period_s);
-        let robot = WorldRobot::new(
-            LatencyModel::from_session(&session, 0.0),
-            joints,
-            spec.seed ^ 0xD1B5_4A32_D192_ED03,
-            TORQUE_LAG_PERIODS * period_s,
+            period_s,
+            0.0,
+            [
+                spec.seed ^ 0x9E37_79B9_7F4A_7C15,
+                spec.seed ^ 0xD1B5_4A32_D192_ED03,
+            ],
         );
         let (mut coil_tx, mut coil_rx) = rtrb::RingBuffer::<(bool, f64)>::new(64);
         let (mut ball_tx, mut ball_rx) = rtrb::RingBuffer::<BallSample>::new(8192);
         // A release every few seconds, drained every 100 ms: never full.
         let (truth_tx, truth_rx) = std::sync::mpsc::sync_channel::<ReleaseTruth>(256);
         let client = free_udp_port()?;
+        let occludes = wp.camera.arm_occludes;
         let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
             let t = t_ns as f64 * 1e-9;
             while let Ok((on, at)) = coil_rx.pop() {
@@ -197,11 +192,13 @@ impl LabWorld {
             if let Some(c) = world.step(t, sim.joint_rad()) {
                 sim.contact(c);
             }
+            let arm_m = occludes.then(|| world.world().arm.points(sim.joint_rad()));
             let b = world.ball();
             let _ = ball_tx.push(BallSample {
                 t_s: t,
                 centre_m: b.ball_position_m(),
                 velocity_mps: b.ball_velocity_mps(),
+                arm_m,
             });
             for r in world.take_truth() {
                 let _ = truth_tx.try_send(r);
@@ -280,7 +277,7 @@ impl LabWorld {
                             webcam.push(s);
                         }
                         let timing = webcam.timing(t_start);
-                        let jpeg = match webcam.frame_jpeg(t_start, led.load(Relaxed)) {
+                        let jpeg = match webcam.frame_jpeg(timing.t_start_s, led.load(Relaxed)) {
                             Ok(j) => Arc::new(j.to_vec()),
                             Err(e) => {
                                 eprintln!("isochron world: the webcam failed: {e}");

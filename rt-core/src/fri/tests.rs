@@ -1348,3 +1348,175 @@ fn a_late_reply_holds_its_cycle_once_and_is_counted() {
     let held = moves.iter().position(|m| *m == 0.0).unwrap();
     assert_eq!(moves[held + 1], 2.0, "{moves:?}");
 }
+
+/// The reality lab's robot with `[world.robot]`'s network keys `set` on a
+/// truthful world, plugged into `rig`.
+fn world_network(rig: &mut Rig, set: impl FnOnce(&mut crate::sim::world::WorldParams)) {
+    use crate::params::RangeParam;
+    let mut w = crate::sim::world::WorldParams::default();
+    // The truthful robot's latency (the rig's), so only the network differs.
+    w.robot.latency_ms = Some(RangeParam::fixed(rig.sim.params().latency_ms));
+    set(&mut w);
+    w.validate().unwrap();
+    let session = w.draw_session(3, 0, rig.sim.params().latency_ms);
+    let period_s = rig.period_ns() as f64 * 1e-9;
+    let robot = WorldRobot::for_session(
+        &w,
+        &session,
+        *rig.sim.joint_rad(),
+        rig.sim.params().servo_time_constant_ms * 1e-3,
+        period_s,
+        0.0,
+        [5, 6],
+    );
+    rig.sim.set_world(Some(robot));
+}
+
+#[test]
+fn the_reality_labs_network_loses_delays_and_jitters_datagrams() {
+    use crate::params::RangeParam;
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    let mut ctl = Mover {
+        speed_radps: 0.05,
+        ..Mover::default()
+    };
+    let period_ms = rig.period_ns() as f64 * 1e-6;
+    world_network(&mut rig, |w| {
+        w.robot.packet_loss = RangeParam::fixed(0.02);
+        w.robot.reply_loss = RangeParam::fixed(0.015);
+        w.robot.message_latency_ms = RangeParam::fixed(0.4);
+        w.robot.message_jitter_ms = RangeParam::fixed(0.2);
+        // Jitter of 1.5 periods either way: some commands land a cycle late.
+        w.robot.command_jitter_ms = RangeParam::fixed(1.5 * period_ms);
+    });
+    // A message carries what was measured when it left, one latency before
+    // the PC gets it: its timestamp is 0.4-0.6 ms before the PC's clock.
+    let mut dec = crate::fri::codec::MonitoringDecoder::new();
+    let mut lags = Vec::new();
+    for _ in 0..50 {
+        let t = rig.t_ns;
+        if let Some(m) = rig.sim.tick(t) {
+            let ts = dec.decode(m).unwrap().timestamp.unwrap();
+            let ns = u64::from(ts.sec) * 1_000_000_000 + u64::from(ts.nanosec);
+            lags.push(t as f64 - (ns - 1_790_000_000_000_000_000) as f64);
+        }
+        rig.t_ns += rig.period_ns();
+    }
+    assert!(lags.len() > 40);
+    // (The first message, at time 0, has nothing earlier to carry.)
+    assert!(
+        lags[1..]
+            .iter()
+            .all(|l| (0.4e6 - 1.0..=0.6e6 + 1.0).contains(l)),
+        "{lags:?}"
+    );
+    rig.run_until(400, &mut ctl, active);
+    rig.run(3000, &mut ctl);
+    let st = rig.sim.stats();
+    let sent = st.messages_sent.load(Relaxed) as f64;
+    let lost = st.messages_dropped.load(Relaxed) as f64 / sent;
+    assert!((0.01..0.03).contains(&lost), "monitoring lost {lost}");
+    let (replies, dropped) = (
+        st.replies.load(Relaxed) as f64,
+        st.replies_dropped.load(Relaxed) as f64,
+    );
+    let lost_back = dropped / (replies + dropped);
+    assert!(
+        (0.007..0.025).contains(&lost_back),
+        "replies lost {lost_back}"
+    );
+    // Round trip: both ways' latency and jitter plus the rig's two hops.
+    let rtt = st.rtt.summary_us();
+    assert!((900.0..=1300.0).contains(&rtt.p50), "{rtt:?}");
+    assert!(rtt.max <= 1400.0, "{rtt:?}");
+    assert!(
+        st.late_commands.load(Relaxed) > 100,
+        "the command jitter acts"
+    );
+    // Through all of it, commanding goes on.
+    assert_eq!(st.aborts.load(Relaxed), 0, "{:?}", st.last_abort());
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+}
+
+#[test]
+fn a_truthful_world_network_changes_nothing() {
+    let run = |with_world: bool| {
+        let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+        if with_world {
+            world_network(&mut rig, |_| {});
+        }
+        let mut ctl = Mover {
+            speed_radps: 0.05,
+            ..Mover::default()
+        };
+        rig.run_until(400, &mut ctl, active);
+        rig.run(500, &mut ctl);
+        let st = rig.sim.stats();
+        (
+            st.messages_dropped.load(Relaxed),
+            st.replies_dropped.load(Relaxed),
+            st.late_commands.load(Relaxed),
+            st.rtt.summary_us().max,
+        )
+    };
+    let (lost, lost_back, late, rtt_max) = run(true);
+    assert_eq!((lost, lost_back, late), (0, 0, 0));
+    assert_eq!(rtt_max, run(false).3);
+}
+
+/// A control that moves A1 with the clock (as the trial driver does): after
+/// a lost message its next command is two periods further.
+#[derive(Debug, Default)]
+struct Clocked {
+    t0_ns: Option<u64>,
+    start: Joints,
+    speed_radps: f64,
+}
+
+impl ControlStep for Clocked {
+    fn step(&mut self, input: &StepInput<'_>, command_rad: &mut Joints) {
+        if !input.commanding {
+            return;
+        }
+        if self.t0_ns.is_none() {
+            self.t0_ns = Some(input.now_ns);
+            self.start = *command_rad;
+        }
+        let dt = (input.now_ns - self.t0_ns.unwrap_or(input.now_ns)) as f64 * 1e-9;
+        command_rad[0] = self.start[0] + self.speed_radps * dt;
+    }
+
+    fn stop(&mut self, _reason: StopReason) {}
+}
+
+#[test]
+fn a_step_over_a_lost_message_may_cover_the_periods_it_spans() {
+    let mut rig = Rig::new(FriSimParams::default(), FriClientParams::default());
+    // 60% of A1's speed limit: one period's step is inside the guard's 95%,
+    // two periods' step is not, unless the guard counts both periods.
+    let mut ctl = Clocked {
+        speed_radps: 0.6 * VELOCITY_LIMIT_RADPS[0],
+        ..Clocked::default()
+    };
+    rig.run_until(400, &mut ctl, active);
+    rig.run(20, &mut ctl);
+    let lose = |rig: &mut Rig, n: u64| {
+        for _ in 0..n {
+            let _ = rig.sim.tick(rig.t_ns);
+            rig.t_ns += rig.period_ns();
+        }
+    };
+    // One message lost: the next command is two periods on, at the same speed.
+    lose(&mut rig, 1);
+    rig.run(20, &mut ctl);
+    let cs = rig.client.stats().snapshot();
+    assert_eq!(cs.guard_step, 0, "a step over two periods is not clipped");
+    assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0, "nor refused");
+    assert_eq!(rig.sim.state(), SessionState::CommandingActive);
+    // Five lost: the step is clipped to three periods' worth, and the
+    // controller takes it.
+    lose(&mut rig, 5);
+    rig.run(1, &mut ctl);
+    assert!(rig.client.stats().snapshot().guard_step >= 1);
+    assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0);
+}

@@ -46,7 +46,7 @@ use crate::sim::camera::{SimCamera, SimVision};
 use crate::sim::kuka::controller::WorldRobot;
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::sim::magnet::{Switch, VirtualMagnet};
-use crate::sim::world::{Contact, LatencyModel, World, WorldCamera, WorldJoints};
+use crate::sim::world::{Contact, World, WorldCamera};
 #[cfg(feature = "opencv")]
 use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
@@ -275,6 +275,8 @@ struct WorldView {
     release_delay_s: f64,
     /// Measurements on their way: (delivery time, measurement).
     in_flight: std::collections::VecDeque<(f64, Measurement)>,
+    /// The true arm (`Some` when it hides the ball: `world.camera.arm_occludes`).
+    occluder: Option<crate::sim::world::TrueArm>,
 }
 
 /// The virtual-time lab (see the module documentation): one simulated KUKA
@@ -311,6 +313,9 @@ pub struct VirtualLab {
     /// The reality lab (`[world]`): the session the simulated robot is in
     /// and the current trial's camera.
     world_session: Option<u64>,
+    /// `world.robot.step_time_delays_reply`: the control step's CPU time
+    /// (wall clock) delays its reply in virtual time.
+    step_time_delays_reply: bool,
     world_view: Option<WorldView>,
     /// When `Some` (`Self::recorded`, tests), every exchange of the control side
     /// from the lab's start, in order: what the driver hands it (FRI
@@ -441,6 +446,7 @@ impl VirtualLab {
             magnet_error: None,
             true_joints,
             world_session: None,
+            step_time_delays_reply: false,
             world_view: None,
             replay_log: record.then(|| Vec::with_capacity(1 << 16)),
             last_commit: None,
@@ -775,8 +781,10 @@ impl VirtualLab {
             replay_log,
             last_commit,
             contacts,
+            step_time_delays_reply,
             ..
         } = self;
+        let step_time_delays_reply = *step_time_delays_reply;
         client.poll(now, step);
         if let Some(log) = replay_log.as_mut() {
             log.push(Exchange::Poll(now));
@@ -805,6 +813,7 @@ impl VirtualLab {
             let mut reply = [0u8; MAX_DATAGRAM_BYTES];
             let mut len = None;
             let before = step.inner().controller().state();
+            let started = step_time_delays_reply.then(std::time::Instant::now);
             around(before, &mut || {
                 len = client.on_datagram(bytes, now, step).map(|r| {
                     let n = r.len().min(MAX_DATAGRAM_BYTES);
@@ -819,8 +828,10 @@ impl VirtualLab {
                 step.after_reply();
                 after
             });
+            // The step's own CPU time, when the world says it delays the reply.
+            let cpu_ns = started.map_or(0, |t| t.elapsed().as_nanos() as u64);
             if let Some(n) = len {
-                robot.on_reply(&reply[..n], now + LOOPBACK_NS);
+                robot.on_reply(&reply[..n], now + LOOPBACK_NS + cpu_ns);
             }
             if let Some(log) = replay_log.as_mut() {
                 log.push(Exchange::Reply(len.map(|n| reply[..n].to_vec())));
@@ -952,6 +963,12 @@ impl VirtualLab {
             drop_at: None,
             release_delay_s: world.trial.release_delay_s,
             in_flight: std::collections::VecDeque::with_capacity(64),
+            occluder: self
+                .scenario
+                .world
+                .as_ref()
+                .is_some_and(|w| w.camera.arm_occludes)
+                .then_some(world.arm),
         });
     }
 
@@ -968,23 +985,20 @@ impl VirtualLab {
         let Some(w) = self.scenario.world.as_ref() else {
             return;
         };
-        let r = &w.robot;
-        let mut joints = WorldJoints::new(
-            *self.robot.joint_rad(),
+        let robot = WorldRobot::for_session(
+            w,
             &world.session,
+            *self.robot.joint_rad(),
             self.robot.params().servo_time_constant_ms * 1e-3,
-            r.torque_limit_scale,
-            r.torque_trip,
-            r.position_noise_rad,
-            self.seed ^ world.session.session.wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            self.period_ns as f64 * 1e-9,
+            self.t_s(),
+            [
+                self.seed ^ world.session.session.wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                self.seed ^ world.session.session.wrapping_mul(0xD1B5_4A32_D192_ED03),
+            ],
         );
-        joints.set_interpolation_s(self.period_ns as f64 * 1e-9);
-        self.robot.set_world(Some(WorldRobot::new(
-            LatencyModel::from_session(&world.session, self.t_s()),
-            joints,
-            self.seed ^ world.session.session.wrapping_mul(0xD1B5_4A32_D192_ED03),
-            crate::sim::world::contact::TORQUE_LAG_PERIODS * self.period_ns as f64 * 1e-9,
-        )));
+        self.step_time_delays_reply = w.robot.step_time_delays_reply;
+        self.robot.set_world(Some(robot));
     }
 
     /// A trial's own random streams (camera, magnet) from its seed, and the
@@ -1091,22 +1105,25 @@ impl VirtualLab {
         let Some(w) = self.world_view.as_mut() else {
             return;
         };
-        let period = 1.0 / self.scenario.camera.fps;
+        let period = w.camera.frame_period_s(1.0 / self.scenario.camera.fps);
         let drop_rate = self.scenario.camera.drop_rate;
+        // The true arm as the last message left it (at most a period ago).
+        let arm = w.occluder.map(|a| a.points(self.robot.joint_rad()));
         while w.next_frame_s <= t_next {
-            let tc = w.next_frame_s;
+            let slot = w.next_frame_s;
             w.next_frame_s += period;
             let Some(ball) = self.truth.world_ball() else {
                 break;
             };
+            let timing = w.camera.timing(slot, &mut w.rng);
+            let tc = timing.t_start_s;
             if let Some(tr) = w.drop_at
                 && tr <= tc
                 && ball.is_held()
             {
                 ball.release(tr.max(ball.time_s()));
             }
-            ball.advance_to(tc);
-            let timing = w.camera.timing(tc, &mut w.rng);
+            ball.advance_to(tc.max(ball.time_s()));
             let dropped = drop_rate > 0.0 && w.rng.random_bool(drop_rate.min(1.0));
             let Some(sight) = w.camera.sight(tc, |t| {
                 let mut b = ball.clone();
@@ -1115,18 +1132,24 @@ impl VirtualLab {
             }) else {
                 continue;
             };
+            let gain = w.camera.light_gain(tc);
+            let hidden = arm
+                .as_ref()
+                .is_some_and(|pts| w.camera.occluded(pts, &ball.ball_position_m()));
             match &mut self.camera {
                 #[cfg(feature = "opencv")]
                 Camera::Full { vision, .. } => {
                     // The renderer draws, through the believed camera, the
-                    // point the true camera sees.
+                    // point the true camera sees, in the light it has; a
+                    // ball the arm hides is not drawn.
                     let state = crate::sim::camera::BallState {
                         centre_m: w
                             .camera
                             .equivalent_centre_m(&sight.px, &ball.ball_position_m()),
                         velocity_mps: ball.ball_velocity_mps(),
                     };
-                    match vision.capture(tc, Some(&state)) {
+                    vision.set_ball_gain(gain);
+                    match vision.capture(tc, (!hidden).then_some(&state)) {
                         Ok(Some(m)) if m.found => w.in_flight.push_back((
                             timing.t_delivered_s,
                             Measurement {
@@ -1142,7 +1165,11 @@ impl VirtualLab {
                     }
                 }
                 Camera::Model { rng, .. } => {
-                    if !dropped && let Some(lat) = w.believed.lateral_m(sight.px.x, sight.px.y) {
+                    let seen = !hidden && gain >= crate::sim::camera::model::MODEL_MIN_GAIN;
+                    if !dropped
+                        && seen
+                        && let Some(lat) = w.believed.lateral_m(sight.px.x, sight.px.y)
+                    {
                         let z = lat
                             + crate::sim::camera::model::MODEL_NOISE_M
                                 * crate::sim::camera::gaussian(rng);
@@ -1534,6 +1561,25 @@ mod tests {
         robot.latency_ms = 500.0;
         let e = VirtualLab::with_robot(&s, 1, robot).unwrap_err();
         assert!(e.to_string().contains("fri_sim.latency_ms"), "{e}");
+    }
+
+    #[test]
+    fn the_step_time_delays_the_reply_when_the_world_says_so() {
+        let rtt_max_us = |delays: bool| {
+            let mut s = model_lab();
+            let mut w = crate::sim::world::WorldParams::default();
+            w.robot.step_time_delays_reply = delays;
+            s.world = Some(w);
+            let mut lab = VirtualLab::new(&s, 3).unwrap();
+            let r = lab.run_trial(0);
+            assert!(r.abort_reason.is_none(), "{r:?}");
+            lab.robot().stats().rtt.summary_us().max
+        };
+        let (off, on) = (rtt_max_us(false), rtt_max_us(true));
+        // Off: the loopback's 20 us, whatever the step cost; on: plus the
+        // step's own CPU time.
+        assert!(off <= LOOPBACK_NS as f64 * 1e-3 + 1.0, "{off}");
+        assert!(on > off, "{on} vs {off}");
     }
 
     /// The reality lab's scenario, camera measurements from the model.

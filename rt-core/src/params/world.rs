@@ -99,6 +99,28 @@ pub struct WorldCameraParams {
     pub pose_error_deg: RangeParam,
     /// True camera position off the believed one, along each axis, m, per session.
     pub pose_error_m: RangeParam,
+    /// The camera's frame clock runs fast (+) or slow (-) against the PC's by
+    /// this much, parts per million, per session: frames come that much more
+    /// often, and the stamps (the camera's clock mapped to the PC's at the
+    /// session's start) drift by it.
+    pub clock_drift_ppm: RangeParam,
+    /// Each frame's exposure starts up to this far either side of its slot on
+    /// the frame clock while its delivery keeps the slot, ms (bound per
+    /// session, the value per frame): stamp errors of both signs.
+    pub frame_jitter_ms: RangeParam,
+    /// Auto-exposure: the frame's brightness gain wanders by up to this
+    /// fraction either way (a sine of period 4..20 s), per session.
+    pub exposure_gain_variation: RangeParam,
+    /// Mains flicker (100 Hz): relative brightness modulation of the light,
+    /// averaged over each frame's exposure, per session.
+    pub flicker: RangeParam,
+    /// A person walking past: in half of the 10 s windows of the lab's clock
+    /// the light on the ball falls by this fraction for 0.5..1.5 s, per
+    /// session (0: none).
+    pub shadow_depth: RangeParam,
+    /// The true arm and tool hide the ball where they stand between it and
+    /// the camera.
+    pub arm_occludes: bool,
 }
 
 impl Default for WorldCameraParams {
@@ -114,6 +136,12 @@ impl Default for WorldCameraParams {
             distortion_p2: RangeParam::fixed(0.0),
             pose_error_deg: RangeParam::fixed(0.0),
             pose_error_m: RangeParam::fixed(0.0),
+            clock_drift_ppm: RangeParam::fixed(0.0),
+            frame_jitter_ms: RangeParam::fixed(0.0),
+            exposure_gain_variation: RangeParam::fixed(0.0),
+            flicker: RangeParam::fixed(0.0),
+            shadow_depth: RangeParam::fixed(0.0),
+            arm_occludes: false,
         }
     }
 }
@@ -144,6 +172,29 @@ pub struct WorldRobotParams {
     /// The control step's own CPU time delays its reply in virtual time
     /// (not bit-for-bit deterministic then).
     pub step_time_delays_reply: bool,
+    /// Fraction of the monitoring datagrams lost on the way to the PC, per session.
+    pub packet_loss: RangeParam,
+    /// Fraction of the command datagrams lost on the way to the robot, per session.
+    pub reply_loss: RangeParam,
+    /// Per-command jitter of the command-to-motion latency, uniform in
+    /// `[-value, +value]` ms (bound per session): moves a command to the
+    /// nearest controller cycle.
+    pub command_jitter_ms: RangeParam,
+    /// One-way latency of a datagram between the robot controller and the PC
+    /// (each way), ms, per session.
+    pub message_latency_ms: RangeParam,
+    /// Extra one-way delay of each datagram, uniform in `[0, value]` ms
+    /// (bound per session).
+    pub message_jitter_ms: RangeParam,
+    /// The drives saturate each joint's speed at this fraction of KUKA's
+    /// velocity limit (0: no saturation).
+    pub velocity_limit_scale: f64,
+    /// The drives saturate each joint's acceleration at this fraction of the
+    /// model's limits (`kinematics::iiwa7::ACCELERATION_LIMIT_RADPS2`; 0: none).
+    pub acceleration_limit_scale: f64,
+    /// A contact's impulse pushes the true arm (through its mass matrix);
+    /// the servos pull it back.
+    pub contact_push: bool,
 }
 
 impl Default for WorldRobotParams {
@@ -158,6 +209,14 @@ impl Default for WorldRobotParams {
             torque_limit_scale: 1.0,
             torque_trip: false,
             step_time_delays_reply: false,
+            packet_loss: RangeParam::fixed(0.0),
+            reply_loss: RangeParam::fixed(0.0),
+            command_jitter_ms: RangeParam::fixed(0.0),
+            message_latency_ms: RangeParam::fixed(0.0),
+            message_jitter_ms: RangeParam::fixed(0.0),
+            velocity_limit_scale: 0.0,
+            acceleration_limit_scale: 0.0,
+            contact_push: false,
         }
     }
 }
@@ -224,6 +283,11 @@ pub struct WorldAnchor {
     /// Nominal camera latency, ms (true = this + the session's offset).
     pub camera_latency_ms: f64,
 }
+
+/// Highest servo natural frequency a world may draw, Hz: the servo's sub-steps
+/// shrink with it (`sim::world::robot`), and the ramp-lag law `2 zeta v / w`
+/// is tested at this end (`sim::world::tests`).
+pub const MAX_SERVO_NATURAL_HZ: f64 = 200.0;
 
 fn range(field: &str, r: &RangeParam, lo: f64, hi: f64) -> Result<(), ParamError> {
     r.validate_with(field, |f, v| check::within(f, v, lo, hi))
@@ -306,6 +370,26 @@ impl WorldParams {
             10.0,
         )?;
         range("world.camera.pose_error_m", &c.pose_error_m, -0.5, 0.5)?;
+        range(
+            "world.camera.clock_drift_ppm",
+            &c.clock_drift_ppm,
+            -1000.0,
+            1000.0,
+        )?;
+        range(
+            "world.camera.frame_jitter_ms",
+            &c.frame_jitter_ms,
+            0.0,
+            20.0,
+        )?;
+        range(
+            "world.camera.exposure_gain_variation",
+            &c.exposure_gain_variation,
+            0.0,
+            0.9,
+        )?;
+        range("world.camera.flicker", &c.flicker, 0.0, 0.9)?;
+        range("world.camera.shadow_depth", &c.shadow_depth, 0.0, 0.95)?;
         let r = &self.robot;
         if let Some(l) = &r.latency_ms {
             range("world.robot.latency_ms", l, 0.0, 200.0)?;
@@ -320,7 +404,7 @@ impl WorldParams {
             "world.robot.servo_natural_hz",
             &r.servo_natural_hz,
             0.0,
-            200.0,
+            MAX_SERVO_NATURAL_HZ,
         )?;
         if r.servo_natural_hz.lo > 0.0 && r.servo_natural_hz.lo < 2.0 {
             return Err(check::out_of_range(
@@ -342,6 +426,52 @@ impl WorldParams {
             0.01,
         )?;
         check::within("world.robot.inertia_error", r.inertia_error, 0.0, 0.5)?;
+        range("world.robot.packet_loss", &r.packet_loss, 0.0, 0.5)?;
+        range("world.robot.reply_loss", &r.reply_loss, 0.0, 0.5)?;
+        range(
+            "world.robot.command_jitter_ms",
+            &r.command_jitter_ms,
+            0.0,
+            50.0,
+        )?;
+        range(
+            "world.robot.message_latency_ms",
+            &r.message_latency_ms,
+            0.0,
+            20.0,
+        )?;
+        range(
+            "world.robot.message_jitter_ms",
+            &r.message_jitter_ms,
+            0.0,
+            20.0,
+        )?;
+        check::within(
+            "world.robot.velocity_limit_scale",
+            r.velocity_limit_scale,
+            0.0,
+            2.0,
+        )?;
+        if r.velocity_limit_scale > 0.0 && r.velocity_limit_scale < 0.05 {
+            return Err(check::out_of_range(
+                "world.robot.velocity_limit_scale",
+                r.velocity_limit_scale,
+                "must be 0 (no saturation) or >= 0.05",
+            ));
+        }
+        check::within(
+            "world.robot.acceleration_limit_scale",
+            r.acceleration_limit_scale,
+            0.0,
+            10.0,
+        )?;
+        if r.acceleration_limit_scale > 0.0 && r.acceleration_limit_scale < 0.05 {
+            return Err(check::out_of_range(
+                "world.robot.acceleration_limit_scale",
+                r.acceleration_limit_scale,
+                "must be 0 (no saturation) or >= 0.05",
+            ));
+        }
         check::within(
             "world.robot.torque_limit_scale",
             r.torque_limit_scale,
@@ -436,6 +566,32 @@ pub struct SessionDraw {
     pub dh_length_error_m: [f64; 7],
     /// Joint zero-offset errors, rad.
     pub joint_offset_error_rad: [f64; 7],
+    /// Camera clock rate error, fraction (ppm x 1e-6).
+    pub camera_clock_drift: f64,
+    /// Exposure-start jitter bound, s.
+    pub frame_jitter_s: f64,
+    /// Auto-exposure gain amplitude, fraction.
+    pub exposure_gain_variation: f64,
+    /// Auto-exposure period, s.
+    pub exposure_gain_period_s: f64,
+    /// Auto-exposure phase, rad.
+    pub exposure_gain_phase_rad: f64,
+    /// Mains flicker amplitude, fraction.
+    pub flicker: f64,
+    /// Depth of a passing shadow, fraction of the light (0: none).
+    pub shadow_depth: f64,
+    /// Seed of the shadows' schedule.
+    pub shadow_seed: u64,
+    /// Monitoring datagram loss, fraction.
+    pub packet_loss: f64,
+    /// Command datagram loss, fraction.
+    pub reply_loss: f64,
+    /// Per-command latency jitter bound, s.
+    pub command_jitter_s: f64,
+    /// One-way datagram latency, s.
+    pub message_latency_s: f64,
+    /// One-way datagram jitter bound, s.
+    pub message_jitter_s: f64,
 }
 
 /// Values drawn per trial.
@@ -528,6 +684,20 @@ impl WorldParams {
         for v in &mut joint_offset_error_rad {
             *v = pick(&g.joint_offset_error_deg, &mut rng).to_radians();
         }
+        // Keys added later draw after the earlier ones: their draws stay.
+        let camera_clock_drift = pick(&c.clock_drift_ppm, &mut rng) * 1e-6;
+        let frame_jitter_s = pick(&c.frame_jitter_ms, &mut rng) * 1e-3;
+        let exposure_gain_variation = pick(&c.exposure_gain_variation, &mut rng);
+        let exposure_gain_period_s = rng.random_range(4.0..=20.0);
+        let exposure_gain_phase_rad = rng.random_range(0.0..std::f64::consts::TAU);
+        let flicker = pick(&c.flicker, &mut rng);
+        let shadow_depth = pick(&c.shadow_depth, &mut rng);
+        let shadow_seed = rng.random();
+        let packet_loss = pick(&r.packet_loss, &mut rng);
+        let reply_loss = pick(&r.reply_loss, &mut rng);
+        let command_jitter_s = pick(&r.command_jitter_ms, &mut rng) * 1e-3;
+        let message_latency_s = pick(&r.message_latency_ms, &mut rng) * 1e-3;
+        let message_jitter_s = pick(&r.message_jitter_ms, &mut rng) * 1e-3;
         SessionDraw {
             session,
             length_error_m,
@@ -552,6 +722,19 @@ impl WorldParams {
             tool_length_error_m,
             dh_length_error_m,
             joint_offset_error_rad,
+            camera_clock_drift,
+            frame_jitter_s,
+            exposure_gain_variation,
+            exposure_gain_period_s,
+            exposure_gain_phase_rad,
+            flicker,
+            shadow_depth,
+            shadow_seed,
+            packet_loss,
+            reply_loss,
+            command_jitter_s,
+            message_latency_s,
+            message_jitter_s,
         }
     }
 
@@ -567,14 +750,16 @@ impl WorldParams {
         let p = &self.pendulum;
         let oop = pick(&p.out_of_plane_deg, &mut rng).to_radians();
         let sign = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        let release_delay_s = pick(
+            &p.release_delay_ms
+                .unwrap_or(RangeParam::fixed(believed_release_delay_ms)),
+            &mut rng,
+        ) * 1e-3;
+        let disturbance_mps2 = pick(&p.disturbance_mps2, &mut rng);
         TrialWorldDraw {
             out_of_plane_rad: sign * oop,
-            release_delay_s: pick(
-                &p.release_delay_ms
-                    .unwrap_or(RangeParam::fixed(believed_release_delay_ms)),
-                &mut rng,
-            ) * 1e-3,
-            disturbance_mps2: pick(&p.disturbance_mps2, &mut rng),
+            release_delay_s,
+            disturbance_mps2,
             seed: rng.random(),
         }
     }

@@ -11,6 +11,13 @@ use crate::params::CameraParams;
 /// footprint at the swing plane for the default camera).
 pub const MODEL_NOISE_M: f64 = 0.002;
 
+/// The reality lab's light on the ball below which the `model` camera finds
+/// no ball: at this gain the rendered ball's brightest half stays above the
+/// detector's value floor (0.30; the ball's shading spans 0.55-1.0 of its
+/// colour's value 0.92), below it the ball breaks up
+/// (`sim::world::tests`, the full detector either side of it).
+pub const MODEL_MIN_GAIN: f64 = 0.45;
+
 /// A frame schedule and the measurements in flight.
 #[derive(Debug, Clone)]
 pub struct ModelCamera {

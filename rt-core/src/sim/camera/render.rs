@@ -58,6 +58,9 @@ pub struct SimCamera {
     rng: ChaCha8Rng,
     dirty: Option<(usize, Rect)>,
     backup: Vec<u8>,
+    /// The light on the ball against the background's (the reality lab's
+    /// auto-exposure, flicker, shadows: `sim::world::camera`), 1: as rendered.
+    ball_gain: f64,
     current: usize,
 }
 
@@ -151,8 +154,21 @@ impl SimCamera {
             rng: ChaCha8Rng::seed_from_u64(seed),
             dirty: None,
             backup: Vec::new(),
+            ball_gain: 1.0,
             current: 0,
         })
+    }
+
+    /// The light on the ball in the next frames, as a gain on its rendered
+    /// brightness (1: as rendered; clamped to 0..4). The background keeps its
+    /// light: its clutter has none of the ball's hue, so its brightness does
+    /// not change what the detector finds there.
+    pub fn set_ball_gain(&mut self, gain: f64) {
+        self.ball_gain = if gain.is_finite() {
+            gain.clamp(0.0, 4.0)
+        } else {
+            1.0
+        };
     }
 
     /// Restarts the per-frame randomness (the background is kept).
@@ -342,7 +358,7 @@ impl SimCamera {
                 let i = (y as usize * w + x as usize) * 3;
                 for ch in 0..3 {
                     let bgv = f64::from(self.background[i + ch]);
-                    let val = g * (bgv * (1.0 - cover) + colour[ch] * shade)
+                    let val = g * (bgv * (1.0 - cover) + colour[ch] * shade * self.ball_gain)
                         + f64::from(sigma * self.noise[off]);
                     off += 1;
                     data[i + ch] = val.round().clamp(0.0, 255.0) as u8;
@@ -585,6 +601,11 @@ impl SimVision {
     /// The camera.
     pub fn camera(&self) -> &SimCamera {
         &self.camera
+    }
+
+    /// The light on the ball in the next frames ([`SimCamera::set_ball_gain`]).
+    pub fn set_ball_gain(&mut self, gain: f64) {
+        self.camera.set_ball_gain(gain);
     }
 
     /// Replaces the calibration (e.g. for a new rest position) and forgets the track.

@@ -31,6 +31,8 @@ pub const MAX_QUALITY_WINDOW: usize = 1000;
 const SLOTS: usize = 256;
 /// Commands in flight between arrival and motion.
 const PENDING_CAPACITY: usize = 1024;
+/// Mixed into the world robot's seed for its network's random stream.
+const NET_STREAM: u64 = 0x6e65_7477_6f72_6b00;
 /// Servo stiffness of the torque model, N m / rad.
 const SERVO_STIFFNESS_NM_PER_RAD: f64 = 2000.0;
 
@@ -622,6 +624,9 @@ pub struct SimController {
     setpoint: Joints,
     ipo: Joints,
     last_cmd: Joints,
+    /// The message the last accepted command answered (its reflected
+    /// counter; `None` at a commanding's start).
+    last_cmd_ref: Option<u32>,
     pending: VecDeque<(u64, Joints)>,
     last_apply_ns: u64,
     /// When the last command reached the servo in this commanding (held
@@ -654,6 +659,60 @@ pub struct WorldRobot {
     last_tick_ns: Option<u64>,
     /// The external torques' sensing noise.
     torque_rng: ChaCha8Rng,
+    /// The network between the cabinet and the PC, and the command jitter.
+    net: NetworkModel,
+    /// Its own random stream (losses, delays, jitter).
+    net_rng: ChaCha8Rng,
+    /// The measured joints of the last messages (`t_ns`, joints), for a
+    /// message that reaches the PC late: it carries what was measured then.
+    history: [(u64, Joints); HISTORY],
+    history_at: usize,
+    /// Robot time of the last message's contents (kept rising).
+    last_message_ns: Option<u64>,
+}
+
+/// Messages of joint history kept for the message latency (at 1 ms, 32 ms).
+const HISTORY: usize = 32;
+
+/// The reality lab's network between the cabinet and the PC (`[world.robot]`):
+/// datagram losses each way, the one-way latency and its jitter, and the
+/// per-command jitter of the command-to-motion latency. Zero: the truthful
+/// loopback.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct NetworkModel {
+    /// Fraction of monitoring datagrams lost.
+    pub packet_loss: f64,
+    /// Fraction of command datagrams lost.
+    pub reply_loss: f64,
+    /// Per-command latency jitter bound (either sign), s.
+    pub command_jitter_s: f64,
+    /// One-way datagram latency, s.
+    pub latency_s: f64,
+    /// One-way extra delay bound (uniform from 0), s.
+    pub jitter_s: f64,
+}
+
+impl NetworkModel {
+    /// The session's network.
+    pub fn from_session(d: &crate::sim::world::SessionDraw) -> Self {
+        Self {
+            packet_loss: d.packet_loss,
+            reply_loss: d.reply_loss,
+            command_jitter_s: d.command_jitter_s,
+            latency_s: d.message_latency_s,
+            jitter_s: d.message_jitter_s,
+        }
+    }
+
+    /// One datagram's one-way delay, ns.
+    fn delay_ns(&self, rng: &mut ChaCha8Rng) -> u64 {
+        let j = if self.jitter_s > 0.0 {
+            rng.random_range(0.0..=self.jitter_s)
+        } else {
+            0.0
+        };
+        ((self.latency_s + j).max(0.0) * 1e9) as u64
+    }
 }
 
 impl WorldRobot {
@@ -666,6 +725,7 @@ impl WorldRobot {
         seed: u64,
         torque_lag_s: f64,
     ) -> Self {
+        let q0 = *joints.q();
         Self {
             latency,
             joints,
@@ -673,7 +733,93 @@ impl WorldRobot {
             torque_lag_s,
             last_tick_ns: None,
             torque_rng: ChaCha8Rng::seed_from_u64(seed),
+            net: NetworkModel::default(),
+            net_rng: ChaCha8Rng::seed_from_u64(seed ^ NET_STREAM),
+            history: [(0, q0); HISTORY],
+            history_at: 0,
+            last_message_ns: None,
         }
+    }
+
+    /// The session's robot of a reality lab: its latency model from `t0_s`,
+    /// its joints from `q0` (`first_order_tau_s`: the truthful lag when the
+    /// world draws no servo; interpolation over `period_s`), its network,
+    /// saturation, contact push and torque trip as `[world.robot]` says;
+    /// `seeds`: the joints' noise and the sensing's (external torques, network).
+    pub fn for_session(
+        world: &crate::sim::world::WorldParams,
+        session: &crate::sim::world::SessionDraw,
+        q0: Joints,
+        first_order_tau_s: f64,
+        period_s: f64,
+        t0_s: f64,
+        seeds: [u64; 2],
+    ) -> Self {
+        let r = &world.robot;
+        let mut joints = crate::sim::world::WorldJoints::new(
+            q0,
+            session,
+            first_order_tau_s,
+            r.torque_limit_scale,
+            r.torque_trip,
+            r.position_noise_rad,
+            seeds[0],
+        );
+        joints.set_interpolation_s(period_s);
+        joints.set_saturation(r.velocity_limit_scale, r.acceleration_limit_scale);
+        joints.set_contact_push(r.contact_push);
+        let mut w = Self::new(
+            crate::sim::world::LatencyModel::from_session(session, t0_s),
+            joints,
+            seeds[1],
+            crate::sim::world::contact::TORQUE_LAG_PERIODS * period_s,
+        );
+        w.net = NetworkModel::from_session(session);
+        w
+    }
+
+    /// The network model.
+    pub fn network(&self) -> &NetworkModel {
+        &self.net
+    }
+
+    /// Replaces the network model.
+    pub fn set_network(&mut self, net: NetworkModel) {
+        self.net = net;
+    }
+
+    /// The robot time whose measurement a message leaving at `now_ns`
+    /// carries when it reaches the PC one latency later (kept rising), and
+    /// those joints, interpolated in the history (`measured` is now's).
+    fn delayed(&mut self, now_ns: u64, measured: Joints) -> (u64, Joints) {
+        self.history_at = (self.history_at + 1) % HISTORY;
+        self.history[self.history_at] = (now_ns, measured);
+        let d = self.net.delay_ns(&mut self.net_rng);
+        if d == 0 {
+            self.last_message_ns = Some(now_ns);
+            return (now_ns, measured);
+        }
+        let t = now_ns
+            .saturating_sub(d)
+            .max(self.last_message_ns.map_or(0, |p| p + 1))
+            .min(now_ns);
+        self.last_message_ns = Some(t);
+        // Newest first: the two samples around `t`.
+        let mut newer = self.history[self.history_at];
+        for k in 1..HISTORY {
+            let older = self.history[(self.history_at + HISTORY - k) % HISTORY];
+            if older.0 >= newer.0 {
+                // Past the oldest sample kept.
+                break;
+            }
+            if older.0 <= t {
+                let f = (t - older.0) as f64 / (newer.0 - older.0) as f64;
+                let q = std::array::from_fn(|i| older.1[i] + (newer.1[i] - older.1[i]) * f);
+                return (t, q);
+            }
+            newer = older;
+        }
+        (t, newer.1)
     }
 
     /// The external joint torques of the message leaving at `now_ns` for
@@ -732,6 +878,7 @@ impl SimController {
             setpoint: q,
             ipo: q,
             last_cmd: q,
+            last_cmd_ref: None,
             pending: VecDeque::with_capacity(PENDING_CAPACITY),
             last_apply_ns: 0,
             last_applied_due_ns: None,
@@ -878,6 +1025,7 @@ impl SimController {
     /// the reality lab's robot.
     pub fn contact(&mut self, contact: crate::sim::world::Contact) {
         if let Some(w) = self.world.as_mut() {
+            w.joints.push(&contact.point_m, &contact.impulse_ns);
             // A free slot, else the oldest contact's.
             if let Some(slot) = w.contacts.iter_mut().min_by(|a, b| match (a, b) {
                 (None, _) => std::cmp::Ordering::Less,
@@ -961,6 +1109,7 @@ impl SimController {
         self.last_applied_due_ns = None;
         self.setpoint = self.q;
         self.last_cmd = self.q;
+        self.last_cmd_ref = None;
         self.ipo = self.q;
         let next = if self.quality >= ConnectionQuality::Good {
             SessionState::MonitoringReady
@@ -978,6 +1127,7 @@ impl SimController {
             SessionState::MonitoringReady if self.commanding_requested => {
                 self.ipo = self.setpoint;
                 self.last_cmd = self.setpoint;
+                self.last_cmd_ref = None;
                 self.last_applied_due_ns = None;
                 self.wait_since_ns = now_ns;
                 self.set_state(SessionState::CommandingWait);
@@ -1040,7 +1190,7 @@ impl SimController {
             };
         }
         self.stats.messages_sent.fetch_add(1, Relaxed);
-        let lost = self.state != SessionState::Idle
+        let mut lost = self.state != SessionState::Idle
             && self.p.packet_loss > 0.0
             && self.rng.random_bool(self.p.packet_loss);
         let noise = self.p.measurement_noise_rad;
@@ -1054,10 +1204,30 @@ impl SimController {
             }
         }
         let q_true = self.q;
+        // The reality lab's network: the message reaches the PC one latency
+        // later, carrying what was measured when it left; it may be lost.
+        let mut stamp_ns = now_ns;
         let external: Joints = match self.world.as_mut() {
-            Some(w) => w.external_torques(&q_true, now_ns),
+            Some(w) => {
+                (stamp_ns, measured) = w.delayed(now_ns, measured);
+                if self.state != SessionState::Idle
+                    && w.net.packet_loss > 0.0
+                    && w.net_rng.random_bool(w.net.packet_loss.min(1.0))
+                {
+                    lost = true;
+                }
+                w.external_torques(&q_true, stamp_ns)
+            }
             None => [0.0; JOINTS],
         };
+        if stamp_ns != now_ns {
+            // The reply's round trip starts when the contents were measured.
+            self.sent[seq as usize % SLOTS].1 = stamp_ns;
+            let slot = &mut self.slots[seq as usize % SLOTS];
+            if slot.seq == seq {
+                slot.sent_ns = stamp_ns;
+            }
+        }
         let torque: Joints = std::array::from_fn(|i| {
             (SERVO_STIFFNESS_NM_PER_RAD * (self.setpoint[i] - self.q[i]))
                 .clamp(-TORQUE_LIMIT_NM[i], TORQUE_LIMIT_NM[i])
@@ -1087,7 +1257,7 @@ impl SimController {
             // FRI 2.7's estimated external force (Cartesian): not simulated
             // (the encoder writes it for 2.7 only).
             external_force: Some([0.0; 6]),
-            timestamp: Some(UnixTime::from_ns(self.epoch_unix_ns + now_ns)),
+            timestamp: Some(UnixTime::from_ns(self.epoch_unix_ns + stamp_ns)),
             ipo_joint_position_rad: commanding.then_some(self.ipo),
             client_command_mode: commanding.then_some(ClientCommandMode::Position),
             overlay_type: commanding.then_some(OverlayType::Joint),
@@ -1109,7 +1279,15 @@ impl SimController {
         if self.p.reply_delay_jitter_ms > 0.0 {
             delay_ms += self.rng.random_range(0.0..=self.p.reply_delay_jitter_ms);
         }
-        let arrival = now_ns + (delay_ms * 1e6) as u64;
+        let mut arrival = now_ns + (delay_ms * 1e6) as u64;
+        if let Some(w) = self.world.as_mut() {
+            // The reality lab's network, the way back.
+            if w.net.reply_loss > 0.0 && w.net_rng.random_bool(w.net.reply_loss.min(1.0)) {
+                self.stats.replies_dropped.fetch_add(1, Relaxed);
+                return;
+            }
+            arrival += w.net.delay_ns(&mut w.net_rng);
+        }
         let c = match self.dec.decode(bytes) {
             Ok(c) => c,
             Err(_) => {
@@ -1167,7 +1345,7 @@ impl SimController {
                     if q != self.ipo {
                         self.stats.mirror_mismatches.fetch_add(1, Relaxed);
                     }
-                    if let Some(reason) = self.check_command(&q) {
+                    if let Some(reason) = self.check_command(&q, r) {
                         self.abort(reason);
                     }
                 }
@@ -1176,18 +1354,29 @@ impl SimController {
                 None => {
                     self.stats.empty_commands.fetch_add(1, Relaxed);
                 }
-                Some(q) => match self.check_command(&q) {
+                Some(q) => match self.check_command(&q, r) {
                     Some(reason) => self.abort(reason),
-                    None => self.accept(q, arrival, cycle_ns),
+                    None => {
+                        self.last_cmd_ref = Some(r);
+                        self.accept(q, arrival, cycle_ns);
+                    }
                 },
             },
             _ => {}
         }
     }
 
-    /// The controller's checks on one commanded position (the drives' trip).
-    fn check_command(&self, q: &Joints) -> Option<AbortReason> {
-        let period_s = self.receive_period_ns() as f64 * 1e-9;
+    /// The controller's checks on one commanded position (the drives' trip),
+    /// answering message `reflected`. The speed is the step from the last
+    /// accepted command over the receive periods between the messages the
+    /// two answer (a lost message or reply in between: two periods, at most
+    /// `missing_after_periods`).
+    fn check_command(&self, q: &Joints, reflected: u32) -> Option<AbortReason> {
+        let periods = self.last_cmd_ref.map_or(1.0, |last| {
+            let n = reflected.wrapping_sub(last) / self.p.receive_multiplier.max(1);
+            f64::from(n).clamp(1.0, self.p.missing_after_periods.max(1.0).floor())
+        });
+        let period_s = periods * self.receive_period_ns() as f64 * 1e-9;
         for i in 0..JOINTS {
             if !q[i].is_finite() {
                 return Some(AbortReason::NotFinite { joint: i });
@@ -1224,8 +1413,12 @@ impl SimController {
         self.stats.commands_accepted.fetch_add(1, Relaxed);
         let mut latency_ms = self.p.latency_ms;
         let mut jitter_ms = 0.0;
-        if let Some(w) = &self.world {
+        if let Some(w) = self.world.as_mut() {
             latency_ms = w.latency.latency_s(arrival_ns as f64 * 1e-9) * 1e3;
+            let j = w.net.command_jitter_s;
+            if j > 0.0 {
+                jitter_ms = w.net_rng.random_range(-j..=j) * 1e3;
+            }
         } else if self.p.latency_jitter_ms > 0.0 {
             jitter_ms = self
                 .rng

@@ -14,6 +14,19 @@
 //! - **Lens.** Brown-Conrady distortion `k1, k2, p1, p2` on normalised coordinates.
 //! - **Pose.** The true camera is rotated (base x, y, z, radians) and shifted
 //!   off the believed pose.
+//! - **Clock.** The frame clock runs `1 + drift` times the PC's rate (frames
+//!   come that much more often; the source stamps on the PC's clock, so the
+//!   drift moves the frames against the swing, not the stamps). Each frame's
+//!   exposure starts `U(-f, f)` off its slot while its delivery keeps the
+//!   slot: stamp errors of both signs.
+//! - **Light.** The ball's brightness is scaled by
+//!   `g(t) = (1 + A sin(2 pi t/P + phi)) (1 + F m(t)) (1 - s(t))`: auto-exposure (`A`, period `P` 4..20 s),
+//!   100 Hz mains flicker averaged over the exposure (`m(t)`, the mean of
+//!   `sin(2 pi 100 t)` over it) and a passing shadow (`s(t)`: depth `S` for
+//!   0.5..1.5 s in half of the lab clock's 10 s windows, drawn from the
+//!   session's seed per window).
+//! - **Occlusion.** `occluded` tells whether the true arm (capsules along its
+//!   links and tool) stands in the line of sight to the ball's centre.
 //!
 //! `equivalent_centre_m` turns the true ball into the point the *believed*
 //! camera would see at the same pixel and depth: handing that to a renderer
@@ -73,7 +86,27 @@ pub struct WorldCamera {
     pub latency_offset_s: f64,
     /// Per-frame jitter bound, s.
     pub jitter_s: f64,
+    /// Frame clock rate error (fraction; + fast).
+    pub clock_drift: f64,
+    /// Exposure-start jitter bound (either sign), s.
+    pub frame_jitter_s: f64,
+    /// Auto-exposure gain amplitude, its period (s) and phase (rad).
+    pub exposure_gain: (f64, f64, f64),
+    /// Mains flicker amplitude.
+    pub flicker: f64,
+    /// Depth of a passing shadow (0: none) and the seed of their schedule.
+    pub shadow: (f64, u64),
 }
+
+/// Mains flicker frequency of the light (50 Hz mains), Hz.
+pub const FLICKER_HZ: f64 = 100.0;
+/// The shadows' schedule: one window of the lab clock, s.
+pub const SHADOW_WINDOW_S: f64 = 10.0;
+/// The arm's links as capsules of this radius, m (the iiwa's links are
+/// 0.12-0.14 m across).
+pub const LINK_RADIUS_M: f64 = 0.065;
+/// The tool's shaft as a capsule of this radius, m.
+pub const TOOL_RADIUS_M: f64 = 0.02;
 
 impl WorldCamera {
     /// A camera that is what the lab believes (no effect).
@@ -95,6 +128,11 @@ impl WorldCamera {
             believed_latency_s,
             latency_offset_s: 0.0,
             jitter_s: 0.0,
+            clock_drift: 0.0,
+            frame_jitter_s: 0.0,
+            exposure_gain: (0.0, 1.0, 0.0),
+            flicker: 0.0,
+            shadow: (0.0, 0),
         }
     }
 
@@ -116,22 +154,102 @@ impl WorldCamera {
         c.exposure_s = s.exposure_s;
         c.latency_offset_s = s.camera_latency_offset_s;
         c.jitter_s = s.camera_jitter_s;
+        c.clock_drift = s.camera_clock_drift;
+        c.frame_jitter_s = s.frame_jitter_s;
+        c.exposure_gain = (
+            s.exposure_gain_variation,
+            s.exposure_gain_period_s,
+            s.exposure_gain_phase_rad,
+        );
+        c.flicker = s.flicker;
+        c.shadow = (s.shadow_depth, s.shadow_seed);
         c
     }
 
-    /// Delivery and stamp of the frame whose exposure starts at `t_start_s`.
-    pub fn timing(&self, t_start_s: f64, rng: &mut impl rand::Rng) -> FrameTiming {
+    /// The true time between frames for a nominal `period_s` (the camera's
+    /// clock drift), s.
+    pub fn frame_period_s(&self, period_s: f64) -> f64 {
+        period_s / (1.0 + self.clock_drift)
+    }
+
+    /// Delivery and stamp of the frame of slot `t_slot_s` on the frame clock
+    /// (its exposure starts there, give or take the frame-time jitter).
+    pub fn timing(&self, t_slot_s: f64, rng: &mut impl rand::Rng) -> FrameTiming {
         let j = if self.jitter_s > 0.0 {
             rng.random_range(0.0..=self.jitter_s)
         } else {
             0.0
         };
-        let delivered = t_start_s + (self.believed_latency_s + self.latency_offset_s).max(0.0) + j;
+        let e = if self.frame_jitter_s > 0.0 {
+            rng.random_range(-self.frame_jitter_s..=self.frame_jitter_s)
+        } else {
+            0.0
+        };
+        let delivered = t_slot_s + (self.believed_latency_s + self.latency_offset_s).max(0.0) + j;
         FrameTiming {
-            t_start_s,
+            t_start_s: t_slot_s + e,
             t_delivered_s: delivered,
             t_stamp_s: delivered - self.believed_latency_s,
         }
+    }
+
+    /// The light on the ball in the frame whose exposure starts at
+    /// `t_start_s`, as a gain (1: as believed).
+    pub fn light_gain(&self, t_start_s: f64) -> f64 {
+        let (a, period, phase) = self.exposure_gain;
+        let mut g = 1.0;
+        if a > 0.0 {
+            g *= 1.0 + a * (std::f64::consts::TAU * t_start_s / period.max(1e-3) + phase).sin();
+        }
+        if self.flicker > 0.0 {
+            let w = std::f64::consts::TAU * FLICKER_HZ;
+            let m = if self.exposure_s > 0.0 {
+                ((w * t_start_s).cos() - (w * (t_start_s + self.exposure_s)).cos())
+                    / (w * self.exposure_s)
+            } else {
+                (w * t_start_s).sin()
+            };
+            g *= 1.0 + self.flicker * m;
+        }
+        g * (1.0 - self.shadow_at(t_start_s))
+    }
+
+    /// The passing shadow's depth at `t_s` (0: none).
+    pub fn shadow_at(&self, t_s: f64) -> f64 {
+        let (depth, seed) = self.shadow;
+        if depth <= 0.0 || !t_s.is_finite() {
+            return 0.0;
+        }
+        let k = (t_s / SHADOW_WINDOW_S).floor();
+        let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(
+            seed ^ (k as i64 as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        if !rng.random_bool(0.5) {
+            return 0.0;
+        }
+        let start = k * SHADOW_WINDOW_S + rng.random_range(0.0..=SHADOW_WINDOW_S - 1.5);
+        let duration = rng.random_range(0.5..=1.5);
+        if (start..start + duration).contains(&t_s) {
+            depth
+        } else {
+            0.0
+        }
+    }
+
+    /// Whether the arm whose link points (base, joints, flange, tool point
+    /// in order) are `points` hides the ball centred at `ball_m` from the
+    /// true camera: the line of sight passes within a link's (or the
+    /// tool's, last segment) capsule before it reaches the ball.
+    pub fn occluded(&self, points: &[Vector3<f64>], ball_m: &Vector3<f64>) -> bool {
+        let n = points.len();
+        points.windows(2).enumerate().any(|(i, seg)| {
+            let r = if i + 2 == n {
+                TOOL_RADIUS_M
+            } else {
+                LINK_RADIUS_M
+            };
+            segment_distance(&self.position_m, ball_m, &seg[0], &seg[1]) < r
+        })
     }
 
     /// Projects a base-frame point through the true camera (with distortion);
@@ -196,4 +314,47 @@ impl WorldCamera {
         let p_c = ray * pc.z.max(1e-3);
         self.believed_pose.base_from_camera() * p_c + self.believed_pose.position()
     }
+}
+
+/// Shortest distance between segments `p0 p1` and `q0 q1` (parameters clamped).
+fn segment_distance(
+    p0: &Vector3<f64>,
+    p1: &Vector3<f64>,
+    q0: &Vector3<f64>,
+    q1: &Vector3<f64>,
+) -> f64 {
+    let d1 = p1 - p0;
+    let d2 = q1 - q0;
+    let r = p0 - q0;
+    let a = d1.dot(&d1);
+    let e = d2.dot(&d2);
+    let f = d2.dot(&r);
+    let (s, t) = if a <= 1e-12 && e <= 1e-12 {
+        (0.0, 0.0)
+    } else if a <= 1e-12 {
+        (0.0, (f / e).clamp(0.0, 1.0))
+    } else {
+        let c = d1.dot(&r);
+        if e <= 1e-12 {
+            ((-c / a).clamp(0.0, 1.0), 0.0)
+        } else {
+            let b = d1.dot(&d2);
+            let denom = a * e - b * b;
+            let mut s = if denom > 1e-12 {
+                ((b * f - c * e) / denom).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let mut t = (b * s + f) / e;
+            if t < 0.0 {
+                t = 0.0;
+                s = (-c / a).clamp(0.0, 1.0);
+            } else if t > 1.0 {
+                t = 1.0;
+                s = ((b - c) / a).clamp(0.0, 1.0);
+            }
+            (s, t)
+        }
+    };
+    ((p0 + d1 * s) - (q0 + d2 * t)).norm()
 }

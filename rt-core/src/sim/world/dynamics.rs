@@ -178,6 +178,42 @@ impl ArmDynamics {
     }
 }
 
+/// Reflected rotor inertia of each drive at the joint (rotor inertia times
+/// the gear ratio squared), kg m^2: an estimate (IIWA7.md has none; KUKA
+/// does not publish them), of the order of a 100-160:1 harmonic drive on a
+/// small servo motor. It dominates a wrist joint's inertia against a push
+/// at the tool; the contact push uses it ([`Self::push_matrix`]).
+pub const ARMATURE_KGM2: [f64; JOINTS] = [0.5, 0.5, 0.3, 0.3, 0.1, 0.1, 0.1];
+
+impl ArmDynamics {
+    /// The matrix a push at the tool meets: the mass matrix plus each
+    /// drive's reflected rotor inertia ([`ARMATURE_KGM2`]) on its diagonal.
+    pub fn push_matrix(&self, q: &[f64; JOINTS]) -> nalgebra::SMatrix<f64, JOINTS, JOINTS> {
+        let mut m = self.mass_matrix(q);
+        for (i, a) in ARMATURE_KGM2.iter().enumerate() {
+            m[(i, i)] += a;
+        }
+        m
+    }
+
+    /// The joint-space mass matrix at `q`: column `i` is the torque that
+    /// accelerates joint `i` alone at 1 rad/s^2, gravity taken out.
+    pub fn mass_matrix(&self, q: &[f64; JOINTS]) -> nalgebra::SMatrix<f64, JOINTS, JOINTS> {
+        let zero = [0.0; JOINTS];
+        let g = self.torques(q, &zero, &zero);
+        let mut m = nalgebra::SMatrix::<f64, JOINTS, JOINTS>::zeros();
+        for i in 0..JOINTS {
+            let mut e = [0.0; JOINTS];
+            e[i] = 1.0;
+            let t = self.torques(q, &zero, &e);
+            for r in 0..JOINTS {
+                m[(r, i)] = t[r] - g[r];
+            }
+        }
+        m
+    }
+}
+
 /// A joint that needed more torque than its limit.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, thiserror::Error)]
 #[error("torque limit: {name} needs {torque_nm:.1} N m, limit {limit_nm:.1} N m")]

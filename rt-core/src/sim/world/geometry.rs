@@ -64,6 +64,23 @@ impl TrueArm {
         (p, r)
     }
 
+    /// The arm's points for joint readings `q`: the base, each joint's
+    /// origin along the chain, the flange and the tool point, m.
+    pub fn points(&self, q: &[f64; JOINTS]) -> [Vector3<f64>; JOINTS + 2] {
+        let mut out = [Vector3::zeros(); JOINTS + 2];
+        let mut r = Matrix3::identity();
+        let mut p = Vector3::zeros();
+        for i in 0..JOINTS {
+            p += r.column(2) * self.d_m[i];
+            out[i + 1] = p;
+            let (s, c) = (q[i] + self.offset_rad[i]).sin_cos();
+            let (sa, ca) = DH_ALPHA_RAD[i].sin_cos();
+            r *= Matrix3::new(c, -s * ca, s * sa, s, c * ca, -c * sa, 0.0, sa, ca);
+        }
+        out[JOINTS + 1] = p + r.column(2) * self.tool_length_m;
+        out
+    }
+
     /// The true tool point, m.
     pub fn tool_point(&self, q: &[f64; JOINTS]) -> Vector3<f64> {
         let (p, r) = self.flange(q);

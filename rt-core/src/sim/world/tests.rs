@@ -620,3 +620,290 @@ fn world_keys_are_validated_and_unknown_ones_refused() {
     assert_eq!(tw.pendulum.length_m, 1.93);
     assert_eq!(tw.session.robot_latency_s, 0.008);
 }
+
+#[test]
+fn frame_time_jitter_errs_the_stamps_both_ways_and_clock_drift_changes_the_frame_rate() {
+    let mut c = camera();
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    c.frame_jitter_s = 0.003;
+    // The exposure wanders either side of its slot; the delivery (and so the
+    // stamp) keeps the slot: stamp minus true exposure start takes both signs.
+    let errs: Vec<f64> = (0..400)
+        .map(|k| {
+            let slot = f64::from(k) / 30.0;
+            let f = c.timing(slot, &mut rng);
+            assert!((f.t_stamp_s - slot).abs() < 1e-12);
+            f.t_stamp_s - f.t_start_s
+        })
+        .collect();
+    let lo = errs.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = errs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    assert!((-0.003 - 1e-12..-0.002).contains(&lo), "{lo}");
+    assert!(hi > 0.002 && hi <= 0.003 + 1e-12, "{hi}");
+    // A camera clock 500 ppm fast delivers 500 ppm more frames.
+    assert_eq!(c.frame_period_s(1.0 / 30.0), 1.0 / 30.0);
+    c.clock_drift = 500e-6;
+    let frames_per_hour = 3600.0 / c.frame_period_s(1.0 / 30.0);
+    assert!(
+        (frames_per_hour - 108_000.0 * 1.0005).abs() < 1e-6,
+        "{frames_per_hour}"
+    );
+    // From the session's draw.
+    let mut w = WorldParams::default();
+    w.camera.clock_drift_ppm = RangeParam::fixed(-200.0);
+    w.camera.frame_jitter_ms = RangeParam::fixed(2.0);
+    let s = w.draw_session(1, 0, 8.0);
+    let c = WorldCamera::from_session(
+        CameraPose::default(),
+        CameraIntrinsics::from_hfov(1280, 720, 70.0),
+        720,
+        0.035,
+        &s,
+    );
+    assert!((c.clock_drift + 200e-6).abs() < 1e-15 && (c.frame_jitter_s - 0.002).abs() < 1e-15);
+}
+
+#[test]
+fn the_light_on_the_ball_follows_auto_exposure_flicker_and_passing_shadows() {
+    let mut c = camera();
+    assert_eq!(c.light_gain(1.234), 1.0, "truthful: as believed");
+    // Auto-exposure: +-20% with a 10 s period.
+    c.exposure_gain = (0.2, 10.0, 0.0);
+    assert!((c.light_gain(2.5) - 1.2).abs() < 1e-12);
+    assert!((c.light_gain(7.5) - 0.8).abs() < 1e-12);
+    c.exposure_gain = (0.0, 10.0, 0.0);
+    // Flicker at 100 Hz: a short exposure sees it, one of exactly a flicker
+    // period averages it away.
+    c.flicker = 0.3;
+    c.exposure_s = 0.0;
+    assert!((c.light_gain(0.0025) - 1.3).abs() < 1e-9);
+    c.exposure_s = 0.01;
+    assert!((c.light_gain(0.0025) - 1.0).abs() < 1e-9);
+    c.flicker = 0.0;
+    // Shadows: depth 0.6 for 0.5-1.5 s in about half of the 10 s windows.
+    c.shadow = (0.6, 7);
+    let n = 100_000;
+    let mut dark = 0;
+    for k in 0..n {
+        let t = f64::from(k) * 0.01;
+        let g = c.light_gain(t);
+        if g < 1.0 {
+            assert!((g - 0.4).abs() < 1e-12, "{g}");
+            dark += 1;
+        }
+    }
+    let frac = f64::from(dark) / f64::from(n);
+    assert!((0.02..0.09).contains(&frac), "in shadow {frac}");
+    // The same schedule for the same seed, another for another.
+    let c2 = WorldCamera {
+        shadow: (0.6, 8),
+        ..c
+    };
+    let differs = (0..10_000).any(|k| {
+        let t = f64::from(k) * 0.1;
+        c.shadow_at(t) != c2.shadow_at(t)
+    });
+    assert!(differs);
+}
+
+#[test]
+fn the_arm_hides_the_ball_standing_in_the_line_of_sight() {
+    let c = camera();
+    let arm = TrueArm::nominal(0.10, 0.03);
+    let q = [0.0, 0.6, 0.0, -1.2, 0.0, 0.8, 0.0];
+    let pts = arm.points(&q);
+    // The last point is the tool point, the one before it the flange.
+    assert!((pts[JOINTS + 1] - arm.tool_point(&q)).norm() < 1e-12);
+    assert!((pts[JOINTS] - arm.flange(&q).0).norm() < 1e-12);
+    // A ball straight behind the elbow, seen from the camera: hidden.
+    let elbow = pts[3];
+    let behind = c.position_m + (elbow - c.position_m) * 1.5;
+    assert!(c.occluded(&pts, &behind));
+    // The same ball 0.5 m to the side: seen.
+    let aside = behind + Vector3::new(0.0, -0.5, 0.0);
+    assert!(!c.occluded(&pts, &aside));
+    // A ball in front of the arm (between it and the camera): seen.
+    let before = c.position_m + (elbow - c.position_m) * 0.5;
+    assert!(!c.occluded(&pts, &before));
+}
+
+#[cfg(feature = "opencv")]
+#[test]
+fn the_detector_loses_a_ball_in_too_little_light_where_the_model_camera_does() {
+    use crate::sim::camera::{BallState, SimCamera, SimCameraParams, model::MODEL_MIN_GAIN};
+    use crate::vision::{Detector, DetectorParams};
+    let s = Scenario::default();
+    let params = SimCameraParams::default();
+    let mut cam = SimCamera::new(&s.camera, &params, s.pendulum.ball_radius_m, 1).unwrap();
+    let ball = BallState {
+        centre_m: Vector3::new(s.task.distance_m.lerp(0.5), 0.1, s.task.intercept_height_m),
+        velocity_mps: Vector3::zeros(),
+    };
+    let mut found = |gain: f64| {
+        let mut det = Detector::new(DetectorParams::default()).unwrap();
+        cam.set_ball_gain(gain);
+        (0..4)
+            .filter(|&k| {
+                let img = cam.render(Some(&ball)).unwrap();
+                det.detect(img, f64::from(k) / 30.0).unwrap().is_some()
+            })
+            .count()
+    };
+    assert_eq!(found(1.0), 4);
+    assert_eq!(
+        found(MODEL_MIN_GAIN + 0.1),
+        4,
+        "still found above the model's floor"
+    );
+    assert_eq!(found(0.2), 0, "lost well below it");
+}
+
+#[test]
+fn saturated_drives_cap_the_joint_speed_and_acceleration() {
+    let q0 = [0.0, 0.5, 0.0, -1.0, 0.0, 1.0, 0.0];
+    let vmax = crate::kinematics::iiwa7::VELOCITY_LIMIT_RADPS;
+    for omega_hz in [0.0, 12.0] {
+        let s = session(omega_hz, 0.7);
+        let mut j = WorldJoints::new(q0, &s, 0.005, 1.0, false, 0.0, 1);
+        j.set_interpolation_s(1e-3);
+        j.set_saturation(0.5, 2.0);
+        let amax = 2.0 * crate::kinematics::iiwa7::ACCELERATION_LIMIT_RADPS2[0];
+        // A 0.6 rad step on A1: unsaturated, far faster than half its limit.
+        let mut sp = q0;
+        sp[0] += 0.6;
+        let (mut peak_v, mut peak_a, mut prev_v) = (0.0f64, 0.0f64, 0.0);
+        for _ in 0..3000 {
+            j.integrate(&sp, 1e-3);
+            let v = j.qd()[0];
+            peak_v = peak_v.max(v.abs());
+            peak_a = peak_a.max(((v - prev_v) / 1e-3).abs());
+            prev_v = v;
+        }
+        assert!(peak_v <= 0.5 * vmax[0] + 1e-9, "{omega_hz} Hz: {peak_v}");
+        assert!(
+            peak_v > 0.45 * vmax[0],
+            "{omega_hz} Hz: saturated at the cap {peak_v}"
+        );
+        assert!(peak_a <= amax + 1e-6, "{omega_hz} Hz: {peak_a}");
+        assert!(j.saturated() > 0);
+        assert!(
+            (j.q()[0] - sp[0]).abs() < 1e-3,
+            "{omega_hz} Hz: arrives {}",
+            j.q()[0]
+        );
+        // Without saturation the same step is faster than the cap.
+        let mut free = WorldJoints::new(q0, &s, 0.005, 1.0, false, 0.0, 1);
+        free.set_interpolation_s(1e-3);
+        let mut fastest = 0.0f64;
+        for _ in 0..300 {
+            free.integrate(&sp, 1e-3);
+            fastest = fastest.max(free.qd()[0].abs());
+        }
+        assert!(fastest > 0.5 * vmax[0], "{omega_hz} Hz: {fastest}");
+        assert_eq!(free.saturated(), 0);
+    }
+}
+
+#[test]
+fn a_first_order_servo_trips_on_torque_too() {
+    let s = session(0.0, 0.7);
+    let q0 = [0.0, 0.5, 0.0, -1.0, 0.0, 1.0, 0.0];
+    // A 0.5 rad jump on A2 through a 5 ms first-order lag: ~100 rad/s in a
+    // millisecond, far beyond A2's torque.
+    let mut j = WorldJoints::new(q0, &s, 0.005, 1.0, true, 0.0, 1);
+    j.set_interpolation_s(1e-3);
+    let mut sp = q0;
+    sp[1] += 0.5;
+    let trip = j.integrate(&sp, 1e-3).expect("trips");
+    assert_eq!(trip.name, "A2", "{trip}");
+    // A slow ramp does not trip, and its gravity load shows in the peaks.
+    let mut k = WorldJoints::new(q0, &s, 0.005, 1.0, true, 0.0, 1);
+    k.set_interpolation_s(1e-3);
+    for n in 1..=1000 {
+        let mut r = q0;
+        r[1] += 0.1 * f64::from(n) * 1e-3;
+        assert!(k.integrate(&r, 1e-3).is_none());
+    }
+    assert!(k.peak_torque_ratio()[1] > 0.05 && k.peak_torque_ratio()[1] < 1.0);
+    // Split into many tiny steps (the controller's due times), the same
+    // motion does not read as an infinite acceleration.
+    let mut m = WorldJoints::new(q0, &s, 0.005, 1.0, true, 0.0, 1);
+    m.set_interpolation_s(1e-3);
+    for n in 1..=1000 {
+        let mut r = q0;
+        r[1] += 0.1 * f64::from(n) * 1e-3;
+        assert!(m.integrate(&r, 1e-6).is_none());
+        assert!(m.integrate(&r, 1e-3 - 1e-6).is_none());
+    }
+}
+
+#[test]
+fn the_stiffest_most_damped_servo_a_world_may_draw_is_stable_and_lags_as_predicted() {
+    let top = crate::params::world::MAX_SERVO_NATURAL_HZ;
+    for zeta in [0.2, 0.7, 3.0] {
+        let s = session(top, zeta);
+        let mut j = WorldJoints::new([0.0; JOINTS], &s, 0.005, 1.0, false, 0.0, 1);
+        j.set_interpolation_s(1e-3);
+        let v = 0.5;
+        for k in 1..=1000 {
+            let mut sp = [0.0; JOINTS];
+            sp[0] = v * f64::from(k) * 1e-3;
+            j.integrate(&sp, 1e-3);
+            assert!(
+                j.q()[0].is_finite() && j.qd()[0].abs() < 10.0,
+                "zeta {zeta}: diverges"
+            );
+        }
+        let w = std::f64::consts::TAU * top;
+        let expected = 2.0 * zeta * v / w;
+        let lag = v * 1.0 - j.q()[0];
+        assert!(
+            (lag - expected).abs() < 0.05 * expected,
+            "zeta {zeta}: lag {lag} vs {expected}"
+        );
+        // A step settles.
+        let mut st = WorldJoints::new([0.0; JOINTS], &s, 0.005, 1.0, false, 0.0, 1);
+        let mut sp = [0.0; JOINTS];
+        sp[0] = 0.1;
+        st.integrate(&sp, 0.5);
+        assert!((st.q()[0] - 0.1).abs() < 1e-6, "zeta {zeta}: {}", st.q()[0]);
+    }
+    // Above the top the world is refused.
+    let mut w = WorldParams::default();
+    w.robot.servo_natural_hz = RangeParam::fixed(top + 1.0);
+    assert!(w.validate().is_err());
+}
+
+#[test]
+fn a_contact_pushes_the_arm_and_the_servo_pulls_it_back() {
+    let q0 = [0.0, 0.6, 0.0, -1.2, 0.0, 0.8, 0.0];
+    let arm = TrueArm::nominal(0.10, 0.03);
+    let point = arm.tool_point(&q0);
+    // A 57 g ball at 1.5 m/s stopping against the tool: 0.085 N s along +x.
+    let impulse = Vector3::new(0.085, 0.0, 0.0);
+    let s = session(12.0, 0.8);
+    let mut rigid = WorldJoints::new(q0, &s, 0.005, 1.0, false, 0.0, 1);
+    rigid.push(&point, &impulse);
+    assert_eq!(rigid.qd(), &[0.0; JOINTS], "contact push off: nothing");
+    let mut j = WorldJoints::new(q0, &s, 0.005, 1.0, false, 0.0, 1);
+    j.set_contact_push(true);
+    j.push(&point, &impulse);
+    // The joint velocities carry the impulse: (M + A) dq' = J^T p.
+    let m = crate::sim::world::ArmDynamics::default().push_matrix(&q0);
+    let tau = crate::sim::world::contact::joint_torques(&q0, &point, &impulse);
+    let back = m * nalgebra::SVector::<f64, JOINTS>::from(*j.qd());
+    for i in 0..JOINTS {
+        assert!((back[i] - tau[i]).abs() < 1e-9, "joint {i}");
+    }
+    // The tool moves along the push, a little, and comes back.
+    let mut peak = 0.0f64;
+    for _ in 0..100 {
+        j.integrate(&q0, 1e-3);
+        peak = peak.max((arm.tool_point(j.q()) - point).x);
+    }
+    assert!(peak > 1e-5, "pushed {peak} m");
+    for _ in 0..900 {
+        j.integrate(&q0, 1e-3);
+    }
+    assert!((arm.tool_point(j.q()) - point).norm() < 1e-6, "pulled back");
+}

@@ -35,6 +35,9 @@ pub struct BallSample {
     pub centre_m: Vector3<f64>,
     /// Ball velocity, m/s.
     pub velocity_mps: Vector3<f64>,
+    /// The true arm's points (`TrueArm::points`), when it may hide the ball
+    /// (`world.camera.arm_occludes`).
+    pub arm_m: Option<[Vector3<f64>; crate::kinematics::iiwa7::JOINTS + 2]>,
 }
 
 /// Samples kept (2 s at 1 ms steps).
@@ -88,11 +91,11 @@ impl WorldWebcam {
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x7765_6263_616d),
             with_led: Mat::default(),
             jpeg: Vector::new(),
-            period_s: 1.0 / scenario.camera.fps,
+            period_s: camera.frame_period_s(1.0 / scenario.camera.fps),
         })
     }
 
-    /// Time between frames, s.
+    /// Time between frames (the true camera's clock), s.
     pub fn period_s(&self) -> f64 {
         self.period_s
     }
@@ -100,7 +103,7 @@ impl WorldWebcam {
     /// How long after a frame's exposure starts the truth it shows is all
     /// known (exposure and readout), s.
     pub fn truth_after_s(&self) -> f64 {
-        self.camera.exposure_s + self.camera.rolling_shutter_s
+        self.camera.exposure_s + self.camera.rolling_shutter_s + self.camera.frame_jitter_s
     }
 
     /// The true camera.
@@ -151,9 +154,18 @@ impl WorldWebcam {
         Some((p, v))
     }
 
-    /// When the frame whose exposure starts at `t_start_s` is delivered, and its stamp.
-    pub fn timing(&mut self, t_start_s: f64) -> FrameTiming {
-        self.camera.timing(t_start_s, &mut self.rng)
+    /// When the frame of slot `t_slot_s` starts its exposure, is delivered, and its stamp.
+    pub fn timing(&mut self, t_slot_s: f64) -> FrameTiming {
+        self.camera.timing(t_slot_s, &mut self.rng)
+    }
+
+    /// The true arm's points nearest `t_s` (`None`: no arm that hides the ball).
+    fn arm_at(&self, t_s: f64) -> Option<[Vector3<f64>; crate::kinematics::iiwa7::JOINTS + 2]> {
+        let h = &self.history;
+        let i = h
+            .partition_point(|s| s.t_s <= t_s)
+            .min(h.len().checked_sub(1)?);
+        h[i].arm_m
     }
 
     /// The JPEG of the frame whose exposure starts at `t_start_s` (the ball
@@ -164,12 +176,19 @@ impl WorldWebcam {
             self.ball_at(t).map_or(Vector3::zeros(), |b| b.0)
         });
         let state = match (sight, self.ball_at(t_start_s)) {
-            (Some(s), Some((p, v))) => Some(BallState {
-                centre_m: self.camera.equivalent_centre_m(&s.px, &p),
-                velocity_mps: v,
-            }),
+            (Some(s), Some((p, v))) => {
+                // A ball the true arm hides is not drawn.
+                let hidden = self
+                    .arm_at(t_start_s)
+                    .is_some_and(|arm| self.camera.occluded(&arm, &p));
+                (!hidden).then(|| BallState {
+                    centre_m: self.camera.equivalent_centre_m(&s.px, &p),
+                    velocity_mps: v,
+                })
+            }
             _ => None,
         };
+        self.render.set_ball_gain(self.camera.light_gain(t_start_s));
         let image = self.render.render(state.as_ref())?;
         let image = if led {
             image.copy_to(&mut self.with_led)?;
@@ -219,6 +238,7 @@ mod tests {
                 t_s: t,
                 centre_m: rest + Vector3::new(0.0, y, 0.0),
                 velocity_mps: Vector3::new(0.0, 0.9 * (3.0 * t).cos(), 0.0),
+                arm_m: None,
             });
         }
         // Interpolation between samples is exact to well under a mm here.
