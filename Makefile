@@ -14,7 +14,7 @@ APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             chromium python3 python3-venv curl
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval envelope help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -22,6 +22,7 @@ help:
 	@echo "make demo   serve the simulated lab in demo mode: trials run unattended, the kiosk page at http://$(BIND)/demo"
 	@echo "make bench  criterion benches and 'isochron bench'"
 	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
+	@echo "make envelope  the reality lab's robustness envelope per world factor; writes reports/eval/envelope.md (hours)"
 	@echo "make fuzz   each FRI fuzz target for FUZZ_SECONDS (default 60; fuzz/README.md)"
 	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
 	@echo "make types  regenerate web/src/generated/types.ts from the Rust types (ts-rs)"
@@ -251,6 +252,19 @@ types:
 EVAL_N ?= 20
 eval: release eval-world
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --out reports/eval --n $(EVAL_N) --seed 1 --reality scenarios/reality.toml
+
+## envelope: the reality lab's robustness envelope (issue #36): for every [world] factor of
+## scenarios/reality.toml, then all together, the largest multiple of its range at which >= 95%
+## of ENVELOPE_N trials succeed (bisection, the same seed per step); reports/eval/envelope.md and
+## envelope.svg. Not part of `make test`: 25 items of up to 6 steps of ENVELOPE_N full-vision
+## trials. ENVELOPE_SHARD=I/N runs the I-th of N slices of the factors (several machines: copy
+## the reports/eval/envelope/shard-*.json files together, then
+## `isochron eval --envelope --combine --out reports/eval`).
+ENVELOPE_N ?= 100
+ENVELOPE_SHARD ?= 0/1
+envelope: release
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --envelope --reality scenarios/reality.toml \
+	  --out reports/eval --n $(ENVELOPE_N) --seed 1 --shard $(ENVELOPE_SHARD)
 
 ## eval-world: the real lab end to end against `isochron world` (tests/tests/world_lab.rs):
 ## EVAL_WORLD_N trials over REST on the truthful world, then on the reality world

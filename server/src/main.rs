@@ -86,7 +86,8 @@ enum Command {
     Kin(cmd::kin::KinArgs),
     /// Switch the pendulum's magnet or ask its state (the Arduino firmware over serial); prints JSON.
     Magnet(cmd::magnet::MagnetArgs),
-    /// Run trials across distances and movement times and write a report beside the paper's results.
+    /// Run trials across distances and movement times and write a report beside the paper's results;
+    /// `--envelope`: the reality lab's robustness envelope per world factor.
     Eval(cmd::eval::EvalArgs),
     /// A standalone simulated KUKA FRI controller (FRI 1.11 to 2.7, --fri-version).
     FriSim(cmd::fri_sim::FriSimArgs),

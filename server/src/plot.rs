@@ -477,6 +477,19 @@ pub fn bar_chart(
     bars: &[Bar],
     y: (f64, f64),
 ) -> Result<String> {
+    bar_chart_with_lines(title, xlabel, ylabel, bars, y, &[])
+}
+
+/// [`bar_chart`] with horizontal reference lines (e.g. a goal), dashed across
+/// the bars and labelled right of the plot area, outside the data.
+pub fn bar_chart_with_lines(
+    title: &str,
+    xlabel: &str,
+    ylabel: &str,
+    bars: &[Bar],
+    y: (f64, f64),
+    hlines: &[(f64, &str)],
+) -> Result<String> {
     let n = bars.len().max(1);
     let yt = ticks(y.0, y.1, false);
     let (ya, yb) = (yt.range().start, yt.range().end);
@@ -490,6 +503,7 @@ pub fn bar_chart(
         let mut chart = ChartBuilder::on(root)
             .caption(title, (FONT, 15))
             .margin(12)
+            .margin_right(if hlines.is_empty() { 12 } else { 70 })
             .x_label_area_size(14 * lines + 30)
             .y_label_area_size(60)
             .build_cartesian_2d(TickAxis::bare(0.0..n as f64), TickAxis::of(&yt))
@@ -513,6 +527,28 @@ pub fn bar_chart(
                 )
             }))
             .map_err(err)?;
+        for (v, label) in hlines {
+            let v = clamp(*v);
+            let style = RGBColor(0x55, 0x55, 0x55).stroke_width(1);
+            chart
+                .draw_series(DashedLineSeries::new(
+                    [(0.0, v), (n as f64, v)],
+                    6,
+                    4,
+                    style,
+                ))
+                .map_err(err)?;
+            let (px, py) = chart.backend_coord(&(n as f64, v));
+            root.draw(&Text::new(
+                label.to_string(),
+                (px + 6, py),
+                (FONT, 12)
+                    .into_font()
+                    .color(&GREY)
+                    .pos(Pos::new(HPos::Left, VPos::Center)),
+            ))
+            .map_err(err)?;
+        }
         let whisker = RGBColor(0x22, 0x22, 0x22).stroke_width(2);
         for (i, b) in bars.iter().enumerate() {
             let xm = i as f64 + 0.5;
@@ -872,6 +908,25 @@ mod tests {
         )
         .unwrap();
         assert!(b.contains(">\n9/10\n<") && b.contains(">\n0.35\n<"), "{b}");
+        // A reference line's label is right of the bars, outside the data.
+        let g = bar_chart_with_lines(
+            "g",
+            "x",
+            "y",
+            &[Bar {
+                label: "lens".into(),
+                value: 4.0,
+                interval: Some((4.0, 4.5)),
+                note: "4-4.5x".into(),
+            }],
+            (0.0, 8.0),
+            &[(3.0, "goal 3x")],
+        )
+        .unwrap();
+        let (goal_x, _) = text_at(&g, "goal 3x");
+        let (bar_x, _) = text_at(&g, "lens");
+        assert!(goal_x > bar_x + 30.0, "{g}");
+        assert!(g.matches("<polyline").count() >= 1, "{g}");
         // Background, plot area and the bar.
         assert!(b.matches("<rect").count() >= 2, "{b}");
         let h = histogram("h", "ms", &[1.0, 2.0, 2.5, f64::NAN], 4).unwrap();

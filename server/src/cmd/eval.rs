@@ -52,6 +52,9 @@ pub struct EvalArgs {
     /// the ablation table, the signed timing-error histogram).
     #[arg(long)]
     pub reality: Option<PathBuf>,
+    /// The robustness envelope (`--envelope`, `eval_envelope.rs`).
+    #[command(flatten)]
+    pub envelope: super::eval_envelope::EnvelopeArgs,
 }
 
 /// Runs `isochron trials` (`exe`) on `sc` (written to `dir/cells/NAME.toml`):
@@ -157,6 +160,9 @@ fn check_args(a: &EvalArgs) -> anyhow::Result<()> {
 
 /// Runs `isochron eval`; returns the path of the report.
 pub fn run(args: EvalArgs) -> anyhow::Result<String> {
+    if args.envelope.envelope {
+        return super::eval_envelope::run(&args);
+    }
     check_args(&args)?;
     let base = match &args.scenario {
         Some(p) => Scenario::from_file(p)?,
@@ -552,6 +558,7 @@ mod tests {
             movement_times_s: vec![1.5],
             distance_edges_m: vec![0.35, 0.8],
             reality: None,
+            envelope: Default::default(),
         };
         assert!(check_args(&ok).is_ok());
         let bad = [
@@ -583,6 +590,7 @@ mod tests {
             movement_times_s: a.movement_times_s.clone(),
             distance_edges_m: a.distance_edges_m.clone(),
             reality: a.reality.clone(),
+            envelope: a.envelope.clone(),
         }
     }
 }

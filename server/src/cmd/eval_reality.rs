@@ -273,7 +273,7 @@ pub fn trial_judge(v: &Value) -> Option<&'static str> {
 
 /// The signed timing error (negative: early), ms: the physical judge's, or
 /// the truthful judge's `arrival - t*` in a truthful world.
-fn signed_ms(v: &Value) -> f64 {
+pub fn signed_ms(v: &Value) -> f64 {
     let num = |k: &str| v.get(k).and_then(Value::as_f64);
     match trial_judge(v) {
         Some("physical") => v["physical"]["timing_error_ms"]

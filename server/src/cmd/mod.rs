@@ -5,6 +5,7 @@ pub mod bench_peers;
 pub mod calibrate;
 pub mod detect;
 pub mod eval;
+pub mod eval_envelope;
 pub mod eval_reality;
 pub mod fri_doctor;
 pub mod fri_sim;
