@@ -28,7 +28,10 @@ use std::{
 use anyhow::{Context, bail};
 use rt_core::{
     control::stats::wilson_ci95,
-    params::{RangeParam, Scenario, VisionMode, world::WorldParams},
+    params::{
+        RangeParam, Scenario, VisionMode,
+        world::{MAX_SERVO_NATURAL_HZ, WorldParams},
+    },
 };
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -251,7 +254,12 @@ fn factor(name: &'static str, keys: &[Key]) -> Factor {
 ///   moves further below (it matters only with `robot.torque_trip`).
 ///
 /// Lens distortion (`k1`, `k2`, `p1`, `p2`) is one factor, "lens"; the
-/// camera's rotation and position errors are one, "camera pose".
+/// camera's rotation and position errors are one, "camera pose"; the
+/// auto-exposure's wander and the mains flicker are "lighting"; datagram
+/// loss both ways is "FRI datagram loss", the one-way latency and its
+/// jitter "FRI network latency" (benign 0 each). The drives' speed and
+/// acceleration saturation (`velocity_limit_scale`,
+/// `acceleration_limit_scale`: 0 = none, harsher = lower) scale inversely.
 #[rustfmt::skip]
 pub fn factors() -> Vec<Factor> {
     let belief_release: (&'static str, fn(&Scenario) -> f64) =
@@ -284,14 +292,32 @@ pub fn factors() -> Vec<Factor> {
             range("camera.pose_error_deg", |w| &mut w.camera.pose_error_deg, 0.0, (-10.0, 10.0)),
             range("camera.pose_error_m", |w| &mut w.camera.pose_error_m, 0.0, (-0.5, 0.5)),
         ]),
+        factor("camera clock drift", &[range("camera.clock_drift_ppm", |w| &mut w.camera.clock_drift_ppm, 0.0, (-1000.0, 1000.0))]),
+        factor("frame-time jitter", &[range("camera.frame_jitter_ms", |w| &mut w.camera.frame_jitter_ms, 0.0, (0.0, 20.0))]),
+        factor("lighting", &[
+            range("camera.exposure_gain_variation", |w| &mut w.camera.exposure_gain_variation, 0.0, (0.0, 0.9)),
+            range("camera.flicker", |w| &mut w.camera.flicker, 0.0, (0.0, 0.9)),
+        ]),
+        factor("passing shadows", &[range("camera.shadow_depth", |w| &mut w.camera.shadow_depth, 0.0, (0.0, 0.95))]),
         // The robot.
         factor("robot latency", &[optional("robot.latency_ms", |w| &mut w.robot.latency_ms, belief_latency, (0.0, 200.0))]),
         factor("robot latency drift", &[range("robot.latency_drift_ms", |w| &mut w.robot.latency_drift_ms, 0.0, (0.0, 50.0))]),
-        factor("servo bandwidth", &[range("robot.servo_natural_hz", |w| &mut w.robot.servo_natural_hz, 0.0, (2.0, 200.0)).inverse()]),
+        factor("servo bandwidth", &[range("robot.servo_natural_hz", |w| &mut w.robot.servo_natural_hz, 0.0, (2.0, MAX_SERVO_NATURAL_HZ)).inverse()]),
         factor("servo damping", &[range("robot.servo_damping_ratio", |w| &mut w.robot.servo_damping_ratio, 0.7, (0.2, 3.0))]),
         factor("joint position noise", &[number("robot.position_noise_rad", |w| &mut w.robot.position_noise_rad, 0.0, (0.0, 0.01))]),
         factor("link inertia error", &[number("robot.inertia_error", |w| &mut w.robot.inertia_error, 0.0, (0.0, 0.5))]),
         factor("torque limit", &[number("robot.torque_limit_scale", |w| &mut w.robot.torque_limit_scale, 1.0, (0.05, 2.0))]),
+        factor("joint velocity saturation", &[number("robot.velocity_limit_scale", |w| &mut w.robot.velocity_limit_scale, 0.0, (0.05, 2.0)).inverse()]),
+        factor("joint acceleration saturation", &[number("robot.acceleration_limit_scale", |w| &mut w.robot.acceleration_limit_scale, 0.0, (0.05, 10.0)).inverse()]),
+        factor("FRI datagram loss", &[
+            range("robot.packet_loss", |w| &mut w.robot.packet_loss, 0.0, (0.0, 0.5)),
+            range("robot.reply_loss", |w| &mut w.robot.reply_loss, 0.0, (0.0, 0.5)),
+        ]),
+        factor("FRI network latency", &[
+            range("robot.message_latency_ms", |w| &mut w.robot.message_latency_ms, 0.0, (0.0, 20.0)),
+            range("robot.message_jitter_ms", |w| &mut w.robot.message_jitter_ms, 0.0, (0.0, 20.0)),
+        ]),
+        factor("command jitter", &[range("robot.command_jitter_ms", |w| &mut w.robot.command_jitter_ms, 0.0, (0.0, 50.0))]),
         // The geometry.
         factor("intercept point", &[range("geometry.intercept_error_m", |w| &mut w.geometry.intercept_error_m, 0.0, (-0.1, 0.1))]),
         factor("tool length", &[range("geometry.tool_length_error_m", |w| &mut w.geometry.tool_length_error_m, 0.0, (-0.05, 0.05))]),
@@ -321,6 +347,14 @@ pub const NOT_FACTORS: &[(&str, &str)] = &[
     (
         "robot.step_time_delays_reply",
         "a switch (the control step's CPU time in virtual time), not a magnitude",
+    ),
+    (
+        "camera.arm_occludes",
+        "a switch (the arm hides the ball where it stands), not a magnitude",
+    ),
+    (
+        "robot.contact_push",
+        "a switch (the contact's impulse moves the arm), not a magnitude",
     ),
     (
         "geometry.contact_disc_radius_m",
