@@ -255,16 +255,18 @@ eval: release eval-world
 
 ## envelope: the reality lab's robustness envelope (issue #36): for every [world] factor of
 ## scenarios/reality.toml, then all together, the largest multiple of its range at which >= 95%
-## of ENVELOPE_N trials succeed (bisection, the same seed per step); reports/eval/envelope.md and
-## envelope.svg. Not part of `make test`: 25 items of up to 6 steps of ENVELOPE_N full-vision
-## trials. ENVELOPE_SHARD=I/N runs the I-th of N slices of the factors (several machines: copy
-## the reports/eval/envelope/shard-*.json files together, then
-## `isochron eval --envelope --combine --out reports/eval`).
+## of ENVELOPE_N trials succeed (bisection, the same seed per step); reports/envelope/envelope.md
+## and envelope.svg. Not part of `make test`: 34 items of up to 6 steps of ENVELOPE_N trials in
+## ENVELOPE_VISION (model: ~6 min on 2 cores; full: ~15 times that). ENVELOPE_SHARD=I/N runs the
+## I-th of N slices of the factors (several processes or machines: the
+## reports/envelope/envelope/shard-*.json files together, then
+## `isochron eval --envelope --combine --out reports/envelope`).
 ENVELOPE_N ?= 100
 ENVELOPE_SHARD ?= 0/1
+ENVELOPE_VISION ?= model
 envelope: release
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --envelope --reality scenarios/reality.toml \
-	  --out reports/eval --n $(ENVELOPE_N) --seed 1 --shard $(ENVELOPE_SHARD)
+	  --vision $(ENVELOPE_VISION) --out reports/envelope --n $(ENVELOPE_N) --seed 1 --shard $(ENVELOPE_SHARD)
 
 ## eval-world: the real lab end to end against `isochron world` (tests/tests/world_lab.rs):
 ## EVAL_WORLD_N trials over REST on the truthful world, then on the reality world

@@ -81,6 +81,11 @@ pub struct EnvelopeArgs {
     /// files in OUT/envelope/ (all of one run; a missing shard's items are listed).
     #[arg(long, requires = "envelope")]
     pub combine: bool,
+    /// The camera's vision mode for every step, over the scenario's own
+    /// (`model`: the measurement model, about 15 times faster than `full`,
+    /// rendered frames through the detector).
+    #[arg(long, requires = "envelope", value_parser = ["full", "model"])]
+    pub vision: Option<String>,
 }
 
 impl Default for EnvelopeArgs {
@@ -91,6 +96,7 @@ impl Default for EnvelopeArgs {
             steps: 4,
             shard: None,
             combine: false,
+            vision: None,
         }
     }
 }
@@ -749,7 +755,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<String> {
         .reality
         .as_deref()
         .context("--envelope needs --reality FILE")?;
-    let reality = Scenario::from_file(path)?;
+    let mut reality = Scenario::from_file(path)?;
+    match e.vision.as_deref() {
+        Some("model") => reality.camera.vision = VisionMode::Model,
+        Some("full") => reality.camera.vision = VisionMode::Full,
+        Some(v) => bail!("--vision {v}: must be full or model"),
+        None => {}
+    }
     let table = factors();
     // Refuses a truthful world before anything runs.
     scaled(&reality, &[], 1.0)?;
