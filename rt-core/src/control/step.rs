@@ -333,6 +333,9 @@ pub struct Commit {
     pub latency_s: f64,
     /// The camera time offset compensated (stamps late by this), seconds.
     pub camera_offset_s: f64,
+    /// The arrival trim compensated (the motion starts this much earlier),
+    /// seconds.
+    pub trim_s: f64,
     /// The generator's arrival offset compensated, seconds.
     pub arrival_offset_s: f64,
     /// Direction of the committed pass (sign of the lateral velocity).
@@ -704,6 +707,14 @@ impl Controller {
     /// What was committed to, once the interception condition was met.
     pub fn commit(&self) -> Option<&Commit> {
         self.commit.as_ref()
+    }
+
+    /// When the committed motion arrives (its start plus its possibly
+    /// re-timed arrival), seconds; `None` before a commit.
+    pub fn planned_arrival_s(&self) -> Option<f64> {
+        self.commit
+            .as_ref()
+            .map(|c| c.motion_start_s + self.motion.arrival_time_s())
     }
 
     /// The timed motion's latest sample.
@@ -1385,6 +1396,7 @@ impl Controller {
             predicted_ball_m: mp.pass.ball_m,
             latency_s: robot_latency_s,
             camera_offset_s,
+            trim_s,
             direction_positive: mp.pass.lateral_velocity_mps > 0.0,
         });
         self.go(t, TrialState::Intercepting);
@@ -1404,9 +1416,10 @@ impl Controller {
         let from = (c.predicted_pass_s - 0.3).max(t);
         match ekf.crossings(from, 0.0, dir, &mut buf) {
             Ok(1) if (buf[0].t_s - c.predicted_pass_s).abs() < 0.2 => {
+                // As at the commit: the robot's latency (its latest
+                // estimate), the camera's offset and the arrival trim.
                 let arrival = buf[0].t_s
-                    - self.latency.latency_s()
-                    - c.camera_offset_s
+                    - (self.latency.latency_s() + c.camera_offset_s + c.trim_s).max(0.0)
                     - c.motion_start_s
                     - c.arrival_offset_s;
                 if (arrival - self.motion.arrival_time_s()).abs() > 1e-5
@@ -1861,6 +1874,31 @@ mod tests {
         assert!((mean - late).abs() < 0.0006, "{mean}");
         assert_eq!(sd, SessionPriors::MIN_STD_S);
         assert_eq!(c.arrival_trim_s(), mean);
+        // Re-timing to the filter's latest prediction keeps the trim: each
+        // motion still arrives earlier by the trim it used.
+        let mut r = s.clone();
+        r.control.retime = true;
+        let mut c = Controller::new(&r, 0.005).unwrap();
+        let mut t = 0.0;
+        let mut leads = Vec::new();
+        for _ in 0..4 {
+            let used = c.arrival_trim_s();
+            t = release_and_track_at(&mut c, &r, 0.0, 0.0, t);
+            let k = *c.commit().expect("a commit");
+            let arrival = c.planned_arrival_s().expect("committed");
+            leads.push((k.predicted_pass_s - arrival, used));
+            c.learn_from_arrival(late - used, 0.001);
+            c.abort(t, AbortReason::StopRequested);
+            c.reset(t).unwrap();
+            t += 0.5;
+        }
+        // (Without the trim in the re-timing, every motion is re-timed back
+        // to the untrimmed arrival: the leads would all be equal.)
+        let (lead0, _) = leads[0];
+        for &(lead, used) in &leads[1..] {
+            assert!(used > 0.01, "{leads:?}");
+            assert!((lead - lead0 - used).abs() < 1e-4, "{leads:?}");
+        }
         // Off, contacts teach nothing.
         s.control.arrival_trim_from_contact = false;
         let mut off = Controller::new(&s, 0.005).unwrap();
