@@ -289,6 +289,19 @@ pub struct WorldAnchor {
 /// is tested at this end (`sim::world::tests`).
 pub const MAX_SERVO_NATURAL_HZ: f64 = 200.0;
 
+/// A limit whose 0 means "none": 0, or within `[lo, hi]`.
+fn off_or_within(field: &str, v: f64, lo: f64, hi: f64) -> Result<(), ParamError> {
+    check::within(field, v, 0.0, hi)?;
+    if v > 0.0 && v < lo {
+        return Err(check::out_of_range(
+            field,
+            v,
+            &format!("must be 0 (none) or >= {lo}"),
+        ));
+    }
+    Ok(())
+}
+
 fn range(field: &str, r: &RangeParam, lo: f64, hi: f64) -> Result<(), ParamError> {
     r.validate_with(field, |f, v| check::within(f, v, lo, hi))
 }
@@ -446,32 +459,18 @@ impl WorldParams {
             0.0,
             20.0,
         )?;
-        check::within(
+        off_or_within(
             "world.robot.velocity_limit_scale",
             r.velocity_limit_scale,
-            0.0,
+            0.05,
             2.0,
         )?;
-        if r.velocity_limit_scale > 0.0 && r.velocity_limit_scale < 0.05 {
-            return Err(check::out_of_range(
-                "world.robot.velocity_limit_scale",
-                r.velocity_limit_scale,
-                "must be 0 (no saturation) or >= 0.05",
-            ));
-        }
-        check::within(
+        off_or_within(
             "world.robot.acceleration_limit_scale",
             r.acceleration_limit_scale,
-            0.0,
+            0.05,
             10.0,
         )?;
-        if r.acceleration_limit_scale > 0.0 && r.acceleration_limit_scale < 0.05 {
-            return Err(check::out_of_range(
-                "world.robot.acceleration_limit_scale",
-                r.acceleration_limit_scale,
-                "must be 0 (no saturation) or >= 0.05",
-            ));
-        }
         check::within(
             "world.robot.torque_limit_scale",
             r.torque_limit_scale,

@@ -608,6 +608,39 @@ fn world_keys_are_validated_and_unknown_ones_refused() {
     assert_eq!(e.field(), Some("world.pendulum.drag_coefficient"), "{e}");
     let e = Scenario::from_toml_str("[world.robot]\ntorque_limit_scale = -1\n").unwrap_err();
     assert_eq!(e.field(), Some("world.robot.torque_limit_scale"), "{e}");
+    // The new keys: a saturation is 0 (none) or a real limit; losses are
+    // fractions; NaN nowhere.
+    for (toml, field) in [
+        (
+            "[world.robot]\nvelocity_limit_scale = 0.01\n",
+            "world.robot.velocity_limit_scale",
+        ),
+        (
+            "[world.robot]\nacceleration_limit_scale = nan\n",
+            "world.robot.acceleration_limit_scale",
+        ),
+        (
+            "[world.robot]\npacket_loss = [0.0, 0.9]\n",
+            "world.robot.packet_loss",
+        ),
+        (
+            "[world.robot]\nmessage_latency_ms = -1.0\n",
+            "world.robot.message_latency_ms",
+        ),
+        (
+            "[world.camera]\nshadow_depth = 1.0\n",
+            "world.camera.shadow_depth",
+        ),
+        (
+            "[world.camera]\nclock_drift_ppm = [0.0, 5000.0]\n",
+            "world.camera.clock_drift_ppm",
+        ),
+    ] {
+        let e = Scenario::from_toml_str(toml).unwrap_err();
+        assert_eq!(e.field(), Some(field), "{toml}: {e}");
+    }
+    let off = Scenario::from_toml_str("[world.robot]\nvelocity_limit_scale = 0.0\n").unwrap();
+    assert_eq!(off.world.unwrap().robot.velocity_limit_scale, 0.0);
     // No [world]: a truthful world, and the resolved scenario says nothing of one.
     let t = Scenario::from_toml_str("name = \"x\"\n").unwrap();
     assert!(t.world.is_none());
