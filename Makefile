@@ -215,9 +215,17 @@ test-api-fuzz: py-deps test-build
 	tests/api-fuzz/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" $(API_FUZZ_SECONDS)
 
 ## test-examples: examples/run_trials.py and run_trials.sh against `isochron serve`
-## (the simulated lab), one trial a distance each (examples/test.sh).
+## (the simulated lab), one trial a distance each (examples/test.sh); then the
+## core's own examples (rt-core/examples: predict a pass, plan a timed motion,
+## decode an FRI datagram), built by test-build, each exiting non-zero when
+## what it shows does not hold.
+CORE_EXAMPLES := predict_pass plan_motion decode_fri
 test-examples: test-build
 	examples/test.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" 1
+	@for e in $(CORE_EXAMPLES); do \
+	  echo "== rt-core example $$e"; \
+	  "$${CARGO_TARGET_DIR:-target}/debug/examples/$$e" || exit 1; \
+	done
 
 test: lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
 
