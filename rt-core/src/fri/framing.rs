@@ -8,35 +8,10 @@
 /// Bytes the framing adds: 4 of length, 4 of CRC.
 pub const FRAME_OVERHEAD: usize = 8;
 
-const fn crc_table() -> [u32; 256] {
-    let mut t = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        t[i] = c;
-        i += 1;
-    }
-    t
-}
-
-static CRC_TABLE: [u32; 256] = crc_table();
-
-/// The zlib CRC-32 of `bytes` (`crc32(b"123456789") == 0xCBF43926`).
+/// The zlib CRC-32 of `bytes` (`crc32(b"123456789") == 0xCBF43926`), by
+/// `crc32fast` (no allocation).
 pub fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = 0xFFFF_FFFFu32;
-    for &b in bytes {
-        crc = CRC_TABLE[((crc ^ u32::from(b)) & 0xFF) as usize] ^ (crc >> 8);
-    }
-    crc ^ 0xFFFF_FFFF
+    crc32fast::hash(bytes)
 }
 
 /// Why a framed datagram was refused.

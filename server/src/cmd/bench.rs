@@ -420,25 +420,16 @@ fn control_us(s: &Scenario, trials: usize) -> anyhow::Result<(Vec<f64>, Vec<f64>
     Ok((wall, cpu, details))
 }
 
-/// A WebSocket client of `/ws` that reads and discards everything (the
-/// handshake by hand: the server crate has no WebSocket client).
+/// A WebSocket client of `/ws` (tokio-tungstenite's) that reads and discards
+/// every message; returns the payload bytes it read.
 async fn ws_reader(addr: std::net::SocketAddr) -> anyhow::Result<u64> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let mut s = tokio::net::TcpStream::connect(addr).await?;
-    let req = format!(
-        "GET /ws HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
-         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    );
-    s.write_all(req.as_bytes()).await?;
-    let mut buf = vec![0u8; 64 * 1024];
+    use futures_util::StreamExt;
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/ws")).await?;
     let mut total = 0u64;
-    loop {
-        let n = s.read(&mut buf).await?;
-        if n == 0 {
-            return Ok(total);
-        }
-        total += n as u64;
+    while let Some(msg) = ws.next().await {
+        total += msg?.len() as u64;
     }
+    Ok(total)
 }
 
 /// `loop`: the real-time lab of `isochron serve` (FRI client session and
