@@ -6,7 +6,9 @@ use anyhow::Context;
 
 pub mod procs;
 mod served;
+mod table;
 pub use served::{ServedLab, TrialEnds};
+pub use table::CsvTable;
 
 /// A plain HTTP/1.1 response.
 #[derive(Debug)]

@@ -584,20 +584,18 @@ async fn a_trial_is_recorded_survives_a_restart_and_its_recordings_open() {
     assert_eq!(csv.status, 200);
     assert_eq!(csv.header("content-type"), Some("text/csv"));
     let text = String::from_utf8(csv.body).unwrap();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    assert_eq!(header[0], "trial_state");
-    assert!(header.contains(&"q7_rad") && header.contains(&"u_hopf"));
-    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
-    assert_eq!(rows.len() as u64, samples);
-    assert!(rows.iter().all(|r| r.len() == header.len()));
-    let t_col = header.iter().position(|h| *h == "t_s").unwrap();
-    let times: Vec<f64> = rows.iter().map(|r| r[t_col].parse().unwrap()).collect();
+    let table = isochron_tests::CsvTable::parse(&text).unwrap();
+    assert_eq!(table.header[0], "trial_state");
+    assert!(table.column("q7_rad").is_ok() && table.column("u_hopf").is_ok());
+    assert_eq!(table.rows.len() as u64, samples);
+    assert!(table.rows.iter().all(|r| r.len() == table.header.len()));
+    let times = table.numbers("t_s").unwrap();
     assert!(
         times.windows(2).all(|w| w[1] > w[0]),
         "rows in time order, no gaps in order"
     );
-    let states: std::collections::BTreeSet<&str> = rows.iter().map(|r| r[0]).collect();
+    let states: std::collections::BTreeSet<&str> =
+        table.rows.iter().filter_map(|r| r.get(0)).collect();
     for s in ["arming", "released", "tracking", "intercepting", "holding"] {
         assert!(states.contains(s), "{s} recorded: {states:?}");
     }

@@ -147,15 +147,12 @@ async fn record_trial(addr: SocketAddr) -> String {
 /// simulated lab records beside it: RMS of each measurement (after the release)
 /// minus the true lateral position at its capture time (interpolated between rows).
 fn detector_error_rms_m(csv: &str, series: &Series) -> f64 {
-    let mut lines = csv.lines();
-    let names: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let col = |n: &str| names.iter().position(|h| *h == n).unwrap();
-    let (ti, yi) = (col("t_s"), col("truth_ball_y_m"));
-    let truth: Vec<(f64, f64)> = lines
-        .map(|l| {
-            let c: Vec<&str> = l.split(',').collect();
-            (c[ti].parse().unwrap(), c[yi].parse().unwrap())
-        })
+    let table = isochron_tests::CsvTable::parse(csv).unwrap();
+    let truth: Vec<(f64, f64)> = table
+        .numbers("t_s")
+        .unwrap()
+        .into_iter()
+        .zip(table.numbers("truth_ball_y_m").unwrap())
         .collect();
     let mut sum = 0.0;
     let mut n = 0usize;
