@@ -25,8 +25,7 @@ fn unhex(text: &str) -> Result<Vec<u8>, String> {
     (0..text.len())
         .step_by(2)
         .map(|i| {
-            u8::from_str_radix(&text[i..i + 2], 16)
-                .map_err(|e| format!("not hex at {i}: {e}"))
+            u8::from_str_radix(&text[i..i + 2], 16).map_err(|e| format!("not hex at {i}: {e}"))
         })
         .collect()
 }
@@ -41,7 +40,11 @@ fn version_of(name: &str) -> Result<FriVersion, String> {
 fn show(m: &Monitoring) {
     println!(
         "  sequence {} (answers command {}), {:?}, quality {:?}, period {} ms",
-        m.sequence_counter, m.reflected_sequence_counter, m.session_state, m.quality, m.send_period_ms
+        m.sequence_counter,
+        m.reflected_sequence_counter,
+        m.session_state,
+        m.quality,
+        m.send_period_ms
     );
     if let Some(q) = m.measured_joint_position_rad {
         let deg: Vec<String> = q.iter().map(|v| format!("{:.2}", v.to_degrees())).collect();
@@ -73,7 +76,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut decoder = MonitoringDecoder::with_version(version);
     if let Some(bytes) = datagram {
         let m = decoder.decode(&bytes)?;
-        println!("FRI {} monitoring message, {} bytes:", version.name(), bytes.len());
+        println!(
+            "FRI {} monitoring message, {} bytes:",
+            version.name(),
+            bytes.len()
+        );
         show(&m);
         return Ok(());
     }
@@ -95,14 +102,26 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let mut encoder = MonitoringEncoder::with_version(version);
     let bytes = encoder.encode(&sent)?.to_vec();
-    println!("FRI {} monitoring datagram, {} bytes:", version.name(), bytes.len());
+    println!(
+        "FRI {} monitoring datagram, {} bytes:",
+        version.name(),
+        bytes.len()
+    );
     println!("  {}", hex(&bytes));
     let got = decoder.decode(&bytes)?;
     println!("decoded:");
     show(&got);
     for (name, a, b) in [
-        ("measured joints", sent.measured_joint_position_rad, got.measured_joint_position_rad),
-        ("external torques", sent.external_torque_nm, got.external_torque_nm),
+        (
+            "measured joints",
+            sent.measured_joint_position_rad,
+            got.measured_joint_position_rad,
+        ),
+        (
+            "external torques",
+            sent.external_torque_nm,
+            got.external_torque_nm,
+        ),
     ] {
         if a != b {
             return Err(format!("{name} changed in the round trip: {a:?} -> {b:?}").into());

@@ -97,6 +97,13 @@ pub fn non_negative(field: &str, value: f64) -> Result<(), ParamError> {
 }
 
 /// Requires `lo <= value <= hi` (and finite).
+///
+/// ```
+/// use rt_core::check::within;
+/// assert!(within("task.distance_m", 0.7, 0.1, 1.2).is_ok());
+/// let e = within("task.distance_m", f64::NAN, 0.1, 1.2).unwrap_err();
+/// assert_eq!(e.field(), Some("task.distance_m"));
+/// ```
 pub fn within(field: &str, value: f64, lo: f64, hi: f64) -> Result<(), ParamError> {
     finite(field, value)?;
     if (lo..=hi).contains(&value) {

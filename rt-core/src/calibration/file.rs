@@ -83,6 +83,14 @@ impl CalibrationFile {
     }
 
     /// Parses a calibration file's text. Unknown keys are refused.
+    ///
+    /// ```
+    /// use rt_core::calibration::file::CalibrationFile;
+    /// // An empty file: no step calibrated yet.
+    /// let f = CalibrationFile::from_toml_str("").unwrap();
+    /// assert!(f.pendulum.is_none() && f.latency.is_none());
+    /// assert!(CalibrationFile::from_toml_str("[pendulm]\n").is_err());
+    /// ```
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         toml::from_str(text).map_err(|e| ParamError::Parse(e.message().replace('\n', " ")))
     }

@@ -22,6 +22,20 @@ pub struct LsqResult {
 /// false when `p` is not admissible (the step is then refused). `scale` gives the
 /// finite-difference step of each parameter. Returns `None` when the start is not
 /// admissible or the normal equations are singular at the end.
+///
+/// ```
+/// use rt_core::calibration::lsq::levenberg_marquardt;
+/// // A line y = 2x + 1 through five exact points.
+/// let xs = [0.0, 1.0, 2.0, 3.0, 4.0];
+/// let fit = levenberg_marquardt(&[0.0, 0.0], &[1e-6, 1e-6], xs.len(), 50, |p, r| {
+///     for (ri, x) in r.iter_mut().zip(xs) {
+///         *ri = p[0] * x + p[1] - (2.0 * x + 1.0);
+///     }
+///     true
+/// })
+/// .unwrap();
+/// assert!((fit.params[0] - 2.0).abs() < 1e-6 && (fit.params[1] - 1.0).abs() < 1e-6);
+/// ```
 pub fn levenberg_marquardt(
     start: &[f64],
     scale: &[f64],

@@ -81,6 +81,14 @@ pub fn z95() -> f64 {
 /// The Wilson score 95% confidence interval `[lo, hi]` of a success rate with
 /// `successes` out of `trials` (`[0, 1]` when there are no trials). (`statrs`
 /// has no binomial interval; the normal quantile comes from it.)
+///
+/// ```
+/// use rt_core::control::stats::wilson_ci95;
+/// // 93 of 100 (the paper's rate): 86.3% to 96.6%.
+/// let [lo, hi] = wilson_ci95(93, 100);
+/// assert!((lo - 0.863).abs() < 1e-3 && (hi - 0.966).abs() < 1e-3);
+/// assert_eq!(wilson_ci95(0, 0), [0.0, 1.0]);
+/// ```
 pub fn wilson_ci95(successes: usize, trials: usize) -> [f64; 2] {
     if trials == 0 {
         return [0.0, 1.0];

@@ -573,6 +573,21 @@ impl Ekf {
     /// captured before the newest fused one is fused at its capture time and the
     /// later ones are re-fused after it (within [`HISTORY_LEN`]). Non-finite input is
     /// refused and changes nothing.
+    ///
+    /// ```
+    /// use rt_core::ekf::{Ekf, EkfParams};
+    /// use rt_core::pendulum::{PendulumGeometry, PendulumModel};
+    /// let model = PendulumModel { length_m: 1.93, gravity_mps2: 9.81, damping_per_s: 0.03 };
+    /// let geometry = PendulumGeometry::new(1.93, 0.6, 0.3).unwrap();
+    /// let mut ekf = Ekf::new(EkfParams::default(), model, geometry).unwrap();
+    /// ekf.measure(0.0, 0.40).unwrap();
+    /// ekf.measure(0.033, 0.38).unwrap();
+    /// assert!(ekf.is_initialised());
+    /// let before = ekf.posterior();
+    /// // A NaN reading is refused and changes nothing.
+    /// assert!(ekf.measure(0.066, f64::NAN).is_err());
+    /// assert_eq!(ekf.posterior(), before);
+    /// ```
     pub fn measure(&mut self, t_capture_s: f64, z_m: f64) -> Result<MeasureOutcome, EkfError> {
         finite("t_capture_s", t_capture_s)?;
         finite("z_m", z_m)?;

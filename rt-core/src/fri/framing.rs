@@ -10,6 +10,10 @@ pub const FRAME_OVERHEAD: usize = 8;
 
 /// The zlib CRC-32 of `bytes` (`crc32(b"123456789") == 0xCBF43926`), by
 /// `crc32fast` (no allocation).
+///
+/// ```
+/// assert_eq!(rt_core::fri::framing::crc32(b"123456789"), 0xCBF4_3926);
+/// ```
 pub fn crc32(bytes: &[u8]) -> u32 {
     crc32fast::hash(bytes)
 }

@@ -29,6 +29,14 @@ pub fn frames(q: &Joints, out: &mut [Pose; JOINTS + 1]) {
 }
 
 /// `base_from_flange` for joint vector `q`.
+///
+/// ```
+/// use rt_core::kinematics::{Joints, flange_pose};
+/// // Stretched upright, the flange is 0.34 + 0.40 + 0.40 + 0.126 m above the base.
+/// let p = flange_pose(&Joints::zeros()).translation.vector;
+/// assert!(p.x.abs() < 1e-12 && p.y.abs() < 1e-12);
+/// assert!((p.z - 1.266).abs() < 1e-9);
+/// ```
 pub fn flange_pose(q: &Joints) -> Pose {
     let mut r = Matrix3::identity();
     let mut p = Vector3::zeros();

@@ -102,6 +102,16 @@ impl KinematicsParams {
 }
 
 /// `true` when every joint is within its position limit shrunk by `margin_rad`.
+///
+/// ```
+/// use rt_core::kinematics::{Joints, within_limits};
+/// // Stretched upright: every joint at 0, inside every limit.
+/// assert!(within_limits(&Joints::zeros(), 0.0));
+/// // A4 (joint 4, limit +-120 degrees) at 125 degrees is outside.
+/// let mut q = Joints::zeros();
+/// q[3] = 125f64.to_radians();
+/// assert!(!within_limits(&q, 0.0));
+/// ```
 pub fn within_limits(q: &Joints, margin_rad: f64) -> bool {
     first_limit_violation(q, margin_rad).is_none()
 }

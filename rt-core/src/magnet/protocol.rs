@@ -228,6 +228,16 @@ fn status(words: &[&str]) -> Option<DeviceStatus> {
 }
 
 /// Classifies one line (without its line ending).
+///
+/// ```
+/// use rt_core::magnet::protocol::{Line, OkReply, parse_line};
+/// assert_eq!(
+///     parse_line("OK PONG 42\r\n"),
+///     Line::Ok(OkReply::Pong("42".to_owned()))
+/// );
+/// // Noise on the line is classified, never a panic.
+/// assert!(matches!(parse_line("\u{0}garbage"), Line::Other(_)));
+/// ```
 pub fn parse_line(raw: &str) -> Line {
     let text = raw.trim_end_matches(['\r', '\n']);
     let words: Vec<&str> = text.split(' ').filter(|w| !w.is_empty()).collect();

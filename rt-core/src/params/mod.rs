@@ -229,6 +229,17 @@ impl Scenario {
     }
 
     /// Parses and validates a scenario from TOML text. Unknown keys are refused.
+    ///
+    /// ```
+    /// use rt_core::params::Scenario;
+    /// let s = Scenario::from_toml_str("[pendulum]\nlength_m = 2.0\n").unwrap();
+    /// assert_eq!(s.pendulum.length_m, 2.0);
+    /// // Out of range: refused, naming the field.
+    /// let e = Scenario::from_toml_str("[pendulum]\nlength_m = 50.0\n").unwrap_err();
+    /// assert_eq!(e.field(), Some("pendulum.length_m"));
+    /// // An unknown key is refused too.
+    /// assert!(Scenario::from_toml_str("[pendulum]\nlenght_m = 2.0\n").is_err());
+    /// ```
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         let scenario: Self = toml::from_str(text).map_err(|e| toml_error(text, &e))?;
         scenario.validate()?;

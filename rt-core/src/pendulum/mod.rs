@@ -57,6 +57,13 @@ impl PendulumModel {
     }
 
     /// Small-angle period `2 pi sqrt(l/g)`, seconds.
+    ///
+    /// ```
+    /// use rt_core::pendulum::PendulumModel;
+    /// // The paper's 1.93 m string swings with a period of about 2.79 s.
+    /// let m = PendulumModel { length_m: 1.93, gravity_mps2: 9.81, damping_per_s: 0.0 };
+    /// assert!((m.small_angle_period_s() - 2.787).abs() < 1e-3);
+    /// ```
     pub fn small_angle_period_s(&self) -> f64 {
         std::f64::consts::TAU / self.omega0_sq().sqrt()
     }
@@ -342,6 +349,20 @@ impl PendulumSim {
     /// lateral position `lateral_m` (either direction), found on a copy of the state
     /// without disturbing the simulator; accurate to well below a microsecond.
     /// `None` when the ball is held or does not get there in time.
+    ///
+    /// ```
+    /// use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+    /// let model = PendulumModel { length_m: 1.93, gravity_mps2: 9.81, damping_per_s: 0.0 };
+    /// let geometry = PendulumGeometry::new(1.93, 0.6, 0.3).unwrap();
+    /// let mut sim = PendulumSim::held_at(model, geometry, 0.2, 0.0).unwrap();
+    /// // Held: it never passes.
+    /// assert_eq!(sim.next_crossing_s(0.0, 10.0), None);
+    /// sim.release(0.0).unwrap();
+    /// // Released at 0.2 rad, it reaches the bottom a little after a quarter period.
+    /// let t = sim.next_crossing_s(0.0, 10.0).unwrap();
+    /// let quarter = model.small_angle_period_s() / 4.0;
+    /// assert!(t > quarter && t < quarter * 1.01);
+    /// ```
     pub fn next_crossing_s(&self, lateral_m: f64, max_s: f64) -> Option<f64> {
         if self.held || !lateral_m.is_finite() || max_s.is_nan() || max_s <= 0.0 {
             return None;

@@ -222,6 +222,29 @@ impl TimedMotion {
     /// while the previous one has not come to rest, for non-finite input, a path
     /// shorter than [`MIN_DISTANCE_M`] or a duration outside
     /// [`MIN_DURATION_S`]..=[`MAX_DURATION_S`].
+    ///
+    /// ```
+    /// use nalgebra::{UnitQuaternion, Vector3};
+    /// use rt_core::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
+    /// use rt_core::trajectory::profile::ProfileKind;
+    /// let mut m = TimedMotion::new(TimingParams::default()).unwrap();
+    /// let (a, b) = (Vector3::new(0.4, 0.0, 0.5), Vector3::new(0.7, 0.0, 0.3));
+    /// let held = UnitQuaternion::identity();
+    /// // A duration outside [0.05, 60] s is refused.
+    /// assert!(m.begin(&a, &b, &held, 0.0).is_err());
+    /// m.begin(&a, &b, &held, 1.5).unwrap();
+    /// let (mut s, mut times, mut progress) = (MotionSample::default(), vec![], vec![]);
+    /// while s.phase != MotionPhase::Arrived {
+    ///     m.step(0.001, None, &mut s).unwrap();
+    ///     times.push(s.t_s);
+    ///     progress.push((s.position_m - a).norm());
+    /// }
+    /// assert!((s.position_m - b).norm() < 1e-4);
+    /// // The arrival (CONTRACT.md: the least-squares fit of the ideal profile).
+    /// let d = (b - a).norm();
+    /// let fit = rt_core::timing::fit_arrival(ProfileKind::Hopf, d, 1.5, &times, &progress).unwrap();
+    /// assert!((fit.arrival_s - 1.5).abs() < 0.001);
+    /// ```
     pub fn begin(
         &mut self,
         start_m: &Vector3<f64>,

@@ -633,6 +633,15 @@ struct Cand {
 
 /// Plans the motion: chooses tilt, arm angle and configuration, then checks the
 /// chosen posture along the whole path sampled every `params.sample_period_ms`.
+///
+/// ```
+/// use rt_core::trajectory::{MotionRequest, TaskParams, TrajectoryParams, plan};
+/// // The paper's motion: 0.70 m in 1.5 s is feasible on the iiwa 7.
+/// let request = MotionRequest::interception(&TaskParams::default(), 0.70);
+/// let p = plan(&request, &TrajectoryParams::default()).unwrap();
+/// assert!(p.feasible);
+/// assert!(p.speed_ratio.iter().all(|r| *r <= 1.0));
+/// ```
 pub fn plan(req: &MotionRequest, params: &TrajectoryParams) -> Result<MotionPlan, PlanError> {
     validate_request(req)?;
     params
