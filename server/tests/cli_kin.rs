@@ -209,3 +209,83 @@ fn plan_reports_the_posture_and_refuses_too_short_a_duration() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--distance-m"));
 }
+
+#[test]
+fn plan_strike_prints_the_largest_feasible_strike_speed_and_refuses_a_faster_one() {
+    let out = kin(&["plan", "--distance-m", "0.7", "--strike", "--json"], "");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v = &json_lines(&out)[0];
+    assert_eq!(v["mode"], "strike");
+    let vmax = v["largest_speed_mps"].as_f64().unwrap();
+    assert!(vmax > 0.1, "{v}");
+    let best = &v["largest"];
+    assert_eq!(best["feasible"], true);
+    assert!((best["speed_mps"].as_f64().unwrap() - vmax).abs() < 1e-9);
+    // Contact at the movement time; every joint within its speed and torque share.
+    assert!((best["contact_s"].as_f64().unwrap() - 1.5).abs() < 1e-9);
+    for r in best["speed_ratio"].as_array().unwrap() {
+        assert!(r.as_f64().unwrap() <= 0.9 + 1e-9);
+    }
+    for r in best["torque_ratio"].as_array().unwrap() {
+        assert!(r.as_f64().unwrap() <= 0.8);
+    }
+    assert!(v["binding"].is_string(), "what binds a faster stroke: {v}");
+
+    // Half the largest speed is feasible (exit 0); twice it is refused.
+    let half = format!("{:.3}", vmax / 2.0);
+    let ok = kin(
+        &[
+            "plan",
+            "--distance-m",
+            "0.7",
+            "--strike",
+            "--strike-speed-mps",
+            &half,
+        ],
+        "",
+    );
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let twice = format!("{:.3}", (vmax * 2.0).min(2.9));
+    let refused = kin(
+        &[
+            "plan",
+            "--distance-m",
+            "0.7",
+            "--strike",
+            "--strike-speed-mps",
+            &twice,
+        ],
+        "",
+    );
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("infeasible strike"),
+        "{}",
+        String::from_utf8_lossy(&refused.stderr)
+    );
+    // Bad input: a clear error, no plan.
+    for bad in [
+        ["--strike-speed-mps", "NaN"],
+        ["--strike-direction-deg", "90"],
+    ] {
+        let out = kin(
+            &["plan", "--distance-m", "0.7", "--strike", bad[0], bad[1]],
+            "",
+        );
+        assert!(!out.status.success(), "{bad:?}");
+        assert!(out.stdout.is_empty(), "{bad:?}");
+        assert!(
+            String::from_utf8_lossy(&out.stderr).contains(bad[0].trim_start_matches('-')),
+            "{bad:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+}

@@ -1,6 +1,7 @@
 #![doc = include_str!("README.md")]
 
 pub mod analytic;
+pub mod dynamics;
 pub mod fk;
 pub mod iiwa7;
 pub mod numeric;

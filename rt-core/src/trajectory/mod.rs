@@ -3,6 +3,7 @@
 pub mod path;
 pub mod plan;
 pub mod profile;
+pub mod strike;
 pub mod task;
 
 #[cfg(test)]

@@ -10,7 +10,13 @@ use rt_core::kinematics::iiwa7::JOINTS;
 use rt_core::kinematics::numeric::rotation_error;
 use rt_core::kinematics::{Joints, flange_pose, pose_from_rows, pose_to_rows, within_limits};
 use rt_core::params::{Scenario, check};
-use rt_core::trajectory::{ElbowPolicy, MotionRequest, PlanSummary, TrajectoryParams, plan};
+use rt_core::trajectory::strike::{
+    CONTACT_PHASES, StrikeLimit, StrikePlan, StrikeSearch, Stroke, largest_strike_speed,
+    plan_strike, strike_direction,
+};
+use rt_core::trajectory::{
+    ElbowPolicy, MotionRequest, PlanError, PlanSummary, TrajectoryParams, plan,
+};
 use serde::{Deserialize, Serialize};
 
 /// Arguments of `isochron kin`.
@@ -36,8 +42,47 @@ pub enum KinCommand {
     },
     /// Plan the scenario's interception motion to a distance: tilt, arm angle, speed
     /// ratios, binding joint, margin and shortest feasible duration. Exit 0 when feasible.
+    /// With `--strike`: the strike mode's stroke instead (its largest feasible speed).
     Plan(PlanArgs),
+    /// The largest feasible strike speed over distance and movement time (the
+    /// strike mode's feasibility map): a markdown table and JSON in `--out`.
+    StrikeMap(StrikeMapArgs),
 }
+
+/// Arguments of `isochron kin strike-map`.
+#[derive(Debug, clap::Args)]
+pub struct StrikeMapArgs {
+    /// The lab (intercept height, tool); default: the paper's lab.
+    #[arg(long)]
+    pub scenario: Option<PathBuf>,
+    /// Distances, metres (comma-separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.35,0.45,0.55,0.60,0.70,0.80"
+    )]
+    pub distances_m: Vec<f64>,
+    /// Movement times (contact after the stroke's start), seconds (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "0.5,0.75,1.0,1.5,2.0")]
+    pub movement_times_s: Vec<f64>,
+    /// The strike direction's elevation above the horizontal in the swing plane, degrees.
+    #[arg(long, default_value_t = 0.0)]
+    pub strike_direction_deg: f64,
+    /// The tool's mass, kg (at the flange).
+    #[arg(long, default_value_t = DEFAULT_TOOL_MASS_KG)]
+    pub tool_mass_kg: f64,
+    /// Where to write `strike_map.md` and `strike_map.json`.
+    #[arg(long, default_value = "reports/strike")]
+    pub out: PathBuf,
+}
+
+/// The tool's mass the strike commands assume by default, kg: a 10 cm
+/// aluminium rod with a 6 cm disc and its mount.
+pub const DEFAULT_TOOL_MASS_KG: f64 = 0.2;
+/// The fastest stroke the strike search tries, m/s.
+const STRIKE_MAX_MPS: f64 = 3.0;
+/// The strike search's resolution, m/s.
+const STRIKE_RESOLUTION_MPS: f64 = 0.02;
 
 /// How the elbow may move (`kin plan --elbow`).
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -66,6 +111,22 @@ pub struct PlanArgs {
     /// Print one JSON object instead of a summary.
     #[arg(long)]
     pub json: bool,
+    /// Plan the strike mode's stroke (through the intercept point along the
+    /// strike direction, contact at the movement time) and print the largest
+    /// feasible strike speed.
+    #[arg(long)]
+    pub strike: bool,
+    /// With `--strike`: also plan this tool speed at contact, m/s (exit 0 only
+    /// when it is feasible).
+    #[arg(long, requires = "strike")]
+    pub strike_speed_mps: Option<f64>,
+    /// With `--strike`: the strike direction's elevation above the horizontal
+    /// in the swing plane, degrees.
+    #[arg(long, default_value_t = 0.0, requires = "strike")]
+    pub strike_direction_deg: f64,
+    /// With `--strike`: the tool's mass, kg (at the flange).
+    #[arg(long, default_value_t = DEFAULT_TOOL_MASS_KG, requires = "strike")]
+    pub tool_mass_kg: f64,
 }
 
 /// Runs `isochron kin`.
@@ -77,7 +138,9 @@ pub fn run(args: KinArgs) -> anyhow::Result<()> {
             let margin = margin_deg.to_radians();
             stream(|line| ik_line(line, margin))
         }
+        KinCommand::Plan(p) if p.strike => run_strike(&p),
         KinCommand::Plan(p) => run_plan(&p),
+        KinCommand::StrikeMap(m) => run_strike_map(&m),
     }
 }
 
@@ -302,4 +365,330 @@ fn human(s: &PlanSummary) -> String {
         t += &format!("reason: {r}\n");
     }
     t.trim_end().to_owned()
+}
+
+/// One strike plan, as `kin plan --strike --json` prints it.
+#[derive(Debug, Serialize)]
+struct StrikeAnswer {
+    feasible: bool,
+    speed_mps: f64,
+    contact_fraction: f64,
+    contact_s: f64,
+    approach_m: f64,
+    brake_m: f64,
+    cycle_s: f64,
+    start_m: [f64; 3],
+    end_m: [f64; 3],
+    speed_ratio: [f64; JOINTS],
+    acceleration_ratio: [f64; JOINTS],
+    torque_nm: Option<[f64; JOINTS]>,
+    torque_ratio: Option<[f64; JOINTS]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    reason: Option<String>,
+}
+
+impl StrikeAnswer {
+    fn of(p: &StrikePlan) -> Self {
+        let s = &p.stroke;
+        Self {
+            feasible: p.feasible,
+            speed_mps: s.speed_mps,
+            contact_fraction: s.contact_fraction,
+            contact_s: s.contact_s,
+            approach_m: s.approach_m,
+            brake_m: s.brake_m,
+            cycle_s: s.request.movement_time_s,
+            start_m: s.request.start_m.into(),
+            end_m: s.request.end_m.into(),
+            speed_ratio: p.plan.speed_ratio,
+            acceleration_ratio: p.plan.acceleration_ratio,
+            torque_nm: p.torque.map(|t| t.peak_nm),
+            torque_ratio: p.torque.map(|t| t.ratio),
+            reason: p.reason.clone(),
+        }
+    }
+}
+
+/// `kin plan --strike --json`.
+#[derive(Debug, Serialize)]
+struct StrikeReport {
+    mode: &'static str,
+    distance_m: f64,
+    movement_time_s: f64,
+    strike_direction_deg: f64,
+    tool_mass_kg: f64,
+    largest_speed_mps: f64,
+    largest: Option<StrikeAnswer>,
+    binding: Option<String>,
+    requested: Option<StrikeAnswer>,
+}
+
+fn strike_search(scenario: &Scenario, movement_time_s: f64, tool_mass_kg: f64) -> StrikeSearch {
+    StrikeSearch {
+        movement_time_s,
+        tool: rt_core::kinematics::Tool::along_z(scenario.task.tool_length_m),
+        tool_mass_kg,
+        max_speed_mps: STRIKE_MAX_MPS,
+        resolution_mps: STRIKE_RESOLUTION_MPS,
+    }
+}
+
+/// The best plan at `speed` over the contact phases: the first feasible one,
+/// else the last refusal.
+fn strike_at(
+    contact: nalgebra::Vector3<f64>,
+    direction: nalgebra::Vector3<f64>,
+    speed: f64,
+    search: &StrikeSearch,
+    params: &TrajectoryParams,
+) -> anyhow::Result<Result<StrikePlan, String>> {
+    let mut why = String::new();
+    for f in CONTACT_PHASES {
+        let stroke = Stroke::new(
+            contact,
+            direction,
+            speed,
+            search.movement_time_s,
+            f,
+            search.tool,
+        )?;
+        match plan_strike(stroke, params, search.tool_mass_kg) {
+            Ok(p) if p.feasible => return Ok(Ok(p)),
+            Ok(p) => why = p.reason.unwrap_or_default(),
+            Err(e @ PlanError::Unreachable { .. }) => why = e.to_string(),
+            Err(e) => return Err(e.into()),
+        }
+    }
+    Ok(Err(why))
+}
+
+fn run_strike(args: &PlanArgs) -> anyhow::Result<()> {
+    let scenario = match &args.scenario {
+        Some(p) => Scenario::from_file(p)?,
+        None => Scenario::default(),
+    };
+    check::within("--distance-m", args.distance_m, 0.1, 1.2)?;
+    let t = args
+        .movement_time_s
+        .unwrap_or(scenario.task.movement_time_s);
+    check::within("--movement-time-s", t, 0.3, 10.0)?;
+    check::within(
+        "--strike-direction-deg",
+        args.strike_direction_deg,
+        -60.0,
+        60.0,
+    )?;
+    check::within("--tool-mass-kg", args.tool_mass_kg, 0.0, 5.0)?;
+    if let Some(v) = args.strike_speed_mps {
+        check::within("--strike-speed-mps", v, 0.01, STRIKE_MAX_MPS)?;
+    }
+    let params = TrajectoryParams {
+        elbow: match args.elbow {
+            Elbow::Free => ElbowPolicy::Free,
+            Elbow::Planar => ElbowPolicy::Planar,
+        },
+        ..TrajectoryParams::default()
+    };
+    let contact = scenario.task.intercept_m(args.distance_m);
+    // The ball passing towards +y returns towards -y (the arm is symmetric).
+    let direction = strike_direction(-1.0, args.strike_direction_deg);
+    let search = strike_search(&scenario, t, args.tool_mass_kg);
+    let limit: StrikeLimit = largest_strike_speed(contact, direction, &search, &params)?;
+    let requested = match args.strike_speed_mps {
+        Some(v) => Some(strike_at(contact, direction, v, &search, &params)?),
+        None => None,
+    };
+    let report = StrikeReport {
+        mode: "strike",
+        distance_m: args.distance_m,
+        movement_time_s: t,
+        strike_direction_deg: args.strike_direction_deg,
+        tool_mass_kg: args.tool_mass_kg,
+        largest_speed_mps: limit.speed_mps,
+        largest: limit.best.as_ref().map(StrikeAnswer::of),
+        binding: limit.binding.clone(),
+        requested: requested
+            .as_ref()
+            .and_then(|r| r.as_ref().ok())
+            .map(StrikeAnswer::of),
+    };
+    let text = if args.json {
+        serde_json::to_string(&report)?
+    } else {
+        strike_human(&report, args.strike_speed_mps, requested.as_ref())
+    };
+    let mut out = std::io::stdout().lock();
+    match writeln!(out, "{text}").and_then(|()| out.flush()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => return Err(e.into()),
+        _ => {}
+    }
+    match requested {
+        Some(Err(why)) => bail!("infeasible strike: {why}"),
+        None if limit.speed_mps <= 0.0 => bail!(
+            "no feasible strike: {}",
+            limit.binding.as_deref().unwrap_or("no reason given")
+        ),
+        _ => Ok(()),
+    }
+}
+
+fn strike_line(a: &StrikeAnswer) -> String {
+    let mut t = format!(
+        "{:.2} m/s at contact, contact at {:.0}% of a {:.3} s cycle: approach {:.3} m, brake {:.3} m\n",
+        a.speed_mps,
+        a.contact_fraction * 100.0,
+        a.cycle_s,
+        a.approach_m,
+        a.brake_m
+    );
+    t += "peak speed / limit:";
+    for (i, r) in a.speed_ratio.iter().enumerate() {
+        t += &format!(" A{}={:.0}%", i + 1, r * 100.0);
+    }
+    if let Some(tr) = a.torque_ratio {
+        t += "\npeak torque / limit:";
+        for (i, r) in tr.iter().enumerate() {
+            t += &format!(" A{}={:.0}%", i + 1, r * 100.0);
+        }
+    }
+    t
+}
+
+fn strike_human(
+    r: &StrikeReport,
+    asked: Option<f64>,
+    requested: Option<&Result<StrikePlan, String>>,
+) -> String {
+    let mut t = format!(
+        "strike at d = {:.3} m, contact {:.3} s after the start, direction {:+.0} deg, tool {:.2} kg\n",
+        r.distance_m, r.movement_time_s, r.strike_direction_deg, r.tool_mass_kg
+    );
+    t += &format!(
+        "largest feasible strike speed: {:.2} m/s\n",
+        r.largest_speed_mps
+    );
+    if let Some(a) = &r.largest {
+        t += &strike_line(a);
+        t += "\n";
+    }
+    if let Some(b) = &r.binding {
+        t += &format!("faster is refused: {b}\n");
+    }
+    if let (Some(v), Some(req)) = (asked, requested) {
+        match req {
+            Ok(p) => {
+                t += &format!("at {v:.2} m/s: feasible\n");
+                t += &strike_line(&StrikeAnswer::of(p));
+            }
+            Err(why) => t += &format!("at {v:.2} m/s: REFUSED ({why})"),
+        }
+    }
+    t.trim_end().to_owned()
+}
+
+/// One cell of the strike map.
+#[derive(Debug, Serialize)]
+struct StrikeCell {
+    distance_m: f64,
+    movement_time_s: f64,
+    largest_speed_mps: f64,
+    contact_fraction: Option<f64>,
+    binding: Option<String>,
+}
+
+fn run_strike_map(args: &StrikeMapArgs) -> anyhow::Result<()> {
+    let scenario = match &args.scenario {
+        Some(p) => Scenario::from_file(p)?,
+        None => Scenario::default(),
+    };
+    if args.distances_m.is_empty() || args.movement_times_s.is_empty() {
+        bail!("--distances-m and --movement-times-s each need at least one value");
+    }
+    for d in &args.distances_m {
+        check::within("--distances-m", *d, 0.1, 1.2)?;
+    }
+    for t in &args.movement_times_s {
+        check::within("--movement-times-s", *t, 0.3, 10.0)?;
+    }
+    check::within(
+        "--strike-direction-deg",
+        args.strike_direction_deg,
+        -60.0,
+        60.0,
+    )?;
+    check::within("--tool-mass-kg", args.tool_mass_kg, 0.0, 5.0)?;
+    let params = TrajectoryParams::default();
+    let direction = strike_direction(-1.0, args.strike_direction_deg);
+    let mut cells = Vec::new();
+    for &t in &args.movement_times_s {
+        let search = strike_search(&scenario, t, args.tool_mass_kg);
+        for &d in &args.distances_m {
+            let limit =
+                largest_strike_speed(scenario.task.intercept_m(d), direction, &search, &params)?;
+            eprintln!("strike map: {d:.2} m, {t:.2} s: {:.2} m/s", limit.speed_mps);
+            cells.push(StrikeCell {
+                distance_m: d,
+                movement_time_s: t,
+                largest_speed_mps: limit.speed_mps,
+                contact_fraction: limit.best.as_ref().map(|b| b.stroke.contact_fraction),
+                binding: limit.binding,
+            });
+        }
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let mut md = String::from("# Strike mode: the largest feasible strike speed\n\n");
+    md += &format!(
+        "Tool speed at contact (m/s) of the fastest feasible stroke through the intercept \
+         point (height {:.2} m) along the swing plane's horizontal ({:+.0} deg elevation), \
+         contact after the movement time, over the contact phases {:?} of the Hopf cycle; \
+         kinematic limits of `[trajectory]` (speed {:.0}%, acceleration {:.0}%, position \
+         margin {:.0} deg) and joint torques within {:.0}% of the iiwa 7's limits (recursive \
+         Newton-Euler, CAD inertials, a {:.2} kg tool at the flange). Resolution {:.2} m/s, \
+         searched up to {:.1} m/s. Written by `isochron kin strike-map`.\n\n",
+        scenario.task.intercept_height_m,
+        args.strike_direction_deg,
+        CONTACT_PHASES,
+        params.velocity_fraction * 100.0,
+        params.acceleration_fraction * 100.0,
+        params.position_margin_deg,
+        rt_core::trajectory::strike::TORQUE_FRACTION * 100.0,
+        args.tool_mass_kg,
+        STRIKE_RESOLUTION_MPS,
+        STRIKE_MAX_MPS,
+    );
+    md += "| movement time \\ distance |";
+    for d in &args.distances_m {
+        md += &format!(" {d:.2} m |");
+    }
+    md += "\n|---|";
+    for _ in &args.distances_m {
+        md += "---|";
+    }
+    md += "\n";
+    for &t in &args.movement_times_s {
+        md += &format!("| {t:.2} s |");
+        for c in cells.iter().filter(|c| c.movement_time_s == t) {
+            md += &format!(" {:.2} |", c.largest_speed_mps);
+        }
+        md += "\n";
+    }
+    md += "\nWhat binds the next faster stroke:\n\n";
+    for c in &cells {
+        md += &format!(
+            "- {:.2} m, {:.2} s: {}\n",
+            c.distance_m,
+            c.movement_time_s,
+            c.binding
+                .as_deref()
+                .unwrap_or("nothing up to the search's maximum")
+        );
+    }
+    std::fs::write(args.out.join("strike_map.md"), &md)?;
+    std::fs::write(
+        args.out.join("strike_map.json"),
+        serde_json::to_string_pretty(&cells)?,
+    )?;
+    println!("{md}");
+    Ok(())
 }
