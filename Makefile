@@ -80,16 +80,17 @@ fuzz-deps:
 	  $(CARGO) install --locked cargo-fuzz --version $(CARGO_FUZZ_VERSION); \
 	fi
 
-# $(call fuzz_run,SECONDS): each target for SECONDS on fuzz/corpus/T (new inputs) and
+# $(call fuzz_run,SECONDS,BUILD): each target for SECONDS on fuzz/corpus/T (new inputs) and
 # fuzz/seeds/T (the committed seeds); a crash fails with the log's tail and the input
-# saved under fuzz/artifacts/T/.
+# saved under fuzz/artifacts/T/. BUILD is empty (release: the fuzzing runs) or `--dev`
+# (the smoke: fuzz/Cargo.toml's dev profile, incremental, a fraction of the build time).
 define fuzz_run
-	$(CARGO) fuzz build --sanitizer none
+	$(CARGO) fuzz build $(2) --sanitizer none
 	@mkdir -p target
 	@for t in $(FUZZ_TARGETS); do \
 	  mkdir -p fuzz/corpus/$$t; \
 	  log=target/fuzz-$$t.log; \
-	  if ! $(CARGO) fuzz run --sanitizer none $$t fuzz/corpus/$$t fuzz/seeds/$$t -- \
+	  if ! $(CARGO) fuzz run $(2) --sanitizer none $$t fuzz/corpus/$$t fuzz/seeds/$$t -- \
 	      -max_total_time=$(1) -print_final_stats=1 >$$log 2>&1; then \
 	    tail -n 40 $$log; echo "fuzz $$t: FAILED (input in fuzz/artifacts/$$t/, log $$log)"; exit 1; \
 	  fi; \
@@ -98,7 +99,7 @@ define fuzz_run
 endef
 
 fuzz: fuzz-deps fuzz-lifecycle
-	$(call fuzz_run,$(FUZZ_SECONDS))
+	$(call fuzz_run,$(FUZZ_SECONDS),)
 
 ## fuzz-lifecycle: the lab's lifecycle (no trial record lost): LIFECYCLE_SEQUENCES random
 ## command sequences on the virtual clock, then LIFECYCLE_SERVED_S seconds of random REST
@@ -113,7 +114,7 @@ fuzz-lifecycle: firmware
 	  random_rest_sequences_lose_no_trial_record -- --nocapture
 
 fuzz-smoke: fuzz-deps
-	$(call fuzz_run,$(FUZZ_SMOKE_SECONDS))
+	$(call fuzz_run,$(FUZZ_SMOKE_SECONDS),--dev)
 
 ## fuzz-seeds: regenerate the committed seed corpus from real sessions.
 fuzz-seeds:
@@ -176,11 +177,17 @@ test-rust: deps firmware
 ## libudev: rt-core without its default features `opencv` and `serial`): its
 ## normal dependency tree has none of them, and the virtual-clock trial driver's
 ## allocation test passes in that build.
+## Outside CI (the dev loop) that build is checked (`cargo check`), not linked and run:
+## the same allocation test runs with the default features in test-rust.
 test-core:
 	@if $(CARGO) tree -p rt-core --no-default-features -e normal --prefix none \
 	    | grep -E '^(opencv|clang-sys|libudev-sys) '; then \
 	  echo "rt-core --no-default-features depends on a C/C++ library (above)"; exit 1; fi
-	$(CARGO) test -p rt-core --no-default-features --test control_step_no_alloc
+	@if [ "$${CI:-}" = true ]; then \
+	  $(CARGO) test -p rt-core --no-default-features --test control_step_no_alloc; \
+	else \
+	  $(CARGO) check -p rt-core --no-default-features --lib --tests; \
+	fi
 
 ## test-browser: the dashboard in headless Chromium against `isochron serve` (the simulated lab).
 ## test-build: every test binary and the `isochron` binary they use, in one build
