@@ -161,7 +161,7 @@ impl<S: Send + Sync> FromRequest<S> for JsonBody {
 /// Parses JSON, naming the field at fault (`task.movement_time_s`, `on`).
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, AppError> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
-    let value: T = serde_path_to_error::deserialize(&mut de).map_err(json_error)?;
+    let value: T = serde_path_to_error::deserialize(&mut de).map_err(|e| json_error(&e))?;
     de.end().map_err(|e| AppError::BadRequest {
         message: format!("malformed JSON: {e}"),
         field: None,
@@ -169,7 +169,7 @@ pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, AppError> {
     Ok(value)
 }
 
-fn json_error(e: serde_path_to_error::Error<serde_json::Error>) -> AppError {
+fn json_error(e: &serde_path_to_error::Error<serde_json::Error>) -> AppError {
     let path = e.path().to_string();
     let inner = e.inner();
     let msg = inner.to_string();
@@ -355,7 +355,8 @@ pub async fn put_params(
     let current_json = serde_json::to_value(&current).map_err(anyhow::Error::from)?;
     let mut merged = current_json.clone();
     merge(&mut merged, &patch);
-    let new: Scenario = serde_path_to_error::deserialize(merged.clone()).map_err(json_error)?;
+    let new: Scenario =
+        serde_path_to_error::deserialize(merged.clone()).map_err(|e| json_error(&e))?;
     new.validate().map_err(|e| AppError::BadRequest {
         message: e.to_string(),
         field: e.field().map(str::to_owned),
@@ -1166,13 +1167,19 @@ fn download(bytes: Vec<u8>, content_type: &'static str, name: &str) -> Response 
 /// Documents the WebSocket state/event stream (upgrade with `GET /ws`).
 #[utoipa::path(get, path = "/ws", tag = "streams",
     responses((status = 101, description = "WebSocket: JSON text messages, each with \"type\" (hello, state, event) and \"t_s\"; state at the stream rate (100 Hz default). Schemas: Hello, StateMessage, EventMessage")))]
-#[allow(dead_code)]
+#[expect(
+    dead_code,
+    reason = "documents the WebSocket route in the OpenAPI document only"
+)]
 fn ws_doc() {}
 
 /// Documents the camera stream (upgrade with `GET /ws/camera`).
 #[utoipa::path(get, path = "/ws/camera", tag = "streams",
     responses((status = 101, description = "WebSocket: one binary message per camera frame (JPEG, its first segment a COM comment `isochron frame=N t_us=T`: N is the camera.frame of its detection in the state stream, T its capture time on the control clock in microseconds); slow clients get the newest frame only")))]
-#[allow(dead_code)]
+#[expect(
+    dead_code,
+    reason = "documents the WebSocket route in the OpenAPI document only"
+)]
 fn ws_camera_doc() {}
 
 /// This document.

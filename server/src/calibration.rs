@@ -925,7 +925,7 @@ pub async fn run_real_pendulum(
         let on_at = Instant::now();
         let deadline = on_at + Duration::from_secs_f64(REAL_HOLD_WAIT_S);
         let mut last_seen = on_at;
-        let mut recent: std::collections::VecDeque<TrackedSwingSample> = Default::default();
+        let mut recent = std::collections::VecDeque::<TrackedSwingSample>::default();
         loop {
             // Held where the camera does not see it (a magnet at the view's
             // edge): no detection for HELD_UNSEEN_S, at least HANG_TIME_S

@@ -162,12 +162,14 @@ impl Demo {
     pub fn status(&self) -> DemoStatus {
         self.status
             .lock()
-            .map(|s| s.clone())
-            .unwrap_or_else(|p| p.into_inner().clone())
+            .map_or_else(|p| p.into_inner().clone(), |s| s.clone())
     }
 
     fn set(&self, f: impl FnOnce(&mut DemoStatus)) {
-        let mut s = self.status.lock().unwrap_or_else(|p| p.into_inner());
+        let mut s = self
+            .status
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         f(&mut s);
     }
 }

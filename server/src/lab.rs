@@ -381,8 +381,7 @@ impl Lab {
     pub fn params(&self) -> Scenario {
         self.params
             .lock()
-            .map(|p| p.clone())
-            .unwrap_or_else(|p| p.into_inner().clone())
+            .map_or_else(|p| p.into_inner().clone(), |p| p.clone())
     }
 
     /// Stores parameters the control thread accepted.
@@ -543,7 +542,7 @@ impl Pump {
                         "a trial refused after its request timed out: record removed"
                     ),
                     Err(e) => {
-                        tracing::error!(trial = id, error = ?e, "cannot remove a refused trial")
+                        tracing::error!(trial = id, error = ?e, "cannot remove a refused trial");
                     }
                 }
             }
@@ -602,7 +601,7 @@ impl Pump {
                 Ok(true) => tracing::info!(trial = e.trial_id, samples, "trial recorded"),
                 Ok(false) => tracing::debug!(trial = e.trial_id, "trial end for no running trial"),
                 Err(err) => {
-                    tracing::error!(trial = e.trial_id, error = ?err, "cannot record the trial")
+                    tracing::error!(trial = e.trial_id, error = ?err, "cannot record the trial");
                 }
             }
         }

@@ -180,8 +180,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => print_out(&cmd::bench::run(&args)?),
         Command::Kin(args) => cmd::kin::run(args),
         Command::Magnet(args) => print_out(&cmd::magnet::run(args)?),
-        Command::Eval(args) => print_out(&cmd::eval::run(args)?),
-        Command::FriSim(args) => print_out(&cmd::fri_sim::run(args)?),
+        Command::Eval(args) => print_out(&cmd::eval::run(&args)?),
+        Command::FriSim(args) => print_out(&cmd::fri_sim::run(&args)?),
         Command::World(args) => print_out(&cmd::world::run(&args)?),
         Command::Fri {
             command: cmd::fri_doctor::FriCommand::Doctor(args),
@@ -195,7 +195,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 std::process::exit(2)
             }
         }
-        Command::Detect(args) => cmd::detect::run(args),
+        Command::Detect(args) => cmd::detect::run(&args),
         Command::Scenario {
             command: ScenarioCommand::Check { file },
         } => {

@@ -513,7 +513,7 @@ impl Recorder {
                 .append(true)
                 .open(path)
                 .with_context(|| format!("cannot open {}", path.display()))?;
-            let empty = file.metadata().map(|m| m.len() == 0).unwrap_or(true);
+            let empty = file.metadata().map_or(true, |m| m.len() == 0);
             let mut file = csv::Writer::from_writer(file);
             if empty {
                 file.write_record(csv_header())?;

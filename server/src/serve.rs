@@ -286,7 +286,7 @@ fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<Serve
     std::fs::write(&beliefs, world.beliefs().to_toml_string())
         .with_context(|| format!("cannot write {}", beliefs.display()))?;
     let mut cfg = world.lab_config(&beliefs);
-    cfg.server.data_dir = data_dir.clone();
+    cfg.server.data_dir.clone_from(&data_dir);
     cfg.lab.allow_uncalibrated = args.allow_uncalibrated || world.ready.world == "truthful";
     cfg.lab.dead_man = Some(false);
     let truth_path = data_dir.join("world-truth.jsonl");

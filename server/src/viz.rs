@@ -185,6 +185,10 @@ fn stamp(unix_s: f64) -> Option<Timestamp> {
     Some(Timestamp::new(sec as u32, nsec as u32))
 }
 
+#[expect(
+    clippy::unnecessary_wraps,
+    reason = "the Foxglove messages' fields are optional: built where they are set"
+)]
 fn v3(p: [f64; 3]) -> Option<Vector3> {
     Some(Vector3 {
         x: p[0],
@@ -201,6 +205,10 @@ fn p3(p: [f64; 3]) -> Point3 {
     }
 }
 
+#[expect(
+    clippy::unnecessary_wraps,
+    reason = "the Foxglove messages' fields are optional: built where they are set"
+)]
 fn color(r: f64, g: f64, b: f64, a: f64) -> Option<Color> {
     Some(Color { r, g, b, a })
 }
@@ -209,6 +217,10 @@ fn finite3(p: [f64; 3]) -> bool {
     p.iter().all(|v| v.is_finite())
 }
 
+#[expect(
+    clippy::unnecessary_wraps,
+    reason = "the Foxglove messages' fields are optional: built where they are set"
+)]
 fn identity_pose(at: [f64; 3]) -> Option<Pose> {
     Some(Pose {
         position: v3(at),
@@ -290,9 +302,8 @@ impl TrialJudgement {
                 ),
                 r.measured,
             ),
-            Some(TrialEnd::Aborted(..)) => ("aborted", None, Some(false), None, None),
-            // The service stopped mid-trial: the record is closed so at its next start.
-            None => ("aborted", None, Some(false), None, None),
+            // None: the service stopped mid-trial; the record is closed so at its next start.
+            Some(TrialEnd::Aborted(..)) | None => ("aborted", None, Some(false), None, None),
         };
         Self {
             timestamp: js(stamp(unix_s)),
@@ -724,7 +735,7 @@ impl Foxglove {
         match serde_json::to_vec(&judgement) {
             Ok(b) => self.ch.judgement.log(&b),
             Err(e) => {
-                tracing::error!(trial = r.trial_id, error = %e, "cannot encode the judgement")
+                tracing::error!(trial = r.trial_id, error = %e, "cannot encode the judgement");
             }
         }
         let mut result = BTreeMap::new();

@@ -29,8 +29,8 @@ fn write_recording(path: &std::path::Path) {
     let mut seed: u64 = 12345;
     let mut uniform = || {
         seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
         (seed >> 11) as f64 / (1u64 << 53) as f64
     };
     let mut text = String::from("t_s,x_m\n");
@@ -117,7 +117,7 @@ fn tune_refuses_bad_recordings_with_one_line_and_writes_nothing() {
     // 20 s of a ball hanging still, with 2 mm of noise.
     let mut still = String::from("t_s,x_m\n");
     for k in 0..600 {
-        let n = ((k * 7919) % 13) as f64 / 13.0 - 0.5;
+        let n = f64::from((k * 7919) % 13) / 13.0 - 0.5;
         still.push_str(&format!("{},{}\n", f64::from(k) / 30.0, 0.004 * n));
     }
     let mut nan = std::fs::read_to_string({

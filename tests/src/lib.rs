@@ -86,12 +86,11 @@ pub async fn http(
 /// another branch and lack what the test needs: that is a skip (`None`, said
 /// on stderr), except under `CI=true`, where it fails the test.
 pub fn isochron_bin(checks: &[(&[&str], &str)]) -> Option<std::path::PathBuf> {
-    let bin = match std::env::var_os("ISOCHRON_BIN") {
-        Some(b) => std::path::PathBuf::from(b),
-        None => {
-            let exe = std::env::current_exe().ok()?;
-            exe.parent()?.parent()?.join("isochron")
-        }
+    let bin = if let Some(b) = std::env::var_os("ISOCHRON_BIN") {
+        std::path::PathBuf::from(b)
+    } else {
+        let exe = std::env::current_exe().ok()?;
+        exe.parent()?.parent()?.join("isochron")
     };
     let passes = |args: &[&str], needle: &str| {
         std::process::Command::new(&bin)

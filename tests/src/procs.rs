@@ -114,11 +114,10 @@ pub fn start(
         child,
         _stdin: stdin,
     };
-    match rx.recv_timeout(timeout) {
-        Ok(line) => (p, line),
-        Err(_) => {
-            let alive = p.alive();
-            panic!("{name} did not become ready within {timeout:?} (alive: {alive})")
-        }
+    if let Ok(line) = rx.recv_timeout(timeout) {
+        (p, line)
+    } else {
+        let alive = p.alive();
+        panic!("{name} did not become ready within {timeout:?} (alive: {alive})")
     }
 }

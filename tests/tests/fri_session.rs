@@ -154,7 +154,7 @@ fn full_session(period_ms: u32) {
     assert_eq!(report.client_sequence_errors, 0);
     assert_eq!(report.mirror_mismatches, 0);
     assert_eq!(report.decode_errors, 0);
-    assert_eq!(cl.next_client_sequence.load(Relaxed) as u64, st.replies);
+    assert_eq!(u64::from(cl.next_client_sequence.load(Relaxed)), st.replies);
     assert_eq!(st.decode_errors, 0);
     // Closing with IDLE ended it cleanly: the control was told once.
     let (last, _) = control.stops[control.stops.len() - 1];

@@ -164,7 +164,7 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             Some("force"),
         ),
         ("POST", "/api/arm", big.clone(), 413, None),
-        ("POST", "/api/disarm", br#"[]"#.to_vec(), 400, None),
+        ("POST", "/api/disarm", br"[]".to_vec(), 400, None),
         (
             "POST",
             "/api/disarm",
@@ -618,7 +618,7 @@ async fn a_trial_is_recorded_survives_a_restart_and_its_recordings_open() {
         .unwrap()
         .collect::<Result<_, _>>()
         .unwrap();
-    let mut per_topic: std::collections::BTreeMap<String, Vec<u64>> = Default::default();
+    let mut per_topic = std::collections::BTreeMap::<String, Vec<u64>>::default();
     for m in &msgs {
         per_topic
             .entry(m.channel.topic.clone())

@@ -474,10 +474,12 @@ fn an_external_reset_drops_the_coil_and_is_reported() {
     assert!(ok, "{v:?}");
     assert!(matches!(
         v.last_event,
-        Some(EventKind::Switched {
-            on: false,
-            cause: SwitchCause::Reset
-        }) | Some(EventKind::Boot { .. })
+        Some(
+            EventKind::Switched {
+                on: false,
+                cause: SwitchCause::Reset
+            } | EventKind::Boot { .. }
+        )
     ));
 }
 

@@ -30,7 +30,7 @@ struct FrameLine {
 }
 
 /// Runs `isochron detect`: per frame a JSON line, or a summary at the end.
-pub fn run(args: DetectArgs) -> anyhow::Result<()> {
+pub fn run(args: &DetectArgs) -> anyhow::Result<()> {
     let mut source = VideoFileSource::open(&args.video, None, false)?;
     let mut detector = Detector::new(DetectorParams::default())?;
     let fps = source.fps();

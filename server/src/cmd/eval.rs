@@ -159,11 +159,11 @@ fn check_args(a: &EvalArgs) -> anyhow::Result<()> {
 }
 
 /// Runs `isochron eval`; returns the path of the report.
-pub fn run(args: EvalArgs) -> anyhow::Result<String> {
+pub fn run(args: &EvalArgs) -> anyhow::Result<String> {
     if args.envelope.envelope {
-        return super::eval_envelope::run(&args);
+        return super::eval_envelope::run(args);
     }
-    check_args(&args)?;
+    check_args(args)?;
     let base = match &args.scenario {
         Some(p) => Scenario::from_file(p)?,
         None => Scenario::default(),
@@ -558,7 +558,7 @@ mod tests {
             movement_times_s: vec![1.5],
             distance_edges_m: vec![0.35, 0.8],
             reality: None,
-            envelope: Default::default(),
+            envelope: super::super::eval_envelope::EnvelopeArgs::default(),
         };
         assert!(check_args(&ok).is_ok());
         let bad = [

@@ -438,9 +438,8 @@ impl Key {
             .filter_map(|v| match self.scaling {
                 Scaling::Spread if v > b => Some((hi_b - b) / (v - b)),
                 Scaling::Spread if v < b => Some((lo_b - b) / (v - b)),
-                Scaling::Spread => None,
                 Scaling::Inverse if v > 0.0 => Some(v / lo_b),
-                Scaling::Inverse => None,
+                Scaling::Spread | Scaling::Inverse => None,
             })
             .filter(|k| k.is_finite() && *k >= 1.0)
             .min_by(f64::total_cmp)
@@ -838,15 +837,13 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<String> {
                 } else {
                     format!("{base}-env-{slug_item}-k{k}")
                 };
-                let (trials, command) = match cache.get(&key) {
-                    Some(hit) => hit.clone(),
-                    None => {
-                        eprintln!("envelope: {name} at {}x: {} trials", num(k), args.n);
-                        let (_, trials, command) =
-                            run_cell(&exe, &args.out, &sc, args.n, args.seed)?;
-                        cache.insert(key, (trials.clone(), command.clone()));
-                        (trials, command)
-                    }
+                let (trials, command) = if let Some(hit) = cache.get(&key) {
+                    hit.clone()
+                } else {
+                    eprintln!("envelope: {name} at {}x: {} trials", num(k), args.n);
+                    let (_, trials, command) = run_cell(&exe, &args.out, &sc, args.n, args.seed)?;
+                    cache.insert(key, (trials.clone(), command.clone()));
+                    (trials, command)
                 };
                 let w = sc.world.clone().unwrap_or_default();
                 Ok(step_of(
@@ -952,9 +949,12 @@ fn read_shards(
         .with_context(|| format!("cannot read {}", env_dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
-            p.file_name()
-                .and_then(|n| n.to_str())
-                .is_some_and(|n| n.starts_with("shard-") && n.ends_with(".json"))
+            p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+                n.starts_with("shard-")
+                    && std::path::Path::new(n)
+                        .extension()
+                        .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+            })
         })
         .collect();
     paths.sort();
@@ -1020,7 +1020,7 @@ pub fn combine(dir: &Path, want: Option<&RunKey>) -> anyhow::Result<PathBuf> {
             }
         }
     }
-    let md = report(&run, &reality, &files, &results)?;
+    let md = report(&run, &reality, &files, &results);
     let svg = figure(&run, &results)?;
     write_atomically(&dir.join("envelope.svg"), &svg)?;
     let path = dir.join("envelope.md");
@@ -1136,7 +1136,7 @@ fn report(
     reality: &Scenario,
     files: &[ShardFile],
     results: &[Option<ItemResult>],
-) -> anyhow::Result<String> {
+) -> String {
     let table = factors();
     let mut md = String::new();
     let vision = match reality.camera.vision {
@@ -1385,7 +1385,7 @@ fn report(
                 .join(", ")
         );
     }
-    Ok(md)
+    md
 }
 
 fn figure(run: &RunKey, results: &[Option<ItemResult>]) -> anyhow::Result<String> {

@@ -195,11 +195,11 @@ pub fn reality_scenarios(
     type Switch = (&'static str, fn(&mut Scenario));
     let switches: [Switch; 9] = [
         ("ekf.estimate_frequency", |s| {
-            s.ekf.estimate_frequency = false
+            s.ekf.estimate_frequency = false;
         }),
         ("ekf.estimate_offset", |s| s.ekf.estimate_offset = false),
         ("control.learn_frequency", |s| {
-            s.control.learn_frequency = false
+            s.control.learn_frequency = false;
         }),
         ("control.camera_offset_from_release", |s| {
             s.control.camera_offset_from_release = false;
@@ -472,7 +472,10 @@ mod tests {
             .2;
         let w = cam.world.as_ref().unwrap();
         assert_eq!(w.camera, r.world.as_ref().unwrap().camera);
-        assert_eq!(w.pendulum, Default::default());
+        assert_eq!(
+            w.pendulum,
+            rt_core::params::world::WorldPendulumParams::default()
+        );
         // The truthful row has no world; the paper row is 0.70 m.
         assert!(sc.iter().any(|(_, _, s)| s.world.is_none()));
         let paper = &sc.iter().find(|(g, _, _)| *g == "paper").unwrap().2;

@@ -47,7 +47,7 @@ pub struct FriSimArgs {
 }
 
 /// Runs the simulated controller for the asked duration; returns its summary.
-pub fn run(args: FriSimArgs) -> anyhow::Result<String> {
+pub fn run(args: &FriSimArgs) -> anyhow::Result<String> {
     check::within("--duration-s", args.duration_s, 0.01, 86_400.0)?;
     let params = FriSimParams {
         fri_period_ms: args.period_ms,

@@ -2,7 +2,11 @@
 //! machine at a fixed period on the real bridge, publishes snapshots, answers
 //! commands and reports events, and measures its own loop timing. The real
 //! closed loop (`rt_core::control` + `sim`) replaces it in `isochron serve`.
-#![allow(dead_code, missing_docs)]
+#![allow(
+    dead_code,
+    missing_docs,
+    reason = "shared by several test binaries, each of which uses a part"
+)]
 
 use std::{
     path::PathBuf,
