@@ -24,6 +24,10 @@
 //! | [`tuning`] | EKF noise estimated from recordings (maximum likelihood), the paper's Fig. 4 |
 //! | [`vision`] | ball detection (OpenCV), camera sources, calibration, the vision thread |
 
+// Outside tests the service returns errors and never panics on them: no
+// `unwrap()`/`expect()` (tests may: clippy.toml's allow-*-in-tests).
+#![cfg_attr(not(test), warn(clippy::unwrap_used, clippy::expect_used))]
+
 pub mod bridge;
 pub mod calibration;
 pub mod check;

@@ -4,6 +4,10 @@
 //! real port (or call it directly) exactly as `isochron serve` does. The
 //! message schema of the WebSocket stream is in `server/README.md`.
 
+// Outside tests the service returns errors and never panics on them: no
+// `unwrap()`/`expect()` (tests may: clippy.toml's allow-*-in-tests).
+#![cfg_attr(not(test), warn(clippy::unwrap_used, clippy::expect_used))]
+
 pub mod api;
 pub mod calibration;
 pub mod config;

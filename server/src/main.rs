@@ -1,5 +1,9 @@
 //! `isochron`: the lab service and its command-line tools (CONTRACT.md, "Commands").
 
+// Outside tests the service returns errors and never panics on them: no
+// `unwrap()`/`expect()` (tests may: clippy.toml's allow-*-in-tests).
+#![cfg_attr(not(test), warn(clippy::unwrap_used, clippy::expect_used))]
+
 use std::{net::SocketAddr, path::PathBuf, process::ExitCode};
 
 use clap::{Parser, Subcommand};
