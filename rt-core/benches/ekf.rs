@@ -22,9 +22,9 @@ fn setup() -> (Ekf, Vec<(f64, f64)>) {
     // 4096 frames at 30 Hz with a deterministic +-1.5 mm pseudo-noise.
     let mut meas = Vec::with_capacity(4096);
     for i in 0..4096 {
-        let t = i as f64 / 30.0;
+        let t = f64::from(i) / 30.0;
         sim.advance_to(t).unwrap();
-        let noise = 0.0015 * ((i * 7919 % 1000) as f64 / 500.0 - 1.0);
+        let noise = 0.0015 * (f64::from(i * 7919 % 1000) / 500.0 - 1.0);
         meas.push((t, sim.lateral_m() + noise));
     }
     (Ekf::new(EkfParams::default(), model, geom).unwrap(), meas)

@@ -19,7 +19,7 @@ fn kinematics(c: &mut Criterion) {
     c.bench_function("fk_flange", |b| b.iter(|| flange_pose(black_box(&q))));
     let mut j = Jacobian::zeros();
     c.bench_function("jacobian_tool", |b| {
-        b.iter(|| jacobian(black_box(&q), &tool, &mut j))
+        b.iter(|| jacobian(black_box(&q), &tool, &mut j));
     });
     let pose = flange_pose(&q);
     let (psi, flags) = (arm_angle(&q), ArmFlags::of(&q));
@@ -28,7 +28,7 @@ fn kinematics(c: &mut Criterion) {
         b.iter(|| {
             let geo = ArmGeometry::new(black_box(&pose))?;
             geo.solve_within(psi, flags, 0.0, &mut out)
-        })
+        });
     });
     let ik = NumericIk::new(tool);
     let target = tool_pose(&q, &tool);
@@ -38,10 +38,10 @@ fn kinematics(c: &mut Criterion) {
         b.iter(|| {
             let mut qq = prev;
             ik.step(black_box(&target), &mut qq)
-        })
+        });
     });
     c.bench_function("ik_numeric_warm_solve", |b| {
-        b.iter(|| ik.solve(black_box(&target), &prev, &mut out))
+        b.iter(|| ik.solve(black_box(&target), &prev, &mut out));
     });
 }
 
@@ -51,7 +51,7 @@ fn planning(c: &mut Criterion) {
     let mut g = c.benchmark_group("plan");
     g.sample_size(10);
     g.bench_function("posture_plan_d080", |b| {
-        b.iter(|| plan(black_box(&req), &params))
+        b.iter(|| plan(black_box(&req), &params));
     });
     g.finish();
     let Ok(p) = plan(&req, &params) else {
@@ -60,7 +60,7 @@ fn planning(c: &mut Criterion) {
     let mut out = Joints::zeros();
     let prev = p.home_q;
     c.bench_function("plan_joints_at_per_cycle", |b| {
-        b.iter(|| p.joints_at(black_box(0.37), &prev, &mut out))
+        b.iter(|| p.joints_at(black_box(0.37), &prev, &mut out));
     });
 }
 

@@ -24,7 +24,7 @@ fn dynamics_step(c: &mut Criterion) {
             if state.s > 0.7 {
                 state = SpeedState::resting(p.neuron_floor);
             }
-        })
+        });
     });
 }
 
@@ -53,7 +53,7 @@ fn motion_sample(c: &mut Criterion) {
                     begin(&mut motion);
                 }
                 let _ = motion.step(black_box(dt), None, black_box(&mut out));
-            })
+            });
         });
     }
 }

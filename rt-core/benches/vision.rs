@@ -46,7 +46,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             det.reset();
             black_box(det.detect(black_box(&image), 0.0).expect("detect"))
-        })
+        });
     });
 
     let mut t = 0.0;
@@ -57,7 +57,7 @@ fn bench(c: &mut Criterion) {
             let d = det.detect(black_box(&image), t).expect("detect");
             debug_assert!(d.is_some_and(|d| d.tracked));
             black_box(d)
-        })
+        });
     });
 
     let mut t = 0.0;
@@ -65,7 +65,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             t += 1.0 / 30.0;
             black_box(cam.render(Some(&swing(t))).is_ok())
-        })
+        });
     });
 
     let cam = camera();
@@ -76,12 +76,12 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             t += 1.0 / 30.0;
             black_box(vision.capture(t, Some(&swing(t))).expect("capture"))
-        })
+        });
     });
 
     let cal = camera().true_calibration(&Vector3::new(0.6, 0.0, 0.30));
     c.bench_function("vision/lateral_m", |b| {
-        b.iter(|| black_box(cal.lateral_m(black_box(812.3), black_box(401.7))))
+        b.iter(|| black_box(cal.lateral_m(black_box(812.3), black_box(401.7))));
     });
 }
 

@@ -22,9 +22,9 @@ use super::state::TrialState;
 /// The calling thread's CPU time, nanoseconds (`CLOCK_THREAD_CPUTIME_ID`;
 /// 0 where the clock is missing, so every step then counts as on time by CPU).
 pub fn thread_cpu_ns() -> u64 {
-    cpu_time::ThreadTime::try_now()
-        .map(|t| u64::try_from(t.as_duration().as_nanos()).unwrap_or(u64::MAX))
-        .unwrap_or(0)
+    cpu_time::ThreadTime::try_now().map_or(0, |t| {
+        u64::try_from(t.as_duration().as_nanos()).unwrap_or(u64::MAX)
+    })
 }
 
 /// A started measurement of one step.

@@ -803,7 +803,7 @@ mod tests {
         let amp = 0.3;
         (0..60)
             .map(|k| {
-                let t = k as f64 / 30.0;
+                let t = f64::from(k) / 30.0;
                 let noise: f64 = (0..12).map(|_| rng.random::<f64>()).sum::<f64>() - 6.0;
                 Sighting {
                     t_s: t,
@@ -840,8 +840,8 @@ mod tests {
     fn no_pass_without_a_crossing_or_enough_detections() {
         let s: Vec<Sighting> = (0..10)
             .map(|k| Sighting {
-                t_s: k as f64 * 0.03,
-                x_m: 0.1 + k as f64 * 0.01,
+                t_s: f64::from(k) * 0.03,
+                x_m: 0.1 + f64::from(k) * 0.01,
             })
             .collect();
         assert_eq!(measured_pass(&s, 0.0, 0.1, 0.002, 3), None);
@@ -852,7 +852,7 @@ mod tests {
 
     #[test]
     fn contact_is_the_first_departure_from_the_baseline_and_none_without_one() {
-        let t: Vec<f64> = (0..400).map(|k| k as f64 * 0.005).collect();
+        let t: Vec<f64> = (0..400).map(|k| f64::from(k) * 0.005).collect();
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let quiet: Vec<[f64; 7]> = t
             .iter()
@@ -895,7 +895,7 @@ mod tests {
         let w = (9.81f64 / 1.93).sqrt();
         (0..60)
             .map(|k| {
-                let t = t0 + k as f64 / 30.0;
+                let t = t0 + f64::from(k) / 30.0;
                 let noise: f64 = (0..12).map(|_| rng.random::<f64>()).sum::<f64>() - 6.0;
                 // The pendulum's angle (phi'' = -w^2 sin phi, a large
                 // swing: 0.35 rad), its lateral l sin(phi).
@@ -946,7 +946,7 @@ mod tests {
 
     #[test]
     fn the_arrival_is_where_the_tool_settles() {
-        let t: Vec<f64> = (0..200).map(|k| k as f64 * 0.005).collect();
+        let t: Vec<f64> = (0..200).map(|k| f64::from(k) * 0.005).collect();
         let tool: Vec<[f64; 3]> = t
             .iter()
             .map(|&t| [0.5 + 0.1 * (t / 0.5).min(1.0), 0.0, 0.6])
@@ -990,7 +990,7 @@ mod tests {
     fn the_measured_judge_needs_contact_and_timing() {
         let t_pass = 1.5;
         let sightings = pendulum(t_pass, 0.002, 5, 0.5);
-        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        let t: Vec<f64> = (0..500).map(|k| f64::from(k) * 0.005).collect();
         // The tool settles within 2 mm 2 ms early (0.1 m over 0.5 s).
         let tool: Vec<[f64; 3]> = t
             .iter()
@@ -1023,7 +1023,7 @@ mod tests {
         // Samples every 5 ms, but none from 1.40 to 1.52 s (the arrival at
         // 1.5 s inside the pause): a starved machine's FRI silence.
         let t: Vec<f64> = (0..500)
-            .map(|k| k as f64 * 0.005)
+            .map(|k| f64::from(k) * 0.005)
             .filter(|&t| !(1.40..1.52).contains(&t))
             .collect();
         let tool: Vec<[f64; 3]> = t
@@ -1036,7 +1036,7 @@ mod tests {
         assert!((gap - 125.0).abs() < 6.0, "{j:?}");
         assert!(j.torque_signal && !j.judged(), "{j:?}");
         // The same without the pause: judged.
-        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        let t: Vec<f64> = (0..500).map(|k| f64::from(k) * 0.005).collect();
         let tool: Vec<[f64; 3]> = t
             .iter()
             .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
@@ -1049,7 +1049,7 @@ mod tests {
     #[test]
     fn torques_without_a_signal_are_not_judged_but_the_timing_is_measured() {
         let sightings = pendulum(1.5, 0.002, 5, 0.5);
-        let t: Vec<f64> = (0..500).map(|k| k as f64 * 0.005).collect();
+        let t: Vec<f64> = (0..500).map(|k| f64::from(k) * 0.005).collect();
         let tool: Vec<[f64; 3]> = t
             .iter()
             .map(|&ti| [0.5 + 0.1 * ((ti - 1.008) / 0.5).clamp(0.0, 1.0), 0.0, 0.6])
@@ -1109,7 +1109,7 @@ mod tests {
             let u = ((t - t0 - lag) / d).clamp(0.0, 1.0);
             0.5 * (1.0 - (std::f64::consts::PI * u).cos())
         };
-        let t: Vec<f64> = (1..400).map(|k| k as f64 * p).collect();
+        let t: Vec<f64> = (1..400).map(|k| f64::from(k) * p).collect();
         let tau = t
             .iter()
             .map(|&b| {
@@ -1207,7 +1207,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let sightings: Vec<Sighting> = (0..60)
             .map(|k| {
-                let t = 0.8 + k as f64 / 30.0;
+                let t = 0.8 + f64::from(k) / 30.0;
                 let x = if t < tc {
                     at(t - t_pass)
                 } else {
@@ -1284,7 +1284,7 @@ mod tests {
         let at = |tau: f64| 1.93 * swing_angle(w, 0.35, tau).sin();
         let sightings: Vec<Sighting> = (0..60)
             .map(|k| {
-                let t = 0.8 + k as f64 / 30.0 + 0.02;
+                let t = 0.8 + f64::from(k) / 30.0 + 0.02;
                 let x = if t - 0.02 < tc {
                     at(t - 0.02 - t_pass)
                 } else {

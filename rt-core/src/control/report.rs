@@ -102,9 +102,7 @@ impl TrialRecord {
             }
         } else if let Some(m) = self.measured.filter(MeasuredJudgement::judged) {
             // No truth (the real lab): the measured judge decides.
-            if !m.contact {
-                Some("measured: no contact seen in the external torques".to_owned())
-            } else {
+            if m.contact {
                 m.timing_error_ms
                     .filter(|e| e.abs() > tol.timing_tolerance_ms)
                     .map(|e| {
@@ -113,6 +111,8 @@ impl TrialRecord {
                             tol.timing_tolerance_ms
                         )
                     })
+            } else {
+                Some("measured: no contact seen in the external torques".to_owned())
             }
         } else if self.failure.is_none() {
             Some("no motion to judge".to_owned())

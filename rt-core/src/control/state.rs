@@ -155,14 +155,12 @@ impl TrialMachine {
             (_, S::Abort(_)) => true,
             (S::Idle, S::Arming)
             | (S::Arming, S::Armed)
-            | (S::Armed, S::Released)
-            | (S::Armed, S::Idle)
+            | (S::Armed, S::Released | S::Idle)
             | (S::Released, S::Tracking)
             | (S::Tracking, S::Intercepting)
             | (S::Intercepting, S::Holding)
             | (S::Holding, S::Done)
-            | (S::Done, S::Idle)
-            | (S::Abort(_), S::Idle) => true,
+            | (S::Done | S::Abort(_), S::Idle) => true,
             _ => false,
         }
     }

@@ -715,29 +715,26 @@ impl Ekf {
             self.phase = Phase::Pending { t, z };
             return MeasureOutcome::Reinitialising;
         }
-        match kind {
-            EntryKind::Fused => {
-                self.counters.fused += 1;
-                self.fused_since_init = self.fused_since_init.saturating_add(1);
-                self.consecutive_rejections = 0;
-                self.t_last_fused = self.t_last_fused.max(t);
-                MeasureOutcome::Fused { nis }
-            }
-            _ => {
-                self.counters.rejected += 1;
-                self.consecutive_rejections += 1;
-                // A young filter that rejects was most likely started from an outlier.
-                let young = self.fused_since_init < YOUNG_FILTER_FUSED;
-                if young || self.consecutive_rejections >= self.params.max_consecutive_rejections {
-                    self.counters.reinitialisations += 1;
-                    self.reset();
-                    if z.abs() < self.model.length_m {
-                        self.phase = Phase::Pending { t, z };
-                    }
-                    return MeasureOutcome::Reinitialising;
+        if kind == EntryKind::Fused {
+            self.counters.fused += 1;
+            self.fused_since_init = self.fused_since_init.saturating_add(1);
+            self.consecutive_rejections = 0;
+            self.t_last_fused = self.t_last_fused.max(t);
+            MeasureOutcome::Fused { nis }
+        } else {
+            self.counters.rejected += 1;
+            self.consecutive_rejections += 1;
+            // A young filter that rejects was most likely started from an outlier.
+            let young = self.fused_since_init < YOUNG_FILTER_FUSED;
+            if young || self.consecutive_rejections >= self.params.max_consecutive_rejections {
+                self.counters.reinitialisations += 1;
+                self.reset();
+                if z.abs() < self.model.length_m {
+                    self.phase = Phase::Pending { t, z };
                 }
-                MeasureOutcome::Rejected { nis }
+                return MeasureOutcome::Reinitialising;
             }
+            MeasureOutcome::Rejected { nis }
         }
     }
 

@@ -227,10 +227,10 @@ impl Ekf {
             let g1 = gfun(&x1);
             if (g0 < 0.0) != (g1 < 0.0) {
                 // Newton on the sub-step length, from a linear guess.
-                let mut tau = if g0 != g1 {
-                    h * g0 / (g0 - g1)
-                } else {
+                let mut tau = if g0 == g1 {
                     0.5 * h
+                } else {
+                    h * g0 / (g0 - g1)
                 };
                 for _ in 0..4 {
                     let (xt, _) = model::step(pm, &x, tau);
@@ -252,10 +252,10 @@ impl Ekf {
                     let pc = model::carry_cov(&fc, &p) + self.q(tau);
                     let cy = l * xc[0].cos();
                     let var_y = cy * cy * pc[(0, 0)].max(0.0);
-                    let time_std_s = if vy != 0.0 {
-                        var_y.sqrt() / vy.abs()
-                    } else {
+                    let time_std_s = if vy == 0.0 {
                         f64::INFINITY
+                    } else {
+                        var_y.sqrt() / vy.abs()
                     };
                     out[n] = Crossing {
                         t_s: tc,

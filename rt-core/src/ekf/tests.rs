@@ -546,7 +546,7 @@ fn a_measurement_half_a_metre_off_moves_the_estimate_less_than_a_millimetre() {
         without.predict_at(next_t, &mut b).unwrap();
         worst = worst.max((a.ball_m - b.ball_m).norm());
     }
-    eprintln!("0.5 m outlier: estimate moved by {:.2e} m", worst);
+    eprintln!("0.5 m outlier: estimate moved by {worst:.2e} m");
     assert!(worst < 0.001);
 }
 
@@ -672,7 +672,7 @@ fn covariance_stays_symmetric_positive_definite() {
             latency_s: 0.0,
         };
         let mut meas = observe(&mut truth, cam, 6.0, &mut rng);
-        for m in meas.iter_mut() {
+        for m in &mut meas {
             if rng.random::<f64>() < 0.05 {
                 m.z += rng.random_range(-1.0..1.0);
             }

@@ -632,22 +632,19 @@ impl FriClient {
             self.stats.commanded_rad.store(q);
         }
         let seq = self.sequence;
-        match self
+        if let Ok(bytes) = self
             .encoder
             .encode(seq, m.sequence_counter, joints.as_ref())
         {
-            Ok(bytes) => {
-                self.sequence = self.sequence.wrapping_add(1);
-                self.stats
-                    .next_client_sequence
-                    .store(self.sequence, Relaxed);
-                self.stats.replies.fetch_add(1, Relaxed);
-                Some(bytes)
-            }
-            Err(CodecError::EncodeOverflow) | Err(_) => {
-                self.stats.send_errors.fetch_add(1, Relaxed);
-                None
-            }
+            self.sequence = self.sequence.wrapping_add(1);
+            self.stats
+                .next_client_sequence
+                .store(self.sequence, Relaxed);
+            self.stats.replies.fetch_add(1, Relaxed);
+            Some(bytes)
+        } else {
+            self.stats.send_errors.fetch_add(1, Relaxed);
+            None
         }
     }
 }

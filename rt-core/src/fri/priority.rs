@@ -237,14 +237,14 @@ pub fn enable() -> RtStatus {
         // (`ulimit -l unlimited`; root has CAP_IPC_LOCK and no limit either way).
         let limit = getrlimit(Resource::Memlock);
         let unlimited = limit.current.is_none() || rustix::process::geteuid().is_root();
-        if !unlimited {
-            say_once("memory not locked (the memlock limit is finite: ulimit -l)");
-        } else {
+        if unlimited {
             match mlockall(MlockAllFlags::CURRENT | MlockAllFlags::FUTURE | MlockAllFlags::ONFAULT)
             {
                 Ok(()) => status.memory_locked = true,
                 Err(e) => say_once(&format!("memory not locked (mlockall: {e})")),
             }
+        } else {
+            say_once("memory not locked (the memlock limit is finite: ulimit -l)");
         }
     }
     if tuning.pin {
@@ -362,7 +362,7 @@ pub fn raise_current_thread(thread: &str, priority: u8) -> RealtimeGuard {
 
 fn raise(thread: &str, priority: u8) -> RealtimeGuard {
     let result = ThreadPriorityValue::try_from(priority)
-        .map_err(|e| e.to_string())
+        .map_err(|e| e.clone())
         .and_then(|value| {
             set_thread_priority_and_policy(
                 thread_native_id(),

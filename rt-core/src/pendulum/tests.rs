@@ -34,7 +34,7 @@ fn energy_is_conserved_without_damping() {
     let e0 = m.energy(sim.state());
     let mut worst = 0.0_f64;
     for i in 1..=600 {
-        sim.advance_to(i as f64 * 0.1).unwrap();
+        sim.advance_to(f64::from(i) * 0.1).unwrap();
         worst = worst.max(((m.energy(sim.state()) - e0) / e0).abs());
     }
     // 60 s at 1 ms RK4 steps.

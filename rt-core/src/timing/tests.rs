@@ -174,8 +174,8 @@ fn movement_time_does_not_depend_on_distance() {
             let at_t = at_time(&recs, T);
             worst_err_at_t = worst_err_at_t.max((at_t.cmd.position_m - trial.target).norm());
         }
-        let lo = arrivals.iter().cloned().fold(f64::INFINITY, f64::min);
-        let hi = arrivals.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let lo = arrivals.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = arrivals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         eprintln!(
             "{kind:?}: D 0.35..0.80 m, T = 1.5 s: arrival {lo:.6}..{hi:.6} s, spread {:.2e} ms, \
              |arrival - T| <= {:.3} ms; position error at T {:.3e} m; at rest (T + 0.5 s): \
@@ -352,8 +352,8 @@ fn every_fri_period_from_1_to_10_ms_gives_the_same_arrival() {
             arrivals.push(arrival_along_line(kind, &recs, trial.target).arrival_s);
             worst_err = worst_err.max((recs.last().unwrap().cmd.position_m - trial.target).norm());
         }
-        let lo = arrivals.iter().cloned().fold(f64::INFINITY, f64::min);
-        let hi = arrivals.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let lo = arrivals.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = arrivals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         eprintln!(
             "{kind:?}: periods 1..10 ms: arrival {lo:.6}..{hi:.6} s, spread {:.3e} ms, end \
              error <= {worst_err:.2e} m",

@@ -386,9 +386,9 @@ mod tests {
             for b in 0..60 {
                 let q = [
                     0.0,
-                    -0.2 + a as f64 * 0.025,
+                    -0.2 + f64::from(a) * 0.025,
                     0.0,
-                    -2.0 + b as f64 * 0.03,
+                    -2.0 + f64::from(b) * 0.03,
                     0.0,
                     0.9,
                     0.0,
@@ -532,7 +532,7 @@ mod tests {
         let first = w.ball().ball_position_m();
         w.coil(false, 0.2);
         for k in 1..400 {
-            w.step(0.2 + k as f64 * 0.005, &home);
+            w.step(0.2 + f64::from(k) * 0.005, &home);
         }
         assert!(w.take_truth().is_empty(), "the release is still recorded");
         w.coil(true, 2.5);
