@@ -1843,7 +1843,17 @@ pub fn trial_beliefs(scenario: &Scenario, movement_time_s: Option<f64>) -> crate
 }
 
 pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<IoReply> {
-    Some(match req {
+    plan_or_params_why(scenario, req).map(|(reply, _)| reply)
+}
+
+/// [`plan_or_params`], with the controller's error when the plan is refused
+/// (the reply carries only the [`Refusal`]; the virtual lab records the error).
+pub(crate) fn plan_or_params_why(
+    scenario: &mut Scenario,
+    req: IoRequest,
+) -> Option<(IoReply, Option<ControlError>)> {
+    let mut why = None;
+    let reply = match req {
         IoRequest::Plan {
             ack,
             trial_id,
@@ -1860,7 +1870,10 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             // The controller plans on the beliefs only (never `[world]`),
             // with the trial's own movement time when it has one.
             plan: Controller::plan(&trial_beliefs(scenario, movement_time_s), draw.distance_m)
-                .map_err(|_| crate::bridge::Refusal::Infeasible),
+                .map_err(|e| {
+                    why = Some(e);
+                    crate::bridge::Refusal::Infeasible
+                }),
         },
         IoRequest::Params { ack, scenario: new } => {
             let period = f64::from(new.robot.fri_period_ms) * 1e-3;
@@ -1884,5 +1897,6 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             }
         }
         IoRequest::Magnet(_) | IoRequest::Free(_) => return None,
-    })
+    };
+    Some((reply, why))
 }

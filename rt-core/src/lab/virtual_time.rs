@@ -29,7 +29,7 @@ use super::loop_step::LoopStep;
 use super::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
 use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
-    TrialOutcome, Truth, plan_or_params,
+    TrialOutcome, Truth, plan_or_params_why,
 };
 use super::trial::TrialDraw;
 use super::truth::{TruthUpdate, TruthView};
@@ -305,8 +305,8 @@ pub struct VirtualLab {
     io_requests: Consumer<IoRequest>,
     io_replies: Producer<IoReply>,
     last_release: Option<Switch>,
-    /// Why the last plan was refused (the controller's words).
-    plan_error: Option<String>,
+    /// Why the last plan was refused.
+    plan_error: Option<ControlError>,
     magnet_error: Option<String>,
     /// The simulated robot's true joints, to the trial driver's judge.
     true_joints: std::sync::Arc<crate::fri::stats::AtomicJoints>,
@@ -644,7 +644,7 @@ impl VirtualLab {
                 break Err(self
                     .plan_error
                     .take()
-                    .unwrap_or_else(|| format!("refused: {}", r.as_str())));
+                    .map_or_else(|| format!("refused: {}", r.as_str()), |e| e.to_string()));
             }
             if let Some(e) = self.magnet_error.take() {
                 break Err(e);
@@ -884,17 +884,8 @@ impl VirtualLab {
                     if let IoRequest::Plan { draw, .. } = &req {
                         self.new_trial_world(t, draw.seed, draw.camera_phase_s, draw.distance_m);
                     }
-                    if let Some(reply) = plan_or_params(&mut self.scenario, req) {
-                        if let IoReply::Plan {
-                            plan: Err(_), draw, ..
-                        } = &reply
-                        {
-                            self.plan_error = Some(
-                                Controller::plan(&self.scenario.beliefs(), draw.distance_m)
-                                    .err()
-                                    .map_or_else(|| "infeasible".to_owned(), |e| e.to_string()),
-                            );
-                        }
+                    if let Some((reply, why)) = plan_or_params_why(&mut self.scenario, req) {
+                        self.plan_error = why;
                         if let IoReply::Plan {
                             plan: Ok(plan),
                             index,
