@@ -59,7 +59,7 @@ pub enum ProcedureError {
 
 impl From<opencv::Error> for ProcedureError {
     fn from(e: opencv::Error) -> Self {
-        Self::Vision(VisionError::OpenCv(e.to_string()))
+        Self::Vision(VisionError::OpenCv(e))
     }
 }
 
