@@ -544,7 +544,7 @@ fn a_forced_jump_aborts_commanding_and_the_client_reports_it() {
     let st = rig.sim.stats();
     assert_eq!(st.violations.load(Relaxed), 1);
     match st.last_abort() {
-        Some(AbortReason::VelocityLimit {
+        Some(CommandingAbort::VelocityLimit {
             joint: 0,
             step_rad,
             max_step_rad,
@@ -593,7 +593,7 @@ fn a_position_beyond_the_limit_is_clamped_or_aborts() {
         } else {
             assert!(matches!(
                 st.last_abort(),
-                Some(AbortReason::PositionLimit { joint: 0, .. })
+                Some(CommandingAbort::PositionLimit { joint: 0, .. })
             ));
         }
     }
@@ -732,7 +732,7 @@ fn losing_half_the_replies_drops_out_of_commanding() {
     }
     assert!(matches!(
         rig.sim.stats().last_abort(),
-        Some(AbortReason::QualityDropped { .. })
+        Some(CommandingAbort::QualityDropped { .. })
     ));
     assert!(rig.sim.quality() < ConnectionQuality::Good);
     assert_eq!(rig.client.stats().snapshot().commanding_lost, 1);
