@@ -85,9 +85,10 @@ impl TrialState {
     }
 }
 
-/// The last camera measurement the filter used.
+/// The last sighting the filter was given ([`crate::control::Sighting`]), as
+/// the dashboard shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
-pub struct Measurement {
+pub struct MeasurementView {
     /// False until a measurement arrived (then the other fields are meaningless).
     pub valid: bool,
     /// Capture time, control clock, seconds.
@@ -111,7 +112,7 @@ pub struct HorizonPoint {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct PendulumView {
     /// Last measurement.
-    pub measured: Measurement,
+    pub measured: MeasurementView,
     /// Estimated angle from the vertical, radians (positive towards +y).
     pub phi_rad: f64,
     /// Estimated angular velocity, rad/s.
@@ -202,7 +203,7 @@ fn serialize_horizon<S: Serializer>(h: &Horizon, s: S) -> Result<S::Ok, S::Error
 impl Default for PendulumView {
     fn default() -> Self {
         Self {
-            measured: Measurement::default(),
+            measured: MeasurementView::default(),
             phi_rad: 0.0,
             dphi_radps: 0.0,
             sigma_phi_rad: f64::NAN,

@@ -249,9 +249,11 @@ pub struct ArmPlan {
     pub arrival_offset_s: f64,
 }
 
-/// A camera measurement: the ball's lateral position at its capture time.
+/// A sighting of the ball, as the filter fuses it: its lateral position at
+/// the frame's capture time (a frame where the ball was found; the camera's
+/// whole per-frame result is a [`crate::vision::Measurement`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Measurement {
+pub struct Sighting {
     /// Capture time, seconds (the control clock).
     pub t_capture_s: f64,
     /// Lateral (base y) position of the ball, metres.
@@ -1148,7 +1150,7 @@ impl Controller {
 
     /// One control step (see the module documentation). `measurements` are the
     /// camera measurements that arrived since the last step.
-    pub fn step<I: IntoIterator<Item = Measurement>>(
+    pub fn step<I: IntoIterator<Item = Sighting>>(
         &mut self,
         input: &StepInput,
         measurements: I,
@@ -1257,7 +1259,7 @@ impl Controller {
         out.state = self.machine.state();
     }
 
-    fn fold_measurements<I: IntoIterator<Item = Measurement>>(&mut self, t: f64, meas: I) {
+    fn fold_measurements<I: IntoIterator<Item = Sighting>>(&mut self, t: f64, meas: I) {
         // From the release on, the filter follows the ball also after the
         // trial (done, aborted, back to idle): the ball keeps swinging, and the
         // dashboard's estimate and its band continue between trials. A new
@@ -1696,7 +1698,7 @@ mod tests {
                 q_measured_rad: q,
                 commanding: true,
             };
-            let m = Measurement {
+            let m = Sighting {
                 t_capture_s: t - 0.035 + offset_s + 1e-4 * f64::from(i % 3),
                 lateral_m: held,
             };
@@ -1707,7 +1709,7 @@ mod tests {
         c.release(t_pin).unwrap();
         truth.release(t_pin + delay_s).unwrap();
         let mut next_frame = t_pin + 0.01;
-        let mut frames: Vec<(f64, Measurement)> = Vec::new();
+        let mut frames: Vec<(f64, Sighting)> = Vec::new();
         while t < t_pin + 2.4 {
             t += 0.005;
             while next_frame <= t {
@@ -1719,14 +1721,14 @@ mod tests {
                 };
                 frames.push((
                     next_frame + 0.035,
-                    Measurement {
+                    Sighting {
                         t_capture_s: next_frame + offset_s,
                         lateral_m,
                     },
                 ));
                 next_frame += 1.0 / 30.0;
             }
-            let ready: Vec<Measurement> = frames
+            let ready: Vec<Sighting> = frames
                 .iter()
                 .filter(|(avail, _)| *avail <= t)
                 .map(|(_, m)| *m)
@@ -2034,7 +2036,7 @@ mod tests {
         let plan = Controller::plan(&s, 0.5).unwrap();
         let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];
         let mut out = StepOutput::default();
-        let none = std::iter::empty::<Measurement>();
+        let none = std::iter::empty::<Sighting>();
         c.step(
             &StepInput {
                 t_s: 0.0,

@@ -25,8 +25,8 @@ use crate::bridge::{
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
-    AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, Measurement,
-    PlannedMotion, TrialState, TrialTrace, judge_into,
+    AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, PlannedMotion,
+    Sighting, TrialState, TrialTrace, judge_into,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
@@ -688,7 +688,7 @@ impl LabStep {
             }
             let inbox = &mut self.inner.step.inbox;
             if inbox.len() < inbox.capacity() {
-                inbox.push(Measurement {
+                inbox.push(Sighting {
                     t_capture_s: m.t_capture_s,
                     lateral_m: m.lateral_m,
                 });
@@ -696,7 +696,7 @@ impl LabStep {
             } else {
                 self.snap.counters.measurement_overflows += 1;
             }
-            self.snap.pendulum.measured = bridge::Measurement {
+            self.snap.pendulum.measured = bridge::MeasurementView {
                 valid: true,
                 t_s: m.t_capture_s,
                 x_m: m.lateral_m,

@@ -206,7 +206,7 @@ enum Camera {
     Model {
         camera: ModelCamera,
         rng: ChaCha8Rng,
-        delivered: Vec<crate::control::Measurement>,
+        delivered: Vec<crate::control::Sighting>,
     },
     /// Rendered frames through the OpenCV detector (`vision = "full"`).
     #[cfg(feature = "opencv")]

@@ -4,7 +4,7 @@
 
 export type TrialState = "idle" | "arming" | "armed" | "released" | "tracking" | "intercepting" | "holding" | "returning" | "done" | "aborted";
 
-export type Measurement = { 
+export type MeasurementView = { 
 /**
  * False until a measurement arrived (then the other fields are meaningless).
  */
@@ -36,7 +36,7 @@ export type PendulumView = {
 /**
  * Last measurement.
  */
-measured: Measurement, 
+measured: MeasurementView, 
 /**
  * Estimated angle from the vertical, radians (positive towards +y).
  */
