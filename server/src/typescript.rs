@@ -7,7 +7,7 @@
 //! typescript`); the test fails while the committed file is stale.
 
 use rt_core::bridge::{
-    AbortReason, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
+    AbortKind, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
     FriSessionState, FriView, HopfView, HorizonPoint, JudgedBy, LoopTiming, MagnetState,
     MeasurementView, PathView, PendulumView, Readiness, Refusal, RobotView, Snapshot, TrialResult,
     TrialState,
@@ -45,7 +45,7 @@ pub fn declarations() -> String {
         LoopTiming::decl(),
         Counters::decl(),
         CameraView::decl(),
-        AbortReason::decl(),
+        AbortKind::decl(),
         AbortView::decl(),
         Refusal::decl(),
         Readiness::decl(),

@@ -301,12 +301,7 @@ impl TrialJudgement {
             judged_by,
             success,
             reason: end.map_or_else(
-                || {
-                    crate::records::abort_sentence(
-                        rt_core::bridge::AbortReason::ServiceRestarted,
-                        "",
-                    )
-                },
+                || crate::records::abort_sentence(rt_core::bridge::AbortKind::ServiceRestarted, ""),
                 crate::records::end_reason,
             ),
             truth,
@@ -768,7 +763,7 @@ impl Foxglove {
                 );
             }
             None => {
-                let r = rt_core::bridge::AbortReason::ServiceRestarted;
+                let r = rt_core::bridge::AbortKind::ServiceRestarted;
                 result.insert("status".to_owned(), "aborted".to_owned());
                 result.insert("abort_reason".to_owned(), r.as_str().to_owned());
                 result.insert("reason".to_owned(), crate::records::abort_sentence(r, ""));

@@ -19,9 +19,8 @@ use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
-    self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
-    FriQuality, FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult,
-    TrialSetup,
+    self, AbortKind as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord, FriQuality,
+    FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult, TrialSetup,
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
@@ -368,35 +367,6 @@ impl std::fmt::Debug for LabStep {
     }
 }
 
-pub(crate) fn map_state(s: TrialState) -> bridge::TrialState {
-    match s {
-        TrialState::Idle => bridge::TrialState::Idle,
-        TrialState::Arming => bridge::TrialState::Arming,
-        TrialState::Armed => bridge::TrialState::Armed,
-        TrialState::Released => bridge::TrialState::Released,
-        TrialState::Tracking => bridge::TrialState::Tracking,
-        TrialState::Intercepting => bridge::TrialState::Intercepting,
-        TrialState::Holding => bridge::TrialState::Holding,
-        TrialState::Done => bridge::TrialState::Done,
-        TrialState::Abort(_) => bridge::TrialState::Aborted,
-    }
-}
-
-fn map_abort(r: AbortReason) -> BridgeAbort {
-    match r {
-        AbortReason::StopRequested => BridgeAbort::Stop,
-        AbortReason::Infeasible => BridgeAbort::Infeasible,
-        AbortReason::IkFailed | AbortReason::GuardTripped => BridgeAbort::LimitViolation,
-        AbortReason::CameraLost => BridgeAbort::CameraLost,
-        AbortReason::FriLost => BridgeAbort::FriLost,
-        AbortReason::PredictionTimeout | AbortReason::MissedWindow => BridgeAbort::Timeout,
-        AbortReason::MagnetFault => BridgeAbort::MagnetFault,
-        AbortReason::OperatorLost => BridgeAbort::OperatorLost,
-        AbortReason::Disarmed => BridgeAbort::Disarmed,
-        _ => BridgeAbort::Internal,
-    }
-}
-
 fn map_session(s: SessionState) -> FriSessionState {
     match s {
         SessionState::Idle => FriSessionState::Idle,
@@ -560,7 +530,7 @@ impl LabStep {
         self.settle(t, false);
         self.snap.t_s = self.snap.t_s.max(t);
         self.snap.seq += 1;
-        self.snap.trial_state = map_state(self.inner.controller().state());
+        self.snap.trial_state = self.inner.controller().state().into();
         self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(t));
         self.p.bridge.publish(&self.snap);
     }
@@ -576,12 +546,12 @@ impl LabStep {
             t_s: t,
             trial_id,
             event: Event::StateChanged {
-                from: map_state(self.last_state),
-                to: map_state(state),
+                from: self.last_state.into(),
+                to: state.into(),
             },
         });
         if let TrialState::Abort(r) = state {
-            let reason = map_abort(r);
+            let reason = BridgeAbort::from(r);
             let detail = match reason {
                 _ if !self.abort_detail.is_empty() => self.abort_detail,
                 BridgeAbort::FriLost => session_detail(self.session),
@@ -1520,7 +1490,7 @@ impl LabStep {
         let s = &mut self.snap;
         s.t_s = t;
         s.seq += 1;
-        s.trial_state = map_state(c.state());
+        s.trial_state = c.state().into();
         // Pendulum: estimate and predicted horizon.
         let l = self.p.scenario.pendulum.length_m;
         match c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {

@@ -1357,7 +1357,7 @@ mod tests {
             "the trial ended {ended_after} s into the silence"
         );
         let snap = lab.lab_step().snapshot();
-        assert_eq!(snap.abort.reason, Some(crate::bridge::AbortReason::FriLost));
+        assert_eq!(snap.abort.reason, Some(crate::bridge::AbortKind::FriLost));
         assert_eq!(snap.abort.trial_id, 2);
         assert!(
             snap.abort.detail.contains("fell silent"),
