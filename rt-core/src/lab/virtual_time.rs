@@ -52,18 +52,42 @@ use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
 
 /// Errors setting up the lab.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum LabError {
     /// The controller refused its parameters.
     #[error(transparent)]
     Control(#[from] ControlError),
-    /// The simulated robot refused its parameters or its session.
+    /// The simulated robot refused its parameters.
     #[error("simulated robot: {0}")]
-    Robot(String),
+    Robot(#[source] crate::check::ParamError),
+    /// The simulated robot's FRI session did not reach COMMANDING_ACTIVE in time.
+    #[error(
+        "simulated robot: the FRI session did not reach COMMANDING_ACTIVE within {timeout_s} s \
+         (controller {}, quality {})",
+        controller.name(),
+        quality.name()
+    )]
+    NotCommanding {
+        /// How long it was given, seconds (virtual time).
+        timeout_s: f64,
+        /// The simulated controller's session state then.
+        controller: SessionState,
+        /// Its connection quality then.
+        quality: crate::fri::proto::ConnectionQuality,
+    },
     /// The simulated camera could not start.
     #[error("simulated camera: {0}")]
-    Camera(String),
+    Camera(#[source] crate::vision::VisionError),
+    /// The detector of the rendered frames could not start.
+    #[error("simulated camera: vision: {0}")]
+    Vision(#[source] crate::vision::VisionError),
+    /// `camera.vision = "full"` in a build without OpenCV.
+    #[error(
+        "simulated camera: camera.vision = \"full\" renders frames through the OpenCV detector: \
+         this build has no `opencv` feature (use vision = \"model\")"
+    )]
+    NoOpenCv,
 }
 
 /// Joint angles of the simulated robot at power-on, degrees.
@@ -153,8 +177,7 @@ impl ControlSide {
         // `[success]` too (the controller checks only those it reads).
         scenario.validate_but_world().map_err(ControlError::from)?;
         let controller = Controller::new(&scenario.beliefs(), period_s)?;
-        let client = FriClient::new(FriClientParams::default())
-            .map_err(|e| LabError::Robot(e.to_string()))?;
+        let client = FriClient::new(FriClientParams::default()).map_err(LabError::Robot)?;
         let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
         let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
         let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
@@ -233,9 +256,9 @@ impl Camera {
                     scenario.pendulum.ball_radius_m,
                     seed,
                 )
-                .map_err(|e| LabError::Camera(e.to_string()))?;
+                .map_err(LabError::Camera)?;
                 let vision = SimVision::new(cam, DetectorParams::default(), calibration)
-                    .map_err(|e| LabError::Camera(format!("vision: {e}")))?;
+                    .map_err(LabError::Vision)?;
                 return Ok(Self::Full {
                     vision: Box::new(vision),
                     next_capture_s: f64::INFINITY,
@@ -245,11 +268,7 @@ impl Camera {
             #[cfg(not(feature = "opencv"))]
             {
                 let _ = calibration;
-                return Err(LabError::Camera(
-                    "camera.vision = \"full\" renders frames through the OpenCV detector: \
-                     this build has no `opencv` feature (use vision = \"model\")"
-                        .to_owned(),
-                ));
+                return Err(LabError::NoOpenCv);
             }
         }
         Ok(Self::Model {
@@ -409,8 +428,7 @@ impl VirtualLab {
         // The controller is built from the beliefs only: it never holds `[world]`.
         let side = ControlSide::new(scenario, seed, period_s, calibration, Some(truth))?;
         let robot_period_ns = robot.period_ns();
-        let robot =
-            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
+        let robot = SimController::new(robot, EPOCH_UNIX_NS).map_err(LabError::Robot)?;
         let camera = Camera::new(scenario, seed, calibration)?;
         let ControlSide {
             client,
@@ -474,12 +492,11 @@ impl VirtualLab {
                 f();
             });
         }
-        Err(LabError::Robot(format!(
-            "the FRI session did not reach COMMANDING_ACTIVE within {COMMANDING_TIMEOUT_S} s \
-             (controller {}, quality {})",
-            self.robot.state().name(),
-            self.robot.quality().name()
-        )))
+        Err(LabError::NotCommanding {
+            timeout_s: COMMANDING_TIMEOUT_S,
+            controller: self.robot.state(),
+            quality: self.robot.quality(),
+        })
     }
 
     /// The last trial's release: decided, command written, coil switched off.
