@@ -559,7 +559,7 @@ pub fn run_camera_robot(
                 break;
             }
         }
-        let (before, q) = found.ok_or_else(|| ProcedureError::BallOutOfReach)?;
+        let (before, q) = found.ok_or(ProcedureError::BallOutOfReach)?;
         targets.push(before);
         targets.push(q);
         Some(targets.len() - 1)
@@ -699,7 +699,7 @@ pub fn run_camera_robot(
     // 4. The hanging ball's rest pixel (the robot away from it: the touch comes last).
     let ball_px = true_cam
         .project(&true_rest)
-        .ok_or_else(|| ProcedureError::BallOutOfView)?;
+        .ok_or(ProcedureError::BallOutOfView)?;
     let ball = BallState {
         centre_m: true_cam.equivalent_centre_m(&ball_px, &true_rest),
         velocity_mps: Vector3::zeros(),

@@ -393,7 +393,7 @@ pub fn run_pendulum(
     });
     let rest_c = calibration
         .point_on_plane_c(mu, mv)
-        .ok_or_else(|| ProcedureError::RayMissesSwingPlane)?;
+        .ok_or(ProcedureError::RayMissesSwingPlane)?;
     let pose = SimCameraParams::default().pose;
     let rest_m_b = pose.base_from_camera() * rest_c + pose.position();
 
