@@ -39,9 +39,24 @@ pub enum ParamError {
         /// Second value.
         hi: f64,
     },
-    /// The file could not be parsed (syntax, wrong type, unknown key).
-    #[error("{0}")]
-    Parse(String),
+    /// The file could not be parsed (syntax, wrong type, unknown key): the
+    /// parser's message and, when known, the file, the line and the key.
+    #[error(
+        "{}{}{}{message}",
+        prefix(path.as_deref()),
+        line.map_or_else(String::new, |l| format!("line {l}: ")),
+        prefix(key.as_deref())
+    )]
+    Parse {
+        /// The file, when the text came from one.
+        path: Option<String>,
+        /// The line, 1-based, when the parser says where.
+        line: Option<usize>,
+        /// The dotted key (`section.key`) on that line, when there is one.
+        key: Option<String>,
+        /// The parser's message (one line).
+        message: String,
+    },
     /// The file could not be read.
     #[error("cannot read {path}: {reason}")]
     Io {
@@ -59,9 +74,43 @@ impl ParamError {
             Self::OutOfRange { field, .. }
             | Self::NotFinite { field, .. }
             | Self::Reversed { field, .. } => Some(field),
-            Self::Parse(_) | Self::Io { .. } => None,
+            Self::Parse { .. } | Self::Io { .. } => None,
         }
     }
+
+    /// A parse error with the parser's message only (its newlines made spaces).
+    pub fn parse(message: impl std::fmt::Display) -> Self {
+        Self::Parse {
+            path: None,
+            line: None,
+            key: None,
+            message: message.to_string().replace('\n', " "),
+        }
+    }
+
+    /// This error, read from the file `path` (a parse error then names it).
+    #[must_use]
+    pub fn in_file(self, path: &std::path::Path) -> Self {
+        match self {
+            Self::Parse {
+                path: None,
+                line,
+                key,
+                message,
+            } => Self::Parse {
+                path: Some(path.display().to_string()),
+                line,
+                key,
+                message,
+            },
+            other => other,
+        }
+    }
+}
+
+/// `"{s}: "`, or nothing.
+fn prefix(s: Option<&str>) -> String {
+    s.map_or_else(String::new, |s| format!("{s}: "))
 }
 
 /// Refuses NaN and infinities.

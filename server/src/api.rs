@@ -1353,3 +1353,71 @@ impl utoipa::Modify for BearerAuth {
     tags((name = "service"), (name = "lab"), (name = "commands"), (name = "calibration"), (name = "trials"), (name = "streams"))
 )]
 pub struct ApiDoc;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 400 body of a trial refused by `trial_setup`: status, `error`, `field`.
+    async fn refused(req: &TrialRequest) -> (StatusCode, serde_json::Value) {
+        let Err(e) = trial_setup(req, &Scenario::default()) else {
+            panic!("{req:?} was accepted")
+        };
+        let resp = e.into_response();
+        let status = resp.status();
+        let body = axum::body::to_bytes(resp.into_body(), 1 << 16)
+            .await
+            .unwrap();
+        (status, serde_json::from_slice(&body).unwrap())
+    }
+
+    #[tokio::test]
+    async fn an_infeasible_trial_is_refused_with_the_joint_its_value_and_the_limit() {
+        // Out of the arm's reach: the IK's numbers (the wrist centre's distance
+        // and the arm's reach) survive to the body.
+        let far = TrialRequest {
+            distance_m: Some(1.1),
+            movement_time_s: None,
+            release_deg: None,
+        };
+        let (status, v) = refused(&far).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST);
+        assert_eq!(v["field"], "distance_m", "{v}");
+        let e = v["error"].as_str().unwrap();
+        assert!(
+            e.starts_with(
+                "distance_m = 1.1 m is not reachable in 1.5 s: infeasible motion: unreachable"
+            ) && e.contains("from the shoulder, the arm reaches 0.800 m"),
+            "{e}"
+        );
+        // Too close to the base: the joint that leaves its margin, by how much,
+        // and the margin.
+        let near = TrialRequest {
+            distance_m: Some(0.2),
+            ..far
+        };
+        let (_, v) = refused(&near).await;
+        assert_eq!(v["field"], "distance_m", "{v}");
+        let e = v["error"].as_str().unwrap();
+        assert!(
+            e.contains("keeps every joint 5.0 deg inside its limits")
+                && e.contains("A4 comes within -4.90 deg"),
+            "{e}"
+        );
+        // Too fast: the binding joint, its share of the limit, the allowed
+        // share and the shortest feasible duration.
+        let fast = TrialRequest {
+            distance_m: Some(0.8),
+            movement_time_s: Some(0.9),
+            release_deg: None,
+        };
+        let (_, v) = refused(&fast).await;
+        assert_eq!(v["field"], "movement_time_s", "{v}");
+        let e = v["error"].as_str().unwrap();
+        assert!(
+            e.starts_with("movement_time_s = 0.9 s is not feasible at 0.8 m: infeasible motion: A")
+                && e.contains("limit in 0.90 s (allowed 90%); the shortest feasible duration is"),
+            "{e}"
+        );
+    }
+}

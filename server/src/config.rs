@@ -225,8 +225,7 @@ impl Default for Calibration {
 impl ServeConfig {
     /// Parses and validates a configuration (unknown keys are refused).
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
-        let cfg: Self =
-            toml::from_str(text).map_err(|e| ParamError::Parse(e.message().replace('\n', " ")))?;
+        let cfg: Self = toml::from_str(text).map_err(|e| ParamError::parse(e.message()))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -237,10 +236,7 @@ impl ServeConfig {
             path: path.display().to_string(),
             reason: e.to_string(),
         })?;
-        Self::from_toml_str(&text).map_err(|e| match e {
-            ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
-            other => other,
-        })
+        Self::from_toml_str(&text).map_err(|e| e.in_file(path))
     }
 
     /// Checks every field; the error names the first bad one.

@@ -98,7 +98,7 @@ pub enum TrialEnd {
     /// With a result.
     Done(TrialResult),
     /// Aborted: why, and what the lab saw (may be empty).
-    Aborted(rt_core::bridge::AbortReason, &'static str),
+    Aborted(rt_core::bridge::AbortKind, &'static str),
 }
 
 /// The trial database and the recordings folder.
@@ -174,7 +174,7 @@ impl Records {
         }
         // Trials a crash or a stop of the service left `running` (and rows an
         // older version marked `interrupted`) are closed as aborted.
-        let restarted = rt_core::bridge::AbortReason::ServiceRestarted;
+        let restarted = rt_core::bridge::AbortKind::ServiceRestarted;
         let closed = db.execute(
             "UPDATE trials SET status = 'aborted', success = 0, abort_reason = ?1,
                reason = ?2, finished_unix_s = COALESCE(finished_unix_s, ?3)
@@ -349,7 +349,7 @@ fn done_reason(r: &TrialResult) -> String {
 }
 
 /// An aborted trial's `reason`: `aborted (REASON): MESSAGE[: DETAIL]`.
-pub fn abort_sentence(reason: rt_core::bridge::AbortReason, detail: &str) -> String {
+pub fn abort_sentence(reason: rt_core::bridge::AbortKind, detail: &str) -> String {
     let mut s = format!("aborted ({}): {}", reason.as_str(), reason.message());
     if !detail.is_empty() {
         s.push_str(": ");
@@ -687,7 +687,7 @@ mod tests {
             let a = r.create_trial(&TrialOrigin::default()).unwrap();
             let b = r.create_trial(&TrialOrigin::default()).unwrap();
             assert!(b > a);
-            let stop = TrialEnd::Aborted(rt_core::bridge::AbortReason::Stop, "");
+            let stop = TrialEnd::Aborted(rt_core::bridge::AbortKind::Stop, "");
             assert!(r.finish_trial(a, stop, 7).unwrap());
             assert!(!r.finish_trial(a, stop, 7).unwrap());
         }

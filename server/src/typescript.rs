@@ -7,9 +7,9 @@
 //! typescript`); the test fails while the committed file is stale.
 
 use rt_core::bridge::{
-    AbortReason, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
+    AbortKind, AbortView, BridgeCounters, CameraView, Counters, Event, EventRecord, FriQuality,
     FriSessionState, FriView, HopfView, HorizonPoint, JudgedBy, LoopTiming, MagnetState,
-    Measurement, PathView, PendulumView, Readiness, Refusal, RobotView, Snapshot, TrialResult,
+    MeasurementView, PathView, PendulumView, Readiness, Refusal, RobotView, Snapshot, TrialResult,
     TrialState,
 };
 use rt_core::calibration::{StepView, ViewKind};
@@ -32,7 +32,7 @@ pub const PATH: &str = "web/src/generated/types.ts";
 pub fn declarations() -> String {
     let decls = [
         TrialState::decl(),
-        Measurement::decl(),
+        MeasurementView::decl(),
         HorizonPoint::decl(),
         PendulumView::decl(),
         HopfView::decl(),
@@ -45,7 +45,7 @@ pub fn declarations() -> String {
         LoopTiming::decl(),
         Counters::decl(),
         CameraView::decl(),
-        AbortReason::decl(),
+        AbortKind::decl(),
         AbortView::decl(),
         Refusal::decl(),
         Readiness::decl(),

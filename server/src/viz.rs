@@ -312,12 +312,7 @@ impl TrialJudgement {
             judged_by,
             success,
             reason: end.map_or_else(
-                || {
-                    crate::records::abort_sentence(
-                        rt_core::bridge::AbortReason::ServiceRestarted,
-                        "",
-                    )
-                },
+                || crate::records::abort_sentence(rt_core::bridge::AbortKind::ServiceRestarted, ""),
                 crate::records::end_reason,
             ),
             truth,
@@ -779,7 +774,7 @@ impl Foxglove {
                 );
             }
             None => {
-                let r = rt_core::bridge::AbortReason::ServiceRestarted;
+                let r = rt_core::bridge::AbortKind::ServiceRestarted;
                 result.insert("status".to_owned(), "aborted".to_owned());
                 result.insert("abort_reason".to_owned(), r.as_str().to_owned());
                 result.insert("reason".to_owned(), crate::records::abort_sentence(r, ""));

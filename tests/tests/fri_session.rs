@@ -10,7 +10,7 @@ use rt_core::fri::{
     CommandEncoder, ControlStep, FriClientParams, FriSession, FriSessionParams, Joints, LinkState,
     MonitoringDecoder, SessionState, StepInput, StopReason,
 };
-use rt_core::sim::kuka::{AbortReason, FriSimParams, SimRunOptions, SimServer};
+use rt_core::sim::kuka::{CommandingAbort, FriSimParams, SimRunOptions, SimServer};
 
 const LOOPBACK: &str = "127.0.0.1:0";
 
@@ -293,7 +293,7 @@ fn a_forced_jump_aborts_and_the_client_reports_it() {
     eprintln!("abort: {:?}", report.abort_reason);
     assert!(matches!(
         sim.last_abort(),
-        Some(AbortReason::VelocityLimit { joint: 0, .. })
+        Some(CommandingAbort::VelocityLimit { joint: 0, .. })
     ));
     assert!(matches!(
         control.stops[0].0,

@@ -85,9 +85,10 @@ impl TrialState {
     }
 }
 
-/// The last camera measurement the filter used.
+/// The last sighting the filter was given ([`crate::control::Sighting`]), as
+/// the dashboard shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, TS, ToSchema)]
-pub struct Measurement {
+pub struct MeasurementView {
     /// False until a measurement arrived (then the other fields are meaningless).
     pub valid: bool,
     /// Capture time, control clock, seconds.
@@ -111,7 +112,7 @@ pub struct HorizonPoint {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, TS, ToSchema)]
 pub struct PendulumView {
     /// Last measurement.
-    pub measured: Measurement,
+    pub measured: MeasurementView,
     /// Estimated angle from the vertical, radians (positive towards +y).
     pub phi_rad: f64,
     /// Estimated angular velocity, rad/s.
@@ -202,7 +203,7 @@ fn serialize_horizon<S: Serializer>(h: &Horizon, s: S) -> Result<S::Ok, S::Error
 impl Default for PendulumView {
     fn default() -> Self {
         Self {
-            measured: Measurement::default(),
+            measured: MeasurementView::default(),
             phi_rad: 0.0,
             dphi_radps: 0.0,
             sigma_phi_rad: f64::NAN,
@@ -648,17 +649,21 @@ pub struct AbortView {
     #[ts(type = "number")]
     pub trial_id: u64,
     /// Why (`null` while no trial was aborted).
-    pub reason: Option<AbortReason>,
+    pub reason: Option<AbortKind>,
     /// The reason as a sentence (empty while none).
     pub message: &'static str,
     /// What the lab saw, when more is known (e.g. how the FRI link was lost; else empty).
     pub detail: &'static str,
 }
 
-/// Why a trial was aborted.
+/// The kind of a trial's abort, as the API reports it (`abort_reason` of a
+/// trial record, `/api/state`, the events): the controller's
+/// [`AbortReason`](crate::control::AbortReason) grouped for operators (its
+/// [`From`] conversion), plus the service's own
+/// [`ServiceRestarted`](Self::ServiceRestarted).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, TS, ToSchema)]
 #[serde(rename_all = "snake_case")]
-pub enum AbortReason {
+pub enum AbortKind {
     /// The operator pressed stop.
     Stop,
     /// The operator disarmed.
@@ -684,7 +689,44 @@ pub enum AbortReason {
     ServiceRestarted,
 }
 
-impl AbortReason {
+impl From<crate::control::AbortReason> for AbortKind {
+    fn from(r: crate::control::AbortReason) -> Self {
+        use crate::control::AbortReason as R;
+        match r {
+            R::StopRequested => Self::Stop,
+            R::Infeasible => Self::Infeasible,
+            R::IkFailed | R::GuardTripped => Self::LimitViolation,
+            R::CameraLost => Self::CameraLost,
+            R::FriLost => Self::FriLost,
+            R::PredictionTimeout | R::MissedWindow => Self::Timeout,
+            R::MagnetFault => Self::MagnetFault,
+            R::FilterFault => Self::Internal,
+            R::OperatorLost => Self::OperatorLost,
+            R::Disarmed => Self::Disarmed,
+        }
+    }
+}
+
+/// The flat state the API shows: an abort's reason is reported apart
+/// ([`AbortView`], [`Event::Aborted`]).
+impl From<crate::control::TrialState> for TrialState {
+    fn from(s: crate::control::TrialState) -> Self {
+        use crate::control::TrialState as S;
+        match s {
+            S::Idle => Self::Idle,
+            S::Arming => Self::Arming,
+            S::Armed => Self::Armed,
+            S::Released => Self::Released,
+            S::Tracking => Self::Tracking,
+            S::Intercepting => Self::Intercepting,
+            S::Holding => Self::Holding,
+            S::Done => Self::Done,
+            S::Abort(_) => Self::Aborted,
+        }
+    }
+}
+
+impl AbortKind {
     /// The snake_case name, as in JSON.
     pub const fn as_str(self) -> &'static str {
         match self {
@@ -807,7 +849,7 @@ pub enum Event {
     /// The trial (or the arming) was aborted and the arm stopped safely.
     Aborted {
         /// Why.
-        reason: AbortReason,
+        reason: AbortKind,
         /// What the lab saw, when more is known (else empty), e.g. how the
         /// FRI link was lost.
         detail: &'static str,

@@ -238,7 +238,7 @@ fn snapshot_json_uses_snake_case_and_null_for_unknown() {
         t_s: 2.0,
         trial_id: 1,
         event: Event::Aborted {
-            reason: AbortReason::CameraLost,
+            reason: AbortKind::CameraLost,
             detail: "no frame for 0.5 s",
         },
     };
@@ -254,9 +254,9 @@ fn states_have_names_and_motion_flags() {
         assert_eq!(serde_json::to_value(st).unwrap(), st.as_str());
     }
     for r in [
-        AbortReason::CameraLost,
-        AbortReason::OperatorLost,
-        AbortReason::Stop,
+        AbortKind::CameraLost,
+        AbortKind::OperatorLost,
+        AbortKind::Stop,
     ] {
         assert_eq!(serde_json::to_value(r).unwrap(), r.as_str());
     }

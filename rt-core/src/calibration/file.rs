@@ -58,10 +58,7 @@ impl CalibrationFile {
     /// Reads a calibration file; a missing file is an empty calibration.
     pub fn load_or_empty(path: &Path) -> Result<Self, ParamError> {
         match std::fs::read_to_string(path) {
-            Ok(text) => Self::from_toml_str(&text).map_err(|e| match e {
-                ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
-                other => other,
-            }),
+            Ok(text) => Self::from_toml_str(&text).map_err(|e| e.in_file(path)),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Self::default()),
             Err(e) => Err(ParamError::Io {
                 path: path.display().to_string(),
@@ -76,10 +73,7 @@ impl CalibrationFile {
             path: path.display().to_string(),
             reason: e.to_string(),
         })?;
-        Self::from_toml_str(&text).map_err(|e| match e {
-            ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
-            other => other,
-        })
+        Self::from_toml_str(&text).map_err(|e| e.in_file(path))
     }
 
     /// Parses a calibration file's text. Unknown keys are refused.
@@ -92,7 +86,7 @@ impl CalibrationFile {
     /// assert!(CalibrationFile::from_toml_str("[pendulm]\n").is_err());
     /// ```
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
-        toml::from_str(text).map_err(|e| ParamError::Parse(e.message().replace('\n', " ")))
+        toml::from_str(text).map_err(|e| ParamError::parse(e.message()))
     }
 
     /// The file's text.

@@ -530,15 +530,16 @@ pub fn run_camera_robot(
     let start: Joints = std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians());
     let period_ns = params.period_ns();
     let mut robot = SimController::new(params, 1_700_000_000_000_000_000)
-        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
-    let mut client = FriClient::new(FriClientParams::default())
-        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+        .map_err(ProcedureError::RobotParams)?;
+    let mut client =
+        FriClient::new(FriClientParams::default()).map_err(ProcedureError::RobotParams)?;
     let mut targets = tour_targets(&tour_points(scenario), &start);
     let poses_commanded = targets.len();
     if poses_commanded < MIN_POSES {
-        return Err(ProcedureError::Robot(format!(
-            "only {poses_commanded} marker poses reachable inside the joint limits, at least {MIN_POSES} needed"
-        )));
+        return Err(ProcedureError::TooFewPoses {
+            reachable: poses_commanded,
+            needed: MIN_POSES,
+        });
     }
     // The touch (a hand guiding the tool, simulated): the true tool point just
     // before the ball, the disc's face touching it (within the operator's 0.3 mm).
@@ -558,9 +559,7 @@ pub fn run_camera_robot(
                 break;
             }
         }
-        let (before, q) = found.ok_or_else(|| {
-            ProcedureError::Robot("the hanging ball is out of the tool's reach".into())
-        })?;
+        let (before, q) = found.ok_or(ProcedureError::BallOutOfReach)?;
         targets.push(before);
         targets.push(q);
         Some(targets.len() - 1)
@@ -648,21 +647,16 @@ pub fn run_camera_robot(
         }
     }
     if tour.refused {
-        return Err(ProcedureError::Robot(
-            "a command would have left the joint limits; the tour stopped".into(),
-        ));
+        return Err(ProcedureError::TourLeftLimits);
     }
     if !tour.done {
-        return Err(ProcedureError::Robot(format!(
-            "the FRI session did not stay in COMMANDING_ACTIVE (client {:?}, controller {})",
-            client.state(),
-            robot.state().name()
-        )));
+        return Err(ProcedureError::LeftCommanding {
+            client: client.state(),
+            controller: robot.state(),
+        });
     }
     if let Some(a) = robot.stats().last_abort() {
-        return Err(ProcedureError::Robot(format!(
-            "the controller aborted: {a:?}"
-        )));
+        return Err(ProcedureError::ControllerAborted(a));
     }
 
     // 2. The sightings: mean pixel per pose, the marker's believed centre from the
@@ -679,16 +673,12 @@ pub fn run_camera_robot(
         points_b.push(marker_believed(&q).0);
         pixels.push(px);
     }
-    if points_b.is_empty() {
-        return Err(ProcedureError::NotSeen(format!(
-            "marker never seen: 0 of {poses_commanded} poses (is the disc on the tool and in the camera's view?)"
-        )));
-    }
     if points_b.len() < MIN_POSES {
-        return Err(ProcedureError::NotSeen(format!(
-            "marker seen at {} of {poses_commanded} poses, at least {MIN_POSES} needed",
-            points_b.len()
-        )));
+        return Err(ProcedureError::MarkerNotSeen {
+            seen: points_b.len(),
+            commanded: poses_commanded,
+            needed: MIN_POSES,
+        });
     }
 
     // 3. The pose: solvePnP (iterative, from the believed pose), then least squares.
@@ -707,9 +697,9 @@ pub fn run_camera_robot(
     });
 
     // 4. The hanging ball's rest pixel (the robot away from it: the touch comes last).
-    let ball_px = true_cam.project(&true_rest).ok_or_else(|| {
-        ProcedureError::NotSeen("the hanging ball is not in the camera's view".into())
-    })?;
+    let ball_px = true_cam
+        .project(&true_rest)
+        .ok_or(ProcedureError::BallOutOfView)?;
     let ball = BallState {
         centre_m: true_cam.equivalent_centre_m(&ball_px, &true_rest),
         velocity_mps: Vector3::zeros(),
@@ -733,11 +723,10 @@ pub fn run_camera_robot(
         }
     }
     if rest.len() < REST_FRAMES / 2 {
-        return Err(ProcedureError::NotSeen(format!(
-            "the hanging ball was found in {} of {} frames (is it in view?)",
-            rest.len(),
-            REST_FRAMES * 2
-        )));
+        return Err(ProcedureError::BallNotFound {
+            found: rest.len(),
+            frames: REST_FRAMES * 2,
+        });
     }
     let rest_px = rest.iter().fold(Vector2::zeros(), |a, p| a + p) / rest.len() as f64;
     watch.seen(StepView {
@@ -758,7 +747,7 @@ pub fn run_camera_robot(
         Some(i) => {
             let (sum, k) = tour.measured[i];
             if k == 0 {
-                return Err(ProcedureError::Robot("no measurement at the touch".into()));
+                return Err(ProcedureError::NoTouchMeasurement);
             }
             let q: Joints = std::array::from_fn(|j| sum[j] / k as f64);
             let tool = kinematics::tool_pose(
@@ -777,9 +766,7 @@ pub fn run_camera_robot(
     let ray = ray_b(&intrinsics, &fit, rest_px.x, rest_px.y);
     let along = n.dot(&ray);
     if along <= 0.05 {
-        return Err(ProcedureError::NotSeen(
-            "the rest point's ray does not reach the ball's plane".into(),
-        ));
+        return Err(ProcedureError::RayMissesBallPlane);
     }
     let s = (d - n.dot(&fit.position_m)) / along;
     let intercept = fit.position_m + ray * s;

@@ -445,9 +445,7 @@ pub fn run_camera(
     scenario.validate()?;
     board.validate()?;
     if !(1..=200).contains(&views) {
-        return Err(ProcedureError::NotSeen(format!(
-            "{views} board views asked for: must be 1..=200"
-        )));
+        return Err(ProcedureError::Views { views });
     }
     let cam = world.world_camera(scenario);
     let (w, h) = (scenario.camera.width_px, scenario.camera.height_px);

@@ -49,17 +49,101 @@ pub enum ProcedureError {
     /// The camera or detector failed.
     #[error("camera: {0}")]
     Vision(#[from] VisionError),
-    /// The ball was not where the step needs it.
-    #[error("{0}")]
-    NotSeen(String),
-    /// The simulated robot or its FRI session.
+    /// The simulated pendulum refused a time or a state.
+    #[error(transparent)]
+    Pendulum(#[from] crate::pendulum::SimError),
+    /// More board views asked for than the step takes.
+    #[error("{views} board views asked for: must be 1..=200")]
+    Views {
+        /// The number asked for.
+        views: usize,
+    },
+    /// The hanging ball was found in too few frames.
+    #[error("the hanging ball was found in {found} of {frames} frames (is it in view?)")]
+    BallNotFound {
+        /// Frames it was found in.
+        found: usize,
+        /// Frames looked at.
+        frames: usize,
+    },
+    /// The hanging ball projects outside the image.
+    #[error("the hanging ball is not in the camera's view")]
+    BallOutOfView,
+    /// The camera ray through the rest pixel does not meet the swing plane.
+    #[error("the rest point's ray misses the swing plane")]
+    RayMissesSwingPlane,
+    /// The camera ray through the rest pixel does not reach the plane of the
+    /// ball's surface (too grazing).
+    #[error("the rest point's ray does not reach the ball's plane")]
+    RayMissesBallPlane,
+    /// The marker on the tool was seen at too few poses.
+    #[error("{}", marker_sentence(*seen, *commanded, *needed))]
+    MarkerNotSeen {
+        /// Poses it was seen at.
+        seen: usize,
+        /// Poses commanded.
+        commanded: usize,
+        /// Poses the fit needs.
+        needed: usize,
+    },
+    /// The simulated robot or FRI client refused its parameters.
     #[error("robot: {0}")]
-    Robot(String),
+    RobotParams(#[source] ParamError),
+    /// Too few of the marker tour's poses are within the joint limits.
+    #[error(
+        "robot: only {reachable} marker poses reachable inside the joint limits, at least {needed} needed"
+    )]
+    TooFewPoses {
+        /// Reachable poses.
+        reachable: usize,
+        /// Poses the fit needs.
+        needed: usize,
+    },
+    /// The tool cannot touch the hanging ball within the joint limits.
+    #[error("robot: the hanging ball is out of the tool's reach")]
+    BallOutOfReach,
+    /// The tour's commands would have left the joint limits.
+    #[error("robot: a command would have left the joint limits; the tour stopped")]
+    TourLeftLimits,
+    /// The FRI session left commanding during the step.
+    #[error(
+        "robot: the FRI session did not stay in COMMANDING_ACTIVE (client {client:?}, controller {})",
+        controller.name()
+    )]
+    LeftCommanding {
+        /// The client's link state at the end.
+        client: crate::fri::client::LinkState,
+        /// The simulated controller's session state at the end.
+        controller: crate::fri::proto::SessionState,
+    },
+    /// The simulated controller aborted commanding.
+    #[error("robot: the controller aborted: {0:?}")]
+    ControllerAborted(crate::sim::kuka::CommandingAbort),
+    /// No joint measurement while the tool touched the ball.
+    #[error("robot: no measurement at the touch")]
+    NoTouchMeasurement,
+    /// An excitation amplitude outside `(0, 0.05]` rad.
+    #[error("robot: excitation amplitude {amplitude_rad} rad out of range: must be in (0, 0.05]")]
+    Amplitude {
+        /// The refused amplitude, radians.
+        amplitude_rad: f64,
+    },
+}
+
+/// [`ProcedureError::MarkerNotSeen`]'s sentence.
+fn marker_sentence(seen: usize, commanded: usize, needed: usize) -> String {
+    if seen == 0 {
+        format!(
+            "marker never seen: 0 of {commanded} poses (is the disc on the tool and in the camera's view?)"
+        )
+    } else {
+        format!("marker seen at {seen} of {commanded} poses, at least {needed} needed")
+    }
 }
 
 impl From<opencv::Error> for ProcedureError {
     fn from(e: opencv::Error) -> Self {
-        Self::Vision(VisionError::OpenCv(e.to_string()))
+        Self::Vision(VisionError::OpenCv(e))
     }
 }
 
@@ -291,11 +375,10 @@ pub fn run_pendulum(
         }
     }
     if rest.len() < REST_FRAMES / 2 {
-        return Err(ProcedureError::NotSeen(format!(
-            "the hanging ball was found in {} of {} frames (is it in view?)",
-            rest.len(),
-            REST_FRAMES * 2
-        )));
+        return Err(ProcedureError::BallNotFound {
+            found: rest.len(),
+            frames: REST_FRAMES * 2,
+        });
     }
     let (mu, mv, su, sv) = mean_std(&rest);
     watch.seen(StepView {
@@ -308,18 +391,16 @@ pub fn run_pendulum(
         points: rest.iter().map(|&(u, v)| [u, v]).collect(),
         fit: vec![[mu, mv]],
     });
-    let rest_c = calibration.point_on_plane_c(mu, mv).ok_or_else(|| {
-        ProcedureError::NotSeen("the rest point's ray misses the swing plane".into())
-    })?;
+    let rest_c = calibration
+        .point_on_plane_c(mu, mv)
+        .ok_or(ProcedureError::RayMissesSwingPlane)?;
     let pose = SimCameraParams::default().pose;
     let rest_m_b = pose.base_from_camera() * rest_c + pose.position();
 
     // 2. The free swing.
     let t_release = 2.0 * REST_FRAMES as f64 * period + 0.5;
-    let mut sim = PendulumSim::held_at(model, geometry, release_deg.to_radians(), t_release)
-        .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
-    sim.release(t_release)
-        .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
+    let mut sim = PendulumSim::held_at(model, geometry, release_deg.to_radians(), t_release)?;
+    sim.release(t_release)?;
     vision.set_calibration(calibration);
     let mut samples = Vec::new();
     let mut track = Vec::new();
@@ -327,8 +408,7 @@ pub fn run_pendulum(
     let frames = (duration_s / period).floor() as usize;
     for k in 0..frames {
         let t = start + period * k as f64;
-        sim.advance_to(t)
-            .map_err(|e| ProcedureError::NotSeen(e.to_string()))?;
+        sim.advance_to(t)?;
         let ball = BallState {
             centre_m: sim.ball_position_m(),
             velocity_mps: sim.ball_velocity_mps(),
@@ -791,9 +871,7 @@ pub fn run_robot(
 ) -> Result<RobotRun, ProcedureError> {
     scenario.validate()?;
     if !(amplitude_rad.is_finite() && amplitude_rad > 0.0 && amplitude_rad <= 0.05) {
-        return Err(ProcedureError::Robot(format!(
-            "excitation amplitude {amplitude_rad} rad out of range: must be in (0, 0.05]"
-        )));
+        return Err(ProcedureError::Amplitude { amplitude_rad });
     }
     let params = FriSimParams {
         latency_ms: world.robot_latency_ms,
@@ -804,9 +882,9 @@ pub fn run_robot(
     };
     let period_ns = params.period_ns();
     let mut robot = SimController::new(params, 1_700_000_000_000_000_000)
-        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
-    let mut client = FriClient::new(FriClientParams::default())
-        .map_err(|e| ProcedureError::Robot(e.to_string()))?;
+        .map_err(ProcedureError::RobotParams)?;
+    let mut client =
+        FriClient::new(FriClientParams::default()).map_err(ProcedureError::RobotParams)?;
     let joint = 6;
     let mut step = Excite {
         joint,
@@ -836,16 +914,13 @@ pub fn run_robot(
         }
     }
     if step.start.is_none() || client.state() != LinkState::CommandingActive {
-        return Err(ProcedureError::Robot(format!(
-            "the FRI session did not stay in COMMANDING_ACTIVE (client {:?}, controller {})",
-            client.state(),
-            robot.state().name()
-        )));
+        return Err(ProcedureError::LeftCommanding {
+            client: client.state(),
+            controller: robot.state(),
+        });
     }
     if let Some(a) = robot.stats().last_abort() {
-        return Err(ProcedureError::Robot(format!(
-            "the controller aborted: {a:?}"
-        )));
+        return Err(ProcedureError::ControllerAborted(a));
     }
     let result = fit_robot_latency(&step.commands, &step.measured)?;
     let series = |s: &[JointSample]| -> Vec<[f64; 2]> {

@@ -11,15 +11,18 @@ use super::beliefs::Beliefs;
 use super::latency::LatencyEstimator;
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::check::{self, ParamError};
-use crate::ekf::{Ekf, EkfCounters, EkfParams, MotionRequest, PassDirection, StateVec};
+use crate::ekf::{Ekf, EkfCounters, EkfError, EkfParams, MotionRequest, PassDirection, StateVec};
 use crate::kinematics::iiwa7::{
     ACCELERATION_LIMIT_RADPS2, JOINTS, POSITION_LIMIT_RAD, VELOCITY_LIMIT_RADPS,
 };
 use crate::kinematics::{Joints, Tool, tool_pose};
 use crate::pendulum::{PendulumGeometry, PendulumModel};
+use crate::timing::TimingError;
 use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;
-use crate::trajectory::{MotionRequest as PathRequest, PlanError, Posture, TrajectoryParams};
+use crate::trajectory::{
+    Infeasibility, MotionRequest as PathRequest, PlanError, Posture, TrajectoryParams,
+};
 
 /// The closed loop's settings: `[control]` in a scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -195,12 +198,20 @@ pub enum ControlError {
     /// A parameter was refused.
     #[error(transparent)]
     Params(#[from] ParamError),
-    /// The motion cannot be planned within the limits (`trajectory::plan`'s reason).
+    /// The motion cannot be planned at all: an invalid request, or out of the
+    /// arm's reach (with the inverse kinematics' joint, value and limit).
+    #[error("{prefix}{0}", prefix = if .0.is_unreachable() { "infeasible motion: " } else { "" })]
+    Plan(#[from] PlanError),
+    /// The planned posture may not run as asked: the binding joint, its limit
+    /// and the numbers (`trajectory::plan`'s reason).
     #[error("infeasible motion: {0}")]
-    Infeasible(String),
-    /// A part refused its set-up.
-    #[error("{0}")]
-    Setup(String),
+    Infeasible(#[from] Infeasibility),
+    /// The filter refused its set-up.
+    #[error(transparent)]
+    Filter(#[from] EkfError),
+    /// The timed motion refused its set-up.
+    #[error(transparent)]
+    Motion(#[from] TimingError),
     /// Not allowed in the current state.
     #[error("cannot {what} while {state}")]
     State {
@@ -209,6 +220,14 @@ pub enum ControlError {
         /// The current state's name.
         state: &'static str,
     },
+}
+
+impl ControlError {
+    /// Whether the motion is refused as not feasible (out of reach, or too
+    /// close to a limit), rather than for a bad request or state.
+    pub const fn is_infeasible(&self) -> bool {
+        matches!(self, Self::Infeasible(_)) || matches!(self, Self::Plan(e) if e.is_unreachable())
+    }
 }
 
 /// Everything a trial's motion needs, planned before arming (not real-time:
@@ -230,9 +249,11 @@ pub struct ArmPlan {
     pub arrival_offset_s: f64,
 }
 
-/// A camera measurement: the ball's lateral position at its capture time.
+/// A sighting of the ball, as the filter fuses it: its lateral position at
+/// the frame's capture time (a frame where the ball was found; the camera's
+/// whole per-frame result is a [`crate::vision::Measurement`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Measurement {
+pub struct Sighting {
     /// Capture time, seconds (the control clock).
     pub t_capture_s: f64,
     /// Lateral (base y) position of the ball, metres.
@@ -640,23 +661,16 @@ impl Controller {
             ..TrajectoryParams::default()
         };
         let mut req = PathRequest::interception(task, distance_m);
-        let infeasible = |e: PlanError| match e {
-            PlanError::Unreachable { .. } => ControlError::Infeasible(e.to_string()),
-            _ => ControlError::Setup(e.to_string()),
-        };
-        let mut mp = crate::trajectory::plan(&req, &traj).map_err(infeasible)?;
+        let mut mp = crate::trajectory::plan(&req, &traj)?;
         if !mp.feasible && mp.shortest_feasible_s.is_finite() && params.allow_shortest_feasible {
             // Too fast: the same posture at its shortest feasible duration
             // (speeds scale with 1/T, accelerations with 1/T^2).
             req.movement_time_s = mp.shortest_feasible_s;
-            mp = crate::trajectory::evaluate(&req, &traj, mp.tilt_rad, mp.arm_angle_rad)
-                .map_err(infeasible)?;
+            mp = crate::trajectory::evaluate(&req, &traj, mp.tilt_rad, mp.arm_angle_rad)?;
         }
-        if !mp.feasible {
-            return Err(ControlError::Infeasible(
-                mp.reason
-                    .unwrap_or_else(|| "outside the joint limits".to_owned()),
-            ));
+        // A plan that is not feasible says why (`reason` is `Some` exactly then).
+        if let Some(why) = mp.reason {
+            return Err(ControlError::Infeasible(why));
         }
         let posture = mp.posture();
         let duration = req.movement_time_s;
@@ -1061,11 +1075,9 @@ impl Controller {
         )?;
         // The pivot above the believed rest point (with the calibrated offset).
         geometry.pivot_m = plan.intercept_m + Vector3::new(0.0, 0.0, self.model.length_m);
-        let mut ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)
-            .map_err(|e| ControlError::Setup(e.to_string()))?;
+        let mut ekf = Ekf::new(self.ekf_params.clone(), self.model, geometry)?;
         if self.params.learn_frequency {
-            ekf.set_constant_priors(self.session.k, None)
-                .map_err(|e| ControlError::Setup(e.to_string()))?;
+            ekf.set_constant_priors(self.session.k, None)?;
         }
         let q0 = if self.have_cmd {
             self.q_cmd
@@ -1138,7 +1150,7 @@ impl Controller {
 
     /// One control step (see the module documentation). `measurements` are the
     /// camera measurements that arrived since the last step.
-    pub fn step<I: IntoIterator<Item = Measurement>>(
+    pub fn step<I: IntoIterator<Item = Sighting>>(
         &mut self,
         input: &StepInput,
         measurements: I,
@@ -1247,7 +1259,7 @@ impl Controller {
         out.state = self.machine.state();
     }
 
-    fn fold_measurements<I: IntoIterator<Item = Measurement>>(&mut self, t: f64, meas: I) {
+    fn fold_measurements<I: IntoIterator<Item = Sighting>>(&mut self, t: f64, meas: I) {
         // From the release on, the filter follows the ball also after the
         // trial (done, aborted, back to idle): the ball keeps swinging, and the
         // dashboard's estimate and its band continue between trials. A new
@@ -1539,8 +1551,7 @@ fn generator_arrival_offset(
 ) -> Result<f64, ControlError> {
     let mut m = TimedMotion::new(timing.clone())?;
     let q = UnitQuaternion::from_rotation_matrix(&posture.orientation);
-    m.begin(start, end, &q, duration_s)
-        .map_err(|e| ControlError::Setup(e.to_string()))?;
+    m.begin(start, end, &q, duration_s)?;
     let dir = (end - start).normalize();
     let n = ((duration_s * 1.3) / period_s).ceil() as usize;
     let mut ts = Vec::with_capacity(n + 1);
@@ -1549,8 +1560,7 @@ fn generator_arrival_offset(
     ps.push(0.0);
     let mut s = MotionSample::default();
     for k in 1..=n {
-        m.step(period_s, None, &mut s)
-            .map_err(|e| ControlError::Setup(e.to_string()))?;
+        m.step(period_s, None, &mut s)?;
         ts.push(k as f64 * period_s);
         ps.push((s.position_m - start).dot(&dir));
     }
@@ -1592,13 +1602,43 @@ mod tests {
         // The Hopf generator's best-fitting ideal profile ends a few ms early.
         assert!(plan.arrival_offset_s.abs() < 0.05, "{plan:?}");
         // 1.1 m is out of reach at any duration.
+        // The error keeps the inverse kinematics' numbers.
         let err = Controller::plan(&s, 1.1).unwrap_err();
-        assert!(matches!(err, ControlError::Infeasible(_)), "{err}");
+        assert!(err.is_infeasible(), "{err}");
+        assert!(
+            matches!(
+                err,
+                ControlError::Plan(PlanError::Unreachable {
+                    ik: Some(crate::kinematics::analytic::IkError::OutOfReach { .. }),
+                    ..
+                })
+            ),
+            "{err:?}"
+        );
+        assert!(
+            err.to_string()
+                .starts_with("infeasible motion: unreachable"),
+            "{err}"
+        );
         // Too fast without the shortest-feasible fallback: refused, naming the joint.
         let mut fast = Beliefs::default();
         fast.task.movement_time_s = 0.8;
         fast.control.allow_shortest_feasible = false;
-        let err = Controller::plan(&fast, 0.8).unwrap_err().to_string();
+        let err = Controller::plan(&fast, 0.8).unwrap_err();
+        assert!(err.is_infeasible(), "{err}");
+        let ControlError::Infeasible(Infeasibility::TooFast {
+            joint,
+            duration_s,
+            shortest_feasible_s,
+            ..
+        }) = err
+        else {
+            panic!("{err:?}")
+        };
+        assert_eq!(duration_s, 0.8);
+        assert!(shortest_feasible_s > 1.3, "{shortest_feasible_s}");
+        assert!(joint < JOINTS);
+        let err = err.to_string();
         assert!(err.contains("shortest feasible duration"), "{err}");
         fast.control.allow_shortest_feasible = true;
         let plan = Controller::plan(&fast, 0.8).unwrap();
@@ -1658,7 +1698,7 @@ mod tests {
                 q_measured_rad: q,
                 commanding: true,
             };
-            let m = Measurement {
+            let m = Sighting {
                 t_capture_s: t - 0.035 + offset_s + 1e-4 * f64::from(i % 3),
                 lateral_m: held,
             };
@@ -1669,7 +1709,7 @@ mod tests {
         c.release(t_pin).unwrap();
         truth.release(t_pin + delay_s).unwrap();
         let mut next_frame = t_pin + 0.01;
-        let mut frames: Vec<(f64, Measurement)> = Vec::new();
+        let mut frames: Vec<(f64, Sighting)> = Vec::new();
         while t < t_pin + 2.4 {
             t += 0.005;
             while next_frame <= t {
@@ -1681,14 +1721,14 @@ mod tests {
                 };
                 frames.push((
                     next_frame + 0.035,
-                    Measurement {
+                    Sighting {
                         t_capture_s: next_frame + offset_s,
                         lateral_m,
                     },
                 ));
                 next_frame += 1.0 / 30.0;
             }
-            let ready: Vec<Measurement> = frames
+            let ready: Vec<Sighting> = frames
                 .iter()
                 .filter(|(avail, _)| *avail <= t)
                 .map(|(_, m)| *m)
@@ -1996,7 +2036,7 @@ mod tests {
         let plan = Controller::plan(&s, 0.5).unwrap();
         let mut q = [0.0, 0.5, 0.0, -1.4, 0.0, 1.2, 0.0];
         let mut out = StepOutput::default();
-        let none = std::iter::empty::<Measurement>();
+        let none = std::iter::empty::<Sighting>();
         c.step(
             &StepInput {
                 t_s: 0.0,

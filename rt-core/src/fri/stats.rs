@@ -152,8 +152,10 @@ impl LatencyHistogram {
         self.max_ns.load(Relaxed)
     }
 
-    /// The `q`-quantile (0..1), ns: the midpoint of its bucket (exact below
-    /// 128 ns), capped at the maximum; 0 when empty.
+    /// The `q`-quantile (0..1), ns, by the nearest rank `ceil(q n)` (no
+    /// samples are kept to interpolate between ranks, unlike
+    /// [`crate::quantile::quantile`]): the midpoint of the rank's bucket (exact
+    /// below 128 ns), capped at the maximum; 0 when empty.
     pub fn quantile_ns(&self, q: f64) -> u64 {
         let total = self.count();
         if total == 0 {

@@ -544,7 +544,7 @@ fn a_forced_jump_aborts_commanding_and_the_client_reports_it() {
     let st = rig.sim.stats();
     assert_eq!(st.violations.load(Relaxed), 1);
     match st.last_abort() {
-        Some(AbortReason::VelocityLimit {
+        Some(CommandingAbort::VelocityLimit {
             joint: 0,
             step_rad,
             max_step_rad,
@@ -593,7 +593,7 @@ fn a_position_beyond_the_limit_is_clamped_or_aborts() {
         } else {
             assert!(matches!(
                 st.last_abort(),
-                Some(AbortReason::PositionLimit { joint: 0, .. })
+                Some(CommandingAbort::PositionLimit { joint: 0, .. })
             ));
         }
     }
@@ -732,7 +732,7 @@ fn losing_half_the_replies_drops_out_of_commanding() {
     }
     assert!(matches!(
         rig.sim.stats().last_abort(),
-        Some(AbortReason::QualityDropped { .. })
+        Some(CommandingAbort::QualityDropped { .. })
     ));
     assert!(rig.sim.quality() < ConnectionQuality::Good);
     assert_eq!(rig.client.stats().snapshot().commanding_lost, 1);
@@ -1519,4 +1519,31 @@ fn a_step_over_a_lost_message_may_cover_the_periods_it_spans() {
     rig.run(1, &mut ctl);
     assert!(rig.client.stats().snapshot().guard_step >= 1);
     assert_eq!(rig.sim.stats().aborts.load(Relaxed), 0);
+}
+
+#[test]
+fn the_histogram_quantile_is_the_nearest_rank_within_its_bucket() {
+    let exact = |v: &[u64], q: f64| {
+        let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+        v[rank - 1]
+    };
+    // Below 128 ns every value has its bucket: the nearest rank exactly, and
+    // within one rank of the interpolating rule of every other figure.
+    let small: Vec<u64> = (1..=100).collect();
+    let h = crate::fri::stats::LatencyHistogram::new();
+    small.iter().for_each(|&v| h.record_ns(v));
+    let as_f64: Vec<f64> = small.iter().map(|&v| v as f64).collect();
+    for q in [0.0, 0.1, 0.5, 0.95, 0.99, 0.999, 1.0] {
+        assert_eq!(h.quantile_ns(q), exact(&small, q), "q {q}");
+        let linear = crate::quantile::quantile(&as_f64, q).unwrap();
+        assert!((h.quantile_ns(q) as f64 - linear).abs() <= 1.0, "q {q}");
+    }
+    // Above: within 0.4% of the nearest rank's value.
+    let large: Vec<u64> = (1..=5000u64).map(|i| 1000 + i * i * 37).collect();
+    let h = crate::fri::stats::LatencyHistogram::new();
+    large.iter().for_each(|&v| h.record_ns(v));
+    for q in [0.5, 0.9, 0.99, 0.999] {
+        let (got, want) = (h.quantile_ns(q) as f64, exact(&large, q) as f64);
+        assert!((got - want).abs() <= 0.004 * want, "q {q}: {got} vs {want}");
+    }
 }

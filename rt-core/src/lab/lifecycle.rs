@@ -550,7 +550,7 @@ mod tests {
         }
         assert_eq!(
             aborted,
-            Some((1, crate::bridge::AbortReason::Disarmed)),
+            Some((1, crate::bridge::AbortKind::Disarmed)),
             "the disarmed trial's end"
         );
         assert!(lab.lab_step().is_idle());

@@ -2,7 +2,7 @@
 //! inbox and the step's timing (wall clock and thread CPU time).
 
 use crate::control::{
-    Controller, Lateness, Measurement, StepClock, StepInput, StepOutput, StepRecord, StepTimings,
+    Controller, Lateness, Sighting, StepClock, StepInput, StepOutput, StepRecord, StepTimings,
 };
 use crate::fri::codec::Monitoring;
 use crate::fri::proto::SessionState;
@@ -19,7 +19,7 @@ pub struct LoopStep {
     /// The controller.
     pub controller: Controller,
     /// Camera measurements delivered since the last step.
-    pub inbox: Vec<Measurement>,
+    pub inbox: Vec<Sighting>,
     /// The last step's output.
     pub out: StepOutput,
     /// Steps whose own computation (thread CPU time) took longer than the FRI period.

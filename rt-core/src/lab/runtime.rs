@@ -147,9 +147,16 @@ pub enum RuntimeError {
     /// A thread panicked.
     #[error("real-time lab: the {0} thread failed")]
     Thread(&'static str),
-    /// A condition was not reached in time.
-    #[error("real-time lab: {0}")]
-    Timeout(String),
+    /// The FRI session did not reach COMMANDING_ACTIVE in time.
+    #[error(
+        "real-time lab: the FRI session did not reach COMMANDING_ACTIVE within {timeout:?} (it is {state:?})"
+    )]
+    NotCommanding {
+        /// How long it was given.
+        timeout: Duration,
+        /// The session's state then.
+        state: crate::fri::LinkState,
+    },
 }
 
 /// Where the robot is.
@@ -392,14 +399,12 @@ impl LabRuntime {
                 );
                 let (mut truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
                 let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
-                let pm = PendulumModel::from_params(&scenario.pendulum)
-                    .map_err(|e| RuntimeError::Timeout(e.to_string()))?;
+                let pm = PendulumModel::from_params(&scenario.pendulum)?;
                 let geo = PendulumGeometry::new(
                     scenario.pendulum.length_m,
                     d,
                     scenario.task.intercept_height_m,
-                )
-                .map_err(|e| RuntimeError::Timeout(e.to_string()))?;
+                )?;
                 if let Ok(b) = PendulumSim::held_at(pm, geo, 0.0, 0.0) {
                     let _ = truth_tx.push(TruthUpdate::Ball(b));
                 }
@@ -591,10 +596,10 @@ impl LabRuntime {
         let deadline = Instant::now() + timeout;
         while self.session_stats.state() != crate::fri::LinkState::CommandingActive {
             if Instant::now() > deadline {
-                return Err(RuntimeError::Timeout(format!(
-                    "the FRI session did not reach COMMANDING_ACTIVE within {timeout:?} (it is {:?})",
-                    self.session_stats.state()
-                )));
+                return Err(RuntimeError::NotCommanding {
+                    timeout,
+                    state: self.session_stats.state(),
+                });
             }
             std::thread::sleep(Duration::from_millis(2));
         }

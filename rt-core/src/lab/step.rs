@@ -19,14 +19,13 @@ use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
 use super::truth::TruthUpdate;
 use crate::bridge::{
-    self, AbortReason as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord,
-    FriQuality, FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult,
-    TrialSetup,
+    self, AbortKind as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord, FriQuality,
+    FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult, TrialSetup,
 };
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
-    AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, Measurement,
-    PlannedMotion, TrialState, TrialTrace, judge_into,
+    AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, PlannedMotion,
+    Sighting, TrialState, TrialTrace, judge_into,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
@@ -368,35 +367,6 @@ impl std::fmt::Debug for LabStep {
     }
 }
 
-pub(crate) fn map_state(s: TrialState) -> bridge::TrialState {
-    match s {
-        TrialState::Idle => bridge::TrialState::Idle,
-        TrialState::Arming => bridge::TrialState::Arming,
-        TrialState::Armed => bridge::TrialState::Armed,
-        TrialState::Released => bridge::TrialState::Released,
-        TrialState::Tracking => bridge::TrialState::Tracking,
-        TrialState::Intercepting => bridge::TrialState::Intercepting,
-        TrialState::Holding => bridge::TrialState::Holding,
-        TrialState::Done => bridge::TrialState::Done,
-        TrialState::Abort(_) => bridge::TrialState::Aborted,
-    }
-}
-
-fn map_abort(r: AbortReason) -> BridgeAbort {
-    match r {
-        AbortReason::StopRequested => BridgeAbort::Stop,
-        AbortReason::Infeasible => BridgeAbort::Infeasible,
-        AbortReason::IkFailed | AbortReason::GuardTripped => BridgeAbort::LimitViolation,
-        AbortReason::CameraLost => BridgeAbort::CameraLost,
-        AbortReason::FriLost => BridgeAbort::FriLost,
-        AbortReason::PredictionTimeout | AbortReason::MissedWindow => BridgeAbort::Timeout,
-        AbortReason::MagnetFault => BridgeAbort::MagnetFault,
-        AbortReason::OperatorLost => BridgeAbort::OperatorLost,
-        AbortReason::Disarmed => BridgeAbort::Disarmed,
-        _ => BridgeAbort::Internal,
-    }
-}
-
 fn map_session(s: SessionState) -> FriSessionState {
     match s {
         SessionState::Idle => FriSessionState::Idle,
@@ -560,7 +530,7 @@ impl LabStep {
         self.settle(t, false);
         self.snap.t_s = self.snap.t_s.max(t);
         self.snap.seq += 1;
-        self.snap.trial_state = map_state(self.inner.controller().state());
+        self.snap.trial_state = self.inner.controller().state().into();
         self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(t));
         self.p.bridge.publish(&self.snap);
     }
@@ -576,12 +546,12 @@ impl LabStep {
             t_s: t,
             trial_id,
             event: Event::StateChanged {
-                from: map_state(self.last_state),
-                to: map_state(state),
+                from: self.last_state.into(),
+                to: state.into(),
             },
         });
         if let TrialState::Abort(r) = state {
-            let reason = map_abort(r);
+            let reason = BridgeAbort::from(r);
             let detail = match reason {
                 _ if !self.abort_detail.is_empty() => self.abort_detail,
                 BridgeAbort::FriLost => session_detail(self.session),
@@ -688,7 +658,7 @@ impl LabStep {
             }
             let inbox = &mut self.inner.step.inbox;
             if inbox.len() < inbox.capacity() {
-                inbox.push(Measurement {
+                inbox.push(Sighting {
                     t_capture_s: m.t_capture_s,
                     lateral_m: m.lateral_m,
                 });
@@ -696,7 +666,7 @@ impl LabStep {
             } else {
                 self.snap.counters.measurement_overflows += 1;
             }
-            self.snap.pendulum.measured = bridge::Measurement {
+            self.snap.pendulum.measured = bridge::MeasurementView {
                 valid: true,
                 t_s: m.t_capture_s,
                 x_m: m.lateral_m,
@@ -1520,7 +1490,7 @@ impl LabStep {
         let s = &mut self.snap;
         s.t_s = t;
         s.seq += 1;
-        s.trial_state = map_state(c.state());
+        s.trial_state = c.state().into();
         // Pendulum: estimate and predicted horizon.
         let l = self.p.scenario.pendulum.length_m;
         match c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {
@@ -1843,7 +1813,17 @@ pub fn trial_beliefs(scenario: &Scenario, movement_time_s: Option<f64>) -> crate
 }
 
 pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<IoReply> {
-    Some(match req {
+    plan_or_params_why(scenario, req).map(|(reply, _)| reply)
+}
+
+/// [`plan_or_params`], with the controller's error when the plan is refused
+/// (the reply carries only the [`Refusal`]; the virtual lab records the error).
+pub(crate) fn plan_or_params_why(
+    scenario: &mut Scenario,
+    req: IoRequest,
+) -> Option<(IoReply, Option<ControlError>)> {
+    let mut why = None;
+    let reply = match req {
         IoRequest::Plan {
             ack,
             trial_id,
@@ -1860,7 +1840,10 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             // The controller plans on the beliefs only (never `[world]`),
             // with the trial's own movement time when it has one.
             plan: Controller::plan(&trial_beliefs(scenario, movement_time_s), draw.distance_m)
-                .map_err(|_| crate::bridge::Refusal::Infeasible),
+                .map_err(|e| {
+                    why = Some(e);
+                    crate::bridge::Refusal::Infeasible
+                }),
         },
         IoRequest::Params { ack, scenario: new } => {
             let period = f64::from(new.robot.fri_period_ms) * 1e-3;
@@ -1884,5 +1867,6 @@ pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<
             }
         }
         IoRequest::Magnet(_) | IoRequest::Free(_) => return None,
-    })
+    };
+    Some((reply, why))
 }

@@ -29,7 +29,7 @@ use super::loop_step::LoopStep;
 use super::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
 use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
-    TrialOutcome, Truth, plan_or_params,
+    TrialOutcome, Truth, plan_or_params_why,
 };
 use super::trial::TrialDraw;
 use super::truth::{TruthUpdate, TruthView};
@@ -52,18 +52,42 @@ use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
 
 /// Errors setting up the lab.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum LabError {
     /// The controller refused its parameters.
     #[error(transparent)]
     Control(#[from] ControlError),
-    /// The simulated robot refused its parameters or its session.
+    /// The simulated robot refused its parameters.
     #[error("simulated robot: {0}")]
-    Robot(String),
+    Robot(#[source] crate::check::ParamError),
+    /// The simulated robot's FRI session did not reach COMMANDING_ACTIVE in time.
+    #[error(
+        "simulated robot: the FRI session did not reach COMMANDING_ACTIVE within {timeout_s} s \
+         (controller {}, quality {})",
+        controller.name(),
+        quality.name()
+    )]
+    NotCommanding {
+        /// How long it was given, seconds (virtual time).
+        timeout_s: f64,
+        /// The simulated controller's session state then.
+        controller: SessionState,
+        /// Its connection quality then.
+        quality: crate::fri::proto::ConnectionQuality,
+    },
     /// The simulated camera could not start.
     #[error("simulated camera: {0}")]
-    Camera(String),
+    Camera(#[source] crate::vision::VisionError),
+    /// The detector of the rendered frames could not start.
+    #[error("simulated camera: vision: {0}")]
+    Vision(#[source] crate::vision::VisionError),
+    /// `camera.vision = "full"` in a build without OpenCV.
+    #[error(
+        "simulated camera: camera.vision = \"full\" renders frames through the OpenCV detector: \
+         this build has no `opencv` feature (use vision = \"model\")"
+    )]
+    NoOpenCv,
 }
 
 /// Joint angles of the simulated robot at power-on, degrees.
@@ -153,8 +177,7 @@ impl ControlSide {
         // `[success]` too (the controller checks only those it reads).
         scenario.validate_but_world().map_err(ControlError::from)?;
         let controller = Controller::new(&scenario.beliefs(), period_s)?;
-        let client = FriClient::new(FriClientParams::default())
-            .map_err(|e| LabError::Robot(e.to_string()))?;
+        let client = FriClient::new(FriClientParams::default()).map_err(LabError::Robot)?;
         let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
         let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
         let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
@@ -206,7 +229,7 @@ enum Camera {
     Model {
         camera: ModelCamera,
         rng: ChaCha8Rng,
-        delivered: Vec<crate::control::Measurement>,
+        delivered: Vec<crate::control::Sighting>,
     },
     /// Rendered frames through the OpenCV detector (`vision = "full"`).
     #[cfg(feature = "opencv")]
@@ -233,9 +256,9 @@ impl Camera {
                     scenario.pendulum.ball_radius_m,
                     seed,
                 )
-                .map_err(|e| LabError::Camera(e.to_string()))?;
+                .map_err(LabError::Camera)?;
                 let vision = SimVision::new(cam, DetectorParams::default(), calibration)
-                    .map_err(|e| LabError::Camera(format!("vision: {e}")))?;
+                    .map_err(LabError::Vision)?;
                 return Ok(Self::Full {
                     vision: Box::new(vision),
                     next_capture_s: f64::INFINITY,
@@ -245,11 +268,7 @@ impl Camera {
             #[cfg(not(feature = "opencv"))]
             {
                 let _ = calibration;
-                return Err(LabError::Camera(
-                    "camera.vision = \"full\" renders frames through the OpenCV detector: \
-                     this build has no `opencv` feature (use vision = \"model\")"
-                        .to_owned(),
-                ));
+                return Err(LabError::NoOpenCv);
             }
         }
         Ok(Self::Model {
@@ -305,8 +324,8 @@ pub struct VirtualLab {
     io_requests: Consumer<IoRequest>,
     io_replies: Producer<IoReply>,
     last_release: Option<Switch>,
-    /// Why the last plan was refused (the controller's words).
-    plan_error: Option<String>,
+    /// Why the last plan was refused.
+    plan_error: Option<ControlError>,
     magnet_error: Option<String>,
     /// The simulated robot's true joints, to the trial driver's judge.
     true_joints: std::sync::Arc<crate::fri::stats::AtomicJoints>,
@@ -409,8 +428,7 @@ impl VirtualLab {
         // The controller is built from the beliefs only: it never holds `[world]`.
         let side = ControlSide::new(scenario, seed, period_s, calibration, Some(truth))?;
         let robot_period_ns = robot.period_ns();
-        let robot =
-            SimController::new(robot, EPOCH_UNIX_NS).map_err(|e| LabError::Robot(e.to_string()))?;
+        let robot = SimController::new(robot, EPOCH_UNIX_NS).map_err(LabError::Robot)?;
         let camera = Camera::new(scenario, seed, calibration)?;
         let ControlSide {
             client,
@@ -474,12 +492,11 @@ impl VirtualLab {
                 f();
             });
         }
-        Err(LabError::Robot(format!(
-            "the FRI session did not reach COMMANDING_ACTIVE within {COMMANDING_TIMEOUT_S} s \
-             (controller {}, quality {})",
-            self.robot.state().name(),
-            self.robot.quality().name()
-        )))
+        Err(LabError::NotCommanding {
+            timeout_s: COMMANDING_TIMEOUT_S,
+            controller: self.robot.state(),
+            quality: self.robot.quality(),
+        })
     }
 
     /// The last trial's release: decided, command written, coil switched off.
@@ -644,7 +661,7 @@ impl VirtualLab {
                 break Err(self
                     .plan_error
                     .take()
-                    .unwrap_or_else(|| format!("refused: {}", r.as_str())));
+                    .map_or_else(|| format!("refused: {}", r.as_str()), |e| e.to_string()));
             }
             if let Some(e) = self.magnet_error.take() {
                 break Err(e);
@@ -884,17 +901,8 @@ impl VirtualLab {
                     if let IoRequest::Plan { draw, .. } = &req {
                         self.new_trial_world(t, draw.seed, draw.camera_phase_s, draw.distance_m);
                     }
-                    if let Some(reply) = plan_or_params(&mut self.scenario, req) {
-                        if let IoReply::Plan {
-                            plan: Err(_), draw, ..
-                        } = &reply
-                        {
-                            self.plan_error = Some(
-                                Controller::plan(&self.scenario.beliefs(), draw.distance_m)
-                                    .err()
-                                    .map_or_else(|| "infeasible".to_owned(), |e| e.to_string()),
-                            );
-                        }
+                    if let Some((reply, why)) = plan_or_params_why(&mut self.scenario, req) {
+                        self.plan_error = why;
                         if let IoReply::Plan {
                             plan: Ok(plan),
                             index,
@@ -1366,7 +1374,7 @@ mod tests {
             "the trial ended {ended_after} s into the silence"
         );
         let snap = lab.lab_step().snapshot();
-        assert_eq!(snap.abort.reason, Some(crate::bridge::AbortReason::FriLost));
+        assert_eq!(snap.abort.reason, Some(crate::bridge::AbortKind::FriLost));
         assert_eq!(snap.abort.trial_id, 2);
         assert!(
             snap.abort.detail.contains("fell silent"),

@@ -24,8 +24,8 @@ use super::SourceFactory;
 use crate::bridge::{Frame as VideoFrame, FrameSender};
 use crate::check;
 use crate::vision::{
-    DetectorParams, FrameSource, Measurement, SwingPlaneCalibration, VisionError, VisionPipeline,
-    VisionStats, source::Clock,
+    DetectorParams, FrameProblem, FrameSource, Measurement, SwingPlaneCalibration, VisionError,
+    VisionPipeline, VisionStats, source::Clock,
 };
 
 /// The camera stream to the dashboard: downscaled JPEG frames.
@@ -147,7 +147,7 @@ impl VisionLoop {
         let handle = std::thread::Builder::new()
             .name("isochron-vision".into())
             .spawn(move || run(parts, pipeline, &s, &st, &vs))
-            .map_err(|e| VisionError::Thread(e.to_string()))?;
+            .map_err(VisionError::Spawn)?;
         Ok(Self {
             stop,
             stats,
@@ -175,9 +175,7 @@ impl VisionLoop {
     pub fn stop(mut self) -> Result<(), VisionError> {
         self.stop.store(true, Ordering::Relaxed);
         match self.handle.take() {
-            Some(h) => h
-                .join()
-                .map_err(|_| VisionError::Thread("the vision thread panicked".into()))?,
+            Some(h) => h.join().map_err(|_| VisionError::Panicked)?,
             None => Ok(()),
         }
     }
@@ -312,7 +310,7 @@ pub fn encode_jpeg(
 ) -> Result<(), VisionError> {
     let (w, h) = (image.cols(), image.rows());
     if w <= 0 || h <= 0 {
-        return Err(VisionError::BadFrame("empty image".into()));
+        return Err(FrameProblem::Empty.into());
     }
     let tw = (p.width_px as i32).min(w);
     let th = ((f64::from(h) * f64::from(tw) / f64::from(w)).round() as i32).max(1);
@@ -333,7 +331,7 @@ pub fn encode_jpeg(
         Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, i32::from(p.quality)]);
     out.clear();
     if !imgcodecs::imencode(".jpg", src, out, &params)? {
-        return Err(VisionError::BadFrame("JPEG encoding failed".into()));
+        return Err(FrameProblem::JpegEncoding.into());
     }
     Ok(())
 }

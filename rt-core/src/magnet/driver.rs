@@ -189,7 +189,7 @@ impl MagnetHandle {
         let handle = std::thread::Builder::new()
             .name("isochron-magnet".to_owned())
             .spawn(move || worker.run())
-            .map_err(|e| MagnetError::Spawn(e.to_string()))?;
+            .map_err(|e| MagnetError::Spawn { kind: e.kind() })?;
         if let Ok(mut t) = shared.thread.lock() {
             *t = Some(handle);
         }
@@ -218,7 +218,7 @@ impl MagnetHandle {
     pub fn set_magnet(&self, on: bool) -> Result<DeviceStatus, MagnetError> {
         let a = self.submit(Command::Magnet(on))?.wait()?;
         a.status()
-            .ok_or_else(|| MagnetError::Protocol(format!("{:?}", a.reply)))
+            .ok_or_else(|| MagnetError::Protocol(a.reply.clone()))
     }
 
     /// Switches the calibration LED (blocking). The answer carries the command's
@@ -228,7 +228,7 @@ impl MagnetHandle {
         let a = self.submit(Command::Led(on))?.wait()?;
         match a.reply {
             OkReply::Led { on: got, .. } if got == on => Ok(a),
-            ref other => Err(MagnetError::Protocol(format!("{other:?}"))),
+            ref other => Err(MagnetError::Protocol(other.clone())),
         }
     }
 
@@ -236,14 +236,14 @@ impl MagnetHandle {
     pub fn status(&self) -> Result<DeviceStatus, MagnetError> {
         let a = self.submit(Command::Status)?.wait()?;
         a.status()
-            .ok_or_else(|| MagnetError::Protocol(format!("{:?}", a.reply)))
+            .ok_or_else(|| MagnetError::Protocol(a.reply.clone()))
     }
 
     /// Sets the coil's maximum hold time, seconds (blocking); returns it in ms.
     pub fn set_hold_limit(&self, seconds: u16) -> Result<u32, MagnetError> {
         match self.submit(Command::Hold(seconds))?.wait()?.reply {
             OkReply::Hold { hold_max_ms } => Ok(hold_max_ms),
-            other => Err(MagnetError::Protocol(format!("{other:?}"))),
+            other => Err(MagnetError::Protocol(other)),
         }
     }
 

@@ -149,16 +149,19 @@ pub enum MagnetError {
         /// The firmware's error code.
         code: String,
     },
-    /// An answer of an unexpected shape.
-    #[error("unexpected answer from the magnet device: {0}")]
-    Protocol(String),
+    /// An answer of another kind than the command asked for (the answer as parsed).
+    #[error("unexpected answer from the magnet device: {0:?}")]
+    Protocol(OkReply),
     /// Too many requests queued.
     #[error("the magnet driver's queue is full; try again")]
     Busy,
     /// The driver thread has stopped.
     #[error("the magnet driver has stopped")]
     Stopped,
-    /// The driver thread could not start.
-    #[error("cannot start the magnet driver: {0}")]
-    Spawn(String),
+    /// The driver thread could not start (the operating system's reason).
+    #[error("cannot start the magnet driver: {kind}")]
+    Spawn {
+        /// What kind of failure the operating system reported.
+        kind: std::io::ErrorKind,
+    },
 }

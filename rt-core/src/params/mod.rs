@@ -252,10 +252,7 @@ impl Scenario {
             path: path.display().to_string(),
             reason: e.to_string(),
         })?;
-        Self::from_toml_str(&text).map_err(|e| match e {
-            ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
-            other => other,
-        })
+        Self::from_toml_str(&text).map_err(|e| e.in_file(path))
     }
 
     /// The scenario as TOML text (every key written out).
@@ -267,9 +264,8 @@ impl Scenario {
 
 /// Turns a TOML error into one line: `line N: section.key: <message>`.
 fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
-    let msg = e.message().replace('\n', " ");
     let Some(span) = e.span() else {
-        return ParamError::Parse(msg);
+        return ParamError::parse(e.message());
     };
     let start = span.start.min(text.len());
     let before = &text[..start];
@@ -288,15 +284,17 @@ fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
         .split_once('=')
         .map(|(k, _)| k.trim())
         .filter(|k| !k.is_empty() && !k.starts_with('['));
-    let field = match (section, key) {
+    let key = match (section, key) {
         (Some(s), Some(k)) => Some(format!("{s}.{k}")),
         (None, Some(k)) => Some(k.to_owned()),
         (Some(s), None) => Some(s.to_owned()),
         (None, None) => None,
     };
-    match field {
-        Some(f) => ParamError::Parse(format!("line {line_no}: {f}: {msg}")),
-        None => ParamError::Parse(format!("line {line_no}: {msg}")),
+    ParamError::Parse {
+        path: None,
+        line: Some(line_no),
+        key,
+        message: e.message().replace('\n', " "),
     }
 }
 

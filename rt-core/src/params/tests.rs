@@ -104,7 +104,26 @@ fn every_rule_names_its_field() {
 #[test]
 fn unknown_key_is_refused_with_its_name_and_line() {
     let text = "name = \"x\"\n[pendulum]\nlenght_m = 1.5\n";
-    let e = Scenario::from_toml_str(text).unwrap_err().to_string();
+    let e = Scenario::from_toml_str(text).unwrap_err();
+    // The error keeps where (line and key) apart from the parser's message;
+    // read from a file, it names the file too.
+    let ParamError::Parse {
+        path: None,
+        line: Some(3),
+        key: Some(key),
+        message,
+    } = &e
+    else {
+        panic!("{e:?}")
+    };
+    assert_eq!(key, "pendulum.lenght_m");
+    assert!(message.contains("lenght_m"), "{message}");
+    let in_file = e.clone().in_file(std::path::Path::new("/x/s.toml"));
+    assert_eq!(
+        in_file.to_string(),
+        format!("/x/s.toml: line 3: pendulum.lenght_m: {message}")
+    );
+    let e = e.to_string();
     assert!(e.contains("lenght_m"), "{e}");
     assert!(e.contains("line 3"), "{e}");
     assert!(e.contains("pendulum.lenght_m"), "{e}");

@@ -11,7 +11,7 @@ mod tests;
 
 pub use path::{MotionRequest, tool_rotation};
 pub use plan::{
-    Binding, ElbowPolicy, LimitKind, MotionPlan, PlanError, PlanSummary, Posture, TrajectoryParams,
-    evaluate, plan,
+    Binding, ElbowPolicy, Infeasibility, LimitKind, MotionPlan, PlanError, PlanSummary, Posture,
+    TrajectoryParams, evaluate, plan,
 };
 pub use task::TaskParams;

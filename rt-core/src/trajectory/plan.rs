@@ -138,18 +138,86 @@ pub struct Binding {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum PlanError {
-    /// The request has a non-finite or out-of-range number.
+    /// A start or end point has NaN or infinite coordinates.
+    #[error("invalid motion: the start and end points must be finite")]
+    NotFinitePoints,
+    /// The movement time is not a positive number.
+    #[error("invalid motion: movement_time_s = {movement_time_s} must be a positive number")]
+    MovementTime {
+        /// The refused movement time, seconds.
+        movement_time_s: f64,
+    },
+    /// The start and end points coincide (no direction to move in).
+    #[error("invalid motion: the start and end points coincide")]
+    PointsCoincide,
+    /// The planner's parameters were refused.
     #[error("invalid motion: {0}")]
-    Invalid(String),
+    Params(#[from] ParamError),
     /// At every tilt the straight line leaves the arm's reach somewhere.
     #[error(
-        "unreachable: at every tilt within +-{max_tilt_deg} deg the path leaves the arm's reach ({detail})"
+        "unreachable: at every tilt within +-{max_tilt_deg} deg the path leaves the arm's reach ({})",
+        .ik.as_ref().map_or_else(|| "no tilt tried".to_owned(), ToString::to_string)
     )]
     Unreachable {
         /// The searched tilt range, degrees.
         max_tilt_deg: f64,
-        /// The IK's reason at the best tilt.
-        detail: String,
+        /// The IK's reason at the last tilt tried (which joint, its value
+        /// and limit, or how far out of reach); `None` when no tilt was tried.
+        ik: Option<IkError>,
+    },
+}
+
+impl PlanError {
+    /// Whether the motion is out of the arm's reach (rather than an invalid request).
+    pub const fn is_unreachable(&self) -> bool {
+        matches!(self, Self::Unreachable { .. })
+    }
+
+    /// The inverse kinematics' reason, when the motion is out of reach.
+    pub const fn ik(&self) -> Option<&IkError> {
+        match self {
+            Self::Unreachable { ik, .. } => ik.as_ref(),
+            _ => None,
+        }
+    }
+}
+
+/// Why a planned posture may not run as asked (a [`MotionPlan`] that is not
+/// feasible): the joint, the limit and the numbers.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum Infeasibility {
+    /// Some joint comes closer to its position limit than the margin along the path.
+    #[error(
+        "no posture keeps every joint {margin_deg:.1} deg inside its limits along the path: {} comes within {:.2} deg",
+        JOINT_NAMES[*joint], closest_rad.to_degrees()
+    )]
+    PositionMargin {
+        /// The joint closest to its limit (0 = A1).
+        joint: usize,
+        /// Its smallest distance to the limit along the path, radians.
+        closest_rad: f64,
+        /// The margin every joint must keep, degrees.
+        margin_deg: f64,
+    },
+    /// A joint would exceed its allowed share of a speed or acceleration limit.
+    #[error(
+        "{} would reach {:.0}% of its {} limit in {duration_s:.2} s (allowed {:.0}%); the shortest feasible duration is {shortest_feasible_s:.3} s",
+        JOINT_NAMES[*joint], ratio * 100.0, limit.name(), allowed * 100.0
+    )]
+    TooFast {
+        /// The binding joint (0 = A1).
+        joint: usize,
+        /// Which limit binds (velocity or acceleration).
+        limit: LimitKind,
+        /// Its peak as a fraction of the limit at the asked duration.
+        ratio: f64,
+        /// The fraction of the limit allowed.
+        allowed: f64,
+        /// The asked duration, seconds.
+        duration_s: f64,
+        /// The shortest duration this posture allows, seconds.
+        shortest_feasible_s: f64,
     },
 }
 
@@ -392,8 +460,8 @@ pub struct MotionPlan {
     pub shortest_feasible_s: f64,
     /// Whether the motion may run as asked.
     pub feasible: bool,
-    /// Why not, for a person (`None` when feasible).
-    pub reason: Option<String>,
+    /// Why not (`None` when feasible).
+    pub reason: Option<Infeasibility>,
     /// The joint vector at the start of the path: where the arm goes home.
     pub home_q: Joints,
     /// The joint vector at the end of the path.
@@ -477,7 +545,7 @@ impl MotionPlan {
                 .is_finite()
                 .then_some(self.shortest_feasible_s),
             home_q_rad: Some(self.home_q.into()),
-            reason: self.reason.clone(),
+            reason: self.reason.map(|r| r.to_string()),
         }
     }
 
@@ -605,20 +673,15 @@ fn validate_request(req: &MotionRequest) -> Result<(), PlanError> {
         .chain(req.end_m.iter())
         .all(|v| v.is_finite());
     if !finite {
-        return Err(PlanError::Invalid(
-            "the start and end points must be finite".into(),
-        ));
+        return Err(PlanError::NotFinitePoints);
     }
     if !(req.movement_time_s.is_finite() && req.movement_time_s > 0.0) {
-        return Err(PlanError::Invalid(format!(
-            "movement_time_s = {} must be a positive number",
-            req.movement_time_s
-        )));
+        return Err(PlanError::MovementTime {
+            movement_time_s: req.movement_time_s,
+        });
     }
     if req.length_m() < 1e-6 {
-        return Err(PlanError::Invalid(
-            "the start and end points coincide".into(),
-        ));
+        return Err(PlanError::PointsCoincide);
     }
     Ok(())
 }
@@ -644,9 +707,7 @@ struct Cand {
 /// ```
 pub fn plan(req: &MotionRequest, params: &TrajectoryParams) -> Result<MotionPlan, PlanError> {
     validate_request(req)?;
-    params
-        .validate()
-        .map_err(|e| PlanError::Invalid(e.to_string()))?;
+    params.validate()?;
     let max_tilt = params.max_tilt_deg.to_radians();
     let deg = PI / 180.0;
     let psis: Vec<f64> = match params.elbow {
@@ -678,7 +739,7 @@ pub fn plan(req: &MotionRequest, params: &TrajectoryParams) -> Result<MotionPlan
     if cands.is_empty() {
         return Err(PlanError::Unreachable {
             max_tilt_deg: params.max_tilt_deg,
-            detail: last_err.map_or_else(|| "no tilt tried".to_owned(), |e| e.to_string()),
+            ik: last_err,
         });
     }
     cands.sort_by(|a, b| a.score.total_cmp(&b.score));
@@ -765,7 +826,7 @@ fn finish(
     let r = tool_rotation(tilt);
     let samples = Samples::new(req, &r, n).map_err(|e| PlanError::Unreachable {
         max_tilt_deg: p.max_tilt_deg,
-        detail: e.to_string(),
+        ik: Some(e),
     })?;
     let ev = samples.eval(psi);
     let (fi, margin, margin_joint) = ev.best_flags();
@@ -791,12 +852,11 @@ fn finish(
                 limit: LimitKind::Position,
             },
             f64::INFINITY,
-            Some(format!(
-                "no posture keeps every joint {:.1} deg inside its limits along the path: {} comes within {:.2} deg",
-                p.position_margin_deg,
-                JOINT_NAMES[margin_joint],
-                margin.to_degrees()
-            )),
+            Some(Infeasibility::PositionMargin {
+                joint: margin_joint,
+                closest_rad: margin,
+                margin_deg: p.position_margin_deg,
+            }),
         )
     } else if t_min_exact > t * (1.0 + 1e-9) {
         let j = speed_binding.joint;
@@ -808,15 +868,14 @@ fn finish(
             false,
             speed_binding,
             t_min,
-            Some(format!(
-                "{} would reach {:.0}% of its {} limit in {:.2} s (allowed {:.0}%); the shortest feasible duration is {:.3} s",
-                JOINT_NAMES[j],
-                ratio * 100.0,
-                speed_binding.limit.name(),
-                t,
-                allowed * 100.0,
-                t_min
-            )),
+            Some(Infeasibility::TooFast {
+                joint: j,
+                limit: speed_binding.limit,
+                ratio,
+                allowed,
+                duration_s: t,
+                shortest_feasible_s: t_min,
+            }),
         )
     } else {
         (true, speed_binding, t_min, None)
@@ -848,8 +907,6 @@ pub fn evaluate(
     arm_angle_rad: f64,
 ) -> Result<MotionPlan, PlanError> {
     validate_request(req)?;
-    params
-        .validate()
-        .map_err(|e| PlanError::Invalid(e.to_string()))?;
+    params.validate()?;
     finish(req, params, tilt_rad, arm_angle_rad)
 }

@@ -39,9 +39,9 @@ use std::f64::consts::TAU;
 use nalgebra::Vector3;
 
 use super::path::MotionRequest;
-use super::plan::{MotionPlan, PlanError, TrajectoryParams, nearest_variant, plan};
+use super::plan::{Infeasibility, MotionPlan, PlanError, TrajectoryParams, nearest_variant, plan};
 use super::profile::ProfileKind;
-use crate::kinematics::analytic::{ArmFlags, ArmGeometry, wrap_angle};
+use crate::kinematics::analytic::{ArmFlags, ArmGeometry, IkError, wrap_angle};
 use crate::kinematics::dynamics::ArmDynamics;
 use crate::kinematics::iiwa7::{JOINT_NAMES, JOINTS, TORQUE_LIMIT_NM};
 use crate::kinematics::{Joints, Tool};
@@ -49,6 +49,56 @@ use crate::kinematics::{Joints, Tool};
 /// Contact phases the search tries, as fractions of the cycle: from the
 /// peak speed (1/2) to near the end (a short brake).
 pub const CONTACT_PHASES: [f64; 5] = [0.5, 0.6, 0.7, 0.8, 0.9];
+
+/// Why a stroke cannot be built or checked.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum StrikeError {
+    /// A number of the stroke is out of its range.
+    #[error("strike: {what} = {value} ({bound})")]
+    OutOfRange {
+        /// Which number.
+        what: &'static str,
+        /// Its value.
+        value: f64,
+        /// What it must be.
+        bound: &'static str,
+    },
+    /// The torque check's joint path left the arm's reach (a posture the
+    /// planner found along its samples, not between them).
+    #[error("strike: the torque check's joint path: {0}")]
+    Ik(#[from] IkError),
+    /// The planner refused the request.
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+}
+
+/// Why a stroke may not run as asked.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum StrikeRefusal {
+    /// Out of the arm's reach somewhere along the stroke.
+    #[error(transparent)]
+    Unreachable(PlanError),
+    /// A joint's position margin, speed or acceleration.
+    #[error(transparent)]
+    Kinematics(Infeasibility),
+    /// A joint's torque.
+    #[error(
+        "torque: {} needs {peak_nm:.1} N m, {:.0}% of its {:.0} N m limit (allowed {:.0}%)",
+        JOINT_NAMES[*joint], ratio * 100.0, TORQUE_LIMIT_NM[*joint], allowed * 100.0
+    )]
+    Torque {
+        /// The joint (0 = A1).
+        joint: usize,
+        /// Its largest |torque| along the stroke, N m.
+        peak_nm: f64,
+        /// That over its limit.
+        ratio: f64,
+        /// The share of the limit allowed.
+        allowed: f64,
+    },
+}
 
 /// One stroke: where it starts, meets the ball and ends, and when.
 #[derive(Debug, Clone, PartialEq)]
@@ -82,23 +132,27 @@ impl Stroke {
         movement_time_s: f64,
         contact_fraction: f64,
         tool: Tool,
-    ) -> Result<Self, PlanError> {
-        let bad = |what: &str, v: f64| PlanError::Invalid(format!("strike: {what} = {v}"));
+    ) -> Result<Self, StrikeError> {
+        let bad = |what, value, bound| StrikeError::OutOfRange { what, value, bound };
         if !(speed_mps.is_finite() && speed_mps > 0.0) {
-            return Err(bad("speed_mps (must be > 0)", speed_mps));
+            return Err(bad("speed_mps", speed_mps, "must be > 0"));
         }
         if !(movement_time_s.is_finite() && movement_time_s > 0.0) {
-            return Err(bad("movement_time_s (must be > 0)", movement_time_s));
+            return Err(bad("movement_time_s", movement_time_s, "must be > 0"));
         }
         if !(contact_fraction > 0.0 && contact_fraction < 1.0) {
             return Err(bad(
-                "contact_fraction (must be in (0, 1))",
+                "contact_fraction",
                 contact_fraction,
+                "must be in (0, 1)",
             ));
         }
         let norm = direction.norm();
-        if !(norm.is_finite() && norm > 1e-9 && contact_m.iter().all(|v| v.is_finite())) {
-            return Err(bad("direction norm", norm));
+        if !(norm.is_finite() && norm > 1e-9) {
+            return Err(bad("direction's length", norm, "must be finite and > 0"));
+        }
+        if let Some(v) = contact_m.iter().find(|v| !v.is_finite()) {
+            return Err(bad("contact_m", *v, "must be finite"));
         }
         let u = direction / norm;
         let phi = TAU * contact_fraction;
@@ -162,17 +216,6 @@ impl TorqueCheck {
     pub fn worst_ratio(&self) -> f64 {
         self.ratio[self.worst_joint]
     }
-
-    /// `A6 at 83% of 40 N m`.
-    pub fn describe(&self) -> String {
-        let j = self.worst_joint;
-        format!(
-            "{} at {:.0}% of its {:.0} N m",
-            JOINT_NAMES[j],
-            self.ratio[j] * 100.0,
-            TORQUE_LIMIT_NM[j]
-        )
-    }
 }
 
 /// The torques of `planned` (the posture [`plan`] chose for `request`) along
@@ -184,7 +227,7 @@ pub fn torque_check(
     planned: &MotionPlan,
     arm: &ArmDynamics,
     dt_s: f64,
-) -> Result<TorqueCheck, PlanError> {
+) -> Result<TorqueCheck, StrikeError> {
     let t_end = request.movement_time_s;
     let n = ((t_end / dt_s).ceil() as usize).max(2);
     let h = t_end / n as f64;
@@ -194,8 +237,7 @@ pub fn torque_check(
     for k in 0..=n {
         let tau = k as f64 / n as f64;
         let p = request.point_at(request.profile.position(tau));
-        let g = ArmGeometry::new(&request.flange_pose_for(&p, &planned.tool_rotation))
-            .map_err(|e| PlanError::Invalid(format!("torque check: {e}")))?;
+        let g = ArmGeometry::new(&request.flange_pose_for(&p, &planned.tool_rotation))?;
         let mut q = Joints::zeros();
         g.solve(planned.arm_angle_rad, base, &mut q);
         q = nearest_variant(&q, &prev);
@@ -247,15 +289,16 @@ pub fn torque_check(
 pub struct StrikePlan {
     /// The stroke.
     pub stroke: Stroke,
-    /// The planner's posture and kinematic check of the whole cycle.
-    pub plan: MotionPlan,
+    /// The planner's posture and kinematic check of the whole cycle (none
+    /// when the stroke leaves the arm's reach).
+    pub plan: Option<MotionPlan>,
     /// The torques along it (none when the posture is already refused).
     pub torque: Option<TorqueCheck>,
     /// Whether the stroke may run: kinematically feasible and every torque
     /// within `torque_fraction` of its limit.
     pub feasible: bool,
-    /// Why not, for a person.
-    pub reason: Option<String>,
+    /// Why not.
+    pub reason: Option<StrikeRefusal>,
 }
 
 /// The share of each joint's torque limit a stroke may use (the rest is the
@@ -268,13 +311,25 @@ pub fn plan_strike(
     stroke: Stroke,
     params: &TrajectoryParams,
     tool_mass_kg: f64,
-) -> Result<StrikePlan, PlanError> {
-    let planned = plan(&stroke.request, params)?;
+) -> Result<StrikePlan, StrikeError> {
+    let planned = match plan(&stroke.request, params) {
+        Ok(p) => p,
+        Err(e) if e.is_unreachable() => {
+            return Ok(StrikePlan {
+                stroke,
+                plan: None,
+                torque: None,
+                feasible: false,
+                reason: Some(StrikeRefusal::Unreachable(e)),
+            });
+        }
+        Err(e) => return Err(e.into()),
+    };
     if !planned.feasible {
-        let reason = planned.reason.clone();
+        let reason = planned.reason.map(StrikeRefusal::Kinematics);
         return Ok(StrikePlan {
             stroke,
-            plan: planned,
+            plan: Some(planned),
             torque: None,
             feasible: false,
             reason,
@@ -285,16 +340,16 @@ pub fn plan_strike(
     let dt = (params.sample_period_ms * 1e-3).max(1e-3);
     let torque = torque_check(&stroke.request, &planned, &arm, dt)?;
     let ok = torque.worst_ratio() <= TORQUE_FRACTION;
-    let reason = (!ok).then(|| {
-        format!(
-            "torque: {} (allowed {:.0}%)",
-            torque.describe(),
-            TORQUE_FRACTION * 100.0
-        )
+    let j = torque.worst_joint;
+    let reason = (!ok).then_some(StrikeRefusal::Torque {
+        joint: j,
+        peak_nm: torque.peak_nm[j],
+        ratio: torque.ratio[j],
+        allowed: TORQUE_FRACTION,
     });
     Ok(StrikePlan {
         stroke,
-        plan: planned,
+        plan: Some(planned),
         torque: Some(torque),
         feasible: ok,
         reason,
@@ -309,7 +364,7 @@ pub struct StrikeLimit {
     /// The plan at that speed (its contact phase the best one found).
     pub best: Option<StrikePlan>,
     /// Why the next faster stroke was refused (what binds).
-    pub binding: Option<String>,
+    pub binding: Option<StrikeRefusal>,
 }
 
 /// What [`largest_strike_speed`] searches over.
@@ -337,7 +392,7 @@ pub fn largest_strike_speed(
     direction: Vector3<f64>,
     search: &StrikeSearch,
     params: &TrajectoryParams,
-) -> Result<StrikeLimit, PlanError> {
+) -> Result<StrikeLimit, StrikeError> {
     let StrikeSearch {
         movement_time_s,
         tool,
@@ -350,16 +405,13 @@ pub fn largest_strike_speed(
         best: None,
         binding: None,
     };
-    // Feasible, or why not (a stroke out of reach is refused, not an error).
-    let attempt = |v: f64, f: f64| -> Result<Result<StrikePlan, String>, PlanError> {
-        let stroke = Stroke::new(contact_m, direction, v, movement_time_s, f, tool)?;
-        match plan_strike(stroke, params, tool_mass_kg) {
-            Ok(p) if p.feasible => Ok(Ok(p)),
-            Ok(p) => Ok(Err(p.reason.unwrap_or_default())),
-            Err(e @ PlanError::Unreachable { .. }) => Ok(Err(e.to_string())),
-            Err(e) => Err(e),
-        }
-    };
+    // Feasible, or why not.
+    let attempt =
+        |v: f64, f: f64| -> Result<Result<StrikePlan, Option<StrikeRefusal>>, StrikeError> {
+            let stroke = Stroke::new(contact_m, direction, v, movement_time_s, f, tool)?;
+            let p = plan_strike(stroke, params, tool_mass_kg)?;
+            Ok(if p.feasible { Ok(p) } else { Err(p.reason) })
+        };
     for f in CONTACT_PHASES {
         let (mut lo, mut hi) = (0.0, max_speed_mps);
         let mut best_here: Option<StrikePlan> = None;
@@ -386,7 +438,7 @@ pub fn largest_strike_speed(
                     }
                 }
                 if lo > out.speed_mps {
-                    out.binding = Some(why);
+                    out.binding = why;
                 }
             }
         }
@@ -458,7 +510,7 @@ mod tests {
         let t = slow.torque.unwrap();
         let arm = ArmDynamics::default();
         let zero = [0.0; JOINTS];
-        let q: [f64; JOINTS] = slow.plan.home_q.into();
+        let q: [f64; JOINTS] = slow.plan.as_ref().unwrap().home_q.into();
         let g = arm.torques(&q, &zero, &zero);
         for (i, (peak, gi)) in t.peak_nm.iter().zip(g).enumerate() {
             assert!(*peak >= gi.abs() - 1e-6, "joint {i}");
@@ -497,6 +549,8 @@ mod tests {
         assert!(best.feasible);
         assert!(
             best.plan
+                .as_ref()
+                .unwrap()
                 .speed_ratio
                 .iter()
                 .all(|r| *r <= params.velocity_fraction + 1e-9)
@@ -505,12 +559,7 @@ mod tests {
         // 0.1 m/s faster fails at every contact phase.
         for f in CONTACT_PHASES {
             let s = Stroke::new(p, u, limit.speed_mps + 0.1, 1.0, f, tool()).unwrap();
-            let refused = match plan_strike(s, &params, 0.2) {
-                Ok(sp) => !sp.feasible,
-                Err(PlanError::Unreachable { .. }) => true,
-                Err(e) => panic!("{e}"),
-            };
-            assert!(refused, "phase {f}");
+            assert!(!plan_strike(s, &params, 0.2).unwrap().feasible, "phase {f}");
         }
         assert!(limit.binding.is_some());
     }

@@ -3,6 +3,8 @@ use std::time::Instant;
 use nalgebra::Vector3;
 
 use super::*;
+use crate::check::ParamError;
+use crate::kinematics::analytic::IkError;
 use crate::kinematics::iiwa7::{JOINT_NAMES, JOINTS, VELOCITY_LIMIT_RADPS};
 use crate::kinematics::numeric::rotation_error;
 use crate::kinematics::{Joints, tool_pose, within_limits};
@@ -133,9 +135,18 @@ fn a_planar_elbow_is_refused_from_about_0_75_m_with_a2_binding() {
             assert_eq!(plan.binding.limit, LimitKind::Velocity);
             let reason = plan.reason.unwrap();
             assert!(
-                reason.contains("A2") && reason.contains("velocity"),
-                "{reason}"
+                matches!(
+                    reason,
+                    Infeasibility::TooFast {
+                        joint: 1,
+                        limit: LimitKind::Velocity,
+                        ..
+                    }
+                ),
+                "{reason:?}"
             );
+            let text = reason.to_string();
+            assert!(text.contains("A2") && text.contains("velocity"), "{text}");
         }
     }
 }
@@ -155,7 +166,22 @@ fn too_short_a_duration_is_refused_with_the_shortest_feasible_one() {
         "{}",
         plan.shortest_feasible_s
     );
-    assert!(plan.reason.unwrap().contains("shortest feasible duration"));
+    let reason = plan.reason.unwrap();
+    let Infeasibility::TooFast {
+        joint,
+        ratio,
+        allowed,
+        duration_s,
+        shortest_feasible_s,
+        ..
+    } = reason
+    else {
+        panic!("{reason:?}")
+    };
+    assert_eq!((joint, duration_s), (3, 1.2));
+    assert!(ratio > allowed, "{ratio} {allowed}");
+    assert_eq!(shortest_feasible_s, plan.shortest_feasible_s);
+    assert!(reason.to_string().contains("shortest feasible duration"));
     // Taking the shortest feasible duration gives a feasible motion at 90%.
     req.movement_time_s = plan.shortest_feasible_s;
     let again = super::plan::evaluate(&req, &p, plan.tilt_rad, plan.arm_angle_rad).unwrap();
@@ -167,23 +193,34 @@ fn too_short_a_duration_is_refused_with_the_shortest_feasible_one() {
 #[test]
 fn unreachable_and_invalid_motions_are_refused() {
     let p = TrajectoryParams::default();
-    assert!(matches!(
-        plan(&lab(1.1), &p),
-        Err(PlanError::Unreachable { .. })
-    ));
+    // Out of reach: the error keeps the IK's numbers (distance and reach),
+    // and its sentence says them.
+    let e = plan(&lab(1.1), &p).unwrap_err();
+    let Some(IkError::OutOfReach { distance_m, max_m }) = e.ik().copied() else {
+        panic!("{e:?}")
+    };
+    assert!(distance_m > max_m, "{distance_m} {max_m}");
+    assert!(
+        matches!(e, PlanError::Unreachable { max_tilt_deg, .. } if max_tilt_deg == p.max_tilt_deg)
+    );
+    assert!(e.to_string().contains(&format!("{max_m:.3} m")), "{e}");
     let mut req = lab(0.5);
     req.movement_time_s = f64::NAN;
-    assert!(matches!(plan(&req, &p), Err(PlanError::Invalid(_))));
+    assert!(
+        matches!(plan(&req, &p), Err(PlanError::MovementTime { movement_time_s }) if movement_time_s.is_nan())
+    );
     let mut req = lab(0.5);
     req.end_m = req.start_m;
-    assert!(matches!(plan(&req, &p), Err(PlanError::Invalid(_))));
+    assert!(matches!(plan(&req, &p), Err(PlanError::PointsCoincide)));
     let bad = TrajectoryParams {
         velocity_fraction: 1.5,
         ..TrajectoryParams::default()
     };
     let e = bad.validate().unwrap_err().to_string();
     assert!(e.contains("trajectory.velocity_fraction"), "{e}");
-    assert!(matches!(plan(&lab(0.5), &bad), Err(PlanError::Invalid(_))));
+    assert!(
+        matches!(plan(&lab(0.5), &bad), Err(PlanError::Params(ParamError::OutOfRange { field, .. })) if field == "trajectory.velocity_fraction")
+    );
 }
 
 #[test]

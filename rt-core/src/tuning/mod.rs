@@ -13,9 +13,59 @@ use std::path::Path;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
 pub enum TuneError {
-    /// The recording's text is not what we read.
-    #[error("recording: {0}")]
-    Format(String),
+    /// The CSV reader refused the text (at `line`, when it knows).
+    #[error("recording: {reason}")]
+    Csv {
+        /// The line, 1-based, when the reader knows it.
+        line: Option<u64>,
+        /// The CSV reader's message.
+        reason: String,
+    },
+    /// No header line.
+    #[error("recording: empty file")]
+    Empty,
+    /// Neither the trial recording's nor the plain series' columns.
+    #[error(
+        "recording: needs columns measured_t_s and measured_x_m (a trial recording) or t_s and x_m"
+    )]
+    MissingColumns,
+    /// A row with fewer cells than the header.
+    #[error("recording: line {line}: too few columns")]
+    TooFewColumns {
+        /// The line, 1-based.
+        line: u64,
+    },
+    /// A cell that is not a number, or not a finite one.
+    #[error(
+        "recording: line {line}: column {column:?} = {raw:?} is not a {}number",
+        if *parsed { "finite " } else { "" }
+    )]
+    BadNumber {
+        /// The line, 1-based.
+        line: u64,
+        /// The column's name (from the header).
+        column: String,
+        /// The cell as written.
+        raw: String,
+        /// True when it parsed, as NaN or an infinity.
+        parsed: bool,
+    },
+    /// A capture time before the previous one.
+    #[error("recording: line {line}: capture time {t_s} goes back before {previous_s}")]
+    TimeGoesBack {
+        /// The line, 1-based.
+        line: u64,
+        /// The capture time on it, seconds.
+        t_s: f64,
+        /// The previous capture time, seconds.
+        previous_s: f64,
+    },
+    /// A trial recording that never gets past arming: no release.
+    #[error(
+        "recording: the trial recording never leaves the states before the release \
+         (idle, arming, armed): the ball was not released"
+    )]
+    NotReleased,
     /// Too few measurements to estimate two noise parameters.
     #[error("recording has {0} measurements; at least {MIN_MEASUREMENTS} are needed")]
     TooShort(usize),
@@ -39,6 +89,14 @@ pub enum TuneError {
     /// The filter refused the data.
     #[error(transparent)]
     Filter(#[from] EkfError),
+}
+
+/// The CSV reader's error, with its line when it knows it.
+fn csv_error(e: csv::Error) -> TuneError {
+    TuneError::Csv {
+        line: e.position().map(csv::Position::line),
+        reason: e.to_string(),
+    }
 }
 
 /// Fewest measurements `tune` works on (about 10 s at 30 fps).
@@ -85,12 +143,12 @@ impl Series {
             .from_reader(text.as_bytes());
         let names: Vec<String> = reader
             .headers()
-            .map_err(|e| TuneError::Format(e.to_string()))?
+            .map_err(csv_error)?
             .iter()
             .map(str::to_owned)
             .collect();
         if names.iter().all(String::is_empty) {
-            return Err(TuneError::Format("empty file".into()));
+            return Err(TuneError::Empty);
         }
         let find = |n: &str| names.iter().position(|h| *h == n);
         let (ti, zi, vi, si) = match (find("measured_t_s"), find("measured_x_m")) {
@@ -98,11 +156,7 @@ impl Series {
             _ => match (find("t_s"), find("x_m")) {
                 (Some(t), Some(z)) => (t, z, None, None),
                 _ => {
-                    return Err(TuneError::Format(
-                        "needs columns measured_t_s and measured_x_m (a trial recording) \
-                         or t_s and x_m"
-                            .into(),
-                    ));
+                    return Err(TuneError::MissingColumns);
                 }
             },
         };
@@ -112,26 +166,18 @@ impl Series {
         let mut released_at: Option<f64> = None;
         let mut saw_state = false;
         for row in reader.records() {
-            let cells = row.map_err(|e| TuneError::Format(e.to_string()))?;
+            let cells = row.map_err(csv_error)?;
             let no = cells.position().map_or(0, |p| p.line());
             let cell = |i: usize| -> Result<f64, TuneError> {
-                let raw = cells
-                    .get(i)
-                    .ok_or_else(|| TuneError::Format(format!("line {no}: too few columns")))?;
-                let v = raw.parse::<f64>().map_err(|_| {
-                    TuneError::Format(format!(
-                        "line {no}: column {:?} = {raw:?} is not a number",
-                        names.get(i).map_or("?", String::as_str)
-                    ))
-                })?;
-                if v.is_finite() {
-                    Ok(v)
-                } else {
-                    Err(TuneError::Format(format!(
-                        "line {no}: column {:?} = {raw:?} is not a finite number",
-                        names.get(i).map_or("?", String::as_str)
-                    )))
-                }
+                let raw = cells.get(i).ok_or(TuneError::TooFewColumns { line: no })?;
+                let bad = |parsed: bool| TuneError::BadNumber {
+                    line: no,
+                    column: names.get(i).map_or("?", String::as_str).to_owned(),
+                    raw: raw.to_owned(),
+                    parsed,
+                };
+                let v = raw.parse::<f64>().map_err(|_| bad(false))?;
+                if v.is_finite() { Ok(v) } else { Err(bad(true)) }
             };
             if let Some(si) = si {
                 saw_state = true;
@@ -162,9 +208,11 @@ impl Series {
             match s.t_s.last() {
                 Some(&last) if t == last => continue, // repeated until the next frame
                 Some(&last) if t < last => {
-                    return Err(TuneError::Format(format!(
-                        "line {no}: capture time {t} goes back before {last}"
-                    )));
+                    return Err(TuneError::TimeGoesBack {
+                        line: no,
+                        t_s: t,
+                        previous_s: last,
+                    });
                 }
                 _ => {}
             }
@@ -172,11 +220,7 @@ impl Series {
             s.z_m.push(z);
         }
         if saw_state && released_at.is_none() {
-            return Err(TuneError::Format(
-                "the trial recording never leaves the states before the release \
-                 (idle, arming, armed): the ball was not released"
-                    .into(),
-            ));
+            return Err(TuneError::NotReleased);
         }
         Ok(s)
     }
@@ -633,13 +677,12 @@ pub fn params_toml(params: &EkfParams, report: &TuneReport) -> String {
 pub fn overlay_params(scenario: &Scenario, text: &str) -> Result<Scenario, ParamError> {
     // Alone first: its errors then name the file's line and field.
     Scenario::from_toml_str(text)?;
-    let patch: toml::Table = toml::from_str(text).map_err(|e| ParamError::Parse(e.to_string()))?;
-    let mut merged =
-        toml::Table::try_from(scenario).map_err(|e| ParamError::Parse(e.to_string()))?;
+    let patch: toml::Table = toml::from_str(text).map_err(|e| ParamError::parse(&e))?;
+    let mut merged = toml::Table::try_from(scenario).map_err(|e| ParamError::parse(&e))?;
     merge_tables(&mut merged, patch);
     let out: Scenario = merged
         .try_into()
-        .map_err(|e: toml::de::Error| ParamError::Parse(e.to_string()))?;
+        .map_err(|e: toml::de::Error| ParamError::parse(&e))?;
     out.validate()?;
     Ok(out)
 }
@@ -650,10 +693,7 @@ pub fn overlay_params_file(scenario: &Scenario, path: &Path) -> Result<Scenario,
         path: path.display().to_string(),
         reason: e.to_string(),
     })?;
-    overlay_params(scenario, &text).map_err(|e| match e {
-        ParamError::Parse(m) => ParamError::Parse(format!("{}: {m}", path.display())),
-        other => other,
-    })
+    overlay_params(scenario, &text).map_err(|e| e.in_file(path))
 }
 
 fn merge_tables(into: &mut toml::Table, patch: toml::Table) {

@@ -236,9 +236,18 @@ fn a_params_file_overlays_only_the_keys_it_sets() {
 
 #[test]
 fn bad_csv_names_the_line_and_column() {
-    let e = Series::from_csv("t_s,x_m\n0.0,abc\n")
-        .unwrap_err()
-        .to_string();
+    let e = Series::from_csv("t_s,x_m\n0.0,abc\n").unwrap_err();
+    // The error keeps the line, the column and the cell.
+    assert_eq!(
+        e,
+        TuneError::BadNumber {
+            line: 2,
+            column: "x_m".into(),
+            raw: "abc".into(),
+            parsed: false,
+        }
+    );
+    let e = e.to_string();
     assert!(e.contains("line 2") && e.contains("x_m"), "{e}");
     let e = Series::from_csv("a,b\n1,2\n").unwrap_err().to_string();
     assert!(e.contains("measured_x_m"), "{e}");
@@ -246,7 +255,7 @@ fn bad_csv_names_the_line_and_column() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("goes back"), "{e}");
-    assert!(Series::from_csv("").is_err());
+    assert_eq!(Series::from_csv(""), Err(TuneError::Empty));
 }
 
 #[test]

@@ -295,18 +295,15 @@ impl SwingPlaneCalibration {
             plane_distance_m: rest_c.dot(&cal.normal_c),
         };
         if cal.normal_c.dot(&ray).abs() < 1e-3 {
-            return Err(VisionError::Calibration(
-                "the camera looks along the swing plane: the plane cannot be measured".into(),
-            ));
+            return Err(VisionError::PlaneEdgeOn);
         }
         if relative_disagreement.abs() > size_tolerance {
-            return Err(VisionError::Calibration(format!(
-                "the given distance {distance_m:.3} m and the distance from the ball's apparent size \
-                 {size_distance_m:.3} m differ by {:.1}% (more than {:.1}%): check the distance, the \
-                 focal length and the ball radius",
-                100.0 * relative_disagreement,
-                100.0 * size_tolerance
-            )));
+            return Err(VisionError::SizeDisagrees {
+                given_distance_m: distance_m,
+                size_distance_m,
+                relative_disagreement,
+                tolerance: size_tolerance,
+            });
         }
         Ok((cal, report))
     }

@@ -14,7 +14,7 @@
 
 use opencv::core::{self, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Scalar, Vec3b};
 
-use super::VisionError;
+use super::{FrameProblem, VisionError};
 
 /// OpenCV's fixed-point shift of the 8-bit HSV conversion.
 const HSV_SHIFT: u32 = 12;
@@ -140,10 +140,12 @@ impl HsvRange {
         let step = step.max(1);
         let (rows, cols) = (img.rows() / step, img.cols() / step);
         if img.typ() != core::CV_8UC3 {
-            return Err(VisionError::BadFrame(format!(
-                "expected an 8-bit 3-channel BGR image, got type {}",
-                img.typ()
-            )));
+            return Err(FrameProblem::NotBgr {
+                width_px: img.cols(),
+                height_px: img.rows(),
+                cv_type: img.typ(),
+            }
+            .into());
         }
         if out.rows() != rows || out.cols() != cols || out.typ() != core::CV_8UC1 {
             *out = Mat::new_rows_cols_with_default(rows, cols, core::CV_8UC1, Scalar::all(0.0))?;

@@ -20,9 +20,9 @@ use opencv::{
 };
 use serde::{Deserialize, Serialize};
 
-use super::VisionError;
 use super::colour::HsvRange;
 use super::morphology::{Morphology, RunKernel};
+use super::{FrameProblem, VisionError};
 use crate::check::{self, ParamError};
 
 /// The arc fit's sampling seed (deterministic for the same frames).
@@ -282,12 +282,12 @@ impl Detector {
     /// used to predict the tracking window).
     pub fn detect(&mut self, image: &Mat, t_s: f64) -> Result<Option<Detection>, VisionError> {
         if image.empty() || image.typ() != core::CV_8UC3 {
-            return Err(VisionError::BadFrame(format!(
-                "expected a non-empty 8-bit 3-channel BGR image, got {}x{} of type {}",
-                image.cols(),
-                image.rows(),
-                image.typ()
-            )));
+            return Err(FrameProblem::NotBgr {
+                width_px: image.cols(),
+                height_px: image.rows(),
+                cv_type: image.typ(),
+            }
+            .into());
         }
         let (w, h) = (image.cols(), image.rows());
         let fresh = self.track.filter(|tr| {

@@ -28,9 +28,10 @@ use crate::check::ParamError;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum VisionError {
-    /// OpenCV reported an error.
-    #[error("OpenCV: {0}")]
-    OpenCv(String),
+    /// OpenCV reported an error (its code and message).
+    #[cfg(feature = "opencv")]
+    #[error("OpenCV: {}", .0.message)]
+    OpenCv(#[from] opencv::Error),
     /// A camera, file or device could not be opened.
     #[error("cannot open {what}: {reason}")]
     Open {
@@ -39,25 +40,99 @@ pub enum VisionError {
         /// Why it failed.
         reason: String,
     },
-    /// An image that the detector cannot use.
+    /// An image that the step cannot use.
     #[error("bad frame: {0}")]
-    BadFrame(String),
+    BadFrame(#[from] FrameProblem),
     /// A parameter was refused.
     #[error(transparent)]
     Param(#[from] ParamError),
-    /// The calibration could not be computed or is inconsistent.
-    #[error("calibration: {0}")]
-    Calibration(String),
-    /// The vision thread could not be started or ended with an error.
+    /// The camera looks along the swing plane (its normal is perpendicular to
+    /// the camera's ray to the ball): the plane cannot be measured.
+    #[error("calibration: the camera looks along the swing plane: the plane cannot be measured")]
+    PlaneEdgeOn,
+    /// The given camera-ball distance and the one from the ball's apparent
+    /// size disagree by more than the tolerance.
+    #[error(
+        "calibration: the given distance {given_distance_m:.3} m and the distance from the ball's apparent size \
+         {size_distance_m:.3} m differ by {:.1}% (more than {:.1}%): check the distance, the \
+         focal length and the ball radius",
+        100.0 * relative_disagreement,
+        100.0 * tolerance
+    )]
+    SizeDisagrees {
+        /// The distance given for the calibration, metres.
+        given_distance_m: f64,
+        /// The distance from the ball's apparent size, metres.
+        size_distance_m: f64,
+        /// `size_distance_m / given_distance_m - 1` (a fraction).
+        relative_disagreement: f64,
+        /// The largest disagreement allowed (a fraction).
+        tolerance: f64,
+    },
+    /// The vision thread could not be started.
     #[error("vision thread: {0}")]
-    Thread(String),
+    Spawn(#[source] std::io::Error),
+    /// The vision thread panicked.
+    #[error("vision thread: the vision thread panicked")]
+    Panicked,
 }
 
-#[cfg(feature = "opencv")]
-impl From<opencv::Error> for VisionError {
-    fn from(e: opencv::Error) -> Self {
-        Self::OpenCv(e.message)
-    }
+/// What is wrong with an image (a [`VisionError::BadFrame`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum FrameProblem {
+    /// An image with no pixels.
+    #[error("empty image")]
+    Empty,
+    /// A camera delivered a frame with no pixels.
+    #[error("the {camera} returned an empty image")]
+    EmptyFrom {
+        /// Which camera (`"webcam"`, `"camera stream"`).
+        camera: &'static str,
+    },
+    /// Not the 8-bit 3-channel BGR image the step takes.
+    #[error(
+        "expected a non-empty 8-bit 3-channel BGR image, got {width_px}x{height_px} of type {cv_type}"
+    )]
+    NotBgr {
+        /// The image's width, pixels.
+        width_px: i32,
+        /// The image's height, pixels.
+        height_px: i32,
+        /// Its OpenCV type code (`CV_8UC3` is wanted).
+        cv_type: i32,
+    },
+    /// A frame of another size or type than the recorder's.
+    #[error(
+        "the recorder takes {want_width_px}x{want_height_px} BGR frames, got {width_px}x{height_px} of type {cv_type}"
+    )]
+    RecorderSize {
+        /// The recorder's width, pixels.
+        want_width_px: i32,
+        /// The recorder's height, pixels.
+        want_height_px: i32,
+        /// The frame's width, pixels.
+        width_px: i32,
+        /// The frame's height, pixels.
+        height_px: i32,
+        /// Its OpenCV type code.
+        cv_type: i32,
+    },
+    /// Image buffers whose lengths are not `width * height`.
+    #[error("morphology of a {width_px}x{height_px} image given {src_bytes} and {dst_bytes} bytes")]
+    BufferSize {
+        /// The image's width, pixels.
+        width_px: usize,
+        /// The image's height, pixels.
+        height_px: usize,
+        /// The source buffer's length, bytes.
+        src_bytes: usize,
+        /// The destination buffer's length, bytes.
+        dst_bytes: usize,
+    },
+    /// OpenCV's JPEG encoder refused the image.
+    #[error("JPEG encoding failed")]
+    JpegEncoding,
 }
 
 /// One camera frame turned into a measurement for the filter.

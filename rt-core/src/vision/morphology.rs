@@ -17,7 +17,7 @@
 //! the tracking detection 154 us against 240 us (`cargo bench --bench vision`).
 //! The tests compare it with `morphologyEx` on random masks and grey images.
 
-use super::VisionError;
+use super::{FrameProblem, VisionError};
 
 /// A structuring element whose every row is a run of ones centred on the
 /// anchor (the kernel's centre): the half-width of the run per row, top to
@@ -295,11 +295,13 @@ fn combine<const ERODE: bool, const N: usize, const FOLD: bool>(out: &mut [u8], 
 fn check(src: &[u8], dst: &[u8], w: usize, h: usize) -> Result<(), VisionError> {
     let n = w.checked_mul(h);
     if n != Some(src.len()) || n != Some(dst.len()) {
-        return Err(VisionError::BadFrame(format!(
-            "morphology of a {w}x{h} image given {} and {} bytes",
-            src.len(),
-            dst.len()
-        )));
+        return Err(FrameProblem::BufferSize {
+            width_px: w,
+            height_px: h,
+            src_bytes: src.len(),
+            dst_bytes: dst.len(),
+        }
+        .into());
     }
     Ok(())
 }

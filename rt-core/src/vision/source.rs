@@ -14,7 +14,7 @@ use opencv::{
     videoio::{self, VideoCapture, VideoWriter},
 };
 
-use super::VisionError;
+use super::{FrameProblem, VisionError};
 use crate::check;
 use crate::params::CameraParams;
 
@@ -149,9 +149,7 @@ impl FrameSource for WebcamSource {
         // Stamp at delivery, minus the camera's exposure -> delivery latency.
         let t_capture_s = self.clock.now_s() - self.latency_s;
         if !self.cap.retrieve(&mut self.image, 0)? || self.image.empty() {
-            return Err(VisionError::BadFrame(
-                "the webcam returned an empty image".into(),
-            ));
+            return Err(FrameProblem::EmptyFrom { camera: "webcam" }.into());
         }
         let index = self.index;
         self.index += 1;
@@ -309,9 +307,10 @@ impl FrameSource for StreamSource {
         }
         let t_capture_s = self.clock.now_s() - self.latency_s;
         if !self.cap.retrieve(&mut self.image, 0)? || self.image.empty() {
-            return Err(VisionError::BadFrame(
-                "the camera stream returned an empty image".into(),
-            ));
+            return Err(FrameProblem::EmptyFrom {
+                camera: "camera stream",
+            }
+            .into());
         }
         let index = self.index;
         self.index += 1;
@@ -490,14 +489,14 @@ impl Recorder {
     /// Appends one frame of the recorder's size.
     pub fn write(&mut self, image: &Mat) -> Result<(), VisionError> {
         if image.size()? != self.size || image.typ() != opencv::core::CV_8UC3 {
-            return Err(VisionError::BadFrame(format!(
-                "the recorder takes {}x{} BGR frames, got {}x{} of type {}",
-                self.size.width,
-                self.size.height,
-                image.cols(),
-                image.rows(),
-                image.typ()
-            )));
+            return Err(FrameProblem::RecorderSize {
+                want_width_px: self.size.width,
+                want_height_px: self.size.height,
+                width_px: image.cols(),
+                height_px: image.rows(),
+                cv_type: image.typ(),
+            }
+            .into());
         }
         self.writer.write(image)?;
         self.frames += 1;

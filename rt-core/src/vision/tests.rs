@@ -246,10 +246,23 @@ fn refuses_frames_it_cannot_read() {
     let mut det = Detector::new(DetectorParams::default()).unwrap();
     let grey =
         Mat::new_rows_cols_with_default(48, 64, opencv::core::CV_8UC1, Scalar::all(0.0)).unwrap();
-    assert!(matches!(
-        det.detect(&grey, 0.0),
-        Err(VisionError::BadFrame(_))
-    ));
+    // The error keeps the image's size and type.
+    let e = det.detect(&grey, 0.0).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            VisionError::BadFrame(crate::vision::FrameProblem::NotBgr {
+                width_px: 64,
+                height_px: 48,
+                cv_type: opencv::core::CV_8UC1,
+            })
+        ),
+        "{e:?}"
+    );
+    assert_eq!(
+        e.to_string(),
+        "bad frame: expected a non-empty 8-bit 3-channel BGR image, got 64x48 of type 0"
+    );
     assert!(matches!(
         det.detect(&Mat::default(), 0.0),
         Err(VisionError::BadFrame(_))
@@ -497,6 +510,25 @@ fn calibration_refuses_a_distance_the_ball_size_contradicts() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("apparent size"), "{e}");
+    // The error keeps both distances and the tolerance.
+    let VisionError::SizeDisagrees {
+        given_distance_m,
+        size_distance_m,
+        relative_disagreement,
+        tolerance,
+    } = e
+    else {
+        panic!("{e:?}")
+    };
+    assert_eq!((given_distance_m, tolerance), (truth * 1.2, 0.05));
+    assert!(
+        (size_distance_m - truth).abs() < 0.05 * truth,
+        "{size_distance_m} {truth}"
+    );
+    assert!(
+        relative_disagreement.abs() > tolerance,
+        "{relative_disagreement}"
+    );
     let e = SwingPlaneCalibration::from_rest_observation(
         *cam.intrinsics(),
         &pose,
@@ -668,7 +700,10 @@ struct Stopping<S> {
 impl<S: crate::vision::FrameSource> crate::vision::FrameSource for Stopping<S> {
     fn next_frame(&mut self) -> Result<Option<crate::vision::Frame<'_>>, VisionError> {
         if self.left == 0 {
-            return Err(VisionError::BadFrame("unplugged".into()));
+            return Err(VisionError::Open {
+                what: "webcam".into(),
+                reason: "unplugged".into(),
+            });
         }
         self.left -= 1;
         self.inner.next_frame()
@@ -701,7 +736,10 @@ fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
     let reopen: crate::lab::SourceFactory = Box::new(move |_| {
         attempts += 1;
         if attempts <= 2 {
-            return Err(VisionError::BadFrame("no such device".into()));
+            return Err(VisionError::Open {
+                what: "webcam".into(),
+                reason: "no such device".into(),
+            });
         }
         Ok(Box::new(Stopping {
             inner: make(),

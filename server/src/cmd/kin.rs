@@ -11,12 +11,10 @@ use rt_core::kinematics::numeric::rotation_error;
 use rt_core::kinematics::{Joints, flange_pose, pose_from_rows, pose_to_rows, within_limits};
 use rt_core::params::{Scenario, check};
 use rt_core::trajectory::strike::{
-    CONTACT_PHASES, StrikeLimit, StrikePlan, StrikeSearch, Stroke, largest_strike_speed,
-    plan_strike, strike_direction,
+    CONTACT_PHASES, StrikeLimit, StrikePlan, StrikeRefusal, StrikeSearch, Stroke,
+    largest_strike_speed, plan_strike, strike_direction,
 };
-use rt_core::trajectory::{
-    ElbowPolicy, MotionRequest, PlanError, PlanSummary, TrajectoryParams, plan,
-};
+use rt_core::trajectory::{ElbowPolicy, MotionRequest, PlanSummary, TrajectoryParams, plan};
 use serde::{Deserialize, Serialize};
 
 /// Arguments of `isochron kin`.
@@ -379,8 +377,8 @@ struct StrikeAnswer {
     cycle_s: f64,
     start_m: [f64; 3],
     end_m: [f64; 3],
-    speed_ratio: [f64; JOINTS],
-    acceleration_ratio: [f64; JOINTS],
+    speed_ratio: Option<[f64; JOINTS]>,
+    acceleration_ratio: Option<[f64; JOINTS]>,
     torque_nm: Option<[f64; JOINTS]>,
     torque_ratio: Option<[f64; JOINTS]>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -400,11 +398,11 @@ impl StrikeAnswer {
             cycle_s: s.request.movement_time_s,
             start_m: s.request.start_m.into(),
             end_m: s.request.end_m.into(),
-            speed_ratio: p.plan.speed_ratio,
-            acceleration_ratio: p.plan.acceleration_ratio,
+            speed_ratio: p.plan.as_ref().map(|m| m.speed_ratio),
+            acceleration_ratio: p.plan.as_ref().map(|m| m.acceleration_ratio),
             torque_nm: p.torque.map(|t| t.peak_nm),
             torque_ratio: p.torque.map(|t| t.ratio),
-            reason: p.reason.clone(),
+            reason: p.reason.as_ref().map(ToString::to_string),
         }
     }
 }
@@ -441,8 +439,8 @@ fn strike_at(
     speed: f64,
     search: &StrikeSearch,
     params: &TrajectoryParams,
-) -> anyhow::Result<Result<StrikePlan, String>> {
-    let mut why = String::new();
+) -> anyhow::Result<Result<StrikePlan, Option<StrikeRefusal>>> {
+    let mut why = None;
     for f in CONTACT_PHASES {
         let stroke = Stroke::new(
             contact,
@@ -452,12 +450,11 @@ fn strike_at(
             f,
             search.tool,
         )?;
-        match plan_strike(stroke, params, search.tool_mass_kg) {
-            Ok(p) if p.feasible => return Ok(Ok(p)),
-            Ok(p) => why = p.reason.unwrap_or_default(),
-            Err(e @ PlanError::Unreachable { .. }) => why = e.to_string(),
-            Err(e) => return Err(e.into()),
+        let p = plan_strike(stroke, params, search.tool_mass_kg)?;
+        if p.feasible {
+            return Ok(Ok(p));
         }
+        why = p.reason;
     }
     Ok(Err(why))
 }
@@ -506,7 +503,7 @@ fn run_strike(args: &PlanArgs) -> anyhow::Result<()> {
         tool_mass_kg: args.tool_mass_kg,
         largest_speed_mps: limit.speed_mps,
         largest: limit.best.as_ref().map(StrikeAnswer::of),
-        binding: limit.binding.clone(),
+        binding: limit.binding.as_ref().map(ToString::to_string),
         requested: requested
             .as_ref()
             .and_then(|r| r.as_ref().ok())
@@ -523,10 +520,16 @@ fn run_strike(args: &PlanArgs) -> anyhow::Result<()> {
         _ => {}
     }
     match requested {
-        Some(Err(why)) => bail!("infeasible strike: {why}"),
+        Some(Err(why)) => bail!(
+            "infeasible strike: {}",
+            why.map_or_else(|| "no reason given".to_owned(), |w| w.to_string())
+        ),
         None if limit.speed_mps <= 0.0 => bail!(
             "no feasible strike: {}",
-            limit.binding.as_deref().unwrap_or("no reason given")
+            limit
+                .binding
+                .as_ref()
+                .map_or_else(|| "no reason given".to_owned(), ToString::to_string)
         ),
         _ => Ok(()),
     }
@@ -541,9 +544,11 @@ fn strike_line(a: &StrikeAnswer) -> String {
         a.approach_m,
         a.brake_m
     );
-    t += "peak speed / limit:";
-    for (i, r) in a.speed_ratio.iter().enumerate() {
-        t += &format!(" A{}={:.0}%", i + 1, r * 100.0);
+    if let Some(sr) = a.speed_ratio {
+        t += "peak speed / limit:";
+        for (i, r) in sr.iter().enumerate() {
+            t += &format!(" A{}={:.0}%", i + 1, r * 100.0);
+        }
     }
     if let Some(tr) = a.torque_ratio {
         t += "\npeak torque / limit:";
@@ -557,7 +562,7 @@ fn strike_line(a: &StrikeAnswer) -> String {
 fn strike_human(
     r: &StrikeReport,
     asked: Option<f64>,
-    requested: Option<&Result<StrikePlan, String>>,
+    requested: Option<&Result<StrikePlan, Option<StrikeRefusal>>>,
 ) -> String {
     let mut t = format!(
         "strike at d = {:.3} m, contact {:.3} s after the start, direction {:+.0} deg, tool {:.2} kg\n",
@@ -580,7 +585,13 @@ fn strike_human(
                 t += &format!("at {v:.2} m/s: feasible\n");
                 t += &strike_line(&StrikeAnswer::of(p));
             }
-            Err(why) => t += &format!("at {v:.2} m/s: REFUSED ({why})"),
+            Err(why) => {
+                t += &format!(
+                    "at {v:.2} m/s: REFUSED ({})",
+                    why.as_ref()
+                        .map_or_else(|| "no reason given".to_owned(), ToString::to_string)
+                );
+            }
         }
     }
     t.trim_end().to_owned()
@@ -631,7 +642,7 @@ fn run_strike_map(args: &StrikeMapArgs) -> anyhow::Result<()> {
                 movement_time_s: t,
                 largest_speed_mps: limit.speed_mps,
                 contact_fraction: limit.best.as_ref().map(|b| b.stroke.contact_fraction),
-                binding: limit.binding,
+                binding: limit.binding.as_ref().map(ToString::to_string),
             });
         }
     }

@@ -78,7 +78,7 @@ pub fn run(args: MagnetArgs) -> anyhow::Result<String> {
     let answer = handle.submit(cmd)?.wait().map_err(clarify)?;
     let status = answer
         .status()
-        .ok_or_else(|| MagnetError::Protocol(format!("{:?}", answer.reply)))?;
+        .ok_or_else(|| MagnetError::Protocol(answer.reply.clone()))?;
     let view: MagnetView = handle.view();
     let report = MagnetReport {
         magnet: if status.magnet_on { "on" } else { "off" },

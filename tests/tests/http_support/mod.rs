@@ -20,7 +20,7 @@ use std::{
 
 use rt_core::{
     bridge::{
-        AbortReason, BridgeCapacity, Command, ControlEnd, Event, EventRecord, FrameSender,
+        AbortKind, BridgeCapacity, Command, ControlEnd, Event, EventRecord, FrameSender,
         HorizonPoint, MagnetState, Refusal, Snapshot, TrialResult, TrialState, bridge,
         frame_channel,
     },
@@ -83,7 +83,7 @@ impl Machine {
         });
     }
 
-    fn abort(&mut self, reason: AbortReason) {
+    fn abort(&mut self, reason: AbortKind) {
         if self.snap.trial_state.busy() {
             self.control.emit(EventRecord {
                 t_s: self.snap.t_s,
@@ -98,7 +98,7 @@ impl Machine {
         let st = self.snap.trial_state;
         let (outcome, returned) = match cmd {
             Command::Stop => {
-                self.abort(AbortReason::Stop);
+                self.abort(AbortKind::Stop);
                 (Ok(()), None)
             }
             Command::Arm if st.busy() => (Err(Refusal::Busy), None),
@@ -243,7 +243,7 @@ pub fn start_lab(records: Option<Arc<Records>>, options: LabOptions) -> (TestLab
                     last = now;
                     if m.control.take_stop_request() {
                         stats.stops.fetch_add(1, Ordering::Relaxed);
-                        m.abort(AbortReason::Stop);
+                        m.abort(AbortKind::Stop);
                     }
                     while let Some(env) = m.control.next_command() {
                         stats.commands.fetch_add(1, Ordering::Relaxed);

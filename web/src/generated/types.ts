@@ -4,7 +4,7 @@
 
 export type TrialState = "idle" | "arming" | "armed" | "released" | "tracking" | "intercepting" | "holding" | "returning" | "done" | "aborted";
 
-export type Measurement = { 
+export type MeasurementView = { 
 /**
  * False until a measurement arrived (then the other fields are meaningless).
  */
@@ -36,7 +36,7 @@ export type PendulumView = {
 /**
  * Last measurement.
  */
-measured: Measurement, 
+measured: MeasurementView, 
 /**
  * Estimated angle from the vertical, radians (positive towards +y).
  */
@@ -341,7 +341,7 @@ lateral_c: (number | null)[],
  */
 up_c: (number | null)[], };
 
-export type AbortReason = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal" | "service_restarted";
+export type AbortKind = "stop" | "disarmed" | "camera_lost" | "fri_lost" | "magnet_fault" | "operator_lost" | "infeasible" | "limit_violation" | "timeout" | "internal" | "service_restarted";
 
 export type AbortView = { 
 /**
@@ -351,7 +351,7 @@ trial_id: number,
 /**
  * Why (`null` while no trial was aborted).
  */
-reason: AbortReason | null, 
+reason: AbortKind | null, 
 /**
  * The reason as a sentence (empty while none).
  */
@@ -567,7 +567,7 @@ to: TrialState, } | { "kind": "aborted",
 /**
  * Why.
  */
-reason: AbortReason, 
+reason: AbortKind, 
 /**
  * What the lab saw, when more is known (else empty), e.g. how the
  * FRI link was lost.

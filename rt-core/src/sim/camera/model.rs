@@ -4,7 +4,7 @@
 
 use rand::{Rng, RngExt};
 
-use crate::control::Measurement;
+use crate::control::Sighting;
 use crate::params::CameraParams;
 
 /// Standard deviation of a `model`-mode measurement, metres (about a pixel's
@@ -26,7 +26,7 @@ pub struct ModelCamera {
     drop_rate: f64,
     next_capture_s: f64,
     noise_m: f64,
-    in_flight: std::collections::VecDeque<(f64, Measurement)>,
+    in_flight: std::collections::VecDeque<(f64, Sighting)>,
     /// Frames captured.
     pub frames: u64,
     /// Frames lost.
@@ -65,7 +65,7 @@ impl ModelCamera {
         let z = true_lateral_m + self.noise_m * gaussian(rng);
         self.in_flight.push_back((
             t + self.latency_s,
-            Measurement {
+            Sighting {
                 t_capture_s: t,
                 lateral_m: z,
             },
@@ -79,7 +79,7 @@ impl ModelCamera {
     }
 
     /// Moves the measurements available by `t_s` into `out`.
-    pub fn deliver(&mut self, t_s: f64, out: &mut Vec<Measurement>) {
+    pub fn deliver(&mut self, t_s: f64, out: &mut Vec<Sighting>) {
         while let Some(&(avail, m)) = self.in_flight.front() {
             if avail > t_s {
                 break;

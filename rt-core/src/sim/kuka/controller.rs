@@ -259,11 +259,12 @@ impl FriSimParams {
     }
 }
 
-/// Why the controller ended commanding.
+/// Why the simulated controller ended commanding (its own safety stop, not a
+/// trial's [`crate::control::AbortReason`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 #[non_exhaustive]
-pub enum AbortReason {
+pub enum CommandingAbort {
     /// A commanded step beyond the joint's velocity limit (the over-current trip).
     VelocityLimit {
         /// Joint index 0..6 (A1..A7).
@@ -297,14 +298,14 @@ pub enum AbortReason {
     TorqueLimit(crate::sim::world::TorqueTrip),
 }
 
-impl AbortReason {
+impl CommandingAbort {
     /// True for a joint limit violation (not a quality drop).
     pub const fn is_violation(&self) -> bool {
         !matches!(self, Self::QualityDropped { .. })
     }
 }
 
-impl fmt::Display for AbortReason {
+impl fmt::Display for CommandingAbort {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::VelocityLimit {
@@ -449,52 +450,54 @@ impl SimStats {
     }
 
     /// The last abort, if any.
-    pub fn last_abort(&self) -> Option<AbortReason> {
+    pub fn last_abort(&self) -> Option<CommandingAbort> {
         let joint = usize::from(self.abort_joint.load(Relaxed));
         let (a, b) = (self.abort_a.load(), self.abort_b.load());
         match self.abort_code.load(Relaxed) {
-            1 => Some(AbortReason::VelocityLimit {
+            1 => Some(CommandingAbort::VelocityLimit {
                 joint,
                 step_rad: a,
                 max_step_rad: b,
             }),
-            2 => Some(AbortReason::PositionLimit {
+            2 => Some(CommandingAbort::PositionLimit {
                 joint,
                 position_rad: a,
                 limit_rad: b,
             }),
-            3 => Some(AbortReason::NotFinite { joint }),
-            4 => Some(AbortReason::QualityDropped {
+            3 => Some(CommandingAbort::NotFinite { joint }),
+            4 => Some(CommandingAbort::QualityDropped {
                 quality: ConnectionQuality::try_from(a as i32).unwrap_or(ConnectionQuality::Poor),
             }),
-            5 => Some(AbortReason::TorqueLimit(crate::sim::world::TorqueTrip {
-                joint,
-                name: crate::kinematics::iiwa7::JOINT_NAMES
-                    .get(joint)
-                    .copied()
-                    .unwrap_or("A?"),
-                torque_nm: a,
-                limit_nm: b,
-            })),
+            5 => Some(CommandingAbort::TorqueLimit(
+                crate::sim::world::TorqueTrip {
+                    joint,
+                    name: crate::kinematics::iiwa7::JOINT_NAMES
+                        .get(joint)
+                        .copied()
+                        .unwrap_or("A?"),
+                    torque_nm: a,
+                    limit_nm: b,
+                },
+            )),
             _ => None,
         }
     }
 
-    fn set_abort(&self, r: &AbortReason) {
+    fn set_abort(&self, r: &CommandingAbort) {
         let (code, joint, a, b) = match *r {
-            AbortReason::VelocityLimit {
+            CommandingAbort::VelocityLimit {
                 joint,
                 step_rad,
                 max_step_rad,
             } => (1, joint, step_rad, max_step_rad),
-            AbortReason::PositionLimit {
+            CommandingAbort::PositionLimit {
                 joint,
                 position_rad,
                 limit_rad,
             } => (2, joint, position_rad, limit_rad),
-            AbortReason::NotFinite { joint } => (3, joint, f64::NAN, f64::NAN),
-            AbortReason::QualityDropped { quality } => (4, 0, f64::from(quality as i32), 0.0),
-            AbortReason::TorqueLimit(t) => (5, t.joint, t.torque_nm, t.limit_nm),
+            CommandingAbort::NotFinite { joint } => (3, joint, f64::NAN, f64::NAN),
+            CommandingAbort::QualityDropped { quality } => (4, 0, f64::from(quality as i32), 0.0),
+            CommandingAbort::TorqueLimit(t) => (5, t.joint, t.torque_nm, t.limit_nm),
         };
         self.abort_joint.store(joint as u8, Relaxed);
         self.abort_a.store(a);
@@ -1044,7 +1047,7 @@ impl SimController {
             if let Some(trip) = trip
                 && self.state.is_commanding()
             {
-                self.abort(AbortReason::TorqueLimit(trip));
+                self.abort(CommandingAbort::TorqueLimit(trip));
             }
             return;
         }
@@ -1097,7 +1100,7 @@ impl SimController {
         }
     }
 
-    fn abort(&mut self, reason: AbortReason) {
+    fn abort(&mut self, reason: CommandingAbort) {
         self.stats.set_abort(&reason);
         self.stats.aborts.fetch_add(1, Relaxed);
         if reason.is_violation() {
@@ -1133,7 +1136,7 @@ impl SimController {
                 self.set_state(SessionState::CommandingWait);
             }
             SessionState::CommandingWait | SessionState::CommandingActive if !good => {
-                self.abort(AbortReason::QualityDropped {
+                self.abort(CommandingAbort::QualityDropped {
                     quality: self.quality,
                 });
             }
@@ -1371,7 +1374,7 @@ impl SimController {
     /// accepted command over the receive periods between the messages the
     /// two answer (a lost message or reply in between: two periods, at most
     /// `missing_after_periods`).
-    fn check_command(&self, q: &Joints, reflected: u32) -> Option<AbortReason> {
+    fn check_command(&self, q: &Joints, reflected: u32) -> Option<CommandingAbort> {
         let periods = self.last_cmd_ref.map_or(1.0, |last| {
             let n = reflected.wrapping_sub(last) / self.p.receive_multiplier.max(1);
             f64::from(n).clamp(1.0, self.p.missing_after_periods.max(1.0).floor())
@@ -1379,10 +1382,10 @@ impl SimController {
         let period_s = periods * self.receive_period_ns() as f64 * 1e-9;
         for i in 0..JOINTS {
             if !q[i].is_finite() {
-                return Some(AbortReason::NotFinite { joint: i });
+                return Some(CommandingAbort::NotFinite { joint: i });
             }
             if q[i].abs() > POSITION_LIMIT_RAD[i] {
-                return Some(AbortReason::PositionLimit {
+                return Some(CommandingAbort::PositionLimit {
                     joint: i,
                     position_rad: q[i],
                     limit_rad: POSITION_LIMIT_RAD[i],
@@ -1391,7 +1394,7 @@ impl SimController {
             let max = VELOCITY_LIMIT_RADPS[i] * period_s * self.p.velocity_tolerance;
             let step = q[i] - self.last_cmd[i];
             if step.abs() > max {
-                return Some(AbortReason::VelocityLimit {
+                return Some(CommandingAbort::VelocityLimit {
                     joint: i,
                     step_rad: step,
                     max_step_rad: max,

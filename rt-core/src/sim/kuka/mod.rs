@@ -6,5 +6,5 @@
 pub mod controller;
 pub mod server;
 
-pub use controller::{AbortReason, FriSimParams, SimController, SimReport, SimStats};
+pub use controller::{CommandingAbort, FriSimParams, SimController, SimReport, SimStats};
 pub use server::{SimError, SimRunOptions, SimServer};

@@ -209,7 +209,7 @@ impl WorldWebcam {
         let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
         self.jpeg.clear();
         if !imgcodecs::imencode(".jpg", image, &mut self.jpeg, &params)? {
-            return Err(VisionError::BadFrame("JPEG encoding failed".into()));
+            return Err(crate::vision::FrameProblem::JpegEncoding.into());
         }
         Ok(self.jpeg.as_slice())
     }
