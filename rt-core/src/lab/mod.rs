@@ -23,7 +23,7 @@ pub use runtime::{
 };
 pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
 pub use trial::{TrialDraw, draw_trial};
-pub use truth::{TruthUpdate, TruthView};
+pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
 pub use virtual_time::{INITIAL_JOINTS_DEG, LOOPBACK_NS, LabError, VirtualLab, robot_params};
 #[cfg(feature = "opencv")]
 pub use vision::{VideoParams, VideoStats, VisionLoop, VisionParts};

@@ -33,7 +33,6 @@ pub use super::step::LabStep;
 use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params,
 };
-use super::truth::{TruthUpdate, TruthView};
 pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
@@ -45,6 +44,7 @@ use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 use crate::sim::camera::{SimCamera, SimCameraParams, SimCameraSource};
 use crate::sim::kuka::{SimError, SimRunOptions, SimServer, SimStats};
 use crate::sim::magnet::FakeDevice;
+use crate::sim::truth::{SimTruth, TruthUpdate, TruthView};
 use crate::vision::{
     DetectorParams, FrameSource, SwingPlaneCalibration, VisionError, VisionStats, source::Clock,
 };
@@ -408,12 +408,15 @@ impl LabRuntime {
                 // In real time the simulated lab is a truthful world (the
                 // reality lab, `[world]`, runs on the virtual clock).
                 let truth = Truth {
-                    to_camera: truth_tx,
+                    observer: Box::new(SimTruth::new(
+                        truth_tx,
+                        false,
+                        None,
+                        None,
+                        f64::from(period_ms) * 1e-3,
+                    )),
                     calibrations: cal_tx,
                     camera: model,
-                    world: false,
-                    contacts: None,
-                    joints: None,
                 };
                 (Box::new(src), cal, Some(truth), Some(cal_rx))
             }

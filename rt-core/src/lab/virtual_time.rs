@@ -32,7 +32,6 @@ use super::step::{
     TrialOutcome, Truth, plan_or_params,
 };
 use super::trial::TrialDraw;
-use super::truth::{TruthUpdate, TruthView};
 use crate::bridge::{self, Command, ServerEnd};
 use crate::control::{ArmPlan, ControlError, Controller, TrialRecord, TrialState};
 use crate::fri::client::{ControlStep, FriClient, FriClientParams, LinkState};
@@ -46,6 +45,7 @@ use crate::sim::camera::{SimCamera, SimVision};
 use crate::sim::kuka::controller::WorldRobot;
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::sim::magnet::{Switch, VirtualMagnet};
+use crate::sim::truth::{SimTruth, TruthUpdate, TruthView};
 use crate::sim::world::{Contact, World, WorldCamera};
 #[cfg(feature = "opencv")]
 use crate::vision::DetectorParams;
@@ -399,12 +399,15 @@ impl VirtualLab {
         let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
         let true_joints = std::sync::Arc::new(crate::fri::stats::AtomicJoints::default());
         let truth = Truth {
-            to_camera: truth_tx,
+            observer: Box::new(SimTruth::new(
+                truth_tx,
+                scenario.world.is_some(),
+                Some(std::sync::Arc::clone(&true_joints)),
+                Some(contact_tx),
+                period_s,
+            )),
             calibrations: cal_tx,
             camera: model,
-            world: scenario.world.is_some(),
-            joints: Some(std::sync::Arc::clone(&true_joints)),
-            contacts: Some(contact_tx),
         };
         // The controller is built from the beliefs only: it never holds `[world]`.
         let side = ControlSide::new(scenario, seed, period_s, calibration, Some(truth))?;

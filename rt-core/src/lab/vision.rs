@@ -6,7 +6,7 @@
 //! never waits and never touches the measurement path).
 //!
 //! The simulated camera ([`crate::sim::camera::SimCameraSource`]) renders the ground-truth pendulum
-//! that the control thread hands over through a ring of [`super::TruthUpdate`]s.
+//! that the control thread hands over through a ring of [`crate::sim::truth::TruthUpdate`]s.
 
 use std::sync::{
     Arc,

@@ -3,4 +3,5 @@
 pub mod camera;
 pub mod kuka;
 pub mod magnet;
+pub mod truth;
 pub mod world;
