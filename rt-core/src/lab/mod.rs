@@ -1,19 +1,19 @@
 #![doc = include_str!("README.md")]
 
+pub mod control_side;
 pub mod fri_step;
-pub mod lifecycle;
 pub mod loop_step;
 mod measured;
-mod replay;
+pub(crate) mod replay;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
 pub mod step;
 pub mod trial;
 pub mod truth;
-pub mod virtual_time;
 #[cfg(feature = "opencv")]
 pub mod vision;
 
+pub use control_side::LabError;
 pub use fri_step::FriLoopStep;
 pub use loop_step::LoopStep;
 #[cfg(all(feature = "opencv", feature = "serial"))]
@@ -24,6 +24,5 @@ pub use runtime::{
 pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
 pub use trial::{TrialDraw, draw_trial};
 pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
-pub use virtual_time::{INITIAL_JOINTS_DEG, LOOPBACK_NS, LabError, VirtualLab, robot_params};
 #[cfg(feature = "opencv")]
 pub use vision::{VideoParams, VideoStats, VisionLoop, VisionParts};

@@ -493,7 +493,7 @@ impl LabRuntime {
         // The robot: the simulated controller sends to the client's socket.
         let sim = match controller_addr {
             None => Some(Arc::new(SimServer::spawn(
-                super::virtual_time::robot_params(&scenario, seed),
+                crate::sim::robot_params(&scenario, seed),
                 SocketAddr::from(([127, 0, 0, 1], 0)),
                 session.local_addr(),
                 SimRunOptions {
@@ -878,7 +878,7 @@ mod tests {
         // driver, links in-process): the same draw and the same judged
         // timing error within one FRI period.
         let s = Scenario::default();
-        let mut virt = super::super::VirtualLab::new(&s, 5).unwrap();
+        let mut virt = crate::sim::VirtualLab::new(&s, 5).unwrap();
         assert_eq!(virt.vision_used(), "full");
         let v = virt.run_trial(0);
         let vj = v.judgement.unwrap();

@@ -90,7 +90,7 @@ pub enum LabClock {
 }
 
 /// How a trial ended, as the control thread saw it (plain data: no
-/// allocation at the end of a trial; [`super::VirtualLab`] turns it into a
+/// allocation at the end of a trial; the virtual lab turns it into a
 /// [`crate::control::TrialRecord`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrialOutcome {

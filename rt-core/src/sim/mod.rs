@@ -2,6 +2,10 @@
 
 pub mod camera;
 pub mod kuka;
+pub mod lifecycle;
 pub mod magnet;
 pub mod truth;
+pub mod virtual_lab;
+
+pub use virtual_lab::{INITIAL_JOINTS_DEG, LOOPBACK_NS, VirtualLab, robot_params};
 pub mod world;
