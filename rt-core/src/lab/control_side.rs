@@ -1,6 +1,6 @@
 //! The control side of a lab: the FRI client session and the trial driver
 //! around the controller, with the other ends of its rings, built from the
-//! scenario's beliefs alone. The virtual-clock lab (`sim::virtual_lab`)
+//! scenario's beliefs alone. The virtual-clock lab (`sim/virtual_lab.rs`)
 //! steps it between its simulators; the replay (`replay.rs`) feeds it a
 //! recorded run's inputs with no world behind it.
 

@@ -18,10 +18,13 @@ pub use fri_step::FriLoopStep;
 pub use loop_step::LoopStep;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub use runtime::{
-    CameraLink, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs, LoopReport, MagnetLink,
-    RuntimeError, SourceFactory, run_loop,
+    CameraFactory, CameraLink, CameraSetup, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs,
+    LoopReport, MagnetFactory, MagnetLink, RobotFactory, RobotLoopCounts, RuntimeError,
+    SimulatedCamera, SimulatedRobot, SourceFactory,
 };
-pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
+pub use step::{
+    AFTER_DONE_S, CameraModel, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
+};
 pub use trial::{TrialDraw, draw_trial};
 pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
 #[cfg(feature = "opencv")]

@@ -233,7 +233,7 @@ mod replayer {
     }
 
     impl Replay {
-        /// The control side the virtual lab (`sim::VirtualLab::new`) builds
+        /// The control side the virtual lab (`VirtualLab::new`, `sim/virtual_lab.rs`) builds
         /// for a scenario with these beliefs (no `[world]`), `seed`, its
         /// controller's period `period_s` and the camera's `calibration`,
         /// but with no truth, world or simulated robot behind it.

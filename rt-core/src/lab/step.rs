@@ -200,16 +200,19 @@ pub(crate) enum IoReply {
 /// The simulated camera's geometry, to recompute its calibration when the
 /// simulated pendulum moves (per trial).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct CameraModel {
+pub struct CameraModel {
+    /// The believed intrinsics (the detector's calibration undistorts with them).
     pub intrinsics: CameraIntrinsics,
+    /// The camera's pose.
     pub pose: CameraPose,
+    /// The ball's radius, m.
     pub ball_radius_m: f64,
 }
 
 /// The ground truth of a simulated lab: the world's observer (implemented
 /// in `sim`) and the simulated camera's calibration, moved with the truth
 /// per trial.
-pub(crate) struct Truth {
+pub struct Truth {
     /// The world as the driver follows and judges it.
     pub observer: Box<dyn TruthObserver>,
     /// The simulated camera's calibrations, one per trial.

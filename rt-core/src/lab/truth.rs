@@ -1,7 +1,7 @@
 //! The world as the trial driver meets it when it judges on ground truth: a
 //! [`TruthObserver`] (issue #35, "one world model"). The driver holds no
 //! truth of its own and imports nothing from `sim`: a simulated lab hands it
-//! an observer implemented there (`sim::truth::SimTruth`: the ideal pendulum
+//! an observer implemented there (`SimTruth`, `sim/truth.rs`: the ideal pendulum
 //! of a truthful world, or the reality lab's true ball on the true tool with
 //! its contacts and the physical judge); the real lab has none and is judged
 //! by what it measures.
