@@ -108,7 +108,7 @@ LIFECYCLE_SEQUENCES ?= 2000
 LIFECYCLE_SERVED_S ?= 180
 fuzz-lifecycle: firmware
 	ISOCHRON_LIFECYCLE_SEQUENCES=$(LIFECYCLE_SEQUENCES) $(CARGO) test --release -p rt-core --lib \
-	  lab::lifecycle::tests::no_command_sequence_loses_a_trial_record -- --nocapture
+	  sim::lifecycle::tests::no_command_sequence_loses_a_trial_record -- --nocapture
 	$(CARGO) build --bin isochron
 	ISOCHRON_LIFECYCLE_SERVED_S=$(LIFECYCLE_SERVED_S) $(CARGO) test -p isochron-tests --test lifecycle_served \
 	  random_rest_sequences_lose_no_trial_record -- --nocapture

@@ -6,8 +6,8 @@
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use rt_core::control::Controller;
-use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
+use rt_core::sim::VirtualLab;
 
 fn benches(c: &mut Criterion) {
     let s = Scenario::default().beliefs();

@@ -11,8 +11,8 @@
 
 use allocation_counter::measure;
 use rt_core::control::TrialState;
-use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
+use rt_core::sim::VirtualLab;
 
 #[derive(Debug, Default)]
 struct Count {

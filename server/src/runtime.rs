@@ -43,5 +43,9 @@ pub fn start_simulated(
     options: crate::LabOptions,
     seed: u64,
 ) -> anyhow::Result<(Arc<crate::Lab>, LabRuntime)> {
-    start_lab(LabSetup::simulated(scenario, seed), records, options)
+    start_lab(
+        rt_core::sim::wall_lab::simulated(scenario, seed),
+        records,
+        options,
+    )
 }

@@ -161,7 +161,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(1, |d| d.as_secs());
     let mut setup = match cfg.lab.mode {
-        LabMode::Simulated => LabSetup::simulated(scenario, seed),
+        LabMode::Simulated => rt_core::sim::wall_lab::simulated(scenario, seed),
         LabMode::Real => real_lab(&cfg, scenario, seed)?,
     };
     setup.operator_timeout_s = cfg.lab.operator_timeout();
@@ -389,20 +389,23 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
             Box::new(WebcamSource::open(&webcam, clock)?)
         })
     });
-    let mut setup = LabSetup::simulated(scenario, seed);
-    setup.fri = FriLink::Controller {
-        bind: cfg.fri.local_bind,
-        controller: cfg.fri.controller,
-    };
+    let mut setup = LabSetup::new(
+        scenario,
+        seed,
+        FriLink::Controller {
+            bind: cfg.fri.local_bind,
+            controller: cfg.fri.controller,
+        },
+        CameraLink::Source { open, calibration },
+        MagnetLink::Port(MagnetParams {
+            baud: cfg.magnet.baud,
+            ..MagnetParams::for_port(cfg.magnet.port.display().to_string())
+        }),
+    );
     setup.session = rt_core::fri::FriClientParams {
         version: cfg.fri.version,
         ..rt_core::fri::FriClientParams::default()
     };
-    setup.camera = CameraLink::Source { open, calibration };
-    setup.magnet = MagnetLink::Port(MagnetParams {
-        baud: cfg.magnet.baud,
-        ..MagnetParams::for_port(cfg.magnet.port.display().to_string())
-    });
     setup.fixed_distance_m = Some(px.hypot(py));
     Ok(setup)
 }

@@ -163,7 +163,7 @@ impl LabWorld {
         let mut world = LiveWorld::new(scenario, spec.seed, intercept, 0.0);
         let session = world.world().session;
         let wp = scenario.world.clone().unwrap_or_default();
-        let mut params = rt_core::lab::robot_params(scenario, spec.seed);
+        let mut params = rt_core::sim::robot_params(scenario, spec.seed);
         params.fri_version = spec.fri_version;
         let period_s = f64::from(params.fri_period_ms) * 1e-3;
         let robot = WorldRobot::for_session(

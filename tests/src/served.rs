@@ -14,7 +14,7 @@ use serde_json::Value;
 use server::{AppState, Lab, LabOptions, Records, app, runtime::LabRuntime};
 use tokio_tungstenite::tungstenite::Message;
 
-/// A lab (`setup`: e.g. [`LabSetup::simulated`]) behind the service on a free
+/// A lab (`setup`: e.g. [`rt_core::sim::wall_lab::simulated`]) behind the service on a free
 /// loopback port, with trial records in a data folder. Stop it with
 /// [`ServedLab::stop`] (the records stay in the folder).
 pub struct ServedLab {

@@ -5,8 +5,8 @@
 use std::path::Path;
 
 use rt_core::control::{Summary, TrialRecord};
-use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
+use rt_core::sim::VirtualLab;
 
 fn scenario(name: &str) -> Scenario {
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -11,7 +11,7 @@ use std::{
 };
 
 use isochron_tests::{ServedLab, http};
-use rt_core::{bridge::TrialState, lab::LabSetup, params::Scenario};
+use rt_core::{bridge::TrialState, params::Scenario};
 
 const TIMEOUT_S: f64 = 0.25;
 
@@ -21,7 +21,7 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
     let _ = std::fs::remove_dir_all(&data);
     let scenario = Scenario::default();
     let period_s = f64::from(scenario.robot.fri_period_ms) * 1e-3;
-    let mut setup = LabSetup::simulated(scenario, 11);
+    let mut setup = rt_core::sim::wall_lab::simulated(scenario, 11);
     setup.operator_timeout_s = Some(TIMEOUT_S);
     let served = ServedLab::start(setup, &data).await;
     // Commanding, and the lab would take a trial.

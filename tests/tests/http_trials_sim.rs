@@ -8,14 +8,18 @@ use std::{
 };
 
 use isochron_tests::{ServedLab, http};
-use rt_core::{lab::LabSetup, params::Scenario};
+use rt_core::params::Scenario;
 use server::Records;
 
 #[tokio::test]
 async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let served = ServedLab::start(LabSetup::simulated(Scenario::default(), 7), &data).await;
+    let served = ServedLab::start(
+        rt_core::sim::wall_lab::simulated(Scenario::default(), 7),
+        &data,
+    )
+    .await;
     // The FRI session over loopback UDP reaches COMMANDING_ACTIVE and the lab
     // would take a trial (the camera delivering).
     served.until_ready().await;
@@ -130,7 +134,7 @@ async fn until(
 async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     let tmp = tempfile::tempdir().unwrap();
     let served = ServedLab::start(
-        LabSetup::simulated(Scenario::default(), 11),
+        rt_core::sim::wall_lab::simulated(Scenario::default(), 11),
         &tmp.path().join("data"),
     )
     .await;

@@ -103,7 +103,7 @@ async fn start_sim_service(options: LabOptions) -> SimService {
 fn loop_counters(svc: &SimService) -> [u64; 6] {
     let rt = svc.runtime();
     let c = rt.session_stats();
-    let s = rt.sim_stats().unwrap();
+    let s = rt_core::sim::wall_lab::sim_server(rt).unwrap().stats();
     let l = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
     [
         l(&s.messages_sent),

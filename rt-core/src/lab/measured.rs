@@ -9,7 +9,7 @@ use crate::control::measured::{MeasuredInputs, MeasuredJudgement, Sighting, judg
 
 /// How late the robot's external torque estimate shows a contact's force,
 /// FRI periods: a belief about the robot's torque sensing, here the
-/// simulated robot's (`sim::world::contact`). A real lab calibrates it
+/// simulated robot's (`sim/world/contact.rs`). A real lab calibrates it
 /// (one knock on the tool, seen by the camera and the torques).
 pub const TORQUE_LAG_PERIODS: f64 = 1.0;
 /// How long a contact's force pulse lasts, s: a belief about ball and tool

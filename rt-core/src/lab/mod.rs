@@ -1,29 +1,31 @@
 #![doc = include_str!("README.md")]
 
+pub mod control_side;
 pub mod fri_step;
-pub mod lifecycle;
 pub mod loop_step;
 mod measured;
-mod replay;
+pub(crate) mod replay;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
 pub mod step;
 pub mod trial;
 pub mod truth;
-pub mod virtual_time;
 #[cfg(feature = "opencv")]
 pub mod vision;
 
+pub use control_side::LabError;
 pub use fri_step::FriLoopStep;
 pub use loop_step::LoopStep;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub use runtime::{
-    CameraLink, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs, LoopReport, MagnetLink,
-    RuntimeError, SourceFactory, run_loop,
+    CameraFactory, CameraLink, CameraSetup, FriLink, IoStats, LabRuntime, LabSetup, LatencyUs,
+    LoopReport, MagnetFactory, MagnetLink, RobotFactory, RobotLoopCounts, RuntimeError,
+    SimulatedCamera, SimulatedRobot, SourceFactory,
 };
-pub use step::{AFTER_DONE_S, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome};
+pub use step::{
+    AFTER_DONE_S, CameraModel, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
+};
 pub use trial::{TrialDraw, draw_trial};
-pub use truth::{TruthUpdate, TruthView};
-pub use virtual_time::{INITIAL_JOINTS_DEG, LOOPBACK_NS, LabError, VirtualLab, robot_params};
+pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
 #[cfg(feature = "opencv")]
 pub use vision::{VideoParams, VideoStats, VisionLoop, VisionParts};

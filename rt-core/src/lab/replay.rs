@@ -214,10 +214,9 @@ mod replayer {
     use super::*;
     use crate::control::AbortReason;
     use crate::fri::client::ControlStep;
-    use crate::lab::virtual_time::{
-        ControlSide, LabError, believed_camera, control_period_s, robot_params,
-    };
+    use crate::lab::control_side::{ControlSide, LabError};
     use crate::params::Scenario;
+    use crate::vision::SwingPlaneCalibration;
 
     /// A control side built from the beliefs alone, fed a recorded run's
     /// inputs (see the module documentation).
@@ -234,13 +233,17 @@ mod replayer {
     }
 
     impl Replay {
-        /// The control side [`crate::lab::VirtualLab::new`] builds for a
-        /// scenario with these beliefs (no `[world]`) and `seed`, but with no
-        /// truth, world or simulated robot behind it.
-        pub(crate) fn new(beliefs: &Scenario, seed: u64) -> Result<Self, LabError> {
+        /// The control side the virtual lab (`VirtualLab::new`, `sim/virtual_lab.rs`) builds
+        /// for a scenario with these beliefs (no `[world]`), `seed`, its
+        /// controller's period `period_s` and the camera's `calibration`,
+        /// but with no truth, world or simulated robot behind it.
+        pub(crate) fn new(
+            beliefs: &Scenario,
+            seed: u64,
+            period_s: f64,
+            calibration: SwingPlaneCalibration,
+        ) -> Result<Self, LabError> {
             assert!(beliefs.world.is_none(), "the replay runs on the beliefs");
-            let period_s = control_period_s(&robot_params(beliefs, seed));
-            let (_, calibration) = believed_camera(beliefs);
             Ok(Self {
                 side: ControlSide::new(beliefs, seed, period_s, calibration, None)?,
                 scenario: beliefs.clone(),

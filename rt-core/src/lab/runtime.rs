@@ -7,20 +7,27 @@
 //!   calls [`LabStep`] (the closed loop's [`super::FriLoopStep`] plus the
 //!   bridge, the vision ring, the magnet and the ground truth) once, and
 //!   sends the guarded command back.
-//! - `isochron-fri-sim`: the simulated KUKA controller ([`SimServer`]) over
-//!   loopback UDP with the scenario's latency, jitter and servo lag
-//!   ([`super::robot_params`]); or a real controller at an address.
+//! - `isochron-fri-sim`: a simulated KUKA controller over loopback UDP
+//!   ([`FriLink::Simulated`]: a [`SimulatedRobot`] the caller's factory
+//!   starts, `sim`'s); or a real controller at an address.
 //! - `isochron-vision`: a [`crate::vision::FrameSource`] (the simulated
-//!   camera rendering the ground-truth pendulum, a webcam or a video file) ->
+//!   camera rendering the ground-truth pendulum, [`CameraLink::Simulated`],
+//!   `sim`'s; a webcam or a video file) ->
 //!   OpenCV detector -> a bounded wait-free ring to the control thread, and
 //!   downscaled JPEG frames to the bridge's frame channel.
-//! - `isochron-magnet` (+ `-rx`): the magnet driver on the fake device (a pty)
-//!   or a serial port; `isochron-lab-io` carries the control thread's switch
+//! - `isochron-magnet` (+ `-rx`): the magnet driver on a simulated board
+//!   behind a pty ([`MagnetLink::Simulated`], `sim`'s) or a serial port; `isochron-lab-io` carries the control thread's switch
 //!   requests to it (serial I/O blocks) and keeps the simulated controller
 //!   commanding. The driver's event hook reports the coil's switches to the
 //!   control thread through a ring: the ground-truth ball is released when the
 //!   magnet reports off.
+//!
+//! The runtime imports nothing from `sim` (issue #35): a simulated link is a
+//! factory the caller hands in (`simulated` in `sim/wall_lab.rs` builds the whole
+//! simulated lab), called once the runtime knows what the link needs (the
+//! lab's clock, the FRI client's address).
 
+use std::any::Any;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -30,21 +37,15 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use super::step::LabStep;
-use super::step::{
-    CameraModel, IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params,
-};
-use super::truth::{TruthUpdate, TruthView};
+use super::step::{IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params};
 pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
 use crate::control::Controller;
+use crate::fri::stats::LatencyHistogram;
 use crate::fri::{FriSession, FriSessionParams, SessionState, SessionStats};
 use crate::magnet::{EventKind, MagnetHandle, MagnetParams};
 use crate::params::Scenario;
-use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
-use crate::sim::camera::{SimCamera, SimCameraParams, SimCameraSource};
-use crate::sim::kuka::{SimError, SimRunOptions, SimServer, SimStats};
-use crate::sim::magnet::FakeDevice;
 use crate::vision::{
     DetectorParams, FrameSource, SwingPlaneCalibration, VisionError, VisionStats, source::Clock,
 };
@@ -132,9 +133,9 @@ pub enum RuntimeError {
     /// The FRI session could not start.
     #[error(transparent)]
     Session(#[from] crate::fri::SessionError),
-    /// The simulated controller could not start.
-    #[error(transparent)]
-    Sim(#[from] SimError),
+    /// The simulated controller could not start (its error's words).
+    #[error("{0}")]
+    Sim(String),
     /// The camera or the detector could not start.
     #[error(transparent)]
     Vision(#[from] VisionError),
@@ -159,11 +160,43 @@ pub enum RuntimeError {
     },
 }
 
+/// A simulated robot controller behind the FRI link (`sim`'s), as the
+/// runtime supervises and measures it.
+pub trait SimulatedRobot: Send + Sync {
+    /// The controller's FRI session state.
+    fn state(&self) -> SessionState;
+    /// Asks the controller for commanding (as the robot program does).
+    fn request_commanding(&self);
+    /// The loop as the controller counts it.
+    fn loop_counts(&self) -> RobotLoopCounts;
+    /// Controller send -> reply received, as the controller measures it.
+    fn rtt(&self) -> &LatencyHistogram;
+    /// The simulator itself (tests inspect it).
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// A simulated controller's counts of the loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct RobotLoopCounts {
+    /// Monitoring messages sent.
+    pub messages_sent: u64,
+    /// Replies that arrived after the next message was due.
+    pub late_replies: u64,
+    /// Cycles whose reply never came.
+    pub missing_replies: u64,
+}
+
+/// Starts a simulated controller for `scenario` and `seed` that sends to the
+/// FRI client at the given address (loopback).
+pub type RobotFactory = Box<
+    dyn FnOnce(&Scenario, u64, SocketAddr) -> Result<Arc<dyn SimulatedRobot>, RuntimeError> + Send,
+>;
+
 /// Where the robot is.
-#[derive(Debug, Clone, PartialEq)]
 pub enum FriLink {
-    /// The simulated KUKA controller on loopback UDP (`isochron-fri-sim`).
-    Simulated,
+    /// A simulated KUKA controller on loopback UDP (`isochron-fri-sim`),
+    /// started by the factory once the client listens.
+    Simulated(RobotFactory),
     /// A controller (the robot, or `isochron fri-sim`) at `controller`; the
     /// client listens on `bind`.
     Controller {
@@ -174,14 +207,60 @@ pub enum FriLink {
     },
 }
 
+impl std::fmt::Debug for FriLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Simulated(_) => f.write_str("Simulated"),
+            Self::Controller { bind, controller } => f
+                .debug_struct("Controller")
+                .field("bind", bind)
+                .field("controller", controller)
+                .finish(),
+        }
+    }
+}
+
 /// Builds a frame source on the lab's clock (again after it stopped: a
 /// camera unplugged and plugged in).
 pub type SourceFactory = Box<dyn FnMut(Clock) -> Result<Box<dyn FrameSource>, VisionError> + Send>;
 
+/// What a simulated camera's factory is given.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraSetup<'a> {
+    /// The lab's scenario.
+    pub scenario: &'a Scenario,
+    /// The run's seed.
+    pub seed: u64,
+    /// The pendulum's distance when it cannot move; `None`: drawn per trial.
+    pub fixed_distance_m: Option<f64>,
+    /// The lab's clock (the camera's stamps).
+    pub clock: Clock,
+    /// The controller's period, seconds.
+    pub period_s: f64,
+}
+
+/// A simulated camera and the ground truth it renders: the frame source,
+/// its calibration at the start, the ring of its calibrations per trial and
+/// the truth the trial driver follows (`LabParts::truth`).
+pub struct SimulatedCamera {
+    /// The frames.
+    pub source: Box<dyn FrameSource>,
+    /// The swing plane as the camera sees it at the start.
+    pub calibration: SwingPlaneCalibration,
+    /// The camera's calibration per trial (the simulated pendulum moves).
+    pub calibrations: rtrb::Consumer<SwingPlaneCalibration>,
+    /// The ground truth, to the trial driver.
+    pub truth: Truth,
+}
+
+/// Builds the simulated camera (and the lab's ground truth).
+pub type CameraFactory =
+    Box<dyn FnOnce(&CameraSetup<'_>) -> Result<SimulatedCamera, RuntimeError> + Send>;
+
 /// Where the camera images come from.
 pub enum CameraLink {
-    /// The simulated camera rendering the ground-truth pendulum.
-    Simulated,
+    /// The simulated camera rendering the ground-truth pendulum (`sim`'s).
+    Simulated(CameraFactory),
     /// A real source (webcam, video file) with its calibration.
     Source {
         /// Opens the source on the lab's clock.
@@ -194,7 +273,7 @@ pub enum CameraLink {
 impl std::fmt::Debug for CameraLink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::Simulated => f.write_str("Simulated"),
+            Self::Simulated(_) => f.write_str("Simulated"),
             Self::Source { calibration, .. } => f
                 .debug_struct("Source")
                 .field("calibration", calibration)
@@ -203,13 +282,26 @@ impl std::fmt::Debug for CameraLink {
     }
 }
 
+/// Starts a simulated magnet board: the driver's parameters (its port) and
+/// what keeps the board running (dropped with the lab).
+pub type MagnetFactory =
+    Box<dyn FnOnce() -> Result<(MagnetParams, Box<dyn Any + Send>), RuntimeError> + Send>;
+
 /// Where the magnet is.
-#[derive(Debug, Clone, PartialEq)]
 pub enum MagnetLink {
-    /// The in-process fake board behind a pseudo-terminal.
-    Fake,
+    /// A simulated board behind a pseudo-terminal (`sim`'s fake board).
+    Simulated(MagnetFactory),
     /// A serial device (the Arduino, or the firmware under simavr on a pty).
     Port(MagnetParams),
+}
+
+impl std::fmt::Debug for MagnetLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Simulated(_) => f.write_str("Simulated"),
+            Self::Port(p) => f.debug_tuple("Port").field(p).finish(),
+        }
+    }
 }
 
 /// How to build the lab.
@@ -239,12 +331,18 @@ pub struct LabSetup {
 }
 
 impl LabSetup {
-    /// The simulated lab for `scenario`. The FRI client declares the
-    /// simulated controller silent after 50 ms (at least two periods), not
-    /// after two periods: on a shared machine the controller's thread can miss
-    /// its slot for tens of milliseconds, which is a late message, not a lost
+    /// A lab for `scenario` with these links. The FRI client declares the
+    /// controller silent after 50 ms (at least two periods), not after two
+    /// periods: on a shared machine the controller's thread can miss its
+    /// slot for tens of milliseconds, which is a late message, not a lost
     /// robot (the controller's own grading still sees every late reply).
-    pub fn simulated(scenario: Scenario, seed: u64) -> Self {
+    pub fn new(
+        scenario: Scenario,
+        seed: u64,
+        fri: FriLink,
+        camera: CameraLink,
+        magnet: MagnetLink,
+    ) -> Self {
         let period_ms = f64::from(scenario.robot.fri_period_ms.max(1));
         let session = crate::fri::FriClientParams {
             silence_periods: (50.0 / period_ms).clamp(2.0, 100.0),
@@ -253,9 +351,9 @@ impl LabSetup {
         Self {
             scenario,
             seed,
-            fri: FriLink::Simulated,
-            camera: CameraLink::Simulated,
-            magnet: MagnetLink::Fake,
+            fri,
+            camera,
+            magnet,
             fixed_distance_m: None,
             video: VideoParams::default(),
             session,
@@ -279,12 +377,11 @@ pub struct IoStats {
 pub struct LabRuntime {
     session: Option<FriSession<LabStep>>,
     session_stats: Arc<SessionStats>,
-    sim: Option<Arc<SimServer>>,
+    sim: Option<Arc<dyn SimulatedRobot>>,
     vision: Option<VisionLoop>,
     magnet: MagnetHandle,
-    fake: Option<FakeDevice>,
-    /// Holds the fake board's link; removed after `fake` stops (field order).
-    _fake_dir: Option<tempfile::TempDir>,
+    /// What keeps a simulated magnet board running.
+    fake: Option<Box<dyn Any + Send>>,
     io: Option<JoinHandle<()>>,
     io_stats: Arc<IoStats>,
     stop_io: Arc<AtomicBool>,
@@ -300,15 +397,6 @@ impl std::fmt::Debug for LabRuntime {
             .field("fri", &self.session_stats.state())
             .finish_non_exhaustive()
     }
-}
-
-/// A unique path for the fake magnet board's pty link.
-/// A private directory for the fake magnet board's link (`tempfile`), removed
-/// with the lab.
-fn fake_port_dir() -> std::io::Result<tempfile::TempDir> {
-    tempfile::Builder::new()
-        .prefix("isochron-magnet-")
-        .tempdir()
 }
 
 impl LabRuntime {
@@ -343,14 +431,12 @@ impl LabRuntime {
 
         // The magnet: driver thread, its events to the control thread.
         let (mut note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
-        let (fake, fake_dir, params) = match magnet {
-            MagnetLink::Fake => {
-                let dir = fake_port_dir()?;
-                let dev = FakeDevice::start(dir.path().join("tty"))?;
-                let p = MagnetParams::for_port(dev.path().display().to_string());
-                (Some(dev), Some(dir), p)
+        let (fake, params) = match magnet {
+            MagnetLink::Simulated(start) => {
+                let (p, board) = start()?;
+                (Some(board), p)
             }
-            MagnetLink::Port(p) => (None, None, p),
+            MagnetLink::Port(p) => (None, p),
         };
         let hook = Box::new(move |e: &crate::magnet::MagnetEvent| {
             let on = match e.kind {
@@ -374,53 +460,20 @@ impl LabRuntime {
             Option<Truth>,
             _,
         ) = match camera {
-            CameraLink::Simulated => {
-                let cam = SimCamera::new(
-                    &scenario.camera,
-                    &SimCameraParams::default(),
-                    scenario.pendulum.ball_radius_m,
+            CameraLink::Simulated(start) => {
+                let cam = start(&CameraSetup {
+                    scenario: &scenario,
                     seed,
-                )?;
-                // The detector's calibration uses the believed intrinsics (the
-                // renderer draws through the nominal pinhole).
-                let model = CameraModel {
-                    intrinsics: scenario.camera.believed_intrinsics(cam.params().hfov_deg),
-                    pose: cam.params().pose,
-                    ball_radius_m: scenario.pendulum.ball_radius_m,
-                };
-                // Until the first trial: the ball hangs at rest mid-range.
-                let d = fixed_distance_m.unwrap_or(scenario.task.distance_m.lerp(0.5));
-                let rest = nalgebra::Vector3::new(d, 0.0, scenario.task.intercept_height_m);
-                let cal = SwingPlaneCalibration::from_pose(
-                    model.intrinsics,
-                    &model.pose,
-                    &rest,
-                    model.ball_radius_m,
-                );
-                let (mut truth_tx, truth_rx) = rtrb::RingBuffer::<TruthUpdate>::new(16);
-                let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
-                let pm = PendulumModel::from_params(&scenario.pendulum)?;
-                let geo = PendulumGeometry::new(
-                    scenario.pendulum.length_m,
-                    d,
-                    scenario.task.intercept_height_m,
-                )?;
-                if let Ok(b) = PendulumSim::held_at(pm, geo, 0.0, 0.0) {
-                    let _ = truth_tx.push(TruthUpdate::Ball(b));
-                }
-                let mut view = TruthView::new(truth_rx);
-                let src = SimCameraSource::new(cam, move |t| view.at(t), clock);
-                // In real time the simulated lab is a truthful world (the
-                // reality lab, `[world]`, runs on the virtual clock).
-                let truth = Truth {
-                    to_camera: truth_tx,
-                    calibrations: cal_tx,
-                    camera: model,
-                    world: false,
-                    contacts: None,
-                    joints: None,
-                };
-                (Box::new(src), cal, Some(truth), Some(cal_rx))
+                    fixed_distance_m,
+                    clock,
+                    period_s: f64::from(period_ms) * 1e-3,
+                })?;
+                (
+                    cam.source,
+                    cam.calibration,
+                    Some(cam.truth),
+                    Some(cam.calibrations),
+                )
             }
             CameraLink::Source {
                 mut open,
@@ -476,9 +529,9 @@ impl LabRuntime {
         // On the FRI thread the reply is the only system call of a cycle: the
         // step is timed by wall clock only (`LoopStep::cpu_time`).
         step.inner_mut().step.cpu_time = false;
-        let (bind, controller_addr) = match fri {
-            FriLink::Simulated => (SocketAddr::from(([127, 0, 0, 1], 0)), None),
-            FriLink::Controller { bind, controller } => (bind, Some(controller)),
+        let (bind, controller_addr, start_robot) = match fri {
+            FriLink::Simulated(start) => (SocketAddr::from(([127, 0, 0, 1], 0)), None, Some(start)),
+            FriLink::Controller { bind, controller } => (bind, Some(controller), None),
         };
         let session = FriSession::spawn(
             FriSessionParams {
@@ -493,19 +546,9 @@ impl LabRuntime {
         let _ = session_cell.set(Arc::clone(&session_stats));
 
         // The robot: the simulated controller sends to the client's socket.
-        let sim = match controller_addr {
-            None => Some(Arc::new(SimServer::spawn(
-                super::virtual_time::robot_params(&scenario, seed),
-                SocketAddr::from(([127, 0, 0, 1], 0)),
-                session.local_addr(),
-                SimRunOptions {
-                    auto_command: true,
-                    duration: None,
-                    normal_priority: false,
-                    keep_commanding: false,
-                },
-            )?)),
-            Some(_) => None,
+        let sim = match start_robot {
+            Some(start) => Some(start(&scenario, seed, session.local_addr())?),
+            None => None,
         };
 
         let stop_io = Arc::new(AtomicBool::new(false));
@@ -531,7 +574,6 @@ impl LabRuntime {
             vision: Some(vision),
             magnet,
             fake,
-            _fake_dir: fake_dir,
             io: Some(io),
             io_stats,
             stop_io,
@@ -546,9 +588,9 @@ impl LabRuntime {
         &self.session_stats
     }
 
-    /// The simulated controller's counters (simulated robot only).
-    pub fn sim_stats(&self) -> Option<&Arc<SimStats>> {
-        self.sim.as_ref().map(|s| s.stats())
+    /// The simulated controller (simulated robot only).
+    pub fn simulated_robot(&self) -> Option<&Arc<dyn SimulatedRobot>> {
+        self.sim.as_ref()
     }
 
     /// The FRI client's local address.
@@ -571,9 +613,9 @@ impl LabRuntime {
         &self.magnet
     }
 
-    /// The fake magnet board (when the lab uses it).
-    pub fn fake_magnet(&self) -> Option<&FakeDevice> {
-        self.fake.as_ref()
+    /// The simulated magnet board (when the lab uses one; tests downcast it).
+    pub fn simulated_magnet(&self) -> Option<&(dyn Any + Send)> {
+        self.fake.as_deref()
     }
 
     /// The `isochron-lab-io` thread's counters.
@@ -617,19 +659,16 @@ impl LabRuntime {
                 st.spin_ns.load(Ordering::Relaxed),
                 st.spins_gave_up.load(Ordering::Relaxed),
             );
-            let s = self.sim_stats().map(|s| {
-                (
-                    s.messages_sent.load(Ordering::Relaxed),
-                    s.late_replies.load(Ordering::Relaxed),
-                    s.missing_replies.load(Ordering::Relaxed),
-                )
+            let s = self.sim.as_ref().map(|s| {
+                let n = s.loop_counts();
+                (n.messages_sent, n.late_replies, n.missing_replies)
             });
             (c, s.unwrap_or((st.received.load(Ordering::Relaxed), 0, 0)))
         };
         // The histograms of the window only: the session's start-up (first
         // touches of its memory, the clients connecting) is not the loop.
         let st = &self.session_stats;
-        let rtt = || self.sim_stats().map_or(&st.reply_latency, |s| &s.rtt);
+        let rtt = || self.sim.as_ref().map_or(&st.reply_latency, |s| s.rtt());
         let starts = [
             rtt().copy(),
             st.reply_latency.copy(),
@@ -699,7 +738,7 @@ struct Io {
     requests: rtrb::Consumer<IoRequest>,
     replies: rtrb::Producer<IoReply>,
     magnet: MagnetHandle,
-    sim: Option<Arc<SimServer>>,
+    sim: Option<Arc<dyn SimulatedRobot>>,
     scenario: Scenario,
 }
 
@@ -716,7 +755,7 @@ impl Io {
                 next_check = Instant::now() + Duration::from_millis(50);
                 // The controller dropped out of commanding (e.g. a burst of late
                 // replies graded the link poor): ask again, as an operator would.
-                if sim.stats().state() == SessionState::MonitoringReady {
+                if sim.state() == SessionState::MonitoringReady {
                     sim.request_commanding();
                     self.stats
                         .commanding_requests
@@ -750,150 +789,5 @@ impl Io {
         // The control thread drains replies every step; the ring holds more
         // than the requests it can have open (one).
         let _ = self.replies.push(reply);
-    }
-}
-
-/// Runs the simulated lab at the scenario's FRI period and measures the loop
-/// for `duration` once the session commands (no server attached: the bridge's
-/// server end is dropped, so every hand-off is counted, never waited on).
-pub fn run_loop(scenario: &Scenario, duration: Duration) -> Result<LoopReport, RuntimeError> {
-    let (control, _server) = crate::bridge::bridge(crate::bridge::BridgeCapacity::default());
-    let lab = LabRuntime::start(LabSetup::simulated(scenario.clone(), 1), control, None)?;
-    lab.wait_commanding(Duration::from_secs(5))?;
-    let mut report = lab.measure(duration);
-    let step = lab.stop()?;
-    report.deadline_misses = step.deadline_misses();
-    Ok(report)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_loop_answers_every_message_over_loopback() {
-        let mut s = Scenario::default();
-        s.robot.fri_period_ms = 5;
-        let r = run_loop(&s, Duration::from_millis(400)).unwrap();
-        assert!(r.cycles >= 70, "{r:?}");
-        // A loaded test machine may answer a few late, but must answer.
-        assert!(r.missed_cycles * 10 <= r.cycles, "{r:?}");
-        assert!(r.reply_latency_us.p50 > 0.0, "{r:?}");
-        // The histograms hold the window only (not the session's start-up):
-        // at most one sample per cycle (a loaded machine may miss some).
-        for (what, h) in [
-            ("reply", r.reply_latency_us),
-            ("client", r.client_us),
-            ("step", r.client_step_us),
-            ("send", r.client_send_us),
-        ] {
-            assert!(
-                2 * h.count >= r.cycles && h.count <= r.cycles + 3,
-                "{what}: {} samples in {} cycles",
-                h.count,
-                r.cycles
-            );
-        }
-        // The client's stages lie inside its receive -> send.
-        assert!(
-            r.client_step_us.p50 > 0.0 && r.client_send_us.p50 > 0.0,
-            "{r:?}"
-        );
-        assert!(r.client_step_us.p50 < r.client_us.p50, "{r:?}");
-        assert!(r.client_send_us.p50 < r.client_us.p50, "{r:?}");
-    }
-
-    #[test]
-    fn a_trial_runs_through_the_udp_session_camera_and_magnet_and_is_judged() {
-        use crate::bridge::{Command, Event, FriSessionState, TrialState};
-        let (control, mut end) = crate::bridge::bridge(crate::bridge::BridgeCapacity::default());
-        let lab =
-            LabRuntime::start(LabSetup::simulated(Scenario::default(), 5), control, None).unwrap();
-        lab.wait_commanding(Duration::from_secs(10)).unwrap();
-        // An emergency stop while idle does not spoil the next trial.
-        end.stop.request_stop();
-        std::thread::sleep(Duration::from_millis(50));
-        let id = end
-            .commands
-            .send(Command::RunTrial {
-                trial_id: 9,
-                setup: crate::bridge::TrialSetup::default(),
-            })
-            .unwrap();
-        let deadline = Instant::now() + Duration::from_secs(40);
-        let (mut acked, mut states, mut result) = (false, Vec::new(), None);
-        while result.is_none() {
-            assert!(Instant::now() < deadline, "no result; states {states:?}");
-            while let Some(a) = end.acks.pop() {
-                assert_eq!((a.id, a.outcome), (id, Ok(())));
-                acked = true;
-            }
-            while end.telemetry.pop().is_some() {}
-            while let Some(e) = end.events.pop() {
-                match e.event {
-                    // (After the result the driver resets to Idle: not this trial's.)
-                    Event::StateChanged { to, .. } if result.is_none() => states.push(to),
-                    Event::StateChanged { .. } => {}
-                    Event::TrialFinished { result: r } => result = Some(r),
-                    Event::Aborted { reason, detail } if e.trial_id != 0 => panic!(
-                        "aborted: {reason:?} ({detail}) after {states:?}: {:?}",
-                        lab.sim_stats().unwrap().report()
-                    ),
-                    Event::Aborted { .. } => {}
-                }
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        let r = result.unwrap();
-        let snap = *end.latest.read();
-        let vision = lab.vision_stats().unwrap();
-        let found = vision.found.load(Ordering::Relaxed);
-        println!(
-            "{r:?}; {states:?}; camera found the ball in {found} frames; {:?}",
-            snap.fri
-        );
-        assert!(acked);
-        assert_eq!(
-            states,
-            [
-                TrialState::Aborted,
-                TrialState::Arming,
-                TrialState::Armed,
-                TrialState::Released,
-                TrialState::Tracking,
-                TrialState::Intercepting,
-                TrialState::Holding,
-                TrialState::Done
-            ]
-        );
-        assert!(r.success, "{r:?}");
-        assert!(found > 20, "{found}");
-        assert_eq!(snap.fri.session, FriSessionState::CommandingActive);
-        assert!(snap.fri.reply_latency_us > 0.0, "{:?}", snap.fri);
-        // The ball was released by the magnet: the fake board switched on, then off.
-        assert!(lab.fake_magnet().unwrap().pin_changes() >= 2);
-        assert!(!lab.fake_magnet().unwrap().magnet_on());
-        let step = lab.stop().unwrap();
-        assert_eq!(step.inner().controller().counters().limit_violations(), 0);
-
-        // The same seed and world on the virtual clock (the same trial
-        // driver, links in-process): the same draw and the same judged
-        // timing error within one FRI period.
-        let s = Scenario::default();
-        let mut virt = super::super::VirtualLab::new(&s, 5).unwrap();
-        assert_eq!(virt.vision_used(), "full");
-        let v = virt.run_trial(0);
-        let vj = v.judgement.unwrap();
-        let period_ms = f64::from(s.robot.fri_period_ms);
-        println!(
-            "timing error: wall clock {:.3} ms, virtual clock {:.3} ms (FRI period {period_ms} ms)",
-            r.timing_error_ms, vj.timing_error_ms
-        );
-        assert!(v.success, "{v:?}");
-        assert_eq!(v.distance_m, r.distance_m);
-        assert!(
-            (vj.timing_error_ms - r.timing_error_ms).abs() <= period_ms,
-            "wall {r:?}, virtual {v:?}"
-        );
     }
 }

@@ -17,7 +17,7 @@ use rtrb::{Consumer, Producer};
 use super::fri_step::FriLoopStep;
 use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
-use super::truth::TruthUpdate;
+use super::truth::{MAX_PASSES, PhysicalJudgeError, PhysicalJudgement, TrialStart, TruthObserver};
 use crate::bridge::{
     self, AbortKind as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord, FriQuality,
     FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult, TrialSetup,
@@ -34,11 +34,6 @@ use crate::fri::proto::{ConnectionQuality, SessionState};
 #[cfg(feature = "serial")]
 use crate::magnet::{MagnetHandle, view};
 use crate::params::Scenario;
-use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
-use crate::sim::world::contact::BallOnTool;
-use crate::sim::world::judge::PhysicalJudgeError;
-use crate::sim::world::{PhysicalJudgement, TruePendulum, World, WorldSample, judge_physical};
-
 use crate::trajectory::profile::ProfileKind;
 use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
 
@@ -46,8 +41,6 @@ use crate::vision::{CameraIntrinsics, CameraPose, SwingPlaneCalibration};
 pub const AFTER_DONE_S: f64 = 0.3;
 /// Longest a trial may take from arming, seconds.
 pub const TRIAL_TIMEOUT_S: f64 = 40.0;
-/// True passes of the ball through the intercept point kept per trial.
-const MAX_PASSES: usize = 64;
 /// How long the robot controller may fall silent before a running trial
 /// counts the FRI link as lost, seconds. The FRI client calls a silence after
 /// a few periods (`fri::FriClientParams::silence_periods`), which a busy
@@ -96,7 +89,7 @@ pub enum LabClock {
 }
 
 /// How a trial ended, as the control thread saw it (plain data: no
-/// allocation at the end of a trial; [`super::VirtualLab`] turns it into a
+/// allocation at the end of a trial; the virtual lab turns it into a
 /// [`crate::control::TrialRecord`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrialOutcome {
@@ -206,60 +199,34 @@ pub(crate) enum IoReply {
 /// The simulated camera's geometry, to recompute its calibration when the
 /// simulated pendulum moves (per trial).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct CameraModel {
+pub struct CameraModel {
+    /// The believed intrinsics (the detector's calibration undistorts with them).
     pub intrinsics: CameraIntrinsics,
+    /// The camera's pose.
     pub pose: CameraPose,
+    /// The ball's radius, m.
     pub ball_radius_m: f64,
 }
 
-/// The ground truth of the simulated lab, shared with the simulated camera.
-pub(crate) struct Truth {
-    pub to_camera: Producer<TruthUpdate>,
+/// The ground truth of a simulated lab: the world's observer (implemented
+/// in `sim`) and the simulated camera's calibration, moved with the truth
+/// per trial.
+pub struct Truth {
+    /// The world as the driver follows and judges it.
+    pub observer: Box<dyn TruthObserver>,
+    /// The simulated camera's calibrations, one per trial.
     pub calibrations: Producer<SwingPlaneCalibration>,
+    /// The simulated camera's geometry.
     pub camera: CameraModel,
-    /// The scenario's `[world]` is simulated (the virtual-time lab: its
-    /// camera and robot simulate it too); `false`: a truthful world.
-    pub world: bool,
-    /// The simulated robot's true joint angles at each message (the virtual
-    /// lab; `None`: the measured ones stand for them).
-    pub joints: Option<Arc<crate::fri::stats::AtomicJoints>>,
-    /// The reality lab's contacts of ball and tool, for the simulated
-    /// robot's external torques (`None`: no world robot to tell).
-    pub contacts: Option<Producer<crate::sim::world::Contact>>,
-}
-
-/// The true pendulum of a simulated trial (inline: a trial starts without
-/// allocating).
-#[allow(clippy::large_enum_variant)]
-enum TrueBall {
-    /// A truthful world: the pendulum the controller's model describes.
-    Ideal(PendulumSim),
-    /// The reality lab (`[world]`).
-    World(WorldBall),
-}
-
-/// The reality lab's trial: the world's draw and its true ball on the
-/// true tool (`sim::world::contact::BallOnTool`).
-struct WorldBall {
-    world: World,
-    on_tool: BallOnTool,
-}
-
-impl TrueBall {
-    fn position_m(&self) -> Vector3<f64> {
-        match self {
-            Self::Ideal(b) => b.ball_position_m(),
-            Self::World(w) => w.on_tool.ball.ball_position_m(),
-        }
-    }
 }
 
 struct Trial {
     id: u64,
     draw: TrialDraw,
     plan: ArmPlan,
-    /// The true pendulum (simulated lab only).
-    ball: Option<TrueBall>,
+    /// The lab follows the trial's ground truth (`LabParts::truth`: the
+    /// simulated lab only).
+    truth: bool,
     auto_release: bool,
     armed_at: Option<f64>,
     release_requested: bool,
@@ -313,10 +280,6 @@ pub struct LabStep {
     /// The true ball's passes through the intercept point's `y` in the
     /// current trial: exact time (a root of the true pendulum) and centre.
     passes: Vec<(f64, Vector3<f64>)>,
-    /// The reality lab's trace of the true world (ghost ball, true disc) and
-    /// the passes' times, for the physical judge.
-    world_trace: Vec<WorldSample>,
-    pass_times: Vec<f64>,
     /// What the measured judge needs (detections, measured tool, external torques).
     measured: MeasuredTrace,
     /// The simulated robot's true joints at this message (virtual lab).
@@ -407,8 +370,6 @@ impl LabStep {
             trace: TrialTrace::with_capacity(trace_len),
             judge_scratch: JudgeScratch::with_capacity(trace_len),
             passes: Vec::with_capacity(MAX_PASSES),
-            world_trace: Vec::with_capacity(trace_len),
-            pass_times: Vec::with_capacity(MAX_PASSES),
             measured: MeasuredTrace::with_capacity(sightings_len, trace_len),
             q_true: None,
             outcome: None,
@@ -745,21 +706,10 @@ impl LabStep {
             // The coil let go: the ball swings from this moment.
             let t = note.t_s;
             tr.released = true;
-            match tr.ball.as_mut() {
-                Some(TrueBall::Ideal(ball)) => {
-                    let at = t.max(ball.time_s());
-                    if ball.release(at).is_ok()
-                        && let Some(truth) = self.p.truth.as_mut()
-                    {
-                        let _ = truth.to_camera.push(TruthUpdate::Ball(ball.clone()));
-                    }
-                }
-                // Residual magnetism holds the ball a little longer (the
-                // simulated camera knows the same drop time from the switch).
-                Some(TrueBall::World(w)) => {
-                    w.on_tool.drop_at = Some(t + w.world.trial.release_delay_s);
-                }
-                None => {}
+            if tr.truth
+                && let Some(truth) = self.p.truth.as_mut()
+            {
+                truth.observer.release(t);
             }
             let c = self.inner.controller_mut();
             if c.state() == TrialState::Armed {
@@ -1009,53 +959,20 @@ impl LabStep {
         let _ = self.controller().reset(t);
         // The trial starts now on the operator's command: the dead-man counts from here.
         self.operator_since_s = t;
-        let world = match &self.p.truth {
-            Some(truth) if truth.world => {
-                // The truth hangs where the uncalibrated lab puts it (plus the
-                // world's error), whatever the beliefs say.
-                World::for_trial(
-                    &self.p.scenario,
-                    self.p.seed,
+        // The world hangs the trial's true ball (the simulated lab).
+        let truth = match self.p.truth.as_mut() {
+            Some(truth) => {
+                truth.observer.hang(&TrialStart {
+                    t_s: t,
+                    scenario: &self.p.scenario,
+                    seed: self.p.seed,
                     index,
-                    &Vector3::new(
-                        plan.distance_m,
-                        0.0,
-                        self.p.scenario.task.intercept_height_m,
-                    ),
-                )
+                    draw: &draw,
+                    plan: &plan,
+                })?;
+                true
             }
-            _ => None,
-        };
-        let ball = match &self.p.truth {
-            Some(_) if world.is_some() => world.map(|w| {
-                let ball = TruePendulum::held_at(
-                    w.pendulum,
-                    draw.release_angle_deg.to_radians(),
-                    w.trial.out_of_plane_rad,
-                    t,
-                    w.trial.seed,
-                );
-                TrueBall::World(WorldBall {
-                    world: w,
-                    on_tool: BallOnTool::new(ball),
-                })
-            }),
-            Some(_) => {
-                let s = &self.p.scenario;
-                let model =
-                    PendulumModel::from_params(&s.pendulum).map_err(|_| Refusal::Invalid)?;
-                let geometry = PendulumGeometry::new(
-                    s.pendulum.length_m,
-                    draw.distance_m,
-                    s.task.intercept_height_m,
-                )
-                .map_err(|_| Refusal::Invalid)?;
-                Some(TrueBall::Ideal(
-                    PendulumSim::held_at(model, geometry, draw.release_angle_deg.to_radians(), t)
-                        .map_err(|_| Refusal::Invalid)?,
-                ))
-            }
-            None => None,
+            None => false,
         };
         if !self.request_magnet(true) {
             return Err(Refusal::DeviceUnavailable);
@@ -1063,7 +980,7 @@ impl LabStep {
         self.controller()
             .arm(t, &plan)
             .map_err(|_| Refusal::ChecksFailed)?;
-        if let (Some(truth), Some(ball)) = (self.p.truth.as_mut(), ball.as_ref()) {
+        if let Some(truth) = self.p.truth.as_mut() {
             let cam = truth.camera;
             // What the lab believes: the camera's pose and the rest point (both
             // as calibrated, when they are).
@@ -1076,17 +993,13 @@ impl LabStep {
                 .camera
                 .set_calibration(&cal, size.width_px, size.height_px);
             let _ = truth.calibrations.push(cal);
-            let _ = truth.to_camera.push(match ball {
-                TrueBall::Ideal(b) => TruthUpdate::Ball(b.clone()),
-                TrueBall::World(w) => TruthUpdate::World(w.on_tool.ball.clone()),
-            });
+            truth.observer.show();
         }
         self.inner.clear_stop();
         self.abort_detail = "";
         self.snap.abort = AbortView::default();
         self.trace.clear();
         self.passes.clear();
-        self.world_trace.clear();
         self.measured.clear();
         self.outcome = None;
         self.snap.trial_id = id;
@@ -1099,7 +1012,7 @@ impl LabStep {
             id,
             draw,
             plan,
-            ball,
+            truth,
             auto_release,
             armed_at: None,
             release_requested: false,
@@ -1129,95 +1042,18 @@ impl LabStep {
         };
         let q_true = self.q_true.unwrap_or(self.q);
         let tool = self.inner.controller().tool_point(&q_true);
-        match trial.ball.as_mut() {
-            Some(TrueBall::Ideal(ball)) => {
-                if trial.released && t > ball.time_s() {
-                    // Exact times between the last step and this one: the true
-                    // passes through the intercept point's `y` (roots of the true
-                    // pendulum, found on a copy), and the true ball centre at the
-                    // committed prediction's pass time (the filter's own tests
-                    // measure it so; at t* both are the intercept point by
-                    // definition).
-                    let y = trial.plan.intercept_m.y;
-                    if let Some(tp) = ball.next_crossing_s(y, t - ball.time_s())
-                        && self.passes.len() < MAX_PASSES
-                    {
-                        let mut at = ball.clone();
-                        if at.advance_to(tp).is_ok() {
-                            self.passes.push((tp, at.ball_position_m()));
-                        }
-                    }
-                    if let Some(c) = commit
-                        && trial.at_predicted.is_none()
-                        && c.predicted_pass_s >= ball.time_s()
-                        && c.predicted_pass_s < t
-                    {
-                        let mut at = ball.clone();
-                        if at.advance_to(c.predicted_pass_s).is_ok() {
-                            trial.at_predicted = Some(at.ball_position_m());
-                        }
-                    }
-                    let _ = ball.advance_to(t);
-                }
-                self.trace.push(t, tool, ball.ball_position_m());
-            }
-            Some(TrueBall::World(w)) => {
-                // The same, on the ghost (the ball without the tool in its
-                // way) and the true intercept point.
-                let ghost = &w.on_tool.ghost;
-                if t > ghost.time_s() {
-                    let y = w.world.intercept_m.y;
-                    if let Some(tp) = ghost.next_crossing_s(y, t - ghost.time_s())
-                        && self.passes.len() < MAX_PASSES
-                    {
-                        let mut at = ghost.clone();
-                        at.advance_to(tp);
-                        self.passes.push((tp, at.ball_position_m()));
-                    }
-                    if let Some(c) = commit
-                        && trial.at_predicted.is_none()
-                        && c.predicted_pass_s >= ghost.time_s()
-                        && c.predicted_pass_s < t
-                        && !ghost.is_held()
-                    {
-                        let mut at = ghost.clone();
-                        at.advance_to(c.predicted_pass_s);
-                        trial.at_predicted = Some(at.ball_position_m());
-                    }
-                    w.on_tool.advance(t);
-                }
-                // The true tool (the world's kinematics at the robot's true
-                // joints); the ball stops against its disc.
-                let disc = w.world.arm.disc(&q_true);
-                let mass_kg = self
-                    .p
-                    .scenario
-                    .world
-                    .as_ref()
-                    .map_or(0.0, |pw| pw.pendulum.ball_mass_kg);
-                let contact = w.on_tool.meet(t, disc, self.period_s, mass_kg);
-                if let Some(contact) = contact
-                    && let Some(truth) = self.p.truth.as_mut()
-                {
-                    // The camera sees the ball where the tool stopped it.
-                    let _ = truth
-                        .to_camera
-                        .push(TruthUpdate::World(w.on_tool.ball.clone()));
-                    // The robot feels the impulse that stopped it.
-                    if let Some(contacts) = truth.contacts.as_mut() {
-                        let _ = contacts.push(contact);
-                    }
-                }
-                self.trace.push(t, tool, w.on_tool.ball.ball_position_m());
-                if self.world_trace.len() < self.world_trace.capacity() {
-                    self.world_trace.push(WorldSample {
-                        t_s: t,
-                        ball_m: w.on_tool.ghost.ball_position_m(),
-                        disc,
-                    });
-                }
-            }
-            None => {}
+        if trial.truth
+            && let Some(truth) = self.p.truth.as_mut()
+        {
+            let ball = truth.observer.step(
+                t,
+                &q_true,
+                self.period_s,
+                commit.as_ref(),
+                &mut self.passes,
+                &mut trial.at_predicted,
+            );
+            self.trace.push(t, tool, ball);
         }
         let mut want_release = false;
         match state {
@@ -1334,7 +1170,7 @@ impl LabStep {
             });
             o.latency_estimate_ms = commit.latency_s * 1e3;
             o.camera_offset_estimate_ms = Some(commit.camera_offset_s * 1e3);
-            if trial.ball.is_some() {
+            if trial.truth {
                 let motion = PlannedMotion {
                     start_m: c.home_m(),
                     end_m: c.motion_target_m(),
@@ -1342,10 +1178,12 @@ impl LabStep {
                     duration_s: commit.duration_s,
                     commanded_start_s: commit.motion_start_s,
                 };
-                let intercept = match &trial.ball {
-                    Some(TrueBall::World(w)) => w.world.intercept_m,
-                    _ => trial.plan.intercept_m,
-                };
+                let intercept = self
+                    .p
+                    .truth
+                    .as_ref()
+                    .and_then(|truth| truth.observer.intercept_m())
+                    .unwrap_or(trial.plan.intercept_m);
                 match judge_into(&self.trace, &motion, &intercept, &mut self.judge_scratch) {
                     Ok(j) => o.judgement = Some(j),
                     Err(e) => o.judge_error = Some(e),
@@ -1358,8 +1196,8 @@ impl LabStep {
                     o.prediction_position_error_m = Some((commit.predicted_ball_m - truth).norm());
                 }
             }
-            if let Some(TrueBall::World(w)) = &trial.ball {
-                self.judge_world(w, commit.predicted_pass_s, &mut o);
+            if trial.truth {
+                self.judge_world(commit.predicted_pass_s, &mut o);
             }
         }
         // A contact shows what the camera offset missed (whatever the
@@ -1392,7 +1230,7 @@ impl LabStep {
         let mj = o.measured.filter(|m| m.judged());
         let j = o.judgement.or_else(|| {
             // The real lab: the measured judge's figures.
-            let m = mj.filter(|_| trial.ball.is_none())?;
+            let m = mj.filter(|_| !trial.truth)?;
             Some(Judgement {
                 t_star_s: m.pass_t_s.unwrap_or(f64::NAN),
                 start_s: f64::NAN,
@@ -1405,15 +1243,15 @@ impl LabStep {
         });
         let not_judged = if o.physical.is_some() || (o.physical_error.is_none() && j.is_some()) {
             None
-        } else if trial.ball.is_none() && o.measured.is_some_and(|m| !m.torque_signal) {
+        } else if !trial.truth && o.measured.is_some_and(|m| !m.torque_signal) {
             Some(NOT_JUDGED_NO_TORQUE)
-        } else if trial.ball.is_none() && o.measured.is_some_and(|m| m.robot_gap_ms.is_some()) {
+        } else if !trial.truth && o.measured.is_some_and(|m| m.robot_gap_ms.is_some()) {
             Some(NOT_JUDGED_ROBOT_GAP)
-        } else if trial.ball.is_none() && o.measured.is_some() {
+        } else if !trial.truth && o.measured.is_some() {
             Some(NOT_JUDGED_MEASURED)
-        } else if trial.ball.is_none() && no_motion(&o) {
+        } else if !trial.truth && no_motion(&o) {
             Some(NOT_JUDGED_NO_MOTION)
-        } else if trial.ball.is_none() {
+        } else if !trial.truth {
             Some(NOT_JUDGED_REAL)
         } else if no_motion(&o) {
             Some(NOT_JUDGED_NO_MOTION)
@@ -1451,31 +1289,23 @@ impl LabStep {
     /// The physical judge on the true world: fills `o.physical` and puts its
     /// figures (t*, arrival, |timing error|, tool-ball distance at t*) into
     /// the reported judgement; the fitted movement time stays.
-    fn judge_world(&mut self, w: &WorldBall, committed_pass_s: f64, o: &mut TrialOutcome) {
-        self.pass_times.clear();
-        self.pass_times.extend(self.passes.iter().map(|p| p.0));
-        match judge_physical(
-            &self.world_trace,
-            &self.pass_times,
-            committed_pass_s,
-            w.world.pendulum.ball_radius_m,
-            self.p.scenario.success.timing_tolerance_ms,
-        ) {
-            Ok(p) => {
-                let at = self
-                    .world_trace
-                    .iter()
-                    .min_by(|a, b| {
-                        (a.t_s - p.t_star_s)
-                            .abs()
-                            .total_cmp(&(b.t_s - p.t_star_s).abs())
-                    })
-                    .map_or(f64::NAN, |s| (s.disc.centre_m - s.ball_m).norm());
+    fn judge_world(&mut self, committed_pass_s: f64, o: &mut TrialOutcome) {
+        let tolerance_ms = self.p.scenario.success.timing_tolerance_ms;
+        let Some(verdict) = self.p.truth.as_mut().and_then(|truth| {
+            truth
+                .observer
+                .judge_physical(&self.passes, committed_pass_s, tolerance_ms)
+        }) else {
+            return;
+        };
+        match verdict {
+            Ok(v) => {
+                let p = v.judgement;
                 if let Some(j) = o.judgement.as_mut() {
                     j.t_star_s = p.t_star_s;
                     j.arrival_s = p.arrival_s;
                     j.timing_error_ms = p.timing_error_ms.abs();
-                    j.position_error_m = at;
+                    j.position_error_m = v.position_error_m;
                 }
                 o.physical = Some(p);
             }
@@ -1527,14 +1357,13 @@ impl LabStep {
                 s.pendulum.ball_m = [f64::NAN; 3];
             }
         }
-        s.pendulum.truth_ball_m =
-            self.trial
-                .as_ref()
-                .and_then(|tr| tr.ball.as_ref())
-                .map_or([f64::NAN; 3], |b| {
-                    let b = b.position_m();
-                    [b.x, b.y, b.z]
-                });
+        s.pendulum.truth_ball_m = self
+            .trial
+            .as_ref()
+            .filter(|tr| tr.truth)
+            .and(self.p.truth.as_ref())
+            .and_then(|truth| truth.observer.ball_m())
+            .map_or([f64::NAN; 3], |b| [b.x, b.y, b.z]);
         // Motion: the timing system (Hopf oscillator and neurons) and the path.
         let ms = c.motion_sample();
         s.hopf.active = matches!(c.state(), TrialState::Intercepting);
@@ -1669,8 +1498,7 @@ impl ControlStep for LabStep {
         {
             self.measured.torques(t, tau);
         }
-        if let Some(q) = self.p.truth.as_ref().and_then(|t| t.joints.as_ref()) {
-            let q = q.load();
+        if let Some(q) = self.p.truth.as_ref().and_then(|t| t.observer.true_joints()) {
             self.q_true = q.iter().all(|v| v.is_finite()).then_some(q);
         }
         let send_period_s = if m.send_period_ms > 0 {

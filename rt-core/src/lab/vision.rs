@@ -5,8 +5,9 @@
 //! channel for `/ws/camera` (a full channel drops the frame, counted; video
 //! never waits and never touches the measurement path).
 //!
-//! The simulated camera ([`crate::sim::camera::SimCameraSource`]) renders the ground-truth pendulum
-//! that the control thread hands over through a ring of [`super::TruthUpdate`]s.
+//! The simulated camera (`SimCameraSource`, `sim/camera/`) renders the
+//! ground-truth pendulum that the control thread's truth hands over
+//! (`sim/truth.rs`).
 
 use std::sync::{
     Arc,

@@ -11,9 +11,9 @@ use nalgebra::UnitQuaternion;
 use rt_core::control::stats::quantile_sorted;
 use rt_core::control::{Controller, StepClock, StepTimings, TrialState};
 use rt_core::lab::LoopReport;
-use rt_core::lab::VirtualLab;
 use rt_core::params::{Scenario, VisionMode};
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
+use rt_core::sim::VirtualLab;
 use rt_core::timing::{MotionSample, TimedMotion};
 use serde::Serialize;
 

@@ -18,8 +18,8 @@ use std::time::Instant;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rt_core::control::{Summary, TrialRecord};
-use rt_core::lab::VirtualLab;
 use rt_core::params::Scenario;
+use rt_core::sim::VirtualLab;
 
 /// Largest number of trials one run accepts.
 const MAX_TRIALS: usize = 1_000_000;

@@ -1,12 +1,13 @@
 //! The contact of ball and tool as the robot feels it: FRI's external joint
 //! torques (issue #26, the measured judge's "impact condition").
 //!
-//! When the true ball meets the true tool's disc (the trial driver's
-//! collision, [`super::TruePendulum::collide`]) the tool receives the
+//! When the true ball meets the true tool's disc (the collision of the
+//! trial driver's truth, `sim::truth::SimTruth`,
+//! [`super::TruePendulum::collide`]) the tool receives the
 //! impulse that changed the ball's velocity, `-m dv` (ball mass
 //! `world.pendulum.ball_mass_kg`), as a half-sine force pulse of
 //! [`CONTACT_DURATION_S`] from the contact (its exact time between two
-//! control steps, found by the trial driver). The robot reports, with each
+//! control steps, found there). The robot reports, with each
 //! monitoring message, the pulse's mean force over the period since its last
 //! message, [`TORQUE_LAG_PERIODS`] FRI periods late (the estimate's
 //! filtering: a contact between two messages shows in the next ones, split
@@ -107,7 +108,8 @@ pub fn external_torques<R: Rng>(
 
 /// The true ball and its ghost (the same ball without the tool in its way:
 /// t* and the physical judge's contact are found on it), stopped by the true
-/// tool's contact disc. One piece for the trial driver on the virtual clock
+/// tool's contact disc. One piece for the trial driver's truth
+/// (`sim::truth::SimTruth`) on the virtual clock
 /// and the world process on the wall clock: the ball is released at
 /// `drop_at` (the coil's switch plus the residual magnetism's delay), every
 /// step it meets the disc at the contact's exact time (bisected to 1 us on

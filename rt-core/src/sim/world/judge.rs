@@ -34,17 +34,9 @@ pub struct WorldSample {
 
 pub use crate::control::report::PhysicalJudgement;
 
-/// Why a trial could not be judged physically.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum PhysicalJudgeError {
-    /// Fewer than 2 samples.
-    #[error("the world trace has too few samples")]
-    TooFewSamples,
-    /// The ball never passed the intercept point.
-    #[error("the true ball never passed the intercept point")]
-    NoPass,
-}
+/// Why a trial could not be judged physically (defined beside the trial
+/// driver's [`crate::lab::TruthObserver`]).
+pub use crate::lab::truth::PhysicalJudgeError;
 
 /// Judges `trace` physically. `passes` are the true passes (exact times),
 /// `committed_pass_s` the controller's predicted pass, `ball_radius_m` the

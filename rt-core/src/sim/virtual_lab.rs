@@ -24,71 +24,33 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rtrb::{Consumer, Producer};
 
-use super::fri_step::FriLoopStep;
-use super::loop_step::LoopStep;
-use super::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
-use super::step::{
-    CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
-    TrialOutcome, Truth, plan_or_params_why,
-};
-use super::trial::TrialDraw;
-use super::truth::{TruthUpdate, TruthView};
-use crate::bridge::{self, Command, ServerEnd};
+use super::camera::{ModelCamera, SimCameraParams};
+#[cfg(feature = "opencv")]
+use super::camera::{SimCamera, SimVision};
+use super::kuka::controller::WorldRobot;
+use super::kuka::{FriSimParams, SimController};
+use super::magnet::{Switch, VirtualMagnet};
+use super::truth::{SimTruth, TruthUpdate, TruthView};
+use super::world::{Contact, World, WorldCamera};
+use crate::bridge::{Command, ServerEnd};
 use crate::control::{ArmPlan, ControlError, Controller, TrialRecord, TrialState};
-use crate::fri::client::{ControlStep, FriClient, FriClientParams, LinkState};
+use crate::fri::client::{ControlStep, FriClient, LinkState};
 use crate::fri::codec::MAX_DATAGRAM_BYTES;
 use crate::fri::proto::SessionState;
 use crate::kinematics::iiwa7::JOINTS;
+use crate::lab::control_side::{ControlSide, LabError};
+use crate::lab::fri_step::FriLoopStep;
+use crate::lab::loop_step::LoopStep;
+use crate::lab::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
+use crate::lab::step::{
+    CameraModel, IoReply, IoRequest, LabStep, MagnetNote, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
+    plan_or_params_why,
+};
+use crate::lab::trial::TrialDraw;
 use crate::params::{Scenario, VisionMode};
-use crate::sim::camera::{ModelCamera, SimCameraParams};
-#[cfg(feature = "opencv")]
-use crate::sim::camera::{SimCamera, SimVision};
-use crate::sim::kuka::controller::WorldRobot;
-use crate::sim::kuka::{FriSimParams, SimController};
-use crate::sim::magnet::{Switch, VirtualMagnet};
-use crate::sim::world::{Contact, World, WorldCamera};
 #[cfg(feature = "opencv")]
 use crate::vision::DetectorParams;
 use crate::vision::{CameraIntrinsics, Measurement, SwingPlaneCalibration};
-
-/// Errors setting up the lab.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum LabError {
-    /// The controller refused its parameters.
-    #[error(transparent)]
-    Control(#[from] ControlError),
-    /// The simulated robot refused its parameters.
-    #[error("simulated robot: {0}")]
-    Robot(#[source] crate::check::ParamError),
-    /// The simulated robot's FRI session did not reach COMMANDING_ACTIVE in time.
-    #[error(
-        "simulated robot: the FRI session did not reach COMMANDING_ACTIVE within {timeout_s} s \
-         (controller {}, quality {})",
-        controller.name(),
-        quality.name()
-    )]
-    NotCommanding {
-        /// How long it was given, seconds (virtual time).
-        timeout_s: f64,
-        /// The simulated controller's session state then.
-        controller: SessionState,
-        /// Its connection quality then.
-        quality: crate::fri::proto::ConnectionQuality,
-    },
-    /// The simulated camera could not start.
-    #[error("simulated camera: {0}")]
-    Camera(#[source] crate::vision::VisionError),
-    /// The detector of the rendered frames could not start.
-    #[error("simulated camera: vision: {0}")]
-    Vision(#[source] crate::vision::VisionError),
-    /// `camera.vision = "full"` in a build without OpenCV.
-    #[error(
-        "simulated camera: camera.vision = \"full\" renders frames through the OpenCV detector: \
-         this build has no `opencv` feature (use vision = \"model\")"
-    )]
-    NoOpenCv,
-}
 
 /// Joint angles of the simulated robot at power-on, degrees.
 pub const INITIAL_JOINTS_DEG: [f64; JOINTS] = [0.0, 30.0, 0.0, -80.0, 0.0, 60.0, 0.0];
@@ -122,14 +84,14 @@ pub fn robot_params(scenario: &Scenario, seed: u64) -> FriSimParams {
 
 /// The controller's period in the lab of `robot`: its send period times its
 /// receive multiplier, seconds.
-pub(super) fn control_period_s(robot: &FriSimParams) -> f64 {
+pub(crate) fn control_period_s(robot: &FriSimParams) -> f64 {
     f64::from(robot.fri_period_ms * robot.receive_multiplier) * 1e-3
 }
 
 /// The believed camera: its geometry (the rendered camera's; the model
 /// camera needs none, but the dashboard's overlay and the calibration ring
 /// do) and its calibration at the nearest rest point.
-pub(super) fn believed_camera(scenario: &Scenario) -> (CameraModel, SwingPlaneCalibration) {
+pub(crate) fn believed_camera(scenario: &Scenario) -> (CameraModel, SwingPlaneCalibration) {
     let sim_camera = SimCameraParams::default();
     // The believed intrinsics (calibrated, or the nominal pinhole): the
     // detector's calibration undistorts with them.
@@ -146,76 +108,6 @@ pub(super) fn believed_camera(scenario: &Scenario) -> (CameraModel, SwingPlaneCa
     let calibration =
         SwingPlaneCalibration::from_pose(model.intrinsics, &model.pose, &rest, model.ball_radius_m);
     (model, calibration)
-}
-
-/// The control side of a lab: what the real lab runs on its FRI thread (the
-/// FRI client session and the trial driver around the controller), with the
-/// other ends of its rings (the operator's bridge, the camera's
-/// measurements, the magnet's notes, `isochron-lab-io`'s requests and
-/// replies). Built from the scenario's beliefs; `truth`: the simulated world
-/// the driver follows and judges on (`None`: none, as in the real lab).
-pub(super) struct ControlSide {
-    pub client: FriClient,
-    pub step: LabStep,
-    pub server: ServerEnd,
-    pub measurements: Producer<Measurement>,
-    pub notes: Producer<MagnetNote>,
-    pub io_requests: Consumer<IoRequest>,
-    pub io_replies: Producer<IoReply>,
-}
-
-impl ControlSide {
-    pub(super) fn new(
-        scenario: &Scenario,
-        seed: u64,
-        period_s: f64,
-        calibration: SwingPlaneCalibration,
-        truth: Option<Truth>,
-    ) -> Result<Self, LabError> {
-        // The controller is built from the beliefs only: it never holds
-        // `[world]`. Every believed section is checked, `[camera]` and
-        // `[success]` too (the controller checks only those it reads).
-        scenario.validate_but_world().map_err(ControlError::from)?;
-        let controller = Controller::new(&scenario.beliefs(), period_s)?;
-        let client = FriClient::new(FriClientParams::default()).map_err(LabError::Robot)?;
-        let (control, server) = bridge::bridge(bridge::BridgeCapacity::default());
-        let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
-        let (note_tx, note_rx) = rtrb::RingBuffer::<MagnetNote>::new(64);
-        let (req_tx, req_rx) = rtrb::RingBuffer::<IoRequest>::new(16);
-        let (reply_tx, reply_rx) = rtrb::RingBuffer::<IoReply>::new(16);
-        let cell = std::sync::Arc::new(std::sync::OnceLock::new());
-        let _ = cell.set(client.stats().clone());
-        let step = LabStep::new(
-            controller,
-            LabParts {
-                scenario: Box::new(scenario.clone()),
-                seed,
-                fixed_distance_m: None,
-                bridge: control,
-                clock: LabClock::Virtual,
-                measurements: meas_rx,
-                magnet_notes: note_rx,
-                io_requests: req_tx,
-                io_replies: reply_rx,
-                #[cfg(feature = "serial")]
-                magnet: None,
-                session: cell,
-                truth,
-                calibration,
-                // No operator in virtual time: no dead-man.
-                operator_timeout_s: None,
-            },
-        );
-        Ok(Self {
-            client,
-            step,
-            server,
-            measurements: meas_tx,
-            notes: note_tx,
-            io_requests: req_rx,
-            io_replies: reply_tx,
-        })
-    }
 }
 
 /// Wraps the handling of one controller message: called with the trial
@@ -342,7 +234,7 @@ pub struct VirtualLab {
     /// measurements, magnet notes, the operator's commands, the session's
     /// reboots, `isochron-lab-io`'s turns) and what it gives back (replies,
     /// commits, requests, events, acks, trial outcomes). Logged here, in the
-    /// driver, never in the control step ([`super::replay`]: the controller
+    /// driver, never in the control step ([`crate::lab::replay`]: the controller
     /// cannot read the world). Commands sent through [`Self::server`] and
     /// changes through [`Self::loop_step`] are not logged.
     pub(crate) replay_log: Option<Vec<Exchange>>,
@@ -418,12 +310,15 @@ impl VirtualLab {
         let (cal_tx, cal_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(16);
         let true_joints = std::sync::Arc::new(crate::fri::stats::AtomicJoints::default());
         let truth = Truth {
-            to_camera: truth_tx,
+            observer: Box::new(SimTruth::new(
+                truth_tx,
+                scenario.world.is_some(),
+                Some(std::sync::Arc::clone(&true_joints)),
+                Some(contact_tx),
+                period_s,
+            )),
             calibrations: cal_tx,
             camera: model,
-            world: scenario.world.is_some(),
-            joints: Some(std::sync::Arc::clone(&true_joints)),
-            contacts: Some(contact_tx),
         };
         // The controller is built from the beliefs only: it never holds `[world]`.
         let side = ControlSide::new(scenario, seed, period_s, calibration, Some(truth))?;
@@ -592,7 +487,7 @@ impl VirtualLab {
     /// `around` (e.g. to count its allocations), which is given the trial
     /// state before the message; the handling returns the state after it.
     pub fn run_trial_with(&mut self, index: usize, around: Around<'_>) -> TrialRecord {
-        let draw = super::trial::draw_trial(&self.scenario, self.seed, index);
+        let draw = crate::lab::trial::draw_trial(&self.scenario, self.seed, index);
         let mut rec = TrialRecord {
             trial: index,
             seed: self.seed,
@@ -1369,8 +1264,7 @@ mod tests {
         let ended_after = lab.t_s() - t0;
         let period_s = f64::from(s.robot.fri_period_ms) * 1e-3;
         assert!(
-            ended_after > super::super::step::FRI_LOST_AFTER_S - period_s - 1e-9
-                && ended_after < 0.5,
+            ended_after > crate::lab::step::FRI_LOST_AFTER_S - period_s - 1e-9 && ended_after < 0.5,
             "the trial ended {ended_after} s into the silence"
         );
         let snap = lab.lab_step().snapshot();
@@ -1410,10 +1304,12 @@ mod tests {
     /// truth or simulated robot) and asserts that it gives every output of
     /// the recorded one, bit for bit, at the same places.
     fn assert_replays(log: &[Exchange], beliefs: &Scenario, seed: u64) {
-        let replayed = super::super::replay::Replay::new(beliefs, seed)
+        let period_s = control_period_s(&robot_params(beliefs, seed));
+        let (_, calibration) = believed_camera(beliefs);
+        let replayed = crate::lab::replay::Replay::new(beliefs, seed, period_s, calibration)
             .unwrap()
             .run(log);
-        if let Some(d) = super::super::replay::first_difference(log, &replayed) {
+        if let Some(d) = crate::lab::replay::first_difference(log, &replayed) {
             panic!("the replay on the beliefs alone diverged: {d}");
         }
     }
