@@ -29,7 +29,7 @@ use super::loop_step::LoopStep;
 use super::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
 use super::step::{
     CameraModel, IoReply, IoRequest, LabClock, LabParts, LabStep, MagnetNote, TRIAL_TIMEOUT_S,
-    TrialOutcome, Truth, plan_or_params_why,
+    TrialOutcome, Truth, plan_or_params,
 };
 use super::trial::TrialDraw;
 use super::truth::{TruthUpdate, TruthView};
@@ -901,7 +901,7 @@ impl VirtualLab {
                     if let IoRequest::Plan { draw, .. } = &req {
                         self.new_trial_world(t, draw.seed, draw.camera_phase_s, draw.distance_m);
                     }
-                    if let Some((reply, why)) = plan_or_params_why(&mut self.scenario, req) {
+                    if let Some((reply, why)) = plan_or_params(&mut self.scenario, req) {
                         self.plan_error = why;
                         if let IoReply::Plan {
                             plan: Ok(plan),
