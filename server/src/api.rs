@@ -13,7 +13,9 @@ use axum::{
 };
 use rt_core::{
     bridge::{Command, Refusal, TrialSetup},
+    control::ControlError,
     params::Scenario,
+    trajectory::Infeasibility,
 };
 use serde::{Deserialize, Serialize, de::DeserializeOwned};
 use utoipa::{
@@ -760,6 +762,9 @@ pub struct TrialRequest {
     pub release_deg: Option<f64>,
 }
 
+/// The longest movement time a trial may ask for, seconds.
+const MAX_MOVEMENT_TIME_S: f64 = 10.0;
+
 /// Checks a trial's own fields against the parameters in force: each in
 /// range, and the motion feasible within the joint limits (planned as the
 /// lab plans it, without stretching to the shortest feasible duration), or a
@@ -777,23 +782,33 @@ pub(crate) fn trial_setup(req: &TrialRequest, params: &Scenario) -> Result<Trial
         _ => Ok(()),
     };
     range("distance_m", req.distance_m, 0.1, 1.2, "m")?;
-    range("movement_time_s", req.movement_time_s, 0.3, 10.0, "s")?;
+    range(
+        "movement_time_s",
+        req.movement_time_s,
+        0.3,
+        MAX_MOVEMENT_TIME_S,
+        "s",
+    )?;
     range("release_deg", req.release_deg, 1.0, 60.0, "deg")?;
     if req.distance_m.is_some() || req.movement_time_s.is_some() {
         let d = req
             .distance_m
             .unwrap_or_else(|| params.task.distance_m.lerp(0.5));
-        let plan = |mt: Option<f64>| {
-            let mut b = rt_core::lab::step::trial_beliefs(params, mt);
-            b.control.allow_shortest_feasible = false;
-            rt_core::control::Controller::plan(&b, d).map(|_| ())
-        };
-        if let Err(e) = plan(req.movement_time_s) {
+        let mut b = rt_core::lab::step::trial_beliefs(params, req.movement_time_s);
+        b.control.allow_shortest_feasible = false;
+        if let Err(e) = rt_core::control::Controller::plan(&b, d) {
             let mt = req.movement_time_s.unwrap_or(params.task.movement_time_s);
-            // Blame the distance when it is out of reach at any pace (or no
-            // movement time was asked for), else the movement time.
+            // Blame the distance when it is out of reach at any pace (the
+            // error says so: only a too fast motion has a shortest feasible
+            // duration, and it must be within the longest one allowed), or
+            // when no movement time was asked for; else the movement time.
+            let any_pace = !matches!(
+                e,
+                ControlError::Infeasible(Infeasibility::TooFast { shortest_feasible_s, .. })
+                    if shortest_feasible_s <= MAX_MOVEMENT_TIME_S
+            );
             return Err(match (req.distance_m, req.movement_time_s) {
-                (Some(d), mt_req) if mt_req.is_none() || plan(Some(10.0)).is_err() => bad(
+                (Some(d), mt_req) if mt_req.is_none() || any_pace => bad(
                     "distance_m",
                     format!("distance_m = {d} m is not reachable in {mt} s: {e}"),
                 ),
@@ -1390,6 +1405,14 @@ mod tests {
             ) && e.contains("from the shoulder, the arm reaches 0.800 m"),
             "{e}"
         );
+        // Out of reach at any pace: the distance is at fault, also when a
+        // movement time was asked for.
+        let far_slow = TrialRequest {
+            movement_time_s: Some(2.0),
+            ..far
+        };
+        let (_, v) = refused(&far_slow).await;
+        assert_eq!(v["field"], "distance_m", "{v}");
         // Too close to the base: the joint that leaves its margin, by how much,
         // and the margin.
         let near = TrialRequest {

@@ -333,7 +333,8 @@ mod replayer {
                         // Magnet switches come back as the logged notes.
                         if !matches!(req, IoRequest::Magnet(_) | IoRequest::Free(_)) {
                             self.answer =
-                                super::super::step::plan_or_params(&mut self.scenario, req);
+                                super::super::step::plan_or_params(&mut self.scenario, req)
+                                    .map(|(reply, _)| reply);
                         }
                     }
                     Err(_) => self.out.push(Exchange::Request("(none)".into())),

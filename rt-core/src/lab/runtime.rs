@@ -781,7 +781,7 @@ impl Io {
                 drop(c);
                 return;
             }
-            req => match plan_or_params(&mut self.scenario, req) {
+            req => match plan_or_params(&mut self.scenario, req).map(|(reply, _)| reply) {
                 Some(reply) => reply,
                 None => return,
             },

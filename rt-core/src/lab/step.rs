@@ -1640,13 +1640,9 @@ pub fn trial_beliefs(scenario: &Scenario, movement_time_s: Option<f64>) -> crate
     b
 }
 
-pub(crate) fn plan_or_params(scenario: &mut Scenario, req: IoRequest) -> Option<IoReply> {
-    plan_or_params_why(scenario, req).map(|(reply, _)| reply)
-}
-
-/// [`plan_or_params`], with the controller's error when the plan is refused
-/// (the reply carries only the [`Refusal`]; the virtual lab records the error).
-pub(crate) fn plan_or_params_why(
+/// With the reply, the controller's error when the plan is refused (the reply
+/// carries only the [`Refusal`]; the virtual lab records the error).
+pub(crate) fn plan_or_params(
     scenario: &mut Scenario,
     req: IoRequest,
 ) -> Option<(IoReply, Option<ControlError>)> {

@@ -44,7 +44,7 @@ use crate::lab::loop_step::LoopStep;
 use crate::lab::replay::{Exchange, Verdict, describe_event, describe_reply, describe_request};
 use crate::lab::step::{
     CameraModel, IoReply, IoRequest, LabStep, MagnetNote, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
-    plan_or_params_why,
+    plan_or_params,
 };
 use crate::lab::trial::TrialDraw;
 use crate::params::{Scenario, VisionMode};
@@ -796,7 +796,7 @@ impl VirtualLab {
                     if let IoRequest::Plan { draw, .. } = &req {
                         self.new_trial_world(t, draw.seed, draw.camera_phase_s, draw.distance_m);
                     }
-                    if let Some((reply, why)) = plan_or_params_why(&mut self.scenario, req) {
+                    if let Some((reply, why)) = plan_or_params(&mut self.scenario, req) {
                         self.plan_error = why;
                         if let IoReply::Plan {
                             plan: Ok(plan),
