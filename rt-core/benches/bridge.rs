@@ -1,5 +1,8 @@
 //! The control side of the bridge: what one control step pays to publish.
-#![allow(missing_docs)]
+#![allow(
+    missing_docs,
+    reason = "a criterion bench: its generated main has no docs"
+)]
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use rt_core::bridge::{BridgeCapacity, Snapshot, bridge};

@@ -3,7 +3,10 @@
 //! has built it, the real firmware in simavr (where the UART's 115200 baud is
 //! simulated, so long answers cost their wire time: ~87 us per byte).
 //! Also the lock-free view read that real-time callers use.
-#![allow(missing_docs)]
+#![allow(
+    missing_docs,
+    reason = "a criterion bench: its generated main has no docs"
+)]
 
 use std::{
     hint::black_box,

@@ -610,7 +610,7 @@ pub fn run_camera_robot(
             let v = n.cross(&u);
             let rim: Option<Vec<Vector2<f64>>> = (0..48)
                 .map(|k| {
-                    let a = std::f64::consts::TAU * k as f64 / 48.0;
+                    let a = std::f64::consts::TAU * f64::from(k) / 48.0;
                     true_cam.project(&(c + MARKER_RADIUS_M * (a.cos() * u + a.sin() * v)))
                 })
                 .collect();

@@ -259,19 +259,17 @@ fn run_timed<C: ControlStep>(
                 // Spin: poll without blocking until the datagram or the give-up time.
                 let until = e + past_ns;
                 let got = loop {
-                    match socket.recv_from(&mut buf) {
-                        Ok(got) => break Some(got),
-                        // Nothing yet (or an ICMP "port unreachable" from an
-                        // earlier send, or a signal): go on until the give-up time.
-                        Err(_) => {
-                            if now_ns() >= until || stop.load(Relaxed) {
-                                spun = Some(e);
-                                stats.spins_gave_up.fetch_add(1, Relaxed);
-                                break None;
-                            }
-                            std::hint::spin_loop();
-                        }
+                    if let Ok(got) = socket.recv_from(&mut buf) {
+                        break Some(got);
                     }
+                    // Nothing yet (or an ICMP "port unreachable" from an
+                    // earlier send, or a signal): go on until the give-up time.
+                    if now_ns() >= until || stop.load(Relaxed) {
+                        spun = Some(e);
+                        stats.spins_gave_up.fetch_add(1, Relaxed);
+                        break None;
+                    }
+                    std::hint::spin_loop();
                 };
                 stats
                     .spin_ns
@@ -298,15 +296,13 @@ fn run_timed<C: ControlStep>(
                     control.idle(now_ns());
                     continue;
                 }
-                match socket.recv_from(&mut buf) {
-                    Ok(got) => Some(got),
-                    // Nothing after all, an ICMP "port unreachable" from an
-                    // earlier send, or a signal: check the deadline and go on.
-                    Err(_) => {
-                        client.poll(now_ns(), control);
-                        None
-                    }
+                // Nothing after all (an error): an ICMP "port unreachable"
+                // from an earlier send, or a signal: check the deadline and go on.
+                let got = socket.recv_from(&mut buf).ok();
+                if got.is_none() {
+                    client.poll(now_ns(), control);
                 }
+                got
             }
         };
         let Some((n, from)) = received else {

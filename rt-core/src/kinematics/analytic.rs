@@ -381,7 +381,10 @@ impl Scan<'_> {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "one recursion step: both ends of the interval and their solutions"
+    )]
     fn cell(&mut self, a: f64, qa: &Joints, oka: bool, b: f64, qb: &Joints, okb: bool, depth: u32) {
         if depth < 30 && (qb - qa).amax() > 0.05 {
             let m = 0.5 * (a + b);

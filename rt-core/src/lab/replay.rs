@@ -24,8 +24,10 @@ use crate::vision::Measurement;
 
 /// One exchange of the control side with the rest of the lab (see the
 /// module documentation).
-// The fields are read through the `Debug` text (the replay's comparison).
-#[allow(dead_code)]
+#[expect(
+    dead_code,
+    reason = "the fields are read through the `Debug` text (the replay's comparison)"
+)]
 #[derive(Debug, Clone)]
 pub(crate) enum Exchange {
     // What the driver hands the control side.

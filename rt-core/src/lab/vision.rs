@@ -253,12 +253,9 @@ fn run(
             }
         };
         let t0 = clock.now_s();
-        let m = match pipeline.process(&frame, t0) {
-            Ok(m) => m,
-            Err(_) => {
-                video.detector_errors.fetch_add(1, Ordering::Relaxed);
-                continue;
-            }
+        let Ok(m) = pipeline.process(&frame, t0) else {
+            video.detector_errors.fetch_add(1, Ordering::Relaxed);
+            continue;
         };
         let t1 = clock.now_s();
         let m = Measurement {

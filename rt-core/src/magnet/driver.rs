@@ -142,7 +142,7 @@ impl std::fmt::Debug for MagnetHandle {
         f.debug_struct("MagnetHandle")
             .field("port", &self.port)
             .field("view", &self.view())
-            .finish()
+            .finish_non_exhaustive()
     }
 }
 
@@ -449,10 +449,10 @@ impl Worker {
         let was = self.view.link;
         self.view.link = LinkState::Lost;
         self.view.magnet = MagnetState::Unknown;
-        if was != LinkState::Lost {
-            self.event(Instant::now(), EventKind::Lost);
-        } else {
+        if was == LinkState::Lost {
             self.publish();
+        } else {
+            self.event(Instant::now(), EventKind::Lost);
         }
         MagnetError::DeviceLost {
             port: self.params.port.clone(),
@@ -483,12 +483,11 @@ impl Worker {
 
     /// A line that answers nothing: events are applied, the rest counted.
     fn unsolicited(&mut self, text: &str, at: Instant) {
-        match parse_line(text) {
-            Line::Event(e) => self.device_event(e, at),
-            _ => {
-                self.view.stray_lines += 1;
-                self.publish();
-            }
+        if let Line::Event(e) = parse_line(text) {
+            self.device_event(e, at);
+        } else {
+            self.view.stray_lines += 1;
+            self.publish();
         }
     }
 

@@ -29,8 +29,10 @@ use crate::lab::truth::{
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 
 /// What the control thread tells the simulated camera about the true pendulum.
-// The ring's slots are allocated once: the variants stay inline.
-#[allow(clippy::large_enum_variant)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "the ring's slots are allocated once: the variants stay inline"
+)]
 #[derive(Debug, Clone)]
 pub enum TruthUpdate {
     /// From now on the camera shows this pendulum (held or swinging).
@@ -96,7 +98,10 @@ impl TruthView {
 
 /// The true pendulum of a simulated trial (inline: a trial starts without
 /// allocating).
-#[allow(clippy::large_enum_variant)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "inline, so that a trial starts without allocating"
+)]
 enum TrueBall {
     /// A truthful world: the pendulum the controller's model describes
     /// (`released`: the coil let go; `intercept_y_m`: the planned
@@ -188,46 +193,42 @@ impl TruthObserver for SimTruth {
         } else {
             None
         };
-        let ball = match world {
-            Some(w) => {
-                let ball = TruePendulum::held_at(
-                    w.pendulum,
+        let ball = if let Some(w) = world {
+            let ball = TruePendulum::held_at(
+                w.pendulum,
+                s.draw.release_angle_deg.to_radians(),
+                w.trial.out_of_plane_rad,
+                s.t_s,
+                w.trial.seed,
+            );
+            TrueBall::World(WorldBall {
+                world: w,
+                on_tool: BallOnTool::new(ball),
+                mass_kg: s
+                    .scenario
+                    .world
+                    .as_ref()
+                    .map_or(0.0, |pw| pw.pendulum.ball_mass_kg),
+            })
+        } else {
+            let sc = s.scenario;
+            let model = PendulumModel::from_params(&sc.pendulum).map_err(|_| Refusal::Invalid)?;
+            let geometry = PendulumGeometry::new(
+                sc.pendulum.length_m,
+                s.draw.distance_m,
+                sc.task.intercept_height_m,
+            )
+            .map_err(|_| Refusal::Invalid)?;
+            TrueBall::Ideal {
+                ball: PendulumSim::held_at(
+                    model,
+                    geometry,
                     s.draw.release_angle_deg.to_radians(),
-                    w.trial.out_of_plane_rad,
                     s.t_s,
-                    w.trial.seed,
-                );
-                TrueBall::World(WorldBall {
-                    world: w,
-                    on_tool: BallOnTool::new(ball),
-                    mass_kg: s
-                        .scenario
-                        .world
-                        .as_ref()
-                        .map_or(0.0, |pw| pw.pendulum.ball_mass_kg),
-                })
-            }
-            None => {
-                let sc = s.scenario;
-                let model =
-                    PendulumModel::from_params(&sc.pendulum).map_err(|_| Refusal::Invalid)?;
-                let geometry = PendulumGeometry::new(
-                    sc.pendulum.length_m,
-                    s.draw.distance_m,
-                    sc.task.intercept_height_m,
                 )
-                .map_err(|_| Refusal::Invalid)?;
-                TrueBall::Ideal {
-                    ball: PendulumSim::held_at(
-                        model,
-                        geometry,
-                        s.draw.release_angle_deg.to_radians(),
-                        s.t_s,
-                    )
-                    .map_err(|_| Refusal::Invalid)?,
-                    released: false,
-                    intercept_y_m: s.plan.intercept_m.y,
-                }
+                .map_err(|_| Refusal::Invalid)?,
+                released: false,
+                intercept_y_m: s.plan.intercept_m.y,
             }
         };
         self.ball = Some(ball);

@@ -167,7 +167,7 @@ impl Series {
         let mut saw_state = false;
         for row in reader.records() {
             let cells = row.map_err(csv_error)?;
-            let no = cells.position().map_or(0, |p| p.line());
+            let no = cells.position().map_or(0, csv::Position::line);
             let cell = |i: usize| -> Result<f64, TuneError> {
                 let raw = cells.get(i).ok_or(TuneError::TooFewColumns { line: no })?;
                 let bad = |parsed: bool| TuneError::BadNumber {
@@ -622,7 +622,10 @@ fn nelder_mead(
         if (val[2] - val[0]).abs() <= tol * (val[0].abs() + tol) {
             break;
         }
-        let c = [(pts[0][0] + pts[1][0]) / 2.0, (pts[0][1] + pts[1][1]) / 2.0];
+        let c = [
+            f64::midpoint(pts[0][0], pts[1][0]),
+            f64::midpoint(pts[0][1], pts[1][1]),
+        ];
         let along = |k: f64| [c[0] + k * (pts[2][0] - c[0]), c[1] + k * (pts[2][1] - c[1])];
         let xr = along(-1.0);
         let fr = f(xr);
@@ -639,7 +642,10 @@ fn nelder_mead(
                 (pts[2], val[2]) = (xc, fc);
             } else {
                 for i in 1..3 {
-                    pts[i] = [(pts[0][0] + pts[i][0]) / 2.0, (pts[0][1] + pts[i][1]) / 2.0];
+                    pts[i] = [
+                        f64::midpoint(pts[0][0], pts[i][0]),
+                        f64::midpoint(pts[0][1], pts[i][1]),
+                    ];
                     val[i] = f(pts[i]);
                 }
             }

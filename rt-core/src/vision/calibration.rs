@@ -255,7 +255,6 @@ impl SwingPlaneCalibration {
     /// computed from `rest_b`, the rest position in the base frame). The apparent
     /// size gives a second distance; if the two differ by more than
     /// `size_tolerance` (relative) the calibration is refused.
-    #[allow(clippy::too_many_arguments)]
     pub fn from_rest_observation(
         intrinsics: CameraIntrinsics,
         pose: &CameraPose,

@@ -113,9 +113,9 @@ impl HsvRange {
         // Value and saturation without branches (most pixels fail here, in
         // no predictable pattern); the hue only for those that pass.
         let sv = (v >= self.lo[2])
-            & (v <= self.hi[2])
-            & (diff >= self.dmin[vi])
-            & (diff <= self.dmax[vi]);
+            && (v <= self.hi[2])
+            && (diff >= self.dmin[vi])
+            && (diff <= self.dmax[vi]);
         sv && {
             let h = self.hue(b, g, r, v, diff);
             h >= self.lo[0] && h <= self.hi[0]
@@ -271,7 +271,7 @@ mod tests {
                     assert_eq!(*out.at_2d::<u8>(y, x).unwrap(), want, "step {step}");
                 }
             }
-            if std::ptr::eq(range, &dark) {
+            if std::ptr::eq(range, &raw const dark) {
                 let on = core::count_non_zero(&out).unwrap();
                 assert!(on > 0 && on < out.rows() * out.cols(), "{on}");
             }

@@ -64,7 +64,7 @@ fn finds_the_ball_in_1000_rendered_frames_and_nothing_in_200_without_it() {
         det.reset();
         let mut k = 0;
         while rendered < 200 * (s + 1) {
-            let t = k as f64 / 30.0 + 0.37 * s as f64;
+            let t = f64::from(k) / 30.0 + 0.37 * s as f64;
             k += 1;
             if cam.next_dropped() {
                 continue;
@@ -94,7 +94,7 @@ fn finds_the_ball_in_1000_rendered_frames_and_nothing_in_200_without_it() {
             }
         }
     }
-    let rate = found as f64 / visible as f64;
+    let rate = found as f64 / f64::from(visible);
     let mean = err_sum / found as f64;
     eprintln!(
         "vision acceptance: {rendered} frames, {visible} with the ball visible, found {found} \
@@ -464,7 +464,7 @@ fn calibrated_lateral_position_is_within_2_mm_at_1_to_2_m() {
         }
         det.reset();
         for k in 0..90 {
-            let t = k as f64 / 30.0;
+            let t = f64::from(k) / 30.0;
             let ball = swing(d, 25.0, t);
             let img = cam.render(Some(&ball)).unwrap();
             let Some(found) = det.detect(img, t).unwrap() else {
@@ -481,7 +481,7 @@ fn calibrated_lateral_position_is_within_2_mm_at_1_to_2_m() {
             n += 1;
         }
     }
-    let rms = (sum2 / n as f64).sqrt();
+    let rms = (sum2 / f64::from(n)).sqrt();
     eprintln!(
         "vision metric: {n} frames, lateral error rms {:.2} mm, worst {:.2} mm",
         rms * 1e3,

@@ -1291,12 +1291,9 @@ impl SimController {
             }
             arrival += w.net.delay_ns(&mut w.net_rng);
         }
-        let c = match self.dec.decode(bytes) {
-            Ok(c) => c,
-            Err(_) => {
-                self.stats.decode_errors.fetch_add(1, Relaxed);
-                return;
-            }
+        let Ok(c) = self.dec.decode(bytes) else {
+            self.stats.decode_errors.fetch_add(1, Relaxed);
+            return;
         };
         self.stats.replies.fetch_add(1, Relaxed);
         if let Some(prev) = self.last_client_seq
@@ -1357,13 +1354,14 @@ impl SimController {
                 None => {
                     self.stats.empty_commands.fetch_add(1, Relaxed);
                 }
-                Some(q) => match self.check_command(&q, r) {
-                    Some(reason) => self.abort(reason),
-                    None => {
+                Some(q) => {
+                    if let Some(reason) = self.check_command(&q, r) {
+                        self.abort(reason);
+                    } else {
                         self.last_cmd_ref = Some(r);
                         self.accept(q, arrival, cycle_ns);
                     }
-                },
+                }
             },
             _ => {}
         }

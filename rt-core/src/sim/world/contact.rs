@@ -295,7 +295,7 @@ mod tests {
         let period = 0.005;
         let total: Vector3<f64> = (0..4)
             .map(|k| {
-                let a = 1.0 + k as f64 * period;
+                let a = 1.0 + f64::from(k) * period;
                 c.mean_force_n(a, a + period) * period
             })
             .sum();
@@ -306,7 +306,7 @@ mod tests {
         // stays far below the judge's threshold.
         let mut quiet_max: f64 = 0.0;
         for k in 0..20_000 {
-            let a = k as f64 * period;
+            let a = f64::from(k) * period;
             let tau = external_torques(&q(), &[None], a, a + period, &mut rng);
             quiet_max = quiet_max.max(norm(&tau));
         }

@@ -447,7 +447,7 @@ fn the_dynamics_give_gravity_torques_equal_to_the_potential_gradient() {
         let mut r = nalgebra::Matrix3::identity();
         let mut p = Vector3::zeros();
         let mut v = 0.0;
-        #[allow(clippy::needless_range_loop)] // four tables by the same index
+        #[expect(clippy::needless_range_loop, reason = "four tables by the same index")]
         for i in 0..JOINTS {
             p += r * Vector3::from(dynamics::JOINT_ORIGIN_M[i]);
             let axis = nalgebra::Unit::new_unchecked(Vector3::from(dynamics::JOINT_AXIS[i]));

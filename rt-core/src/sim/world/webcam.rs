@@ -232,7 +232,7 @@ mod tests {
         // A ball swinging along y through the believed rest point.
         let rest = Vector3::new(s.task.distance_m.lerp(0.5), 0.0, s.task.intercept_height_m);
         for k in 0..200 {
-            let t = k as f64 * 0.005;
+            let t = f64::from(k) * 0.005;
             let y = 0.3 * (3.0 * t).sin();
             cam.push(BallSample {
                 t_s: t,
