@@ -365,6 +365,14 @@ fn human(s: &PlanSummary) -> String {
     t.trim_end().to_owned()
 }
 
+/// The strike commands' direction (in the swing plane, degrees above the
+/// horizontal) and tool mass, refused with the option's name when out of range.
+fn check_strike(direction_deg: f64, tool_mass_kg: f64) -> anyhow::Result<()> {
+    check::within("--strike-direction-deg", direction_deg, -60.0, 60.0)?;
+    check::within("--tool-mass-kg", tool_mass_kg, 0.0, 5.0)?;
+    Ok(())
+}
+
 /// One strike plan, as `kin plan --strike --json` prints it.
 #[derive(Debug, Serialize)]
 struct StrikeAnswer {
@@ -469,13 +477,7 @@ fn run_strike(args: &PlanArgs) -> anyhow::Result<()> {
         .movement_time_s
         .unwrap_or(scenario.task.movement_time_s);
     check::within("--movement-time-s", t, 0.3, 10.0)?;
-    check::within(
-        "--strike-direction-deg",
-        args.strike_direction_deg,
-        -60.0,
-        60.0,
-    )?;
-    check::within("--tool-mass-kg", args.tool_mass_kg, 0.0, 5.0)?;
+    check_strike(args.strike_direction_deg, args.tool_mass_kg)?;
     if let Some(v) = args.strike_speed_mps {
         check::within("--strike-speed-mps", v, 0.01, STRIKE_MAX_MPS)?;
     }
@@ -621,13 +623,7 @@ fn run_strike_map(args: &StrikeMapArgs) -> anyhow::Result<()> {
     for t in &args.movement_times_s {
         check::within("--movement-times-s", *t, 0.3, 10.0)?;
     }
-    check::within(
-        "--strike-direction-deg",
-        args.strike_direction_deg,
-        -60.0,
-        60.0,
-    )?;
-    check::within("--tool-mass-kg", args.tool_mass_kg, 0.0, 5.0)?;
+    check_strike(args.strike_direction_deg, args.tool_mass_kg)?;
     let params = TrajectoryParams::default();
     let direction = strike_direction(-1.0, args.strike_direction_deg);
     let mut cells = Vec::new();
