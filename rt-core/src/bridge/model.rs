@@ -15,75 +15,9 @@ use crate::params::Scenario;
 /// Points in the predicted horizon of the pendulum ([`PendulumView::horizon`]).
 pub const HORIZON_POINTS: usize = 25;
 
-/// Where a trial is (DESIGN.md, "The trial").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, TS, ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum TrialState {
-    /// Nothing running; the arm may be anywhere safe.
-    #[default]
-    Idle,
-    /// Moving home and checking before holding the ball.
-    Arming,
-    /// Robot at home, magnet holding, checks passed.
-    Armed,
-    /// Magnet off, the ball swings; waiting for the first measurements.
-    Released,
-    /// The filter converges; predictions are shown.
-    Tracking,
-    /// The interception condition was met: the Hopf system runs, the arm moves.
-    Intercepting,
-    /// At the intercept point.
-    Holding,
-    /// Moving back home after a trial.
-    Returning,
-    /// The trial ended with a result.
-    Done,
-    /// The trial was aborted; the arm stopped safely.
-    Aborted,
-}
-
-impl TrialState {
-    /// Every state, in trial order.
-    pub const ALL: [Self; 10] = [
-        Self::Idle,
-        Self::Arming,
-        Self::Armed,
-        Self::Released,
-        Self::Tracking,
-        Self::Intercepting,
-        Self::Holding,
-        Self::Returning,
-        Self::Done,
-        Self::Aborted,
-    ];
-
-    /// The snake_case name, as in JSON.
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            Self::Idle => "idle",
-            Self::Arming => "arming",
-            Self::Armed => "armed",
-            Self::Released => "released",
-            Self::Tracking => "tracking",
-            Self::Intercepting => "intercepting",
-            Self::Holding => "holding",
-            Self::Returning => "returning",
-            Self::Done => "done",
-            Self::Aborted => "aborted",
-        }
-    }
-
-    /// True while the arm moves on its own (arming, intercepting, returning):
-    /// risky parameter changes are refused then.
-    pub const fn arm_in_motion(self) -> bool {
-        matches!(self, Self::Arming | Self::Intercepting | Self::Returning)
-    }
-
-    /// True from arming until the trial ends (a trial or its preparation runs).
-    pub const fn busy(self) -> bool {
-        !matches!(self, Self::Idle | Self::Done | Self::Aborted)
-    }
-}
+/// Where a trial is: the controller's state machine's state, one type for
+/// the controller and the API.
+pub use crate::control::TrialState;
 
 /// The last sighting the filter was given ([`crate::control::Sighting`]), as
 /// the dashboard shows it.
@@ -709,23 +643,6 @@ impl From<crate::control::AbortReason> for AbortKind {
 
 /// The flat state the API shows: an abort's reason is reported apart
 /// ([`AbortView`], [`Event::Aborted`]).
-impl From<crate::control::TrialState> for TrialState {
-    fn from(s: crate::control::TrialState) -> Self {
-        use crate::control::TrialState as S;
-        match s {
-            S::Idle => Self::Idle,
-            S::Arming => Self::Arming,
-            S::Armed => Self::Armed,
-            S::Released => Self::Released,
-            S::Tracking => Self::Tracking,
-            S::Intercepting => Self::Intercepting,
-            S::Holding => Self::Holding,
-            S::Done => Self::Done,
-            S::Abort(_) => Self::Aborted,
-        }
-    }
-}
-
 impl AbortKind {
     /// The snake_case name, as in JSON.
     pub const fn as_str(self) -> &'static str {

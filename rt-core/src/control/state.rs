@@ -1,18 +1,26 @@
 //! The trial state machine of DESIGN.md ("The trial").
 //!
 //! `Idle -> Arming -> Armed -> Released -> Tracking -> Intercepting -> Holding -> Done`,
-//! then back to `Idle` (home). `Abort(reason)` is reachable from every state and
-//! ends in a safe stop; from `Abort` and `Done` only `Idle` (reset) follows.
+//! then back to `Idle` (home). `Aborted` is reachable from every state and
+//! ends in a safe stop; from `Aborted` and `Done` only `Idle` (reset) follows.
+//! The reason of an abort is the controller's
+//! ([`crate::control::Controller::abort_reason`]), not the state's.
+//!
+//! [`TrialState`] is also the API's (`bridge::TrialState`): its JSON names
+//! are the snake_case variant names (`"tracking"`, `"aborted"`).
 
 use serde::Serialize;
+use ts_rs::TS;
+use utoipa::ToSchema;
 
-/// Where a trial is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case", tag = "state", content = "reason")]
+/// Where a trial is (DESIGN.md, "The trial").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, TS, ToSchema)]
+#[serde(rename_all = "snake_case")]
 pub enum TrialState {
-    /// No trial; the robot may be anywhere safe.
+    /// Nothing running; the arm may be anywhere safe.
+    #[default]
     Idle,
-    /// Moving home in the coming motion's posture.
+    /// Moving home in the coming motion's posture, checking before holding the ball.
     Arming,
     /// Robot at home in the coming motion's posture, magnet holding, checks passed.
     Armed,
@@ -27,13 +35,27 @@ pub enum TrialState {
     Holding,
     /// The trial is over (judged by whoever owns the truth).
     Done,
-    /// Stopped safely, with the reason.
-    Abort(AbortReason),
+    /// The trial was aborted; the arm stopped safely (the reason is the
+    /// controller's `abort_reason`).
+    Aborted,
 }
 
 impl TrialState {
-    /// Short snake_case name (`"tracking"`, `"abort"`).
-    pub const fn name(self) -> &'static str {
+    /// Every state, in trial order.
+    pub const ALL: [Self; 9] = [
+        Self::Idle,
+        Self::Arming,
+        Self::Armed,
+        Self::Released,
+        Self::Tracking,
+        Self::Intercepting,
+        Self::Holding,
+        Self::Done,
+        Self::Aborted,
+    ];
+
+    /// The snake_case name, as in JSON (`"tracking"`, `"aborted"`).
+    pub const fn as_str(self) -> &'static str {
         match self {
             Self::Idle => "idle",
             Self::Arming => "arming",
@@ -43,13 +65,34 @@ impl TrialState {
             Self::Intercepting => "intercepting",
             Self::Holding => "holding",
             Self::Done => "done",
-            Self::Abort(_) => "abort",
+            Self::Aborted => "aborted",
+        }
+    }
+
+    /// Short name in trial records and transition errors (`"tracking"`,
+    /// `"abort"`): [`Self::as_str`] but for an abort, kept as the trial
+    /// records have always named it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Self::Aborted => "abort",
+            s => s.as_str(),
         }
     }
 
     /// Whether the arm may be moving under the interception motion.
     pub const fn is_moving(self) -> bool {
         matches!(self, Self::Arming | Self::Intercepting)
+    }
+
+    /// True while the arm moves on its own (arming, intercepting): risky
+    /// parameter changes are refused then.
+    pub const fn arm_in_motion(self) -> bool {
+        self.is_moving()
+    }
+
+    /// True from arming until the trial ends (a trial or its preparation runs).
+    pub const fn busy(self) -> bool {
+        !matches!(self, Self::Idle | Self::Done | Self::Aborted)
     }
 }
 
@@ -150,9 +193,9 @@ impl TrialMachine {
     pub const fn allowed(from: TrialState, to: TrialState) -> bool {
         use TrialState as S;
         match (from, to) {
-            // A stop is accepted from everywhere (even a second abort keeps the first reason out).
-            (S::Abort(_), S::Abort(_)) => false,
-            (_, S::Abort(_)) => true,
+            // A stop is accepted from everywhere (but not a second abort).
+            (S::Aborted, S::Aborted) => false,
+            (_, S::Aborted) => true,
             (S::Idle, S::Arming)
             | (S::Arming, S::Armed)
             | (S::Armed, S::Released | S::Idle)
@@ -160,7 +203,7 @@ impl TrialMachine {
             | (S::Tracking, S::Intercepting)
             | (S::Intercepting, S::Holding)
             | (S::Holding, S::Done)
-            | (S::Done | S::Abort(_), S::Idle) => true,
+            | (S::Done | S::Aborted, S::Idle) => true,
             _ => false,
         }
     }
@@ -179,9 +222,9 @@ impl TrialMachine {
         }
     }
 
-    /// Aborts with `reason` (a no-op when already aborted: the first reason stays).
-    pub fn abort(&mut self, reason: AbortReason) {
-        let _ = self.go(TrialState::Abort(reason));
+    /// Aborts (a no-op when already aborted).
+    pub fn abort(&mut self) {
+        let _ = self.go(TrialState::Aborted);
     }
 }
 
@@ -213,7 +256,7 @@ mod tests {
     }
 
     #[test]
-    fn abort_is_reachable_from_everywhere_and_keeps_its_first_reason() {
+    fn abort_is_reachable_from_everywhere_once() {
         let all = [
             S::Idle,
             S::Arming,
@@ -225,27 +268,32 @@ mod tests {
             S::Done,
         ];
         for s in all {
-            assert!(TrialMachine::allowed(
-                s,
-                S::Abort(AbortReason::StopRequested)
-            ));
+            assert!(TrialMachine::allowed(s, S::Aborted));
         }
+        assert!(!TrialMachine::allowed(S::Aborted, S::Aborted));
         let mut m = TrialMachine::new();
-        m.abort(AbortReason::CameraLost);
-        m.abort(AbortReason::StopRequested);
-        assert_eq!(m.state(), S::Abort(AbortReason::CameraLost));
+        m.abort();
+        let n = m.transitions();
+        m.abort();
+        assert_eq!(m.state(), S::Aborted);
+        assert_eq!(m.transitions(), n);
         // Only a reset leaves an abort.
         assert!(m.go(S::Armed).is_err());
         m.go(S::Idle).unwrap();
     }
 
     #[test]
-    fn states_serialise_with_their_reason() {
-        let j = serde_json::to_string(&S::Abort(AbortReason::MissedWindow)).unwrap();
-        assert_eq!(j, r#"{"state":"abort","reason":"missed_window"}"#);
+    fn states_serialise_with_their_wire_names() {
+        for s in S::ALL {
+            assert_eq!(serde_json::to_value(s).unwrap(), s.as_str());
+        }
+        assert_eq!(serde_json::to_string(&S::Aborted).unwrap(), r#""aborted""#);
         assert_eq!(
             serde_json::to_string(&S::Tracking).unwrap(),
-            r#"{"state":"tracking"}"#
+            r#""tracking""#
         );
+        assert_eq!(S::Aborted.name(), "abort");
+        assert_eq!(S::Tracking.name(), "tracking");
+        assert_eq!(S::default(), S::Idle);
     }
 }

@@ -1044,10 +1044,10 @@ impl Controller {
 
     /// Aborts the trial (safe stop: the commanded motion decelerates to rest).
     pub fn abort(&mut self, t_s: f64, reason: AbortReason) {
-        if matches!(self.machine.state(), TrialState::Abort(_)) {
+        if matches!(self.machine.state(), TrialState::Aborted) {
             return;
         }
-        self.machine.abort(reason);
+        self.machine.abort();
         self.t_state = t_s;
         self.abort_reason = Some(reason);
         self.counters.aborts += 1;
@@ -1186,7 +1186,7 @@ impl Controller {
             self.counters.not_commanding += 1;
             if !matches!(
                 state,
-                TrialState::Idle | TrialState::Armed | TrialState::Done | TrialState::Abort(_)
+                TrialState::Idle | TrialState::Armed | TrialState::Done | TrialState::Aborted
             ) {
                 self.abort(t, AbortReason::FriLost);
             }
@@ -1225,7 +1225,7 @@ impl Controller {
                     target = q;
                 }
             }
-            TrialState::Abort(_) => {
+            TrialState::Aborted => {
                 // Safe stop: the commanded velocity decays at half the
                 // acceleration limits until the arm rests.
                 for j in 0..JOINTS {
@@ -2082,7 +2082,8 @@ mod tests {
             );
             assert_eq!(out.q_command_rad, q);
         }
-        assert_eq!(c.state(), TrialState::Abort(AbortReason::StopRequested));
+        assert_eq!(c.state(), TrialState::Aborted);
+        assert_eq!(c.abort_reason(), Some(AbortReason::StopRequested));
         // Release is refused after an abort; a reset is allowed.
         assert!(c.release(t).is_err());
         c.reset(t).unwrap();

@@ -117,7 +117,7 @@ impl ControlStep for FriLoopStep {
         self.last_stop = Some(reason);
         let running = !matches!(
             self.step.controller.state(),
-            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+            TrialState::Idle | TrialState::Done | TrialState::Aborted
         );
         if running {
             self.trial_aborts += 1;

@@ -18,7 +18,7 @@ use super::step::{IoReply, IoRequest, MagnetNote, TrialOutcome};
 use super::trial::TrialDraw;
 use crate::bridge::{Command, Event, EventRecord};
 use crate::control::measured::MeasuredJudgement;
-use crate::control::{Commit, TrialState};
+use crate::control::{AbortReason, Commit, TrialState};
 use crate::fri::client::FriClient;
 use crate::vision::Measurement;
 
@@ -114,6 +114,7 @@ pub(crate) struct Verdict {
     pub draw: TrialDraw,
     pub planned_movement_time_s: f64,
     pub final_state: TrialState,
+    pub abort_reason: Option<AbortReason>,
     /// The measured judge (the real lab's judgement).
     pub measured: Option<MeasuredJudgement>,
     pub latency_estimate_ms: f64,
@@ -135,6 +136,7 @@ impl Verdict {
             draw: o.draw,
             planned_movement_time_s: o.planned_movement_time_s,
             final_state: o.final_state,
+            abort_reason: o.abort_reason,
             measured: o.measured,
             latency_estimate_ms: o.latency_estimate_ms,
             camera_offset_estimate_ms: o.camera_offset_estimate_ms,

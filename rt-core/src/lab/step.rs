@@ -101,8 +101,10 @@ pub struct TrialOutcome {
     pub draw: TrialDraw,
     /// The motion's planned duration, seconds.
     pub planned_movement_time_s: f64,
-    /// The state the trial ended in (`Done` or `Abort`).
+    /// The state the trial ended in (`Done` or `Aborted`).
     pub final_state: TrialState,
+    /// Why the trial was aborted (the controller's reason), when it was.
+    pub abort_reason: Option<AbortReason>,
     /// The ground-truth verdict (when the lab knows the truth and there was a motion).
     pub judgement: Option<Judgement>,
     /// Why the motion could not be judged, when it could not.
@@ -444,7 +446,7 @@ impl LabStep {
             return;
         };
         match self.inner.controller().state() {
-            TrialState::Abort(_) => self.conclude(t),
+            TrialState::Aborted => self.conclude(t),
             TrialState::Done => {
                 let since = *trial.done_at.get_or_insert(t);
                 if now || t - since >= AFTER_DONE_S {
@@ -481,7 +483,7 @@ impl LabStep {
         let state = self.inner.controller().state();
         let timed_out = !matches!(
             state,
-            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+            TrialState::Idle | TrialState::Done | TrialState::Aborted
         ) && self.trial.as_ref().is_some_and(|tr| {
             (tr.auto_release || state != TrialState::Armed) && t - tr.t0 > TRIAL_TIMEOUT_S
         });
@@ -491,7 +493,7 @@ impl LabStep {
         self.settle(t, false);
         self.snap.t_s = self.snap.t_s.max(t);
         self.snap.seq += 1;
-        self.snap.trial_state = self.inner.controller().state().into();
+        self.snap.trial_state = self.inner.controller().state();
         self.snap.ready = bridge::Readiness::from_refusal(self.trial_refusal(t));
         self.p.bridge.publish(&self.snap);
     }
@@ -507,11 +509,13 @@ impl LabStep {
             t_s: t,
             trial_id,
             event: Event::StateChanged {
-                from: self.last_state.into(),
-                to: state.into(),
+                from: self.last_state,
+                to: state,
             },
         });
-        if let TrialState::Abort(r) = state {
+        if state == TrialState::Aborted
+            && let Some(r) = self.inner.controller().abort_reason()
+        {
             let reason = BridgeAbort::from(r);
             let detail = match reason {
                 _ if !self.abort_detail.is_empty() => self.abort_detail,
@@ -599,7 +603,7 @@ impl LabStep {
             let state = self.inner.controller().state();
             if !matches!(
                 state,
-                TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+                TrialState::Idle | TrialState::Done | TrialState::Aborted
             ) {
                 self.abort_detail = CAMERA_LOST;
                 self.inner
@@ -648,7 +652,7 @@ impl LabStep {
         let state = self.inner.controller().state();
         if matches!(
             state,
-            TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+            TrialState::Idle | TrialState::Done | TrialState::Aborted
         ) {
             return;
         }
@@ -714,7 +718,7 @@ impl LabStep {
             let c = self.inner.controller_mut();
             if c.state() == TrialState::Armed {
                 let _ = c.release(t);
-            } else if !matches!(c.state(), TrialState::Abort(_) | TrialState::Done) {
+            } else if !matches!(c.state(), TrialState::Aborted | TrialState::Done) {
                 // Dropped before the arm was ready (e.g. the coil's hold limit).
                 c.abort(t, AbortReason::MagnetFault);
             }
@@ -769,7 +773,7 @@ impl LabStep {
             || self.finishing()
             || !matches!(
                 state,
-                TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+                TrialState::Idle | TrialState::Done | TrialState::Aborted
             )
         {
             Some(Refusal::Busy)
@@ -787,7 +791,7 @@ impl LabStep {
         let busy = self.pending.is_some()
             || !matches!(
                 state,
-                TrialState::Idle | TrialState::Done | TrialState::Abort(_)
+                TrialState::Idle | TrialState::Done | TrialState::Aborted
             );
         let (outcome, returned) = match command {
             Command::Stop => {
@@ -1070,7 +1074,7 @@ impl LabStep {
                 }
                 return;
             }
-            TrialState::Abort(_) => {
+            TrialState::Aborted => {
                 self.conclude(t);
                 return;
             }
@@ -1132,6 +1136,11 @@ impl LabStep {
             draw: trial.draw,
             planned_movement_time_s: trial.plan.duration_s,
             final_state: state,
+            abort_reason: if state == TrialState::Aborted {
+                c.abort_reason()
+            } else {
+                None
+            },
             judgement: None,
             judge_error: None,
             physical: None,
@@ -1320,7 +1329,7 @@ impl LabStep {
         let s = &mut self.snap;
         s.t_s = t;
         s.seq += 1;
-        s.trial_state = c.state().into();
+        s.trial_state = c.state();
         // Pendulum: estimate and predicted horizon.
         let l = self.p.scenario.pendulum.length_m;
         match c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {

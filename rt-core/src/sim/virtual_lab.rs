@@ -615,7 +615,7 @@ impl VirtualLab {
         rec.judgement = o.judgement;
         rec.prediction_crossing_time_error_ms = o.prediction_crossing_time_error_ms;
         rec.prediction_position_error_m = o.prediction_position_error_m;
-        if let TrialState::Abort(r) = o.final_state {
+        if let Some(r) = o.abort_reason {
             let mut why = r.name().to_owned();
             if let Some(stop) = self.step.inner().last_stop() {
                 why.push_str(&format!(": {stop}"));

@@ -106,14 +106,7 @@ pub const MIN_MEASUREMENTS: usize = 300;
 pub const MIN_SWING_SPAN_M: f64 = 0.01;
 
 /// Trial states after the release (`trial_state` in a service recording).
-const RELEASED_STATES: [&str; 6] = [
-    "released",
-    "tracking",
-    "intercepting",
-    "holding",
-    "returning",
-    "done",
-];
+const RELEASED_STATES: [&str; 5] = ["released", "tracking", "intercepting", "holding", "done"];
 
 /// Lateral measurements of the swinging ball: capture times and positions.
 #[derive(Debug, Clone, PartialEq, Default)]

@@ -2,7 +2,7 @@
 // Regenerate with `make types`; `cargo test -p server --lib typescript` fails while stale.
 // A number that may be NaN in Rust is `null` here (serde_json writes NaN as null).
 
-export type TrialState = "idle" | "arming" | "armed" | "released" | "tracking" | "intercepting" | "holding" | "returning" | "done" | "aborted";
+export type TrialState = "idle" | "arming" | "armed" | "released" | "tracking" | "intercepting" | "holding" | "done" | "aborted";
 
 export type MeasurementView = { 
 /**

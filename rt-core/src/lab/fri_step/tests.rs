@@ -138,9 +138,10 @@ fn a_session_that_leaves_commanding_aborts_the_running_trial() {
         "{:?}",
         r.ctl.last_stop()
     );
+    assert_eq!(r.ctl.controller().state(), TrialState::Aborted);
     assert_eq!(
-        r.ctl.controller().state(),
-        TrialState::Abort(AbortReason::FriLost)
+        r.ctl.controller().abort_reason(),
+        Some(AbortReason::FriLost)
     );
     assert_eq!(r.ctl.trial_aborts(), 1);
 }
@@ -157,9 +158,10 @@ fn a_silent_controller_aborts_and_an_idle_controller_is_not_a_trial_abort() {
     r.t_ns += 3 * PERIOD_NS;
     assert!(r.client.poll(r.t_ns, &mut r.ctl));
     assert_eq!(r.ctl.last_stop(), Some(StopReason::ControllerSilent));
+    assert_eq!(r.ctl.controller().state(), TrialState::Aborted);
     assert_eq!(
-        r.ctl.controller().state(),
-        TrialState::Abort(AbortReason::FriLost)
+        r.ctl.controller().abort_reason(),
+        Some(AbortReason::FriLost)
     );
     // Back to idle; closing the session now stops, but aborts no trial.
     let t = r.ctl.last_t_s();
