@@ -178,9 +178,10 @@ pub(crate) enum IoRequest {
 }
 
 /// `isochron-lab-io`'s answers.
-// The ring's slots are allocated once; boxing the plan would free memory on
-// the control thread instead.
-#[allow(clippy::large_enum_variant)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "the ring's slots are allocated once; boxing the plan would free memory on the control thread"
+)]
 pub(crate) enum IoReply {
     /// A trial's plan, or why there is none.
     Plan {
@@ -1236,7 +1237,9 @@ impl LabStep {
             // Aborted: reported by the state change (`Aborted`).
             return;
         }
-        let mj = o.measured.filter(|m| m.judged());
+        let mj = o
+            .measured
+            .filter(super::super::control::measured::MeasuredJudgement::judged);
         let j = o.judgement.or_else(|| {
             // The real lab: the measured judge's figures.
             let m = mj.filter(|_| !trial.truth)?;
@@ -1332,39 +1335,36 @@ impl LabStep {
         s.trial_state = c.state();
         // Pendulum: estimate and predicted horizon.
         let l = self.p.scenario.pendulum.length_m;
-        match c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {
-            Some((ekf, (t_post, x, p))) => {
-                s.pendulum.phi_rad = x[0];
-                s.pendulum.dphi_radps = x[1];
-                s.pendulum.sigma_phi_rad = p[(0, 0)].max(0.0).sqrt();
-                s.pendulum.sigma_dphi_radps = p[(1, 1)].max(0.0).sqrt();
-                s.pendulum.x_m = l * x[0].sin();
-                s.pendulum.sigma_x_m = l * x[0].cos().abs() * s.pendulum.sigma_phi_rad;
-                if t >= self.next_horizon_s || t_post != self.horizon_posterior_s {
-                    self.next_horizon_s = t + HORIZON_EVERY_S;
-                    self.horizon_posterior_s = t_post;
-                    s.pendulum.horizon.len = 0;
-                    if let Ok(n) = ekf.predict_horizon(t, HORIZON_STEP_S, &mut self.horizon) {
-                        if let Some(first) = self.horizon.first().filter(|_| n > 0) {
-                            s.pendulum.ball_m = [first.ball_m.x, first.ball_m.y, first.ball_m.z];
-                        }
-                        for pr in &self.horizon[..n] {
-                            s.pendulum.horizon.push(HorizonPoint {
-                                t_s: pr.t_s,
-                                x_m: pr.lateral_m,
-                                sigma_m: pr.lateral_std_m,
-                            });
-                        }
+        if let Some((ekf, (t_post, x, p))) = c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {
+            s.pendulum.phi_rad = x[0];
+            s.pendulum.dphi_radps = x[1];
+            s.pendulum.sigma_phi_rad = p[(0, 0)].max(0.0).sqrt();
+            s.pendulum.sigma_dphi_radps = p[(1, 1)].max(0.0).sqrt();
+            s.pendulum.x_m = l * x[0].sin();
+            s.pendulum.sigma_x_m = l * x[0].cos().abs() * s.pendulum.sigma_phi_rad;
+            if t >= self.next_horizon_s || t_post != self.horizon_posterior_s {
+                self.next_horizon_s = t + HORIZON_EVERY_S;
+                self.horizon_posterior_s = t_post;
+                s.pendulum.horizon.len = 0;
+                if let Ok(n) = ekf.predict_horizon(t, HORIZON_STEP_S, &mut self.horizon) {
+                    if let Some(first) = self.horizon.first().filter(|_| n > 0) {
+                        s.pendulum.ball_m = [first.ball_m.x, first.ball_m.y, first.ball_m.z];
+                    }
+                    for pr in &self.horizon[..n] {
+                        s.pendulum.horizon.push(HorizonPoint {
+                            t_s: pr.t_s,
+                            x_m: pr.lateral_m,
+                            sigma_m: pr.lateral_std_m,
+                        });
                     }
                 }
             }
-            None => {
-                s.pendulum.horizon.len = 0;
-                s.pendulum.sigma_phi_rad = f64::NAN;
-                s.pendulum.sigma_dphi_radps = f64::NAN;
-                s.pendulum.sigma_x_m = f64::NAN;
-                s.pendulum.ball_m = [f64::NAN; 3];
-            }
+        } else {
+            s.pendulum.horizon.len = 0;
+            s.pendulum.sigma_phi_rad = f64::NAN;
+            s.pendulum.sigma_dphi_radps = f64::NAN;
+            s.pendulum.sigma_x_m = f64::NAN;
+            s.pendulum.ball_m = [f64::NAN; 3];
         }
         s.pendulum.truth_ball_m = self
             .trial
@@ -1406,21 +1406,18 @@ impl LabStep {
         s.path.intercept_m = [target.x, target.y, target.z];
         s.pendulum.crossing_t_s = f64::NAN;
         s.pendulum.crossing_sigma_s = f64::NAN;
-        match c.commit() {
-            Some(cm) => {
-                s.path.start_t_s = cm.motion_start_s;
-                s.path.arrival_t_s = cm.motion_start_s + cm.duration_s;
-                s.path.movement_time_s = cm.duration_s;
-                s.path.progress_planned = ((t - cm.motion_start_s) / cm.duration_s).clamp(0.0, 1.0);
-                s.pendulum.crossing_t_s = cm.predicted_pass_s;
-                s.pendulum.crossing_sigma_s = cm.predicted_pass_std_s;
-            }
-            None => {
-                s.path.start_t_s = f64::NAN;
-                s.path.arrival_t_s = f64::NAN;
-                s.path.movement_time_s = self.p.scenario.task.movement_time_s;
-                s.path.progress_planned = 0.0;
-            }
+        if let Some(cm) = c.commit() {
+            s.path.start_t_s = cm.motion_start_s;
+            s.path.arrival_t_s = cm.motion_start_s + cm.duration_s;
+            s.path.movement_time_s = cm.duration_s;
+            s.path.progress_planned = ((t - cm.motion_start_s) / cm.duration_s).clamp(0.0, 1.0);
+            s.pendulum.crossing_t_s = cm.predicted_pass_s;
+            s.pendulum.crossing_sigma_s = cm.predicted_pass_std_s;
+        } else {
+            s.path.start_t_s = f64::NAN;
+            s.path.arrival_t_s = f64::NAN;
+            s.path.movement_time_s = self.p.scenario.task.movement_time_s;
+            s.path.progress_planned = 0.0;
         }
         s.path.progress_executed = if len > 1e-9 {
             ((tool - home).dot(&(target - home)) / (len * len)).clamp(0.0, 1.0)

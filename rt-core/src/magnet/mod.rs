@@ -2,11 +2,21 @@
 
 #[cfg(feature = "serial")]
 pub mod driver;
-// Without `serial` nothing speaks to the board: the codec's and the shared
-// view's encoders are unused then (the parsers and types stay public).
-#[cfg_attr(not(feature = "serial"), allow(dead_code))]
+#[cfg_attr(
+    not(feature = "serial"),
+    allow(
+        dead_code,
+        reason = "without `serial` nothing speaks to the board: the codec's encoders are unused"
+    )
+)]
 pub mod protocol;
-#[cfg_attr(not(feature = "serial"), allow(dead_code))]
+#[cfg_attr(
+    not(feature = "serial"),
+    allow(
+        dead_code,
+        reason = "without `serial` the shared view's encoders are unused (its types stay public)"
+    )
+)]
 pub mod view;
 
 #[cfg(all(test, feature = "serial"))]

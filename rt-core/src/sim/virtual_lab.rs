@@ -115,7 +115,13 @@ pub(crate) fn believed_camera(scenario: &Scenario) -> (CameraModel, SwingPlaneCa
 pub type Around<'a> = &'a mut dyn FnMut(TrialState, &mut dyn FnMut() -> TrialState);
 
 /// The camera of the virtual lab (one per lab: its size does not matter).
-#[allow(clippy::large_enum_variant)]
+#[cfg_attr(
+    feature = "opencv",
+    expect(
+        clippy::large_enum_variant,
+        reason = "one per lab: its size does not matter"
+    )
+)]
 enum Camera {
     /// The measurement model (`vision = "model"`).
     Model {
@@ -611,7 +617,7 @@ impl VirtualLab {
         rec.limit_violations = o.limit_violations + (fri.violations - fri_before.violations);
         rec.deadline_misses = o.deadline_misses;
         rec.preempted_steps = o.preempted_steps;
-        rec.final_state = o.final_state.name().to_owned();
+        o.final_state.name().clone_into(&mut rec.final_state);
         rec.judgement = o.judgement;
         rec.prediction_crossing_time_error_ms = o.prediction_crossing_time_error_ms;
         rec.prediction_position_error_m = o.prediction_position_error_m;
@@ -930,11 +936,13 @@ impl VirtualLab {
     /// Camera frames captured up to `t_next`, and the measurements available
     /// by then, into the measurement ring.
     fn camera_until(&mut self, t_next: f64) {
-        while let Ok(_cal) = self.calibrations.pop() {
+        while let Ok(cal) = self.calibrations.pop() {
             #[cfg(feature = "opencv")]
             if let Camera::Full { vision, .. } = &mut self.camera {
-                vision.set_calibration(_cal);
+                vision.set_calibration(cal);
             }
+            #[cfg(not(feature = "opencv"))]
+            let _ = cal;
         }
         if self.world_view.is_some() {
             self.world_camera_until(t_next);
