@@ -1,8 +1,7 @@
 //! The iiwa 7's rigid-body dynamics (recursive Newton-Euler) from the inertial
 //! parameters in IIWA7.md (lbr_fri_ros2_stack's iiwa 7 description): the
-//! planner's model of the arm (the torques a motion needs, against
-//! [`TORQUE_LIMIT_NM`]), and, scaled by the world's draw, the simulated
-//! robot's (`sim::world::dynamics`).
+//! planner's model of the arm: the torques a motion needs, against
+//! [`TORQUE_LIMIT_NM`].
 //!
 //! Frames: each link's frame sits at its parent joint; at q = 0 every frame is
 //! parallel to the base (URDF joint origins with no rotation), joint axes
