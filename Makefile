@@ -11,10 +11,10 @@ BIND ?= 127.0.0.1:8080
 # System packages the build and the tests need (Debian names).
 APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             gcc-avr avr-libc binutils-avr libsimavr-dev \
-            chromium python3 python3-venv curl
+            chromium python3 python3-venv curl stress-ng
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval envelope help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: stress-test demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval envelope help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -233,6 +233,12 @@ test-examples: test-build
 	  echo "== rt-core example $$e"; \
 	  "$${CARGO_TARGET_DIR:-target}/debug/examples/$$e" || exit 1; \
 	done
+
+## stress-test: `CI=true make test` STRESS_RUNS times (default 5) beside
+## `stress-ng --cpu 2`; writes reports/stress/summary.md (tests/stress/run.sh).
+STRESS_RUNS ?= 5
+stress-test: apt-deps
+	tests/stress/run.sh $(STRESS_RUNS)
 
 test: lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
 

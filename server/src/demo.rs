@@ -5,7 +5,9 @@
 //! `POST /api/trials` checks one: a combination the parameters in force make
 //! infeasible is skipped). A trial starts only when the lab would take it
 //! (`GET /api/health`'s readiness); otherwise the demo is `paused` and says
-//! why. In a real lab (`lab.mode = "real"`) it runs only while an operator
+//! why; a pause is shown for at least [`PAUSE_SHOWN`] (a calibration step
+//! on the simulated lab takes about two seconds, too short for a visitor to
+//! read, or for a page polling once a second to see). In a real lab (`lab.mode = "real"`) it runs only while an operator
 //! holds it enabled (the operator heartbeat, `POST /api/heartbeat`, within
 //! the dead-man time): without one it starts nothing, and when the heartbeats
 //! lapse during a demo trial it stops the arm (`POST /api/stop`'s stop).
@@ -39,6 +41,8 @@ pub const INTERVAL_RANGE_S: (f64, f64) = (1.0, 3600.0);
 const TRIAL_TIMEOUT_S: f64 = 120.0;
 /// How often the runner looks at the lab.
 const TICK: Duration = Duration::from_millis(100);
+/// The shortest a pause is shown (and no trial started): a visitor reads why.
+pub const PAUSE_SHOWN: Duration = Duration::from_secs(5);
 /// The counts' file in the data directory.
 pub const STATE_FILE: &str = "demo.json";
 
@@ -301,6 +305,32 @@ fn apply(s: &mut DemoStatus, c: &Counts) {
     s.success_ci95 = wilson_ci95(c.successes as usize, c.judged as usize);
 }
 
+/// Keeps a pause shown for at least [`PAUSE_SHOWN`] after it began.
+#[derive(Debug, Default)]
+struct PauseShown {
+    since: Option<Instant>,
+    last: Option<Hold>,
+}
+
+impl PauseShown {
+    /// The hold to show at `now`, given the lab's hold now.
+    fn shown(&mut self, hold: Option<Hold>, now: Instant) -> Option<Hold> {
+        if let Some(h) = hold.as_ref().filter(|h| h.state == "paused") {
+            self.since.get_or_insert(now);
+            self.last = Some(h.clone());
+            return hold;
+        }
+        if let Some(since) = self.since {
+            if now.duration_since(since) < PAUSE_SHOWN && hold.is_none() {
+                return self.last.clone();
+            }
+        }
+        self.since = None;
+        self.last = None;
+        hold
+    }
+}
+
 struct Current {
     id: u64,
     started: Instant,
@@ -317,6 +347,7 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         .as_ref()
         .map_or(0, |l| l.bridge_counters().heartbeats);
     let mut last_beat: Option<Instant> = None;
+    let mut pause = PauseShown::default();
     let mut ticker = tokio::time::interval(TICK);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -382,7 +413,8 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         }
         let not_ready = crate::not_ready(&state);
         let (d, t) = plan(counts.started);
-        if let Some(h) = hold(not_ready.as_ref(), opts.operator_required, operator_present) {
+        let lab_hold = hold(not_ready.as_ref(), opts.operator_required, operator_present);
+        if let Some(h) = pause.shown(lab_hold, Instant::now()) {
             state.demo.set(|s| {
                 s.state = h.state;
                 s.reason = h.reason;
@@ -510,6 +542,40 @@ mod tests {
             hold(Some(&nr("busy")), false, true).unwrap().state,
             "waiting"
         );
+    }
+
+    #[test]
+    fn a_pause_is_shown_for_at_least_its_minimum_then_the_demo_goes_on() {
+        let paused = hold(
+            Some(&NotReady {
+                reason: "calibrating",
+                message: "why".into(),
+            }),
+            false,
+            true,
+        );
+        let mut p = PauseShown::default();
+        let t0 = Instant::now();
+        assert!(p.shown(None, t0).is_none(), "nothing to hold");
+        assert_eq!(p.shown(paused.clone(), t0), paused);
+        // The lab is ready again after 1 s: still shown paused until 5 s.
+        let kept = p.shown(None, t0 + Duration::from_secs(1));
+        assert_eq!(kept.as_ref().map(|h| h.state), Some("paused"));
+        assert_eq!(kept.and_then(|h| h.reason).as_deref(), Some("calibrating"));
+        assert!(p.shown(None, t0 + PAUSE_SHOWN - Duration::from_millis(1)).is_some());
+        assert!(p.shown(None, t0 + PAUSE_SHOWN).is_none(), "resumes by itself");
+        // A wait for another trial is not a pause and ends the one shown.
+        let busy = hold(
+            Some(&NotReady {
+                reason: "busy",
+                message: "why".into(),
+            }),
+            false,
+            true,
+        );
+        assert_eq!(p.shown(paused.clone(), t0), paused);
+        assert_eq!(p.shown(busy.clone(), t0 + Duration::from_secs(1)), busy);
+        assert!(p.shown(None, t0 + Duration::from_secs(2)).is_none());
     }
 
     #[test]
