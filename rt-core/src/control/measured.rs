@@ -485,6 +485,11 @@ pub struct MeasuredInputs<'a> {
     pub torques_nm: &'a [[f64; 7]],
     /// Settling radius of the arrival, m.
     pub settle_m: f64,
+    /// How much earlier than the arrival the motion was timed for the tool
+    /// settles within `settle_m`, planned (0 when timed for that settling),
+    /// s: the judge's arrival is the settling it measures plus this, so a
+    /// lab timed for another arrival is judged by its own.
+    pub arrival_lead_s: f64,
     /// Timing tolerance, ms.
     pub tolerance_ms: f64,
     /// How late the robot's external torque estimate shows a contact's
@@ -585,7 +590,8 @@ pub fn judge_measured(m: &MeasuredInputs<'_>) -> MeasuredJudgement {
             (c.std_s * c.std_s + a.std_s * a.std_s).sqrt() * 1e3,
         )
     });
-    let arrival_t_s = measured_arrival(m.tool_t_s, m.tool_m, m.settle_m);
+    let arrival_t_s =
+        measured_arrival(m.tool_t_s, m.tool_m, m.settle_m).map(|a| a + m.arrival_lead_s);
     // The robot's messages around the pass's window and the arrival.
     let window_hi = arrival_t_s.map_or(hi, |a| hi.max(a + 0.05));
     let window_lo = arrival_t_s.map_or(lo, |a| lo.min(a - 0.1));
@@ -977,6 +983,7 @@ mod tests {
             torque_t_s,
             torques_nm,
             settle_m: 0.002,
+            arrival_lead_s: 0.0,
             tolerance_ms: 20.0,
             contact_delay_s: 0.0,
             contact_pulse_s: 0.0,

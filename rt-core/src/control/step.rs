@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::beliefs::Beliefs;
 use super::latency::LatencyEstimator;
+use super::measured::ARRIVAL_SETTLE_M;
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::check::{self, ParamError};
 use crate::ekf::{Ekf, EkfCounters, EkfError, EkfParams, MotionRequest, PassDirection, StateVec};
@@ -247,6 +248,12 @@ pub struct ArmPlan {
     /// best-fitting ideal profile) minus its nominal arrival, seconds; found by
     /// running the generator once at plan time, and compensated when committing.
     pub arrival_offset_s: f64,
+    /// How much earlier the tool settles within [`ARRIVAL_SETTLE_M`] (the
+    /// measured judge's arrival) than the arrival the motion is timed for
+    /// (`control.arrival_settle_m`'s), planned, seconds: 0 when timed for
+    /// that settling, about 0.14 s at 1.5 s when timed for the fitted
+    /// arrival. The measured judge adds it to the settling it sees.
+    pub settle_lead_s: f64,
 }
 
 /// A sighting of the ball, as the filter fuses it: its lateral position at
@@ -684,12 +691,27 @@ impl Controller {
             period_s,
             params.arrival_settle_m,
         )?;
+        let settle_lead_s = if (params.arrival_settle_m - ARRIVAL_SETTLE_M).abs() < 1e-12 {
+            0.0
+        } else {
+            arrival_offset_s
+                - generator_arrival_offset(
+                    timing,
+                    &home,
+                    &intercept,
+                    &posture,
+                    duration,
+                    period_s,
+                    ARRIVAL_SETTLE_M,
+                )?
+        };
         Ok(ArmPlan {
             distance_m,
             intercept_m: intercept,
             posture,
             duration_s: duration,
             arrival_offset_s,
+            settle_lead_s,
         })
     }
 

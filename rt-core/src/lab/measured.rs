@@ -43,6 +43,9 @@ pub(crate) struct MeasuredBeliefs {
     pub omega_radps: f64,
     /// Settling radius of the arrival, m.
     pub settle_m: f64,
+    /// The plan's lead of that settling over the arrival the motion was
+    /// timed for (`ArmPlan::settle_lead_s`), s.
+    pub settle_lead_s: f64,
     /// Timing tolerance, ms.
     pub tolerance_ms: f64,
     /// The FRI period, s.
@@ -121,6 +124,7 @@ impl MeasuredTrace {
             torque_t_s: &self.torque_t_s,
             torques_nm: &self.torques_nm,
             settle_m: b.settle_m,
+            arrival_lead_s: b.settle_lead_s,
             tolerance_ms: b.tolerance_ms,
             contact_delay_s: TORQUE_LAG_PERIODS * b.period_s,
             contact_pulse_s: CONTACT_PULSE_S,

@@ -1165,6 +1165,7 @@ impl LabStep {
                 sigma_x_m: self.p.scenario.ekf.measurement_noise_m,
                 omega_radps: (pendulum.gravity_mps2 / pendulum.length_m.max(1e-3)).sqrt(),
                 settle_m: ARRIVAL_SETTLE_M,
+                settle_lead_s: trial.plan.settle_lead_s,
                 tolerance_ms: self.p.scenario.success.timing_tolerance_ms,
                 period_s: self.period_s,
                 intercept_y_m: trial.plan.intercept_m.y,
