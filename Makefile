@@ -12,9 +12,14 @@ BIND ?= 127.0.0.1:8080
 APT_PKGS := libopencv-dev clang libclang-dev pkg-config \
             gcc-avr avr-libc binutils-avr libsimavr-dev \
             chromium python3 python3-venv curl stress-ng
+# Each stage of `make test` notes when it starts in target/stages.log; `make
+# test` ends with the table of how long each took (serial make: a stage lasts
+# until the next one starts).
+STAGES_LOG := target/stages.log
+STAGE = @mkdir -p target && echo "$@ $$(date +%s)" >> $(STAGES_LOG)
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: stress-test demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval envelope help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
+.PHONY: stages-begin stress-test demo eval-world test-build test-examples soak fuzz-lifecycle peer-deps test-core py-deps mcap-py-deps test-api-fuzz test-browser eval envelope help deps apt-deps web-deps fuzz-deps fuzz fuzz-smoke fuzz-seeds web run test test-rust test-web lint bench build release firmware types
 
 help:
 	@echo "make run    install what is missing, build, and serve the simulated lab on http://$(BIND)/"
@@ -29,6 +34,7 @@ help:
 
 ## deps: install only what is missing.
 deps: apt-deps web-deps fuzz-deps py-deps mcap-py-deps
+	$(STAGE)
 
 apt-deps:
 	@missing=""; \
@@ -114,6 +120,7 @@ fuzz-lifecycle: firmware
 	  random_rest_sequences_lose_no_trial_record -- --nocapture
 
 fuzz-smoke: fuzz-deps
+	$(STAGE)
 	$(call fuzz_run,$(FUZZ_SMOKE_SECONDS),--dev)
 
 ## fuzz-seeds: regenerate the committed seed corpus from real sessions.
@@ -142,6 +149,7 @@ $(FW_BUILD)/magnet-sim: $(FW_DIR)/sim_host.c
 
 ## web: the dashboard, built into web/dist (served by `isochron serve`).
 web: web-deps
+	$(STAGE)
 	cd web && npm run build
 
 build: deps
@@ -162,13 +170,16 @@ demo: deps web release
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" serve --bind $(BIND) --demo --demo-interval-s $(DEMO_INTERVAL_S)
 
 lint: deps
+	$(STAGE)
 	$(CARGO) fmt --all -- --check
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
 
 test-web: web
+	$(STAGE)
 	cd web && npm run typecheck && npm test
 
 test-rust: deps firmware
+	$(STAGE)
 	@mkdir -p target
 	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
@@ -180,6 +191,7 @@ test-rust: deps firmware
 ## Outside CI (the dev loop) that build is checked (`cargo check`), not linked and run:
 ## the same allocation test runs with the default features in test-rust.
 test-core:
+	$(STAGE)
 	@if $(CARGO) tree -p rt-core --no-default-features -e normal --prefix none \
 	    | grep -E '^(opencv|clang-sys|libudev-sys) '; then \
 	  echo "rt-core --no-default-features depends on a C/C++ library (above)"; exit 1; fi
@@ -195,6 +207,7 @@ test-core:
 ## and would build OpenCV's bindings a second time); the browser, API-fuzz and
 ## example runs use that binary.
 test-build: deps firmware
+	$(STAGE)
 	$(CARGO) test --workspace --no-run
 
 # The soak in `make test` checks the heap for 30 s and reports the frame rate;
@@ -202,6 +215,7 @@ test-build: deps firmware
 # The demo page's short test (>= 2 unattended trials, a pause, a restart) runs
 # here too; its 10-minute soak only in `make soak`.
 test-browser: web test-build
+	$(STAGE)
 	ISOCHRON_SOAK_S=$${ISOCHRON_SOAK_S:-30} web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 	node web/e2e/demo.mjs "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 
@@ -219,6 +233,7 @@ soak: web
 ## API_FUZZ_SECONDS (default 60): 0 failures (tests/api-fuzz/run.sh).
 API_FUZZ_SECONDS ?= 60
 test-api-fuzz: py-deps test-build
+	$(STAGE)
 	tests/api-fuzz/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" $(API_FUZZ_SECONDS)
 
 ## test-examples: examples/run_trials.py and run_trials.sh against `isochron serve`
@@ -228,6 +243,7 @@ test-api-fuzz: py-deps test-build
 ## what it shows does not hold.
 CORE_EXAMPLES := predict_pass plan_motion decode_fri
 test-examples: test-build
+	$(STAGE)
 	examples/test.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron" 1
 	@for e in $(CORE_EXAMPLES); do \
 	  echo "== rt-core example $$e"; \
@@ -240,7 +256,13 @@ STRESS_RUNS ?= 5
 stress-test: apt-deps
 	tests/stress/run.sh $(STRESS_RUNS)
 
-test: lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
+test: stages-begin lint test-core test-web test-browser test-api-fuzz test-examples fuzz-smoke test-rust
+	$(STAGE)
+	@awk 'NR > 1 { printf "  %-14s %5d s\n", name, $$2 - t; total += $$2 - t } { name = $$1; t = $$2 } \
+	  END { printf "  %-14s %5d s\n", "total", total }' $(STAGES_LOG) | sed '1i make test: the stages (target/stages.log)'
+
+stages-begin:
+	@mkdir -p target && echo "install $$(date +%s)" > $(STAGES_LOG)
 
 ## bench: the criterion benches, then `isochron bench` (release) with its peers in
 ## the same run (filterpy's EKF and the Robotics Toolbox's C++ IK, in .venv-peers)
