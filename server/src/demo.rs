@@ -562,8 +562,14 @@ mod tests {
         let kept = p.shown(None, t0 + Duration::from_secs(1));
         assert_eq!(kept.as_ref().map(|h| h.state), Some("paused"));
         assert_eq!(kept.and_then(|h| h.reason).as_deref(), Some("calibrating"));
-        assert!(p.shown(None, t0 + PAUSE_SHOWN - Duration::from_millis(1)).is_some());
-        assert!(p.shown(None, t0 + PAUSE_SHOWN).is_none(), "resumes by itself");
+        assert!(
+            p.shown(None, t0 + PAUSE_SHOWN - Duration::from_millis(1))
+                .is_some()
+        );
+        assert!(
+            p.shown(None, t0 + PAUSE_SHOWN).is_none(),
+            "resumes by itself"
+        );
         // A wait for another trial is not a pause and ends the one shown.
         let busy = hold(
             Some(&NotReady {

@@ -1522,7 +1522,10 @@ mod tests {
                 close += usize::from((t - m).abs() <= 3.0);
             }
         }
-        assert!(close >= 5, "measured within 3 ms of the truth in {close} of 6: {table}");
+        assert!(
+            close >= 5,
+            "measured within 3 ms of the truth in {close} of 6: {table}"
+        );
     }
 
     #[test]
