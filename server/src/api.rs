@@ -695,14 +695,18 @@ pub async fn start_calibration(
         let beliefs = if desk.real_lab() {
             // Through the lab's own camera and magnet (`claim` let only the
             // steps whose real-lab procedure is built through).
-            crate::calibration::run_real_pendulum(
-                &lab,
-                &desk,
-                id,
-                &scenario,
-                crate::calibration::REAL_SWING_RECORD_S,
-            )
-            .await
+            if step == Step::Latency {
+                crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await
+            } else {
+                crate::calibration::run_real_pendulum(
+                    &lab,
+                    &desk,
+                    id,
+                    &scenario,
+                    crate::calibration::REAL_SWING_RECORD_S,
+                )
+                .await
+            }
         } else {
             let world = rt_core::calibration::simworld::HiddenWorld::truthful(&scenario);
             let worker = Arc::clone(&desk);

@@ -61,7 +61,9 @@ impl Step {
     /// needs no camera step (whose real-lab procedure is not built): the
     /// configuration's focal length and principal point stand in for it.
     pub fn prerequisites_on(self, real_lab: bool) -> &'static [Self] {
-        if real_lab && self == Self::Pendulum {
+        if real_lab && matches!(self, Self::Pendulum | Self::Latency) {
+            // Through the lab's own camera: the swing in the believed
+            // plane, the LED's brightness in its region.
             &[]
         } else {
             self.prerequisites()
@@ -69,9 +71,10 @@ impl Step {
     }
 
     /// Whether the step's real-lab procedure is built (through the lab's own
-    /// camera, magnet and robot): the pendulum's free swing.
+    /// camera, magnet and robot): the pendulum's free swing and the LED's
+    /// latency.
     pub fn real_lab_procedure(self) -> bool {
-        matches!(self, Self::Pendulum)
+        matches!(self, Self::Pendulum | Self::Latency)
     }
 
     /// Whether the calibration file holds this step's result.
@@ -683,7 +686,7 @@ impl CalibrationDesk {
         if self.real_lab && !step.real_lab_procedure() {
             return Err(StartRefused::NotAvailable(format!(
                 "calibrate {}: the real-lab procedure of this step is not built yet \
-                 (on a real lab: pendulum); the panel runs every step on the simulated lab",
+                 (on a real lab: pendulum, latency); the panel runs every step on the simulated lab",
                 step.name()
             )));
         }
@@ -995,4 +998,218 @@ pub async fn run_real_pendulum(
     }
     .await;
     desk.conclude(id, Step::Pendulum, scenario, outcome, "the real lab")
+}
+
+/// Switches of the LED the real-lab latency step makes.
+pub const REAL_LED_SWITCHES: usize = 40;
+/// How long the real-lab latency step watches the frames before its first
+/// switch (the frame grid), seconds.
+pub const REAL_LED_GRID_S: f64 = 2.0;
+
+/// The latency step on the real lab, through its own camera and magnet
+/// board (job `id`, claimed): the LED off, the frames' delivery times
+/// watched for [`REAL_LED_GRID_S`] (the frame grid), then
+/// [`REAL_LED_SWITCHES`] switches sent at random phases of the frame period
+/// (`latency::plan_switches`), each stamped when the driver wrote it, with
+/// its round trip and both lines' wire times; the LED region's brightness
+/// in every frame (`calibration.led_px`, read by the vision thread) bounds
+/// the camera's exposure -> delivery latency (`estimate_led_latency`).
+/// Refused, nothing written, without `calibration.led_px`, when the camera
+/// or the board does not deliver, or when the camera never sees the LED
+/// switch.
+pub async fn run_real_latency(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> Option<Scenario> {
+    let outcome = real_latency(lab, desk, id, scenario).await;
+    desk.conclude(id, Step::Latency, scenario, outcome, "the real lab")
+}
+
+async fn real_latency(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> anyhow::Result<StepOutcome> {
+    use rand::{RngExt, SeedableRng};
+    use rt_core::calibration::latency::{LedEdge, LedFrame, estimate_led_latency, plan_switches};
+    use rt_core::calibration::{StepView, ViewKind};
+    use rt_core::magnet::OkReply;
+    use std::time::Duration;
+    let devices = lab
+        .devices()
+        .context("calibrate latency: the lab's devices have not started")?;
+    let (Some(feed), Some(magnet), Some(epoch)) =
+        (devices.led.clone(), devices.magnet.clone(), devices.epoch)
+    else {
+        anyhow::bail!(
+            "calibrate latency: the lab configuration does not say where the magnet board's LED \
+             shows in the camera's image: set [calibration] led_px = [column, row, radius] in pixels"
+        );
+    };
+    if let Some(p) = lab
+        .device_problems()
+        .into_iter()
+        .find(|p| p.device != "robot")
+    {
+        anyhow::bail!("calibrate latency: {}", p.message);
+    }
+    let now_s = move || epoch.elapsed().as_secs_f64();
+    let period_s = 1.0 / scenario.camera.fps;
+    let view = |progress: f64, message: String, frames: &[LedFrame]| StepView {
+        progress,
+        message,
+        kind: ViewKind::Series,
+        points: rt_core::calibration::view::thin(
+            &frames
+                .iter()
+                .map(|f| [f.t_delivered_s, f.brightness])
+                .collect::<Vec<_>>(),
+            600,
+        ),
+        fit: Vec::new(),
+    };
+    let switch = |on: bool| {
+        let magnet = magnet.clone();
+        async move {
+            tokio::task::spawn_blocking(move || magnet.set_led(on).map(|a| (a, magnet)))
+                .await
+                .context("calibrate latency: the magnet board's thread")?
+                .map_err(|e| anyhow::anyhow!("calibrate latency: the LED: {e}"))
+        }
+    };
+    let mut readings = Vec::new();
+    let mut frames: Vec<LedFrame> = Vec::new();
+    let mut take = |frames: &mut Vec<LedFrame>| {
+        readings.clear();
+        feed.drain(&mut readings);
+        frames.extend(readings.iter().map(|r| LedFrame {
+            t_delivered_s: r.t_delivered_s,
+            brightness: r.level,
+        }));
+    };
+    // 1. The LED off (asked up to three times: a starved board may miss
+    // one answer); the frame grid.
+    let mut tries = 0;
+    while let Err(e) = switch(false).await {
+        tries += 1;
+        if tries == 3 {
+            return Err(e);
+        }
+    }
+    take(&mut Vec::new());
+    desk.progress(
+        id,
+        view(0.02, "LED off: watching the camera's frames".into(), &[]),
+    );
+    let t0 = now_s();
+    while now_s() - t0 < REAL_LED_GRID_S {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        take(&mut frames);
+    }
+    if frames.len() < 10 {
+        anyhow::bail!(
+            "calibrate latency: the camera delivered {} frames in {REAL_LED_GRID_S:.0} s \
+             (is the LED's region in the image? calibration.led_px = {:?})",
+            frames.len(),
+            feed.roi_px()
+        );
+    }
+    let deliveries: Vec<f64> = frames.iter().map(|f| f.t_delivered_s).collect();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(id ^ 0x1ed);
+    let sends = plan_switches(&deliveries, period_s, REAL_LED_SWITCHES, || {
+        rng.random_range(0.0..1.0)
+    });
+    // 2. The switches at their planned times.
+    let mut edges = Vec::with_capacity(sends.len());
+    let mut unanswered = 0;
+    for (i, &t) in sends.iter().enumerate() {
+        let on = i % 2 == 0;
+        loop {
+            take(&mut frames);
+            let left = t - now_s();
+            if left <= 0.0 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_secs_f64(left.min(0.01))).await;
+        }
+        // A switch the board did not answer in time (a starved machine) is
+        // left out: the frames around it then show no clean edge of the
+        // switches recorded, which the estimate drops; most must answer.
+        let (a, m) = match switch(on).await {
+            Ok(r) => r,
+            Err(e) => {
+                unanswered += 1;
+                if unanswered * 2 > sends.len() {
+                    return Err(e.context(format!(
+                        "calibrate latency: {unanswered} of {} LED switches were not answered",
+                        i + 1
+                    )));
+                }
+                continue;
+            }
+        };
+        let uptime_ms = match a.reply {
+            OkReply::Led { uptime_ms, .. } => uptime_ms,
+            _ => 0,
+        };
+        let command = if on { "LED ON\n" } else { "LED OFF\n" };
+        let answer = format!(
+            "OK LED led={} uptime_ms={uptime_ms}\r\n",
+            if on { "on" } else { "off" }
+        );
+        edges.push(LedEdge {
+            t_sent_s: a.sent.saturating_duration_since(epoch).as_secs_f64(),
+            round_trip_s: a.rtt.as_secs_f64(),
+            command_wire_s: m.wire_s(command.len()),
+            answer_wire_s: m.wire_s(answer.len()),
+            on,
+        });
+        if i % 4 == 3 {
+            desk.progress(
+                id,
+                view(
+                    0.05 + 0.85 * (i + 1) as f64 / sends.len() as f64,
+                    format!("LED switched {} of {} times", i + 1, sends.len()),
+                    &frames,
+                ),
+            );
+        }
+    }
+    // 3. The frames of the last switch, the LED off again.
+    let t_end = now_s() + 10.0 * period_s + 0.3;
+    while now_s() < t_end {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        take(&mut frames);
+    }
+    let _ = switch(false).await;
+    frames.sort_by(|a, b| a.t_delivered_s.total_cmp(&b.t_delivered_s));
+    let result = estimate_led_latency(&frames, &edges, period_s).context("calibrate latency")?;
+    desk.progress(
+        id,
+        view(
+            0.98,
+            format!(
+                "camera latency {:.1} ms (+- {:.1} ms), {} of {} switches seen",
+                result.latency_ms, result.bound_ms, result.edges_seen, result.edges
+            ),
+            &frames,
+        ),
+    );
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: (
+            "camera_latency_ms",
+            result.latency_ms,
+            f64::NAN,
+            TARGET_CAMERA_LATENCY_MS,
+        ),
+        write: Box::new(move |file, stamp| {
+            file.latency = Some(step_record(stamp, result));
+        }),
+    })
 }

@@ -180,6 +180,11 @@ pub struct MagnetHardware {
     pub port: PathBuf,
     /// Baud rate.
     pub baud: u32,
+    /// How long one command may wait for the board's answer before the
+    /// driver resynchronises (and, silent for its boot time too, declares
+    /// the link lost), ms. An Uno answers within a few ms; a board that
+    /// shares a busy machine (a simulator) needs more.
+    pub command_timeout_ms: f64,
 }
 
 impl Default for MagnetHardware {
@@ -187,6 +192,7 @@ impl Default for MagnetHardware {
         Self {
             port: PathBuf::from("/dev/ttyACM0"),
             baud: 115_200,
+            command_timeout_ms: rt_core::magnet::MagnetParams::default().command_timeout_ms,
         }
     }
 }
@@ -208,6 +214,10 @@ pub struct Calibration {
     /// of the ball at rest, `plane_distance_m` before the swing plane, looking
     /// along +x.
     pub camera_pose: Option<rt_core::vision::CameraPose>,
+    /// Where the magnet board's LED shows in the camera's image: centre
+    /// column, centre row and radius, pixels (read off the camera panel).
+    /// The latency step needs it; without it that step is refused.
+    pub led_px: Option<[f64; 3]>,
 }
 
 impl Default for Calibration {
@@ -218,6 +228,7 @@ impl Default for Calibration {
             plane_distance_m: 1.5,
             pivot_m: [0.6, 0.0, 2.23],
             camera_pose: None,
+            led_px: None,
         }
     }
 }
@@ -225,7 +236,7 @@ impl Default for Calibration {
 impl ServeConfig {
     /// Parses and validates a configuration (unknown keys are refused).
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
-        let cfg: Self = toml::from_str(text).map_err(|e| ParamError::parse(e.message()))?;
+        let cfg: Self = toml::from_str(text).map_err(|e| rt_core::params::toml_error(text, &e))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -275,6 +286,12 @@ impl ServeConfig {
         check::within_u32("camera.height_px", c.height_px, 48, 4320)?;
         check::within("camera.fps", c.fps, 1.0, 500.0)?;
         check::within_u32("fri.period_ms", self.fri.period_ms, 1, 100)?;
+        check::within(
+            "magnet.command_timeout_ms",
+            self.magnet.command_timeout_ms,
+            5.0,
+            10_000.0,
+        )?;
         check::within_u32("magnet.baud", self.magnet.baud, 300, 2_000_000)?;
         let k = &self.calibration;
         check::within("calibration.focal_length_px", k.focal_length_px, 1.0, 1e5)?;
@@ -297,6 +314,11 @@ impl ServeConfig {
         }
         if let Some(pose) = &k.camera_pose {
             pose.validate("calibration.camera_pose")?;
+        }
+        if let Some([x, y, r]) = k.led_px {
+            check::within("calibration.led_px[0]", x, 0.0, f64::from(c.width_px - 1))?;
+            check::within("calibration.led_px[1]", y, 0.0, f64::from(c.height_px - 1))?;
+            check::within("calibration.led_px[2]", r, 1.0, 200.0)?;
         }
         Ok(())
     }
@@ -331,6 +353,11 @@ mod tests {
         assert!(e.to_string().contains("period"), "{e}");
         let e = ServeConfig::from_toml_str("[fri]\nversion = \"2.6\"\n").unwrap_err();
         assert!(e.to_string().contains("unknown FRI version \"2.6\""), "{e}");
+        let e = ServeConfig::from_toml_str("[calibration]\nled_px = [40.0, 9000.0, 10.0]\n")
+            .unwrap_err();
+        assert_eq!(e.field(), Some("calibration.led_px[1]"));
+        let e = ServeConfig::from_toml_str("[calibration]\nled_px = [40.0, 40.0]\n").unwrap_err();
+        assert!(e.to_string().contains("led_px"), "{e}");
         let cfg = ServeConfig::from_toml_str("[fri]\nversion = \"2.7\"\n").unwrap();
         assert_eq!(cfg.fri.version, rt_core::fri::FriVersion::V2_7);
         assert_eq!(

@@ -197,6 +197,10 @@ pub struct Devices {
     pub vision: Option<Arc<rt_core::vision::VisionStats>>,
     /// The magnet driver.
     pub magnet: Option<rt_core::magnet::MagnetHandle>,
+    /// The camera's readings of the magnet board's LED (`calibration.led_px`).
+    pub led: Option<Arc<rt_core::lab::LedFeed>>,
+    /// The control clock's zero.
+    pub epoch: Option<std::time::Instant>,
 }
 
 /// One device that keeps the lab from running trials, and why.
@@ -291,6 +295,11 @@ impl Lab {
     /// change nothing).
     pub fn set_devices(&self, devices: Devices) {
         let _ = self.devices.set(devices);
+    }
+
+    /// The lab's devices (once the runtime has started).
+    pub fn devices(&self) -> Option<&Devices> {
+        self.devices.get()
     }
 
     /// The devices that keep the lab from running trials now, each with why

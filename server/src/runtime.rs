@@ -32,6 +32,8 @@ pub fn start_lab(
     lab.set_devices(crate::lab::Devices {
         vision: runtime.vision_stats().cloned(),
         magnet: Some(runtime.magnet().clone()),
+        led: runtime.led_feed().cloned(),
+        epoch: Some(runtime.epoch()),
     });
     Ok((lab, runtime))
 }

@@ -399,6 +399,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         CameraLink::Source { open, calibration },
         MagnetLink::Port(MagnetParams {
             baud: cfg.magnet.baud,
+            command_timeout_ms: cfg.magnet.command_timeout_ms,
             ..MagnetParams::for_port(cfg.magnet.port.display().to_string())
         }),
     );
@@ -407,6 +408,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         ..rt_core::fri::FriClientParams::default()
     };
     setup.fixed_distance_m = Some(px.hypot(py));
+    setup.led_roi_px = cfg.calibration.led_px;
     Ok(setup)
 }
 

@@ -14,7 +14,9 @@
 //!   (`firmware/magnet`, `make firmware`); its coil pin lets the world's ball
 //!   go after the world's release delay, and switching it on hangs the ball
 //!   on the magnet (the operator's hands); its LED pin lights a spot in the
-//!   frames.
+//!   frames (`webcam::LED_PX`, as bright as the share of its row's exposure
+//!   it was lit: the latency step's light; the lab configuration says where
+//!   it shows, `calibration.led_px`).
 //!
 //! It writes `--lab-config` (the real-lab configuration for this hardware,
 //! read by `isochron serve --config`, with the lab's beliefs beside it as
@@ -56,7 +58,19 @@ pub struct WorldReady {
     pub camera_url: String,
     /// The Arduino's serial port.
     pub serial_port: PathBuf,
+    /// The world's truth of what the latency step measures: from the middle
+    /// of the LED row's exposure to the frame's delivery, on average, ms.
+    pub led_latency_ms: f64,
 }
+
+/// The LED's switches the board made, `(world time, on)` in order (the
+/// latest [`LED_SWITCHES`]).
+type LedSwitches = Arc<Mutex<std::collections::VecDeque<(f64, bool)>>>;
+/// The magnet command timeout the lab configuration gives the simulated
+/// board, ms (a real Uno's default is 300).
+pub const SIMULATED_BOARD_TIMEOUT_MS: f64 = 2000.0;
+/// LED switches kept for the frames still to render.
+const LED_SWITCHES: usize = 64;
 
 /// One line of the truth file: a release as the world saw it, Unix seconds.
 #[derive(Debug, Serialize)]
@@ -221,7 +235,7 @@ impl LabWorld {
         let epoch_unix_s = cabinet.epoch_unix_ns() as f64 * 1e-9;
 
         // The board's pins reach the world.
-        let led = Arc::new(AtomicBool::new(false));
+        let led: LedSwitches = Arc::default();
         let board_gone = Arc::new(AtomicBool::new(false));
         {
             let (led, gone) = (Arc::clone(&led), Arc::clone(&board_gone));
@@ -241,7 +255,15 @@ impl LabWorld {
                             (Some("D8"), Some(v)) => {
                                 let _ = coil_tx.push((v == "1", t));
                             }
-                            (Some("D12"), Some(v)) => led.store(v == "1", Relaxed),
+                            (Some("D12"), Some(v)) => {
+                                let mut l = led
+                                    .lock()
+                                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                                if l.len() == LED_SWITCHES {
+                                    l.pop_front();
+                                }
+                                l.push_back((t, v == "1"));
+                            }
                             _ => {}
                         }
                     }
@@ -261,6 +283,7 @@ impl LabWorld {
         }
         let frames = Arc::new(AtomicU64::new(0));
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
+        let led_latency_ms = webcam.led_latency_s() * 1e3;
         {
             let (clients, frames, led) =
                 (Arc::clone(&clients), Arc::clone(&frames), Arc::clone(&led));
@@ -277,7 +300,15 @@ impl LabWorld {
                             webcam.push(s);
                         }
                         let timing = webcam.timing(t_start);
-                        let jpeg = match webcam.frame_jpeg(timing.t_start_s, led.load(Relaxed)) {
+                        let share = {
+                            // Off at the board's start; the switches kept
+                            // reach back seconds before any frame rendered.
+                            let l = led
+                                .lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner);
+                            webcam.led_lit_share(timing.t_start_s, false, l.iter().copied())
+                        };
+                        let jpeg = match webcam.frame_jpeg(timing.t_start_s, share) {
                             Ok(j) => Arc::new(j.to_vec()),
                             Err(e) => {
                                 eprintln!("isochron world: the webcam failed: {e}");
@@ -305,6 +336,7 @@ impl LabWorld {
             fri_client: client,
             camera_url,
             serial_port: tty,
+            led_latency_ms,
         };
         Ok(Self {
             ready,
@@ -338,6 +370,9 @@ impl LabWorld {
         cfg.fri.period_ms = beliefs.robot.fri_period_ms;
         cfg.fri.version = self.fri_version;
         cfg.magnet.port = absolute(&self.ready.serial_port);
+        // The board is a simulator sharing the machine: on a loaded one it
+        // answers late, which is not a lost board.
+        cfg.magnet.command_timeout_ms = SIMULATED_BOARD_TIMEOUT_MS;
         // What the lab believes of its camera and pendulum before calibrating:
         // the camera's nominal lens and where it was put (the simulated lab's).
         let cam = rt_core::sim::camera::SimCameraParams::default();
@@ -348,6 +383,10 @@ impl LabWorld {
         cfg.calibration.pivot_m = [i.x, i.y, i.z + beliefs.pendulum.length_m];
         cfg.calibration.plane_distance_m = (i.x - cam.pose.position_m[0]).max(0.1);
         cfg.calibration.camera_pose = Some(cam.pose);
+        // Where the board's LED shows in the frames (a lab reads it off its
+        // camera's image).
+        let (x, y, r) = rt_core::sim::world::webcam::LED_PX;
+        cfg.calibration.led_px = Some([f64::from(x), f64::from(y), f64::from(r)]);
         cfg
     }
 

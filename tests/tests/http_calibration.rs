@@ -214,7 +214,7 @@ async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
 fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     let tmp = tempfile::tempdir().unwrap();
     let desk = CalibrationDesk::new(tmp.path().join("c.toml"), true, Box::new(|_| None));
-    for step in [Step::Camera, Step::Latency, Step::CameraRobot, Step::Robot] {
+    for step in [Step::Camera, Step::CameraRobot, Step::Robot] {
         let e = desk.claim(step).unwrap_err();
         assert!(e.to_string().contains("real-lab procedure"), "{e}");
         assert!(!desk.running());
@@ -223,6 +223,10 @@ fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     // step (the configuration's intrinsics stand in for it).
     assert!(Step::Pendulum.prerequisites_on(true).is_empty());
     assert_eq!(Step::Pendulum.prerequisites_on(false), [Step::Camera]);
+    // So is the LED's latency (through the LED's region of the image).
+    assert!(Step::Latency.real_lab_procedure());
+    assert!(Step::Latency.prerequisites_on(true).is_empty());
+    assert_eq!(Step::Latency.prerequisites_on(false), [Step::Camera]);
     let id = desk
         .claim(Step::Pendulum)
         .expect("the pendulum step on a real lab");

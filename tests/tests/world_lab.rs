@@ -115,10 +115,10 @@ fn truth_lines(path: &Path) -> Vec<Value> {
         .collect()
 }
 
-/// Runs the pendulum step on the served real lab (an operator's heartbeat
-/// must run: the step moves the arm home) and returns its result, once the
+/// Runs `step` on the served real lab (an operator's heartbeat must run:
+/// the pendulum step moves the arm home) and returns its result, once the
 /// robot commands; the job must end `done` within 3 minutes.
-async fn calibrate_pendulum(addr: SocketAddr) -> Value {
+async fn calibrate(addr: SocketAddr, step: &str) -> Value {
     let deadline = Instant::now() + Duration::from_secs(60);
     while http(addr, "GET", "/api/state", &[], b"")
         .await
@@ -129,7 +129,7 @@ async fn calibrate_pendulum(addr: SocketAddr) -> Value {
         assert!(Instant::now() < deadline, "the robot does not command");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let r = http(addr, "POST", "/api/calibration/pendulum", &[], b"")
+    let r = http(addr, "POST", &format!("/api/calibration/{step}"), &[], b"")
         .await
         .unwrap();
     assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
@@ -230,12 +230,37 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     // The pendulum step through the lab's own robot, camera and magnet (the
     // real-lab procedure built so far): the lab's beliefs take the swing the
     // world has before the trials.
-    let pendulum = calibrate_pendulum(addr).await;
+    let pendulum = calibrate(addr, "pendulum").await;
     println!(
         "world lab: pendulum step: length {} m, damping {} /s, residual {} m",
         pendulum["swing"]["length_m"],
         pendulum["swing"]["damping_per_s"],
         pendulum["swing"]["residual_rms_m"]
+    );
+
+    // The latency step through the camera and the board's LED: the world's
+    // latency of the LED's row, plus what the stream adds on the way (the
+    // world's encoding when it runs late, the transport, the lab's decoding:
+    // a real camera's latency includes them; 15 ms beside `stress-ng --cpu
+    // 2`), never less; consistent switches pin it within a few ms. A sign
+    // or clock error is far outside.
+    let latency = calibrate(addr, "latency").await;
+    let (est, truth_ms) = (
+        latency["latency_ms"].as_f64().unwrap(),
+        ready["led_latency_ms"].as_f64().unwrap(),
+    );
+    println!(
+        "world lab: latency step: {est:.2} ms (+- {} ms, {} of {} switches seen); the world's {truth_ms:.2} ms",
+        latency["bound_ms"], latency["edges_seen"], latency["edges"]
+    );
+    assert!(
+        est >= truth_ms - 2.0 && est <= truth_ms + 50.0,
+        "latency {est} ms vs the world's {truth_ms} ms: {latency}"
+    );
+    assert!(
+        latency["bound_ms"].as_f64().unwrap() <= 5.0
+            && latency["edges_consistent"].as_u64().unwrap() >= 10,
+        "{latency}"
     );
 
     // The step's own release is in the truth (concluded 8 s after its drop,
@@ -377,9 +402,17 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     serve.kill();
     let camera = ready["camera_url"].as_str().unwrap();
     let nocam = dir.path().join("nocam.toml");
+    // ... and no LED region: the latency step is refused.
+    let mut table: toml::Table = toml::from_str(&text).unwrap();
+    let led = table
+        .get_mut("calibration")
+        .and_then(toml::Value::as_table_mut)
+        .and_then(|c| c.remove("led_px"));
+    assert!(led.is_some(), "the world wrote calibration.led_px: {text}");
+    let no_led = toml::to_string(&table).unwrap();
     std::fs::write(
         &nocam,
-        text.replace(camera, "http://127.0.0.1:9/video.mjpg"),
+        no_led.replace(camera, "http://127.0.0.1:9/video.mjpg"),
     )
     .unwrap();
     let (_serve, line) = start(
@@ -423,6 +456,36 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json().unwrap()["reason"], "device_unavailable");
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
+    // The latency step without the LED's region: refused, saying what to
+    // set, and nothing written.
+    let r = http(addr, "POST", "/api/calibration/latency", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let c = loop {
+        let c = get(addr, "/api/calibration").await;
+        if c["job"]["state"] != "running" {
+            break c;
+        }
+        assert!(Instant::now() < deadline, "the step did not end: {c}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(c["job"]["state"], "failed", "{c}");
+    assert!(
+        c["job"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("led_px")),
+        "{c}"
+    );
+    assert!(
+        c["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|s| s["name"] == "latency" && s["done"] == false),
+        "{c}"
+    );
 }
 
 /// `serve --scenario` runs the world in its own process: a world that is
@@ -723,7 +786,7 @@ async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
             }
         })
     };
-    let result = calibrate_pendulum(addr).await;
+    let result = calibrate(addr, "pendulum").await;
     beating.store(false, Relaxed);
     let _ = heart.await;
     let status = get(addr, "/api/calibration").await;

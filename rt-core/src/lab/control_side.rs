@@ -109,6 +109,7 @@ impl ControlSide {
                 calibration,
                 // No operator in virtual time: no dead-man.
                 operator_timeout_s: None,
+                stamp_latency: None,
             },
         );
         Ok(Self {

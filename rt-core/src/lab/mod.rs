@@ -28,4 +28,4 @@ pub use step::{
 pub use trial::{TrialDraw, draw_trial};
 pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
 #[cfg(feature = "opencv")]
-pub use vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
+pub use vision::{LedFeed, LedReading, LedTap, VideoParams, VideoStats, VisionLoop, VisionParts};

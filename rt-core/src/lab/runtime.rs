@@ -38,6 +38,7 @@ use serde::Serialize;
 
 pub use super::step::LabStep;
 use super::step::{IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params};
+use super::vision::LedFeed;
 pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
@@ -328,6 +329,10 @@ pub struct LabSetup {
     /// ([`crate::bridge::HeartbeatHandle`]) must come at least this often, or
     /// the motion stops safely (abort `operator_lost`). `None`: off.
     pub operator_timeout_s: Option<f64>,
+    /// Where the magnet board's LED shows in the camera's image: centre
+    /// column, centre row and radius, pixels (`None`: not read; the
+    /// latency step needs it). Its readings: [`LabRuntime::led_feed`].
+    pub led_roi_px: Option<[f64; 3]>,
 }
 
 impl LabSetup {
@@ -358,6 +363,7 @@ impl LabSetup {
             video: VideoParams::default(),
             session,
             operator_timeout_s: None,
+            led_roi_px: None,
         }
     }
 }
@@ -388,6 +394,7 @@ pub struct LabRuntime {
     epoch: Instant,
     period_ms: u32,
     rt: crate::fri::priority::RtStatus,
+    led_feed: Option<Arc<LedFeed>>,
 }
 
 impl std::fmt::Debug for LabRuntime {
@@ -417,6 +424,7 @@ impl LabRuntime {
             video,
             session: client_params,
             operator_timeout_s,
+            led_roi_px,
         } = setup;
         scenario.validate()?;
         video.validate()?;
@@ -494,6 +502,14 @@ impl LabRuntime {
                 (source, calibration, None, None)
             }
         };
+        let (led_tap, led_feed) = match led_roi_px {
+            Some(roi) => {
+                let (tap, feed) = LedFeed::new(roi);
+                (Some(tap), Some(Arc::new(feed)))
+            }
+            None => (None, None),
+        };
+        let stamp_latency = Arc::new(AtomicU64::new(f64::NAN.to_bits()));
         let vision = VisionLoop::spawn(VisionParts {
             source,
             detector: DetectorParams::default(),
@@ -503,6 +519,8 @@ impl LabRuntime {
             video: frames.map(|f| (f, video)),
             clock,
             reopen,
+            led: led_tap,
+            stamp_latency: Some(Arc::clone(&stamp_latency)),
         })?;
 
         // The control thread: the FRI client session calling the lab's step.
@@ -524,6 +542,7 @@ impl LabRuntime {
                 truth,
                 calibration,
                 operator_timeout_s,
+                stamp_latency: Some(stamp_latency),
             },
         );
         // On the FRI thread the reply is the only system call of a cycle: the
@@ -580,6 +599,7 @@ impl LabRuntime {
             epoch,
             period_ms,
             rt,
+            led_feed,
         })
     }
 
@@ -606,6 +626,12 @@ impl LabRuntime {
     /// The camera stream's counters.
     pub fn video_stats(&self) -> Option<&Arc<VideoStats>> {
         self.vision.as_ref().map(VisionLoop::video)
+    }
+
+    /// The camera's readings of the magnet board's LED (with
+    /// [`LabSetup::led_roi_px`]).
+    pub fn led_feed(&self) -> Option<&Arc<LedFeed>> {
+        self.led_feed.as_ref()
     }
 
     /// The magnet driver.

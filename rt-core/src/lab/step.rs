@@ -267,6 +267,10 @@ pub(crate) struct LabParts {
     pub calibration: SwingPlaneCalibration,
     /// The operator dead-man time, seconds (`None`: off).
     pub operator_timeout_s: Option<f64>,
+    /// The latency the camera's stamps take, seconds as `f64` bits (the
+    /// vision thread reads it): set when new beliefs change the camera's
+    /// latency. `None`: stamps not the lab's (the virtual lab).
+    pub stamp_latency: Option<Arc<std::sync::atomic::AtomicU64>>,
 }
 
 /// The lab's control step (see the module documentation).
@@ -926,6 +930,14 @@ impl LabStep {
                     controller.carry_session(self.controller(), same_camera);
                     std::mem::swap(self.controller(), &mut *controller);
                     std::mem::swap(&mut self.p.scenario, &mut scenario);
+                    if !same_camera && let Some(l) = self.p.stamp_latency.as_ref() {
+                        // The frames from now on are stamped with the new
+                        // belief (the latency step's result).
+                        l.store(
+                            (self.p.scenario.camera.latency_ms * 1e-3).to_bits(),
+                            std::sync::atomic::Ordering::Relaxed,
+                        );
+                    }
                     // The old controller is freed off this thread.
                     let _ = self.p.io_requests.push(IoRequest::Free(controller));
                     let _ = self.p.bridge.ack(ack, Ok(()), Some(scenario));

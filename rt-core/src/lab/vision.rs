@@ -5,18 +5,23 @@
 //! channel for `/ws/camera` (a full channel drops the frame, counted; video
 //! never waits and never touches the measurement path).
 //!
+//! With an LED region ([`LedTap`]) each frame's mean brightness there goes,
+//! with the frame's delivery time, into a bounded ring the service reads
+//! ([`LedFeed`]: the latency step). The stamps' latency follows the lab's
+//! belief when it changes (`stamp_latency`, set by the control thread).
+//!
 //! The simulated camera (`SimCameraSource`, `sim/camera/`) renders the
 //! ground-truth pendulum that the control thread's truth hands over
 //! (`sim/truth.rs`).
 
 use std::sync::{
-    Arc,
+    Arc, Mutex,
     atomic::{AtomicBool, AtomicU64, Ordering},
 };
 use std::thread::JoinHandle;
 
 use opencv::{
-    core::{Mat, MatTraitConst, Size, Vector},
+    core::{Mat, MatTraitConst, Rect, Size, Vector},
     imgcodecs, imgproc,
 };
 use rtrb::{Consumer, Producer};
@@ -74,6 +79,92 @@ pub struct VideoStats {
     pub detector_errors: AtomicU64,
 }
 
+/// One frame's reading of the magnet board's LED (the latency step).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LedReading {
+    /// The source's frame number.
+    pub frame: u64,
+    /// When the frame reached the host: its stamp plus the latency it was
+    /// stamped with, control clock, seconds.
+    pub t_delivered_s: f64,
+    /// Mean brightness of the LED's region over the three channels, 0..255.
+    pub level: f64,
+}
+
+/// Readings kept for the service: about 8 s of a 30 fps camera.
+pub const LED_READINGS: usize = 256;
+
+/// The vision thread's side of the LED readings.
+#[derive(Debug)]
+pub struct LedTap {
+    /// The LED's region: centre column, centre row and radius, pixels.
+    pub roi_px: [f64; 3],
+    /// Where the readings go (full: the newest is dropped).
+    pub readings: Producer<LedReading>,
+}
+
+/// The service's side of the LED readings (what the vision thread measured
+/// in the LED's region of each frame since the last [`Self::drain`]).
+#[derive(Debug)]
+pub struct LedFeed {
+    roi_px: [f64; 3],
+    readings: Mutex<Consumer<LedReading>>,
+}
+
+impl LedFeed {
+    /// A feed over the LED region `roi_px` (column, row, radius in pixels):
+    /// the tap goes to the vision thread ([`VisionParts::led`]).
+    pub fn new(roi_px: [f64; 3]) -> (LedTap, Self) {
+        let (tx, rx) = rtrb::RingBuffer::new(LED_READINGS);
+        (
+            LedTap {
+                roi_px,
+                readings: tx,
+            },
+            Self {
+                roi_px,
+                readings: Mutex::new(rx),
+            },
+        )
+    }
+
+    /// The LED's region: centre column, centre row and radius, pixels.
+    pub fn roi_px(&self) -> [f64; 3] {
+        self.roi_px
+    }
+
+    /// Moves every reading not yet taken into `out`, oldest first.
+    pub fn drain(&self, out: &mut Vec<LedReading>) {
+        let mut rx = self
+            .readings
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        while let Ok(r) = rx.pop() {
+            out.push(r);
+        }
+    }
+}
+
+/// Mean brightness (over the three channels, 0..255) of the square of
+/// half-side `roi_px[2]` around (`roi_px[0]`, `roi_px[1]`), clipped to the
+/// image; `None` when nothing of it is in the image.
+pub fn led_level(image: &Mat, roi_px: [f64; 3]) -> Result<Option<f64>, VisionError> {
+    let (w, h) = (image.cols(), image.rows());
+    let r = roi_px[2].max(0.0).round() as i32;
+    let (cx, cy) = (roi_px[0].round() as i32, roi_px[1].round() as i32);
+    let (x0, y0) = ((cx - r).max(0), (cy - r).max(0));
+    let (x1, y1) = ((cx + r + 1).min(w), (cy + r + 1).min(h));
+    if x1 <= x0 || y1 <= y0 {
+        return Ok(None);
+    }
+    let roi = Mat::roi(image, Rect::new(x0, y0, x1 - x0, y1 - y0))?;
+    let m = opencv::core::mean(&roi, &opencv::core::no_array())?;
+    let channels = image.channels().clamp(1, 3);
+    Ok(Some(
+        (0..channels as usize).map(|c| m[c]).sum::<f64>() / f64::from(channels),
+    ))
+}
+
 /// The running vision thread.
 #[derive(Debug)]
 pub struct VisionLoop {
@@ -102,6 +193,12 @@ pub struct VisionParts {
     /// Opens the source again when it stops (a real camera); `None`: the
     /// end of the source ends the thread.
     pub reopen: Option<SourceFactory>,
+    /// The LED's region and where its readings go (`None`: not read).
+    pub led: Option<LedTap>,
+    /// The exposure -> delivery latency the stamps take, seconds as `f64`
+    /// bits (NaN: the source's own); the control thread sets it when the
+    /// lab's belief changes.
+    pub stamp_latency: Option<Arc<AtomicU64>>,
 }
 
 /// A camera that could not be opened (why): it delivers nothing, so the
@@ -203,7 +300,17 @@ fn run(
     let mut next_video_s = 0.0;
     let mut small = Mat::default();
     let mut jpeg = Vector::<u8>::new();
+    // The stamp latency last given to the source (NaN: none yet).
+    let mut applied = f64::NAN;
     while !stop.load(Ordering::Relaxed) {
+        if let Some(l) = parts.stamp_latency.as_ref() {
+            let want = f64::from_bits(l.load(Ordering::Relaxed));
+            if want.is_finite() && want.to_bits() != applied.to_bits() {
+                parts.source.set_stamp_latency_s(want);
+                applied = want;
+            }
+        }
+        let stamp_latency_s = parts.source.stamp_latency_s();
         if let Some(rx) = parts.calibrations.as_mut() {
             let mut newest = None;
             while let Ok(c) = rx.pop() {
@@ -244,6 +351,8 @@ fn run(
                         Err(e) => stats.set_problem(Some(e.to_string())),
                     }
                 }
+                // The new source stamps with its own latency until told.
+                applied = f64::NAN;
                 stats.reopened.fetch_add(1, Ordering::Relaxed);
                 stats.lost.store(false, Ordering::Relaxed);
                 stats.set_problem(None);
@@ -253,6 +362,16 @@ fn run(
             }
         };
         let t0 = clock.now_s();
+        if let Some(tap) = parts.led.as_mut()
+            && let Ok(Some(level)) = led_level(frame.image, tap.roi_px)
+        {
+            // A full ring (nobody reading) drops the newest.
+            let _ = tap.readings.push(LedReading {
+                frame: frame.index,
+                t_delivered_s: frame.t_capture_s + stamp_latency_s,
+                level,
+            });
+        }
         let Ok(m) = pipeline.process(&frame, t0) else {
             video.detector_errors.fetch_add(1, Ordering::Relaxed);
             continue;

@@ -135,6 +135,7 @@ pub struct MagnetHandle {
     shared: Arc<Shared>,
     epoch: Instant,
     port: Arc<str>,
+    baud: u32,
 }
 
 impl std::fmt::Debug for MagnetHandle {
@@ -162,6 +163,7 @@ impl MagnetHandle {
         let (tx, rx) = sync_channel(QUEUE_CAPACITY + 64);
         let epoch = Instant::now();
         let port: Arc<str> = Arc::from(params.port.as_str());
+        let baud = params.baud;
         let shared = Arc::new(Shared {
             view: ViewCell::new(&MagnetView::default()),
             last_error: std::sync::Mutex::new(None),
@@ -197,6 +199,7 @@ impl MagnetHandle {
             shared,
             epoch,
             port,
+            baud,
         })
     }
 
@@ -272,6 +275,12 @@ impl MagnetHandle {
     /// The configured port path.
     pub fn port(&self) -> &str {
         &self.port
+    }
+
+    /// How long `bytes` take on the wire at the configured baud (10 bits
+    /// each: start, 8 data, stop), seconds.
+    pub fn wire_s(&self, bytes: usize) -> f64 {
+        bytes as f64 * 10.0 / f64::from(self.baud.max(1))
     }
 
     /// What keeps the board from answering, as a sentence naming the port

@@ -262,8 +262,9 @@ impl Scenario {
     }
 }
 
-/// Turns a TOML error into one line: `line N: section.key: <message>`.
-fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
+/// Turns a TOML error into one line: `line N: section.key: <message>` (any
+/// TOML file of the lab: scenarios, `isochron serve --config`).
+pub fn toml_error(text: &str, e: &toml::de::Error) -> ParamError {
     let Some(span) = e.span() else {
         return ParamError::parse(e.message());
     };

@@ -158,7 +158,13 @@ fn start_magnet() -> Result<(MagnetParams, Box<dyn Any + Send>), RuntimeError> {
         .prefix("isochron-magnet-")
         .tempdir()?;
     let device = FakeDevice::start(dir.path().join("tty"))?;
-    let params = MagnetParams::for_port(device.path().display().to_string());
+    // The fake board is a thread of this process: on a loaded machine it
+    // answers late, which is not a lost board (a real Uno's 300 ms would
+    // abort trials as magnet faults beside `stress-ng`).
+    let params = MagnetParams {
+        command_timeout_ms: 2000.0,
+        ..MagnetParams::for_port(device.path().display().to_string())
+    };
     Ok((params, Box::new(FakeBoard { device, _dir: dir })))
 }
 

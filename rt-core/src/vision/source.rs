@@ -67,6 +67,17 @@ pub trait FrameSource: Send {
 
     /// The nominal frame rate, frames per second.
     fn fps(&self) -> f64;
+
+    /// The exposure -> delivery latency the source subtracts from a frame's
+    /// delivery time to stamp it, seconds (0: stamped otherwise, e.g. a
+    /// video file's own times).
+    fn stamp_latency_s(&self) -> f64 {
+        0.0
+    }
+
+    /// Stamps the next frames with this latency (the lab's belief changed:
+    /// the latency step's result). Sources that stamp otherwise ignore it.
+    fn set_stamp_latency_s(&mut self, _latency_s: f64) {}
 }
 
 /// A V4L2 webcam: `[camera]` gives resolution and frame rate.
@@ -162,6 +173,16 @@ impl FrameSource for WebcamSource {
 
     fn fps(&self) -> f64 {
         self.fps
+    }
+
+    fn stamp_latency_s(&self) -> f64 {
+        self.latency_s
+    }
+
+    fn set_stamp_latency_s(&mut self, latency_s: f64) {
+        if latency_s.is_finite() && latency_s >= 0.0 {
+            self.latency_s = latency_s;
+        }
     }
 }
 
@@ -323,6 +344,16 @@ impl FrameSource for StreamSource {
 
     fn fps(&self) -> f64 {
         self.fps
+    }
+
+    fn stamp_latency_s(&self) -> f64 {
+        self.latency_s
+    }
+
+    fn set_stamp_latency_s(&mut self, latency_s: f64) {
+        if latency_s.is_finite() && latency_s >= 0.0 {
+            self.latency_s = latency_s;
+        }
     }
 }
 

@@ -653,6 +653,8 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
         video: None,
         clock,
         reopen: None,
+        led: None,
+        stamp_latency: None,
     })
     .unwrap();
     let stats = std::sync::Arc::clone(thread.stats());
@@ -756,6 +758,8 @@ fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
         video: None,
         clock,
         reopen: Some(reopen),
+        led: None,
+        stamp_latency: None,
     })
     .unwrap();
     let stats = std::sync::Arc::clone(thread.stats());

@@ -4,7 +4,9 @@
 //! the believed camera at the point the true camera sees, as the virtual
 //! lab's rendered frames) and encoded as JPEG for a network camera stream
 //! (`isochron world`). The magnet board's calibration LED (D12), when lit,
-//! shows as a small bright spot in the image's top-left corner.
+//! shows as a small bright spot in the image's top-left corner ([`LED_PX`]),
+//! as bright as the share of its row's exposure it was lit
+//! ([`WorldWebcam::led_lit_share`]).
 //!
 //! The true ball reaches the webcam as samples of the world's steps
 //! ([`BallSample`], one per controller cycle); the ball between two samples
@@ -168,10 +170,66 @@ impl WorldWebcam {
         h[i].arm_m
     }
 
+    /// When the LED's row of the frame whose exposure starts at
+    /// `t_start_s` is exposed: from, to (the rolling shutter reads it
+    /// `LED_PX.1 / height` of the readout after the top row), s.
+    pub fn led_exposure_s(&self, t_start_s: f64) -> (f64, f64) {
+        let c = &self.camera;
+        let row = f64::from(LED_PX.1) / c.height_px.max(1.0);
+        let from = t_start_s + c.rolling_shutter_s * row;
+        (from, from + c.exposure_s)
+    }
+
+    /// The true latency of the LED's row: from the middle of its exposure
+    /// to the frame's delivery, on average over the delivery jitter, s
+    /// (what the latency step measures).
+    pub fn led_latency_s(&self) -> f64 {
+        let c = &self.camera;
+        let (from, to) = self.led_exposure_s(0.0);
+        (c.believed_latency_s + c.latency_offset_s).max(0.0) + 0.5 * c.jitter_s - 0.5 * (from + to)
+    }
+
+    /// The share of the LED row's exposure (`led_exposure_s`) during which
+    /// the LED was lit, given its switches `(time, on)` in time order (lit
+    /// before the first when `lit_before`).
+    pub fn led_lit_share(
+        &self,
+        t_start_s: f64,
+        lit_before: bool,
+        switches: impl IntoIterator<Item = (f64, bool)>,
+    ) -> f64 {
+        let (a, b) = self.led_exposure_s(t_start_s);
+        let mut state = lit_before;
+        let mut last = a;
+        let mut lit = 0.0;
+        for (t, on) in switches {
+            if t <= a {
+                state = on;
+                continue;
+            }
+            if t >= b {
+                break;
+            }
+            if state {
+                lit += t - last;
+            }
+            last = t;
+            state = on;
+        }
+        if b <= a {
+            // No exposure time (an ideal camera): the state at its instant.
+            return if state { 1.0 } else { 0.0 };
+        }
+        if state {
+            lit += b - last;
+        }
+        (lit / (b - a)).clamp(0.0, 1.0)
+    }
+
     /// The JPEG of the frame whose exposure starts at `t_start_s` (the ball
-    /// where the true camera sees it; out of view: no ball), with the LED lit
-    /// when `led`.
-    pub fn frame_jpeg(&mut self, t_start_s: f64, led: bool) -> Result<&[u8], VisionError> {
+    /// where the true camera sees it; out of view: no ball), with the LED
+    /// lit for the share `led` (0..1) of its row's exposure.
+    pub fn frame_jpeg(&mut self, t_start_s: f64, led: f64) -> Result<&[u8], VisionError> {
         let sight = self.camera.sight(t_start_s, |t| {
             self.ball_at(t).map_or(Vector3::zeros(), |b| b.0)
         });
@@ -190,7 +248,7 @@ impl WorldWebcam {
         };
         self.render.set_ball_gain(self.camera.light_gain(t_start_s));
         let image = self.render.render(state.as_ref())?;
-        let image = if led {
+        let image = if led > 0.0 {
             image.copy_to(&mut self.with_led)?;
             let (x, y, r) = LED_PX;
             imgproc::circle(
@@ -202,6 +260,20 @@ impl WorldWebcam {
                 imgproc::LINE_8,
                 0,
             )?;
+            if led < 1.0 {
+                // Lit for part of the exposure: that share of the light.
+                let mut mixed = Mat::default();
+                opencv::core::add_weighted(
+                    image,
+                    1.0 - led,
+                    &self.with_led,
+                    led,
+                    0.0,
+                    &mut mixed,
+                    -1,
+                )?;
+                self.with_led = mixed;
+            }
             &self.with_led
         } else {
             image
@@ -252,7 +324,10 @@ mod tests {
             SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, s.pendulum.ball_radius_m);
         let mut det = Detector::new(DetectorParams::default()).unwrap();
         for &t in &[0.2, 0.5, 0.8] {
-            let jpeg = cam.frame_jpeg(t, t > 0.6).unwrap().to_vec();
+            let jpeg = cam
+                .frame_jpeg(t, if t > 0.6 { 1.0 } else { 0.0 })
+                .unwrap()
+                .to_vec();
             let img =
                 imgcodecs::imdecode(&Vector::<u8>::from_slice(&jpeg), imgcodecs::IMREAD_COLOR)
                     .unwrap();
@@ -268,5 +343,54 @@ mod tests {
                 "t {t}: {lateral} vs {truth}"
             );
         }
+    }
+
+    #[test]
+    fn the_led_shows_the_share_of_its_rows_exposure_it_was_lit() {
+        let s = Scenario::default();
+        let session = s
+            .world
+            .clone()
+            .unwrap_or_default()
+            .draw_session(1, 0, s.robot.latency_ms);
+        let mut cam = WorldWebcam::new(&s, &session, 1).unwrap();
+        cam.camera.exposure_s = 0.010;
+        cam.camera.rolling_shutter_s = 0.018;
+        let (a, b) = cam.led_exposure_s(1.0);
+        let row = f64::from(LED_PX.1) / cam.camera.height_px;
+        assert!((a - (1.0 + 0.018 * row)).abs() < 1e-12 && (b - a - 0.010).abs() < 1e-12);
+        // Off before, on 30% into the exposure, off again after it.
+        let share = cam.led_lit_share(1.0, false, [(a + 0.003, true), (b + 0.5, false)]);
+        assert!((share - 0.7).abs() < 1e-9, "{share}");
+        assert_eq!(cam.led_lit_share(1.0, true, []), 1.0);
+        assert_eq!(
+            cam.led_lit_share(1.0, false, [(a - 0.1, true), (a - 0.05, false)]),
+            0.0
+        );
+        // The latency the step measures: to the middle of the LED row's exposure.
+        let c = cam.camera;
+        let want = (c.believed_latency_s + c.latency_offset_s).max(0.0) + 0.5 * c.jitter_s
+            - 0.018 * row
+            - 0.005;
+        assert!((cam.led_latency_s() - want).abs() < 1e-12);
+        // The region reads brighter with the share lit, about linearly.
+        let roi = [f64::from(LED_PX.0), f64::from(LED_PX.1), 4.0];
+        let level = |cam: &mut WorldWebcam, share: f64| {
+            let jpeg = cam.frame_jpeg(0.2, share).unwrap().to_vec();
+            let img =
+                imgcodecs::imdecode(&Vector::<u8>::from_slice(&jpeg), imgcodecs::IMREAD_COLOR)
+                    .unwrap();
+            crate::lab::vision::led_level(&img, roi).unwrap().unwrap()
+        };
+        let (off, half, on) = (
+            level(&mut cam, 0.0),
+            level(&mut cam, 0.5),
+            level(&mut cam, 1.0),
+        );
+        assert!(on - off > 100.0, "off {off}, on {on}");
+        assert!(
+            (half - 0.5 * (off + on)).abs() < 10.0,
+            "off {off}, half {half}, on {on}"
+        );
     }
 }
