@@ -27,7 +27,9 @@
 //! controller fell silent) while a restarted cabinet takes the next trial;
 //! the same for the board (`magnet_fault`) and the webcam (its stream gone:
 //! `camera_lost`, the camera shown lost and trials refused until it
-//! delivers again).
+//! delivers again). The board's command timeout is 1 s
+//! (`magnet.command_timeout_ms`): simavr shares the machine, and beside
+//! `stress-ng --cpu 2` a 300 ms one lost the board mid-trial.
 
 use std::{
     net::{SocketAddr, UdpSocket},
@@ -314,7 +316,7 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
              calibration_file = \"{data}/calibration.toml\"\n\
              [fri]\nlocal_bind = \"{client}\"\ncontroller = \"{cabinet_addr}\"\nperiod_ms = 5\n\
              [camera]\ndevice = \"{video}\"\n\
-             [magnet]\nport = \"{tty}\"\n\
+             [magnet]\nport = \"{tty}\"\ncommand_timeout_ms = 1000.0\n\
              [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
              plane_distance_m = 1.6\npivot_m = [{}, {}, {}]\n\
              [calibration.camera_pose]\nposition_m = [{}, {}, {}]\n\
