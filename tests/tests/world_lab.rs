@@ -117,34 +117,51 @@ fn truth_lines(path: &Path) -> Vec<Value> {
 
 /// Runs `step` on the served real lab (an operator's heartbeat must run:
 /// the pendulum step moves the arm home) and returns its result, once the
-/// robot commands; the job must end `done` within 3 minutes.
+/// robot commands; the job must end `done` within 3 minutes. A step refused
+/// because the magnet board did not answer (simavr starved beside `stress-ng
+/// --cpu 2`: the step then says so and writes nothing, as it must) is run
+/// again once the board answers, at most three times in all.
 async fn calibrate(addr: SocketAddr, step: &str) -> Value {
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while http(addr, "GET", "/api/state", &[], b"")
-        .await
-        .ok()
-        .and_then(|r| r.json().ok())
-        .is_none_or(|s| s["fri"]["session"] != "commanding_active")
-    {
-        assert!(Instant::now() < deadline, "the robot does not command");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    let r = http(addr, "POST", &format!("/api/calibration/{step}"), &[], b"")
-        .await
-        .unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let deadline = Instant::now() + Duration::from_secs(180);
-    let status = loop {
-        let c = get(addr, "/api/calibration").await;
-        if c["job"]["state"] != "running" {
-            break c;
+    for attempt in 1..=3 {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while http(addr, "GET", "/api/state", &[], b"")
+            .await
+            .ok()
+            .and_then(|r| r.json().ok())
+            .is_none_or(|s| {
+                s["fri"]["session"] != "commanding_active"
+                    || !(s["magnet"] == "on" || s["magnet"] == "off")
+            })
+        {
+            assert!(
+                Instant::now() < deadline,
+                "the robot does not command, or the board does not answer"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
         }
-        assert!(Instant::now() < deadline, "the step did not end: {c}");
-        tokio::time::sleep(Duration::from_millis(500)).await;
-    };
-    assert_eq!(status["source"], "the real lab", "{status}");
-    assert_eq!(status["job"]["state"], "done", "{status}");
-    status["job"]["result"].clone()
+        let r = http(addr, "POST", &format!("/api/calibration/{step}"), &[], b"")
+            .await
+            .unwrap();
+        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+        let deadline = Instant::now() + Duration::from_secs(180);
+        let status = loop {
+            let c = get(addr, "/api/calibration").await;
+            if c["job"]["state"] != "running" {
+                break c;
+            }
+            assert!(Instant::now() < deadline, "the step did not end: {c}");
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        };
+        assert_eq!(status["source"], "the real lab", "{status}");
+        let message = status["job"]["message"].as_str().unwrap_or_default();
+        if status["job"]["state"] == "failed" && message.contains("magnet device") && attempt < 3 {
+            println!("world lab: {step} step refused (attempt {attempt}): {message}");
+            continue;
+        }
+        assert_eq!(status["job"]["state"], "done", "{status}");
+        return status["job"]["result"].clone();
+    }
+    unreachable!("the third attempt returns or fails above")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
