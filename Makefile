@@ -29,6 +29,7 @@ help:
 	@echo "make eval   trials across distances and movement times; writes reports/eval/report.md"
 	@echo "make envelope  the reality lab's robustness envelope per world factor; writes reports/eval/envelope.md (hours)"
 	@echo "make fuzz   each FRI fuzz target for FUZZ_SECONDS (default 60; fuzz/README.md)"
+	@echo "make stress-test  CI=true make test STRESS_RUNS times (default 5) beside stress-ng --cpu 2; writes reports/stress/summary.md"
 	@echo "make deps   install missing system, npm and cargo packages (idempotent)"
 	@echo "make types  regenerate web/src/generated/types.ts from the Rust types (ts-rs)"
 
