@@ -765,7 +765,11 @@ fn every_version_completes_a_session_over_udp_at_1_and_5_ms() {
                     auto_command: true,
                     duration: None,
                     normal_priority: false,
-                    keep_commanding: false,
+                    // A controller that dropped out of commanding on a
+                    // starved machine (late replies) asks again: the
+                    // session's protocol is what is tested here, not the
+                    // machine's timing.
+                    keep_commanding: true,
                 },
             )
             .unwrap();
@@ -773,7 +777,7 @@ fn every_version_completes_a_session_over_udp_at_1_and_5_ms() {
             let cl = Arc::clone(session.stats());
             wait_for(
                 &format!("FRI {v} {period_ms} ms: COMMANDING_ACTIVE"),
-                Duration::from_secs(10),
+                Duration::from_secs(30),
                 || {
                     sim.state() == SessionState::CommandingActive
                         && cl.state() == LinkState::CommandingActive
@@ -783,7 +787,7 @@ fn every_version_completes_a_session_over_udp_at_1_and_5_ms() {
             let before = sim.commands_applied.load(Relaxed);
             wait_for(
                 &format!("FRI {v} {period_ms} ms: commands"),
-                Duration::from_secs(10),
+                Duration::from_secs(30),
                 || sim.commands_applied.load(Relaxed) >= before + 20,
             );
             let report = server.close(Duration::from_secs(2)).unwrap();

@@ -135,7 +135,10 @@ function render(): void {
   const status = $("demo-status");
   let state: string;
   let text: string;
-  if (linkStatus !== "open" || demoError) {
+  // The demo's own status (REST) says what the lab does; the live link
+  // only feeds the views: a link reconnecting on a busy machine does not
+  // hide a pause.
+  if (demoError || (linkStatus !== "open" && demo?.state !== "paused")) {
     state = "connecting";
     text = "Reconnecting to the lab… the demo goes on by itself.";
   } else if (!demo || demo.state === "off") {
