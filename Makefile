@@ -117,8 +117,8 @@ fuzz-lifecycle: firmware
 	ISOCHRON_LIFECYCLE_SEQUENCES=$(LIFECYCLE_SEQUENCES) $(CARGO) test --release -p rt-core --lib \
 	  sim::lifecycle::tests::no_command_sequence_loses_a_trial_record -- --nocapture
 	$(CARGO) build --bin isochron
-	ISOCHRON_LIFECYCLE_SERVED_S=$(LIFECYCLE_SERVED_S) $(CARGO) test -p isochron-tests --test lifecycle_served \
-	  random_rest_sequences_lose_no_trial_record -- --nocapture
+	ISOCHRON_LIFECYCLE_SERVED_S=$(LIFECYCLE_SERVED_S) $(CARGO) test -p isochron-tests --test e2e \
+	  lifecycle_served::random_rest_sequences_lose_no_trial_record -- --nocapture
 
 fuzz-smoke: fuzz-deps
 	$(STAGE)
@@ -179,10 +179,15 @@ test-web: web
 	$(STAGE)
 	cd web && npm run typecheck && npm test
 
+## test-rust: every Rust test, TEST_THREADS (default 4) at a time in each test
+## binary: the end-to-end binary's tests (tests/tests/e2e) mostly wait on lab
+## processes and sockets, and with the harness's default of one per core they
+## kept the two cores about half busy (247 s; 172 s with 4).
+TEST_THREADS ?= 4
 test-rust: deps firmware
 	$(STAGE)
 	@mkdir -p target
-	$(CARGO) test --workspace 2>&1 | tee target/test-rust.log
+	$(CARGO) test --workspace -- --test-threads $(TEST_THREADS) 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
 
 ## test-core: the core builds and runs with Rust alone (no OpenCV, libclang or
@@ -312,7 +317,7 @@ envelope: release
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" eval --envelope --reality scenarios/reality.toml \
 	  --vision $(ENVELOPE_VISION) --out reports/envelope --n $(ENVELOPE_N) --seed 1 --shard $(ENVELOPE_SHARD)
 
-## eval-world: the real lab end to end against `isochron world` (tests/tests/world_lab.rs):
+## eval-world: the real lab end to end against `isochron world` (tests/tests/e2e/world_lab.rs):
 ## EVAL_WORLD_N trials over REST on the truthful world, then on the reality world
 ## (uncalibrated: the real-lab calibration procedures are not built yet), each paired with
 ## the world's truth; the figures (successes, the measured judge's agreement, |measured -
@@ -320,8 +325,8 @@ envelope: release
 EVAL_WORLD_N ?= 100
 eval-world: deps firmware test-build
 	@mkdir -p reports/eval
-	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) $(CARGO) test -p isochron-tests --test world_lab trials_on -- --nocapture 2>&1 \
+	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) $(CARGO) test -p isochron-tests --test e2e world_lab::trials_on -- --nocapture 2>&1 \
 	  | grep -E "^(world lab|trial )" | tee reports/eval/world.txt
 	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) WORLD_LAB_SCENARIO=$(CURDIR)/scenarios/reality.toml \
-	  $(CARGO) test -p isochron-tests --test world_lab trials_on -- --nocapture 2>&1 \
+	  $(CARGO) test -p isochron-tests --test e2e world_lab::trials_on -- --nocapture 2>&1 \
 	  | grep -E "^(world lab|trial )" | tee -a reports/eval/world.txt

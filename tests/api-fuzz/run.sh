@@ -21,7 +21,7 @@ serve_init fuzz
 serve_start "$bin"
 url=$serve_url token=$serve_token data=$serve_data pid=$serve_pid
 # /api/stop is excluded: it is always accepted (any body, no token) by design
-# and would abort the other operations' trials; tests/tests/http_api.rs covers it.
+# and would abort the other operations' trials; tests/tests/e2e/http_api.rs covers it.
 set +e
 cd "$data"   # schemathesis keeps a cache folder in the working directory
 "$st" --config-file "$root/tests/api-fuzz/schemathesis.toml" run "${url}api/openapi.json" \

@@ -1,13 +1,11 @@
 //! `isochron kin fk|ik|plan` as a user runs it.
 
 use std::io::Write;
-use std::process::{Command, Output, Stdio};
+use std::process::{Output, Stdio};
 
 use serde_json::Value;
 
-fn isochron() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_isochron"))
-}
+use crate::isochron;
 
 /// Runs `isochron kin <args>` with `input` on stdin.
 fn kin(args: &[&str], input: &str) -> Output {

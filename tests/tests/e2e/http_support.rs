@@ -5,7 +5,7 @@
 #![allow(
     dead_code,
     missing_docs,
-    reason = "shared by several test binaries, each of which uses a part"
+    reason = "a test helper: each of the modules using it takes a part"
 )]
 
 use std::{

@@ -2,11 +2,7 @@
 //! its result into the calibration file (other steps kept), `trials --calibration`
 //! loads it, and bad input writes nothing.
 
-use std::process::Command;
-
-fn isochron() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_isochron"))
-}
+use crate::isochron;
 
 fn temp_dir(tag: &str) -> std::path::PathBuf {
     let d = std::env::temp_dir().join(format!("isochron-calib-{tag}-{}", std::process::id()));

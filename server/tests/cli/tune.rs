@@ -1,12 +1,8 @@
 //! `isochron tune` as a user runs it.
 
-use std::process::Command;
-
 use rt_core::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 
-fn isochron() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_isochron"))
-}
+use crate::isochron;
 
 fn temp_dir(tag: &str) -> std::path::PathBuf {
     tempfile::Builder::new()

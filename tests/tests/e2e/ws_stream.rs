@@ -4,8 +4,7 @@
 //! (FRI client session over loopback UDP to the simulated controller, the
 //! simulated camera through the OpenCV detector, the magnet on its fake board).
 
-#[path = "http_support/mod.rs"]
-mod http_support;
+use crate::http_support;
 
 use std::{
     sync::atomic::Ordering,

@@ -1,8 +1,7 @@
 //! The REST API on a real port over the real bridge: validation, access control,
 //! parameters, commands, trials with records and recordings, OpenAPI.
 
-#[path = "http_support/mod.rs"]
-mod http_support;
+use crate::http_support;
 
 use std::{sync::atomic::Ordering, time::Duration};
 
@@ -611,7 +610,7 @@ async fn a_trial_is_recorded_survives_a_restart_and_its_recordings_open() {
     .unwrap();
     assert_eq!(mcap.status, 200);
     // The live recording (written during the trial with Foxglove's schemas;
-    // tests/tests/foxglove.rs checks every channel in detail): it opens, the
+    // tests/tests/e2e/foxglove.rs checks every channel in detail): it opens, the
     // arm's transforms and joint states are there, and each channel's log
     // times never go backwards.
     let msgs: Vec<_> = mcap::MessageStream::new(&mcap.body)

@@ -33,10 +33,7 @@ use std::{
 
 use isochron_tests::http;
 
-/// One world and its lab at a time: each lab's FRI thread takes the last CPU
-/// for itself (`--rt-tuning auto`), and two labs side by side on a 2-core
-/// machine starve each other's camera.
-static ONE_LAB: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+use crate::ONE_LAB;
 use isochron_tests::procs::{firmware, start};
 use serde_json::Value;
 

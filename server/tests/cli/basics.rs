@@ -6,9 +6,7 @@ use std::{
     time::{Duration, Instant},
 };
 
-fn isochron() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_isochron"))
-}
+use crate::isochron;
 
 fn scenario_path(name: &str) -> String {
     format!("{}/../scenarios/{name}", env!("CARGO_MANIFEST_DIR"))

@@ -2,14 +2,12 @@
 //! lab (the reality lab with the model camera, 4 trials a step, multiples up to
 //! 2, one halving), then `--combine`; and its refusals of bad arguments.
 
-use std::{path::Path, process::Command};
+use std::path::Path;
 
 use rt_core::params::{Scenario, VisionMode};
 use serde_json::Value;
 
-fn isochron() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_isochron"))
-}
+use crate::isochron;
 
 /// The reality lab with the model camera (no rendering): cheap trials.
 fn small_lab(dir: &Path) -> std::path::PathBuf {

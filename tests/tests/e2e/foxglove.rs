@@ -16,8 +16,7 @@
 //!    message (`isochron.TrialJudgement`) at the end carries the record's verdict,
 //!    its judge, the true figures and the measured judge's.
 
-#[path = "http_support/mod.rs"]
-mod http_support;
+use crate::http_support;
 
 use std::{
     collections::{BTreeMap, HashMap},
