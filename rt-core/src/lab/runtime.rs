@@ -134,9 +134,10 @@ pub enum RuntimeError {
     /// The FRI session could not start.
     #[error(transparent)]
     Session(#[from] crate::fri::SessionError),
-    /// The simulated controller could not start (its error's words).
-    #[error("{0}")]
-    Sim(String),
+    /// The simulated controller could not start: its error, kept whole (the
+    /// runtime does not name the simulator's types).
+    #[error(transparent)]
+    Sim(Box<dyn std::error::Error + Send + Sync>),
     /// The camera or the detector could not start.
     #[error(transparent)]
     Vision(#[from] VisionError),

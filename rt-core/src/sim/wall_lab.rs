@@ -91,7 +91,7 @@ fn start_robot(
             keep_commanding: false,
         },
     )
-    .map_err(|e| RuntimeError::Sim(e.to_string()))?;
+    .map_err(|e| RuntimeError::Sim(Box::new(e)))?;
     Ok(Arc::new(server))
 }
 
