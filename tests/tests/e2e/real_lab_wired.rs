@@ -27,9 +27,11 @@
 //! controller fell silent) while a restarted cabinet takes the next trial;
 //! the same for the board (`magnet_fault`) and the webcam (its stream gone:
 //! `camera_lost`, the camera shown lost and trials refused until it
-//! delivers again). The board's command timeout is 1 s
-//! (`magnet.command_timeout_ms`): simavr shares the machine, and beside
-//! `stress-ng --cpu 2` a 300 ms one lost the board mid-trial.
+//! delivers again). The board's command timeout is 2 s
+//! (`magnet.command_timeout_ms`, as `isochron world` writes for its simavr
+//! board): simavr shares the machine, and beside `stress-ng --cpu 2` a
+//! 300 ms one lost the board mid-trial, a 1 s one beside three other
+//! end-to-end tests too.
 
 use std::{
     net::{SocketAddr, UdpSocket},
@@ -166,16 +168,21 @@ async fn wait_state(
 /// Starts a trial: 202 with its id. A robot that is momentarily not
 /// commanding (a silence of the controller on a loaded machine: the session
 /// is not COMMANDING_ACTIVE for a moment) refuses with 409
-/// `robot_not_commanding`, as a lab's script sees it; that is retried for up
-/// to 5 s and counted in `refusals`.
+/// `robot_not_commanding`, and a board that a loaded machine starved past
+/// its command timeout (the driver reconnects; a trial that held the ball
+/// then aborted as `magnet_fault`, its record finished) with 409
+/// `device_unavailable`, as a lab's script sees them; both are retried for
+/// up to 20 s and counted in `refusals`.
 async fn start_trial(addr: SocketAddr, refusals: &mut u32) -> u64 {
-    let deadline = Instant::now() + Duration::from_secs(5);
+    let deadline = Instant::now() + Duration::from_secs(20);
     loop {
         let (code, body) = post(addr, "/api/trials", "").await;
         if code == 202 {
             return body["id"].as_u64().unwrap();
         }
-        if !(code == 409 && body["reason"] == "robot_not_commanding" && Instant::now() < deadline) {
+        let passing =
+            body["reason"] == "robot_not_commanding" || body["reason"] == "device_unavailable";
+        if !(code == 409 && passing && Instant::now() < deadline) {
             let s = get(addr, "/api/state").await;
             panic!(
                 "POST /api/trials: {code} {body}; fri {} abort {}",
@@ -316,7 +323,7 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
              calibration_file = \"{data}/calibration.toml\"\n\
              [fri]\nlocal_bind = \"{client}\"\ncontroller = \"{cabinet_addr}\"\nperiod_ms = 5\n\
              [camera]\ndevice = \"{video}\"\n\
-             [magnet]\nport = \"{tty}\"\ncommand_timeout_ms = 1000.0\n\
+             [magnet]\nport = \"{tty}\"\ncommand_timeout_ms = 2000.0\n\
              [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
              plane_distance_m = 1.6\npivot_m = [{}, {}, {}]\n\
              [calibration.camera_pose]\nposition_m = [{}, {}, {}]\n\
@@ -547,8 +554,8 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
         println!(
             "wired real lab: {n} consecutive trials, each posted when the state showed the last \
              one ended ({on_done} inside its after-done trace), all finished (done, with a \
-             reason) in {:.1} s; per trial min {:.2} / median {:.2} / max {:.2} s; momentary \
-             robot_not_commanding refusals over the run: {refusals}",
+             reason) in {:.1} s; per trial min {:.2} / median {:.2} / max {:.2} s; momentary refusals \
+             (robot_not_commanding, device_unavailable) over the run: {refusals}",
             t_run.elapsed().as_secs_f64(),
             durations[0],
             durations[n / 2],
