@@ -34,7 +34,8 @@ mod vision_video;
 mod world_lab;
 mod ws_stream;
 
-/// One world and its lab at a time: each lab's FRI thread takes the last CPU
-/// for itself (`--rt-tuning auto`), and two such labs side by side on a
-/// 2-core machine starve each other's camera.
+/// One world and its lab at a time: a world renders its camera, runs the
+/// cabinet and a simavr board, and two worlds with their labs side by side
+/// on a 2-core machine starve each other's camera. (Labs started here run
+/// with [`isochron_tests::SHARED_RT`], not spinning on a CPU of their own.)
 pub static ONE_LAB: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());

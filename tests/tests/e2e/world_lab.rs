@@ -215,7 +215,8 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     let (mut serve, line) = start(
         "isochron serve",
         Process::new(&bin)
-            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&lab)
             .arg("--data-dir")
             .arg(dir.path().join("data")),
@@ -432,7 +433,8 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     let (_serve, line) = start(
         "isochron serve (no camera)",
         Process::new(&bin)
-            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&nocam)
             .arg("--data-dir")
             .arg(dir.path().join("data-nocam")),
@@ -523,7 +525,8 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
         let (p, line) = start(
             "isochron serve --scenario",
             Process::new(&bin)
-                .args(["serve", "--bind", "127.0.0.1:0", "--scenario"])
+                .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+                .args(["--bind", "127.0.0.1:0", "--scenario"])
                 .arg(&scenario)
                 .arg("--data-dir")
                 .arg(dir.path())
@@ -661,7 +664,14 @@ async fn a_lab_config_pointing_at_nothing_names_each_device_and_starts_nothing()
     .unwrap();
     let (_p, line) = start(
         "isochron serve --config (pointing at nothing)",
-        Process::new(&bin).args(["serve", "--config"]).arg(&cfg),
+        Process::new(&bin)
+            .args([
+                "serve",
+                "--rt-tuning",
+                isochron_tests::SHARED_RT,
+                "--config",
+            ])
+            .arg(&cfg),
         "listening on http://",
         Duration::from_secs(60),
     );
@@ -761,7 +771,8 @@ async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
     let (_serve, line) = start(
         "isochron serve",
         Process::new(&bin)
-            .args(["serve", "--bind", "127.0.0.1:0", "--config"])
+            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&lab)
             .arg("--data-dir")
             .arg(dir.path().join("data")),
