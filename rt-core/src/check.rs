@@ -114,6 +114,10 @@ fn prefix(s: Option<&str>) -> String {
 }
 
 /// Refuses NaN and infinities.
+///
+/// # Errors
+///
+/// [`ParamError::NotFinite`] when `value` is NaN or infinite.
 pub fn finite(field: &str, value: f64) -> Result<(), ParamError> {
     if value.is_finite() {
         Ok(())
@@ -126,6 +130,11 @@ pub fn finite(field: &str, value: f64) -> Result<(), ParamError> {
 }
 
 /// Requires `value > 0` (and finite).
+///
+/// # Errors
+///
+/// [`ParamError::NotFinite`] when `value` is not finite; [`ParamError::OutOfRange`]
+/// when it is not `> 0`.
 pub fn positive(field: &str, value: f64) -> Result<(), ParamError> {
     finite(field, value)?;
     if value > 0.0 {
@@ -136,6 +145,11 @@ pub fn positive(field: &str, value: f64) -> Result<(), ParamError> {
 }
 
 /// Requires `value >= 0` (and finite).
+///
+/// # Errors
+///
+/// [`ParamError::NotFinite`] when `value` is not finite; [`ParamError::OutOfRange`]
+/// when it is negative.
 pub fn non_negative(field: &str, value: f64) -> Result<(), ParamError> {
     finite(field, value)?;
     if value >= 0.0 {
@@ -153,6 +167,11 @@ pub fn non_negative(field: &str, value: f64) -> Result<(), ParamError> {
 /// let e = within("task.distance_m", f64::NAN, 0.1, 1.2).unwrap_err();
 /// assert_eq!(e.field(), Some("task.distance_m"));
 /// ```
+///
+/// # Errors
+///
+/// [`ParamError::NotFinite`] when `value` is not finite; [`ParamError::OutOfRange`]
+/// when it is outside `[lo, hi]`.
 pub fn within(field: &str, value: f64, lo: f64, hi: f64) -> Result<(), ParamError> {
     finite(field, value)?;
     if (lo..=hi).contains(&value) {
@@ -167,11 +186,20 @@ pub fn within(field: &str, value: f64, lo: f64, hi: f64) -> Result<(), ParamErro
 }
 
 /// Requires a probability in `[0, 1]`.
+///
+/// # Errors
+///
+/// [`ParamError::NotFinite`] when `value` is not finite; [`ParamError::OutOfRange`]
+/// when it is outside `[0, 1]`.
 pub fn probability(field: &str, value: f64) -> Result<(), ParamError> {
     within(field, value, 0.0, 1.0)
 }
 
 /// Requires an integer within `lo..=hi`.
+///
+/// # Errors
+///
+/// [`ParamError::OutOfRange`] when `value` is outside `lo..=hi`.
 pub fn within_u32(field: &str, value: u32, lo: u32, hi: u32) -> Result<(), ParamError> {
     if (lo..=hi).contains(&value) {
         Ok(())
@@ -217,6 +245,11 @@ impl RangeParam {
     }
 
     /// Checks both ends with `each` and that the range is not reversed.
+    ///
+    /// # Errors
+    ///
+    /// The first error `each` returns for `lo` or `hi`; [`ParamError::Reversed`] when
+    /// `lo > hi`.
     pub fn validate_with(
         &self,
         field: &str,

@@ -161,6 +161,11 @@ impl<S: Send + Sync> FromRequest<S> for JsonBody {
 }
 
 /// Parses JSON, naming the field at fault (`task.movement_time_s`, `on`).
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] when `bytes` is not JSON, has trailing data, or does not
+/// fit `T` (naming the field when it can).
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, AppError> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
     let value: T = serde_path_to_error::deserialize(&mut de).map_err(|e| json_error(&e))?;
@@ -297,6 +302,11 @@ pub async fn get_fri(State(state): State<Arc<AppState>>) -> Json<FriInfo> {
 }
 
 /// The latest state, as on the WebSocket (`"type": "state"`).
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the lab is not running or has not published a
+/// state yet.
 #[utoipa::path(get, path = "/api/state", tag = "lab",
     responses(
         (status = 200, description = "the latest state message (as on /ws)", body = crate::lab::StateMessage),
@@ -316,6 +326,10 @@ pub async fn get_state(State(state): State<Arc<AppState>>) -> Result<Response, A
 }
 
 /// The parameters in force (a scenario, CONTRACT.md "Scenario file").
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the lab is not running.
 #[utoipa::path(get, path = "/api/params", tag = "lab",
     responses(
         (status = 200, description = "the scenario in force", body = Object),
@@ -329,6 +343,13 @@ const SAFE_WHILE_BUSY: [&str; 2] = ["name", "success"];
 
 /// Merges a JSON object into the parameters in force, validates the result and
 /// hands it to the control loop; on any error nothing changes.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a body that is not a JSON object, a wrong type or
+/// unknown key, an out-of-range value or a new `[world]`; [`AppError::Conflict`]
+/// when a field other than `name` or `success` changes while a trial runs or the
+/// control loop refuses; [`AppError::Unavailable`] when the lab does not run or answer.
 #[utoipa::path(put, path = "/api/params", tag = "lab",
     request_body(content = Object, description = "a partial scenario, merged into the one in force: {\"task\": {\"movement_time_s\": 1.2}}. Only the scenario's keys, with its value types; each value's range is checked after merging (400 names the field)"),
     responses(
@@ -442,6 +463,12 @@ fn changed_fields(a: &serde_json::Value, b: &serde_json::Value) -> Vec<String> {
 }
 
 /// Arm: move home, magnet on, run the checks.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a body that is not empty or `{}`;
+/// [`AppError::Conflict`] when the control loop refuses; [`AppError::Unavailable`]
+/// when the lab is not running or does not answer.
 #[utoipa::path(post, path = "/api/arm", tag = "commands",
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
@@ -463,6 +490,12 @@ pub async fn arm(
 }
 
 /// Disarm.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a body that is not empty or `{}`;
+/// [`AppError::Conflict`] when the control loop refuses; [`AppError::Unavailable`]
+/// when the lab is not running or does not answer.
 #[utoipa::path(post, path = "/api/disarm", tag = "commands",
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
@@ -492,6 +525,12 @@ pub struct MagnetRequest {
 }
 
 /// Switch the magnet (`{"on": false}` drops the ball).
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a body that is not a [`MagnetRequest`];
+/// [`AppError::Conflict`] when the control loop refuses; [`AppError::Unavailable`]
+/// when the lab is not running or does not answer.
 #[utoipa::path(post, path = "/api/magnet", tag = "commands",
     request_body = MagnetRequest,
     responses(
@@ -522,6 +561,10 @@ pub struct StopAnswer {
 }
 
 /// Emergency stop: always accepted, from any state, with or without a token or body.
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the lab is not running.
 #[utoipa::path(post, path = "/api/stop", tag = "commands",
     responses(
         (status = 200, description = "stop requested", body = StopAnswer),
@@ -546,6 +589,12 @@ pub struct HeartbeatAnswer {
 /// one at least every `[lab] operator_timeout_s`, or the motion stops safely
 /// and the trial is recorded as aborted with `operator_lost`. The dashboard
 /// sends them by itself while it can command.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a body that is not empty or `{}`;
+/// [`AppError::Unavailable`] when the lab is not running or its control clock has
+/// not started.
 #[utoipa::path(post, path = "/api/heartbeat", tag = "commands",
     request_body(content = Option<NoFields>, description = "empty or {}"),
     responses(
@@ -576,6 +625,11 @@ fn desk(state: &AppState) -> Result<&Arc<crate::calibration::CalibrationDesk>, A
 
 /// The calibration file's steps (done, missing prerequisites, their results)
 /// and the running or last step with what it sees.
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the service has no calibration file or it cannot
+/// be read; [`AppError::Internal`] when the blocking task fails.
 #[utoipa::path(get, path = "/api/calibration", tag = "calibration",
     responses(
         (status = 200, description = "the steps and the job", body = crate::calibration::CalibrationStatus),
@@ -614,6 +668,13 @@ pub struct CalibrationStarted {
 /// Runs one calibration step on the lab (its result, residuals, date and
 /// revision go into the calibration file, and the lab's beliefs take it when no
 /// trial runs). Watch it with `GET /api/calibration`.
+///
+/// # Errors
+///
+/// [`AppError::NotFound`] for an unknown step; [`AppError::BadRequest`] for a bad
+/// body or a `release_deg` out of range or given to another step;
+/// [`AppError::Conflict`] while a trial or another step runs, or prerequisites are
+/// missing; [`AppError::Unavailable`] without a running lab or calibration file.
 #[utoipa::path(post, path = "/api/calibration/{step}", tag = "calibration",
     params(("step" = String, Path, description = "camera, latency, pendulum, camera-robot or robot")),
     request_body(content = Option<CalibrationRequest>, description = "empty, {} or {\"release_deg\": 25}"),
@@ -833,6 +894,13 @@ pub(crate) fn trial_setup(req: &TrialRequest, params: &Scenario) -> Result<Trial
 /// Runs one whole trial (arm, release, intercept); its result appears at
 /// `/api/trials/{id}` when it ends. The body may set this trial's distance,
 /// movement time and release angle (for this trial only).
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a bad body or a distance, movement time or release
+/// angle out of range or infeasible; [`AppError::Conflict`] when the service or the
+/// control loop refuses a trial; [`AppError::Unavailable`] without a running lab or
+/// records; [`AppError::Internal`] when the record cannot be written.
 #[utoipa::path(post, path = "/api/trials", tag = "trials",
     request_body(content = Option<TrialRequest>, description = "empty, {} or the trial's own fields"),
     responses(
@@ -937,6 +1005,12 @@ pub struct ListQuery {
 }
 
 /// The trials, newest first.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a `limit` that is malformed or outside 1..=1000;
+/// [`AppError::Unavailable`] when no records are kept; [`AppError::Internal`] when
+/// the database fails.
 #[utoipa::path(get, path = "/api/trials", tag = "trials", params(ListQuery),
     responses(
         (status = 200, description = "trials, newest first", body = Vec<TrialRecord>),
@@ -977,6 +1051,12 @@ async fn existing(state: &AppState, raw: &str) -> Result<(Arc<Records>, TrialRec
 }
 
 /// One trial's result.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for an id that is not a trial id; [`AppError::NotFound`]
+/// for no such trial; [`AppError::Unavailable`] when no records are kept;
+/// [`AppError::Internal`] when the database fails.
 #[utoipa::path(get, path = "/api/trials/{id}", tag = "trials",
     params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
@@ -994,6 +1074,12 @@ pub async fn get_trial(
 /// lab can take it, with the distances, movement time and release angle the
 /// body gives (each checked as `POST /api/trials` checks one, before anything
 /// starts). Progress: `GET /api/runs/{id}` and `{"type":"run"}` messages on `/ws`.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for a bad body or a trial setup out of range;
+/// [`AppError::Conflict`] while another run is going; [`AppError::Unavailable`]
+/// without a running lab or records.
 #[utoipa::path(post, path = "/api/runs", tag = "trials",
     request_body = crate::runs::RunRequest,
     responses(
@@ -1031,6 +1117,11 @@ fn run_id(raw: &str) -> Result<u64, AppError> {
 
 /// A run's progress: trials started and finished, successes with their 95%
 /// interval, the timing error's p50 and p95, each trial's id.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for an id that is not a run id; [`AppError::NotFound`]
+/// for no such run.
 #[utoipa::path(get, path = "/api/runs/{id}", tag = "trials",
     params(("id" = u64, Path, description = "run id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
@@ -1050,6 +1141,11 @@ pub async fn get_run(
 }
 
 /// Stops a run after its current trial (which finishes and is recorded).
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] for an id that is not a run id; [`AppError::NotFound`]
+/// for no such run.
 #[utoipa::path(delete, path = "/api/runs/{id}", tag = "trials",
     params(("id" = u64, Path, description = "run id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
@@ -1085,6 +1181,11 @@ pub async fn get_demo(State(state): State<Arc<AppState>>) -> Json<crate::demo::D
 }
 
 /// A trial's signals at the control rate, as CSV (header row; NaN when unknown).
+///
+/// # Errors
+///
+/// As [`get_trial`] for the id; [`AppError::NotFound`] when the trial has no
+/// recording.
 #[utoipa::path(get, path = "/api/trials/{id}/recording.csv", tag = "trials",
     params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(
@@ -1111,6 +1212,11 @@ pub async fn recording_csv(
 /// well-known schemas, Unix log times, metadata; `server/README.md`) once the
 /// trial ended; for trials recorded before live MCAP, converted from the CSV
 /// (topic `/isochron/state`, JSON messages with a JSON schema).
+///
+/// # Errors
+///
+/// As [`get_trial`] for the id; [`AppError::NotFound`] when the trial has no
+/// recording; [`AppError::Internal`] when the CSV cannot be converted.
 #[utoipa::path(get, path = "/api/trials/{id}/recording.mcap", tag = "trials",
     params(("id" = u64, Path, description = "trial id", minimum = 1, maximum = 9_223_372_036_854_775_807_u64)),
     responses(

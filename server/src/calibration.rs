@@ -215,6 +215,11 @@ impl StepOutcome {
 
 /// The pendulum step's outcome from a free swing recorded on the real lab:
 /// no truth to compare with (`truth` and `error` null).
+///
+/// # Errors
+///
+/// When [`pendulum_from_swing`](rt_core::calibration::swing::pendulum_from_swing)
+/// refuses the track ("calibrate pendulum"), or the result cannot be serialised.
 pub fn real_pendulum_outcome(
     track: &[rt_core::calibration::swing::TrackedSwingSample],
     scenario: &Scenario,
@@ -236,6 +241,12 @@ pub fn real_pendulum_outcome(
 /// Runs one step's procedure on the simulated world `world` (session `seed`);
 /// `watch` sees what the step sees. The CLI, `--accuracy` and the dashboard's
 /// Calibration panel (`POST /api/calibration/{step}`) all run steps through this.
+///
+/// # Errors
+///
+/// For a `release_deg` outside 0..=60 on the pendulum step; when the step's
+/// procedure refuses (context `calibrate <step>`); when a result cannot be
+/// serialised.
 pub fn run_step(
     step: Step,
     scenario: &Scenario,
@@ -645,6 +656,11 @@ impl CalibrationDesk {
     }
 
     /// The file's steps and the job.
+    ///
+    /// # Errors
+    ///
+    /// The [`ParamError`](rt_core::params::ParamError) of
+    /// [`CalibrationFile::load_or_empty`] when the file cannot be read or parsed.
     pub fn status(&self) -> Result<CalibrationStatus, rt_core::params::ParamError> {
         let file = CalibrationFile::load_or_empty(&self.path)?;
         let steps = Step::ALL
@@ -682,6 +698,12 @@ impl CalibrationDesk {
 
     /// Claims the job for `step` if nothing runs, the prerequisites are in the
     /// file and the lab can run it; returns the job's number.
+    ///
+    /// # Errors
+    ///
+    /// [`StartRefused::NotAvailable`] when the real lab has no procedure for `step` or
+    /// the file cannot be read; [`StartRefused::Prerequisites`] when steps it needs are
+    /// missing; [`StartRefused::Busy`] while another step runs.
     pub fn claim(&self, step: Step) -> Result<u64, StartRefused> {
         if self.real_lab && !step.real_lab_procedure() {
             return Err(StartRefused::NotAvailable(format!(

@@ -235,6 +235,11 @@ impl Default for Calibration {
 
 impl ServeConfig {
     /// Parses and validates a configuration (unknown keys are refused).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Parse`] for bad TOML, a wrong type or an unknown key; the error of
+    /// [`Self::validate`] naming the first bad field.
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         let cfg: Self = toml::from_str(text).map_err(|e| rt_core::params::toml_error(text, &e))?;
         cfg.validate()?;
@@ -242,6 +247,11 @@ impl ServeConfig {
     }
 
     /// Reads, parses and validates a configuration file.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Io`] when the file cannot be read; otherwise as
+    /// [`Self::from_toml_str`], with the file named.
     pub fn from_file(path: &std::path::Path) -> Result<Self, ParamError> {
         let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
             path: path.display().to_string(),
@@ -251,6 +261,11 @@ impl ServeConfig {
     }
 
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first bad
+    /// field (a CORS origin with a path included), or the error of the camera pose's check.
     pub fn validate(&self) -> Result<(), ParamError> {
         let s = &self.server;
         check::within("server.state_hz", s.state_hz, 1.0, 1000.0)?;

@@ -61,6 +61,11 @@ pub struct DemoOptions {
 
 impl DemoOptions {
     /// Checks the interval (a clear error naming the flag).
+    ///
+    /// # Errors
+    ///
+    /// When the interval is not finite or outside [`INTERVAL_RANGE_S`], naming
+    /// `--demo-interval-s`.
     pub fn check(&self) -> anyhow::Result<()> {
         let (lo, hi) = INTERVAL_RANGE_S;
         if !(self.interval_s.is_finite() && (lo..=hi).contains(&self.interval_s)) {

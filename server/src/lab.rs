@@ -230,6 +230,10 @@ struct Pump {
 
 impl Lab {
     /// Starts the bridge thread over the server end of a bridge.
+    ///
+    /// # Errors
+    ///
+    /// When the bridge thread cannot be spawned.
     pub fn start(
         end: ServerEnd,
         frames: Option<FrameReceiver>,
@@ -435,6 +439,12 @@ impl Lab {
     }
 
     /// Sends a command and waits for its acknowledgement.
+    ///
+    /// # Errors
+    ///
+    /// [`CommandError::NotRunning`] when no control thread runs;
+    /// [`CommandError::Full`] when the command ring is full; [`CommandError::Refused`]
+    /// when the control thread refuses; [`CommandError::NoAnswer`] after the timeout.
     pub async fn command(&self, command: Command) -> Result<(), CommandError> {
         self.send(command, None).await
     }
@@ -443,6 +453,10 @@ impl Lab {
     /// answers only after the timeout, the answer still settles the record
     /// (the bridge thread deletes it when the trial was refused; an accepted
     /// trial finishes as any other), so a trial the lab ran is never lost.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::command`].
     pub async fn run_trial(
         &self,
         trial_id: u64,

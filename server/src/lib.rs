@@ -362,6 +362,11 @@ pub enum ServeConfigError {
 }
 
 /// Checks the bind address against the access-control rule of CONTRACT.md.
+///
+/// # Errors
+///
+/// [`ServeConfigError::OpenWithoutToken`] when `addr` is not loopback and no
+/// (non-empty) token is given.
 pub fn check_bind(addr: SocketAddr, token: Option<&str>) -> Result<(), ServeConfigError> {
     if addr.ip().is_loopback() || token.is_some_and(|t| !t.is_empty()) {
         Ok(())

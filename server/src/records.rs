@@ -153,6 +153,11 @@ pub struct TrialOrigin {
 
 impl Records {
     /// Opens (creating if needed) the records in `data_dir`.
+    ///
+    /// # Errors
+    ///
+    /// When the data directory cannot be created, or the database cannot be opened,
+    /// set up, migrated or its left-running trials closed.
     pub fn open(data_dir: &Path) -> anyhow::Result<Self> {
         let rec = data_dir.join("recordings");
         std::fs::create_dir_all(&rec)
@@ -219,6 +224,10 @@ impl Records {
     }
 
     /// Adds a running trial and returns its id.
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned or the insert fails.
     pub fn create_trial(&self, origin: &TrialOrigin) -> anyhow::Result<u64> {
         let db = self.db()?;
         db.execute(
@@ -235,6 +244,10 @@ impl Records {
     }
 
     /// Removes a trial that never started (the control thread refused it).
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned or the delete fails.
     pub fn delete_trial(&self, id: u64) -> anyhow::Result<()> {
         self.db()?
             .execute("DELETE FROM trials WHERE id = ?1", params![id as i64])?;
@@ -242,6 +255,10 @@ impl Records {
     }
 
     /// Records how a running trial ended; a trial already ended is left alone.
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned or the update fails.
     pub fn finish_trial(&self, id: u64, end: TrialEnd, samples: u64) -> anyhow::Result<bool> {
         let db = self.db()?;
         let n = match end {
@@ -284,6 +301,10 @@ impl Records {
     }
 
     /// What produced a trial (scenario, parameters, revision) as its row stores it.
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned or the query fails (no such trial is `Ok(None)`).
     pub fn origin(&self, id: u64) -> anyhow::Result<Option<TrialOrigin>> {
         let db = self.db()?;
         let mut st =
@@ -300,6 +321,10 @@ impl Records {
     }
 
     /// One trial.
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned or the query fails (no such trial is `Ok(None)`).
     pub fn get(&self, id: u64) -> anyhow::Result<Option<TrialRecord>> {
         let db = self.db()?;
         let mut st = db.prepare_cached(&format!("{SELECT} WHERE id = ?1"))?;
@@ -307,6 +332,10 @@ impl Records {
     }
 
     /// The newest trials first, at most `limit`.
+    ///
+    /// # Errors
+    ///
+    /// When the database lock is poisoned, the query fails or a row cannot be read.
     pub fn list(&self, limit: u32) -> anyhow::Result<Vec<TrialRecord>> {
         let db = self.db()?;
         let mut st = db.prepare_cached(&format!("{SELECT} ORDER BY id DESC LIMIT ?1"))?;
@@ -504,6 +533,10 @@ struct Recording {
 
 impl Recorder {
     /// Appends a snapshot of trial `path`'s recording, opening it on its first row.
+    ///
+    /// # Errors
+    ///
+    /// When the recording file cannot be opened or a row cannot be written.
     pub fn append(&mut self, path: &Path, trial_id: u64, s: &Snapshot) -> anyhow::Result<()> {
         if self.current.as_ref().is_none_or(|r| r.id != trial_id) {
             // A new trial: the previous one is closed (synced) first.
@@ -563,6 +596,11 @@ impl Recorder {
 
 /// Converts a CSV recording to MCAP: one JSON message per row on the topic
 /// `/isochron/state`, with a JSON schema, log time = the control clock `t_s`.
+///
+/// # Errors
+///
+/// When the CSV cannot be opened or read, has no data columns, or the MCAP cannot
+/// be written.
 pub fn csv_to_mcap(csv_path: &Path) -> anyhow::Result<Vec<u8>> {
     let mut reader = csv::ReaderBuilder::new()
         .flexible(true)

@@ -147,6 +147,12 @@ fn bad(field: &str, message: String) -> AppError {
 
 /// The trials' setups, checked (each distinct setup against the parameters
 /// in force, as `POST /api/trials` checks one), or a 400 naming the field.
+///
+/// # Errors
+///
+/// [`AppError::BadRequest`] naming the field: `n` out of range, both or bad
+/// distance fields, or a trial setup [`POST /api/trials`](crate::api::start_trial)
+/// would refuse.
 pub fn setups(
     req: &RunRequest,
     params: &rt_core::params::Scenario,
@@ -302,6 +308,12 @@ impl Runs {
 }
 
 /// Starts a run: checks it, registers it and spawns its task.
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] without a running lab or trial records;
+/// [`AppError::BadRequest`] as [`setups`]; [`AppError::Conflict`] while another run
+/// is going.
 pub fn start(state: Arc<AppState>, req: &RunRequest) -> Result<u64, AppError> {
     let lab = state
         .lab

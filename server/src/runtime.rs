@@ -19,6 +19,11 @@ const FRAME_RING: usize = 4;
 /// Starts the lab of `setup` and the server side of its bridge. Keep the
 /// [`LabRuntime`] alive as long as the [`crate::Lab`]; drop it after
 /// [`crate::Lab::shutdown`] (dropping it stops its threads).
+///
+/// # Errors
+///
+/// When [`LabRuntime::start`] fails (any [`RuntimeError`](rt_core::lab::RuntimeError))
+/// or the bridge thread cannot start.
 pub fn start_lab(
     setup: LabSetup,
     records: Option<Arc<crate::Records>>,
@@ -39,6 +44,10 @@ pub fn start_lab(
 }
 
 /// Starts the simulated lab: what `isochron serve` runs without a config.
+///
+/// # Errors
+///
+/// As [`start_lab`].
 pub fn start_simulated(
     scenario: Scenario,
     records: Option<Arc<crate::Records>>,

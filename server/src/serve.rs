@@ -55,6 +55,12 @@ pub struct ServeArgs {
 }
 
 /// Runs the service until SIGINT/SIGTERM.
+///
+/// # Errors
+///
+/// When the arguments conflict, a configuration, scenario, parameter or calibration
+/// file is refused, the bind address needs a token, the records, lab or Foxglove
+/// server cannot start, the address cannot be listened on, or the server fails.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let cfg = match (&args.config, &args.world) {
         (Some(_), Some(_)) => anyhow::bail!(
@@ -336,6 +342,11 @@ pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world th
 /// `calibration.camera_pose` puts it; without either it is taken to look along
 /// the base's +x at the height of the ball at rest, `plane_distance_m` before
 /// the swing plane.
+///
+/// # Errors
+///
+/// When the scenario is invalid or the camera (webcam, video file or stream)
+/// cannot be opened.
 pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow::Result<LabSetup> {
     scenario.robot.fri_period_ms = cfg.fri.period_ms;
     if scenario.control.arrival_settle_m <= 0.0 {

@@ -668,6 +668,10 @@ impl Foxglove {
 
     /// Starts recording trial `trial_id` into `path` (MCAP, written live) with
     /// its metadata; a recording still open is finished first.
+    ///
+    /// # Errors
+    ///
+    /// When the MCAP file cannot be created or its metadata cannot be written.
     pub fn start_recording(
         &mut self,
         trial_id: u64,
@@ -859,6 +863,10 @@ pub fn jpeg_tagged(jpeg: &[u8], frame: u64, t_us: u64) -> Vec<u8> {
 /// Refuses a Foxglove address that is not loopback: the Foxglove WebSocket
 /// protocol carries no credentials, so the service's bearer token cannot guard
 /// it, and the service's rule is loopback-only without a token.
+///
+/// # Errors
+///
+/// When `addr` is not a loopback address.
 pub fn check_addr(addr: std::net::SocketAddr) -> anyhow::Result<()> {
     if !addr.ip().is_loopback() {
         anyhow::bail!(
@@ -871,6 +879,10 @@ pub fn check_addr(addr: std::net::SocketAddr) -> anyhow::Result<()> {
 
 /// Starts the Foxglove WebSocket server on `addr` (loopback only) over the lab's
 /// channels; the robot description is also served as the `/robot_description` topic.
+///
+/// # Errors
+///
+/// When `addr` is not loopback or the Foxglove server cannot start there.
 pub async fn start_server(
     lab: &crate::Lab,
     addr: std::net::SocketAddr,

@@ -150,6 +150,11 @@ impl std::fmt::Debug for LabWorld {
 
 impl LabWorld {
     /// Starts the world's board, cabinet and webcam.
+    ///
+    /// # Errors
+    ///
+    /// When the distance is outside 0.2..=1.2 m, the firmware or its host is missing,
+    /// or the board, cabinet or webcam (sockets, threads, renderer) cannot start.
     pub fn start(spec: &WorldSpec) -> anyhow::Result<Self> {
         let scenario = &spec.scenario;
         let kind = if scenario.world.is_some() {
@@ -400,6 +405,11 @@ impl LabWorld {
     /// Writes the releases concluded since the last call to `out`, one JSON
     /// line each (waits up to `wait` for the first); fails when the board or
     /// the cabinet has stopped.
+    ///
+    /// # Errors
+    ///
+    /// When writing to `out` fails, or the magnet board's simulator or the cabinet has
+    /// stopped.
     pub fn poll(&mut self, out: &mut dyn Write, wait: Duration) -> anyhow::Result<usize> {
         let mut n = 0;
         let mut wait = wait;

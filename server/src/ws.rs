@@ -41,6 +41,11 @@ pub struct Hello {
 }
 
 /// `GET /ws`: state and event messages.
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the lab is not running; [`AppError::Internal`]
+/// when the hello message cannot be serialised.
 pub async fn state_stream(
     State(state): State<Arc<AppState>>,
     ws: WebSocketUpgrade,
@@ -60,6 +65,10 @@ pub async fn state_stream(
 }
 
 /// `GET /ws/camera`: camera frames.
+///
+/// # Errors
+///
+/// [`AppError::Unavailable`] when the lab is not running.
 pub async fn camera_stream(
     State(state): State<Arc<AppState>>,
     ws: WebSocketUpgrade,

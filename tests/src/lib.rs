@@ -33,6 +33,10 @@ pub struct HttpResponse {
 
 impl HttpResponse {
     /// The body parsed as JSON.
+    ///
+    /// # Errors
+    ///
+    /// When the body is not JSON.
     pub fn json(&self) -> anyhow::Result<serde_json::Value> {
         serde_json::from_slice(&self.body).context("body is not JSON")
     }
@@ -48,6 +52,11 @@ impl HttpResponse {
 
 /// Sends one request (`reqwest`: no proxy, no redirects followed, a fresh
 /// connection) with a 10 s timeout.
+///
+/// # Errors
+///
+/// When the client cannot be built, `method` is not a method, the request fails
+/// (including the 10 s timeout) or the body cannot be read.
 pub async fn http(
     addr: std::net::SocketAddr,
     method: &str,

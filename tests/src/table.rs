@@ -15,6 +15,10 @@ pub struct CsvTable {
 
 impl CsvTable {
     /// Parses `text` (a header line, then rows).
+    ///
+    /// # Errors
+    ///
+    /// When the CSV header or a row cannot be read.
     pub fn parse(text: &str) -> anyhow::Result<Self> {
         let mut reader = csv::ReaderBuilder::new()
             .flexible(true)
@@ -33,6 +37,10 @@ impl CsvTable {
     }
 
     /// The index of column `name`.
+    ///
+    /// # Errors
+    ///
+    /// When there is no column `name`.
     pub fn column(&self, name: &str) -> anyhow::Result<usize> {
         self.header
             .iter()
@@ -41,6 +49,10 @@ impl CsvTable {
     }
 
     /// Column `name` as numbers (every row must parse).
+    ///
+    /// # Errors
+    ///
+    /// When there is no column `name` or a cell in it is not a number.
     pub fn numbers(&self, name: &str) -> anyhow::Result<Vec<f64>> {
         let i = self.column(name)?;
         self.rows

@@ -370,6 +370,11 @@ pub struct CommandSender {
 impl CommandSender {
     /// Queues a command and returns the id its [`Ack`] will carry; when the ring
     /// is full the command comes back (counted as a command overflow).
+    ///
+    /// # Errors
+    ///
+    /// Gives the command back as the `Err` value when the command ring is full
+    /// (counted in the stats' command overflows).
     pub fn send(&mut self, command: Command) -> Result<u64, Command> {
         let id = self.next_id;
         match self.tx.push(CommandEnvelope { id, command }) {

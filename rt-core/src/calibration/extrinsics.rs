@@ -104,6 +104,12 @@ fn project(
 /// Refines the camera pose (and `k1` when `k1_fixed` is `None`) by
 /// Levenberg-Marquardt on the reprojection residuals of `points_b` (base frame,
 /// metres) seen at `pixels`, from `start` (`base_from_camera`, centre).
+///
+/// # Errors
+///
+/// [`CalibrationError::TooFewSamples`] with fewer than 4 points (5 when `k1` is
+/// fitted) or when `pixels` and `points_b` differ in length;
+/// [`CalibrationError::FitFailed`] when the fit does not converge or is not finite.
 pub fn refine_pose(
     intrinsics: &CameraIntrinsics,
     points_b: &[Vector3<f64>],

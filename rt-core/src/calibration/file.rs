@@ -56,6 +56,11 @@ pub struct CalibrationFile {
 
 impl CalibrationFile {
     /// Reads a calibration file; a missing file is an empty calibration.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Io`] when the file exists but cannot be read; [`ParamError::Parse`]
+    /// when its text is not a calibration file.
     pub fn load_or_empty(path: &Path) -> Result<Self, ParamError> {
         match std::fs::read_to_string(path) {
             Ok(text) => Self::from_toml_str(&text).map_err(|e| e.in_file(path)),
@@ -68,6 +73,11 @@ impl CalibrationFile {
     }
 
     /// Reads an existing calibration file (missing: an error).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Io`] when the file cannot be read (also when it is missing);
+    /// [`ParamError::Parse`] when its text is not a calibration file.
     pub fn from_file(path: &Path) -> Result<Self, ParamError> {
         let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
             path: path.display().to_string(),
@@ -85,6 +95,11 @@ impl CalibrationFile {
     /// assert!(f.pendulum.is_none() && f.latency.is_none());
     /// assert!(CalibrationFile::from_toml_str("[pendulm]\n").is_err());
     /// ```
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Parse`] when the text is not valid TOML, has a wrong type or an
+    /// unknown key.
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         toml::from_str(text).map_err(|e| ParamError::parse(e.message()))
     }
@@ -95,6 +110,10 @@ impl CalibrationFile {
     }
 
     /// Writes the file atomically (a temporary file renamed over the target).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Io`] when the temporary file cannot be written or renamed over `path`.
     pub fn write(&self, path: &Path) -> Result<(), ParamError> {
         let io = |e: std::io::Error| ParamError::Io {
             path: path.display().to_string(),
@@ -112,6 +131,12 @@ impl CalibrationFile {
     /// the camera's pose (`camera.pose`) and the intercept point's offset
     /// (`task.intercept_offset_m`). The result is validated; intrinsics measured
     /// at another image size than the scenario's camera are refused.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::OutOfRange`] for `camera.intrinsics` when the camera step was
+    /// measured at another image size; any [`ParamError`] of [`Scenario::validate`] on
+    /// the result.
     pub fn apply(&self, scenario: &Scenario) -> Result<Scenario, ParamError> {
         let mut s = scenario.clone();
         // A simulated world stays where it is: its offsets keep being drawn

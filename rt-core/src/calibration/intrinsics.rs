@@ -46,6 +46,11 @@ impl Default for Chessboard {
 
 impl Chessboard {
     /// Checks the board; the error names the bad value.
+    ///
+    /// # Errors
+    ///
+    /// [`CalibrationError::FitFailed`] when a side has outside 3..=40 inner corners, the
+    /// board is square, or the square size is outside 0.002..=0.5 m (or not finite).
     pub fn validate(&self) -> Result<(), CalibrationError> {
         let ok = (3..=40).contains(&self.inner_cols)
             && (3..=40).contains(&self.inner_rows)
@@ -132,6 +137,14 @@ pub struct IntrinsicsFit {
 /// found in no view ("no board visible"), fewer than [`MIN_VIEWS`] views with
 /// it, a view with the wrong number of corners or a non-finite one, a fit that
 /// is not finite or whose RMS is above [`MAX_RMS_PX`].
+///
+/// # Errors
+///
+/// [`CalibrationError::BoardNotSeen`] when no view has the board;
+/// [`CalibrationError::TooFewSamples`] with fewer than [`MIN_VIEWS`] views;
+/// [`CalibrationError::NotFinite`] for a non-finite corner; otherwise
+/// [`CalibrationError::FitFailed`] (a bad board, a view's corner count, an OpenCV
+/// error, a non-camera fit, an RMS above [`MAX_RMS_PX`]).
 #[cfg(feature = "opencv")]
 pub fn fit_intrinsics(
     board: &Chessboard,

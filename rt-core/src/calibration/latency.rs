@@ -118,6 +118,14 @@ pub const MIN_CONTRAST: f64 = 20.0;
 
 /// Estimates the latency. `frame_period_s` is the nominal frame period (the fps the
 /// camera was opened with); frames are in delivery order (lost ones are simply absent).
+///
+/// # Errors
+///
+/// [`CalibrationError::NotFinite`] for a non-finite frame or edge (or a negative
+/// round trip or wire time); [`CalibrationError::TooFewSamples`] with fewer than
+/// 20 frames; [`CalibrationError::FitFailed`] for a bad frame period;
+/// [`CalibrationError::LedNotSeen`] when the brightness has too little contrast or
+/// fewer than 3 (or half the) switches are seen.
 pub fn estimate_led_latency(
     frames: &[LedFrame],
     edges: &[LedEdge],

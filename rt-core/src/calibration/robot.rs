@@ -42,6 +42,13 @@ pub struct RobotLatency {
 pub const MIN_MOTION_RAD: f64 = 1e-3;
 
 /// Fits the delay and the servo lag. Commands and measurements are each in time order.
+///
+/// # Errors
+///
+/// [`CalibrationError::NotFinite`] for a non-finite sample;
+/// [`CalibrationError::TooFewSamples`] with fewer than 20 commands or measurements;
+/// [`CalibrationError::NoResponse`] when the joint moved too little;
+/// [`CalibrationError::FitFailed`] when the fit does not converge.
 pub fn fit_robot_latency(
     commands: &[JointSample],
     measured: &[JointSample],

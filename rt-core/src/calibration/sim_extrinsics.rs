@@ -473,6 +473,15 @@ fn find_marker(
 
 /// The camera-robot step on the simulated world (module docs). `watch` gets a
 /// view per marker pose (the detected pixels and, at the end, their reprojection).
+///
+/// # Errors
+///
+/// [`ProcedureError::Params`] or [`ProcedureError::RobotParams`] for an invalid
+/// scenario or refused simulator parameters; the step's own variants when a part
+/// fails (e.g. [`ProcedureError::TooFewPoses`], [`ProcedureError::MarkerNotSeen`],
+/// [`ProcedureError::LeftCommanding`], [`ProcedureError::BallNotFound`]);
+/// [`ProcedureError::Vision`] or [`ProcedureError::Calibration`] from rendering,
+/// detection or the pose fit.
 pub fn run_camera_robot(
     scenario: &Scenario,
     world: &HiddenWorld,

@@ -345,6 +345,11 @@ fn render_view(
 /// search takes ~10 s a frame, the halved one ~20 ms), else on the full frame
 /// with one threshold; then `cornerSubPix` on the full frame with a window
 /// smaller than half the smallest square seen.
+///
+/// # Errors
+///
+/// [`ProcedureError::Vision`] when an OpenCV call fails (a board not found is
+/// `Ok(None)`).
 pub fn detect_corners(
     gray: &Mat,
     board: &Chessboard,
@@ -433,6 +438,13 @@ pub fn true_intrinsics(cam: &WorldCamera) -> CameraIntrinsics {
 /// `world`, one frame each, corners detected and fitted. `board_in_view =
 /// false`: the operator holds it outside the camera's view (the step must then
 /// refuse, "no board visible"). Reports each view to `watch`.
+///
+/// # Errors
+///
+/// [`ProcedureError::Params`] for an invalid scenario; [`ProcedureError::Views`]
+/// for `views` outside 1..=200; [`ProcedureError::Calibration`] for a bad board or
+/// when [`fit_intrinsics`] refuses the views (e.g. no board visible);
+/// [`ProcedureError::Vision`] when rendering or corner detection fails.
 pub fn run_camera(
     scenario: &Scenario,
     world: &HiddenWorld,

@@ -326,6 +326,14 @@ const REST_FRAMES: usize = 30;
 
 /// The pendulum step: the hanging ball's rest point (30 frames), then a free swing
 /// released from `release_deg` recorded for `duration_s` and fitted.
+///
+/// # Errors
+///
+/// [`ProcedureError::Params`] for an invalid scenario;
+/// [`ProcedureError::BallNotFound`] when the hanging ball is found in too few
+/// frames; [`ProcedureError::RayMissesSwingPlane`]; [`ProcedureError::Pendulum`]
+/// when the simulated pendulum refuses; [`ProcedureError::Calibration`] when the
+/// swing fit refuses; [`ProcedureError::Vision`] from the camera.
 pub fn run_pendulum(
     scenario: &Scenario,
     world: &HiddenWorld,
@@ -529,6 +537,13 @@ const SERIAL_BYTE_S: f64 = 10.0 / 115_200.0;
 /// part of its exposure it was on; the LED found by an on/off difference image; the
 /// brightness of its region read from every frame. `led_in_view = false` covers
 /// the LED (the step must then refuse).
+///
+/// # Errors
+///
+/// [`ProcedureError::Params`] for an invalid scenario;
+/// [`ProcedureError::Calibration`] with [`CalibrationError::LedNotSeen`] when the
+/// LED is not found (e.g. `led_in_view = false`) or when [`estimate_led_latency`]
+/// refuses; [`ProcedureError::Vision`] when rendering or an OpenCV call fails.
 pub fn run_led_latency(
     scenario: &Scenario,
     world: &HiddenWorld,
@@ -861,6 +876,13 @@ impl ControlStep for Excite {
 /// controller (the truth's delay, jitter and servo lag), then `duration_s` of
 /// small steps of `amplitude_rad` on A7 (the wrist: the smallest moving mass, far from its
 /// limits at the home pose), commands and measured positions fitted.
+///
+/// # Errors
+///
+/// [`ProcedureError::Params`] for an invalid scenario; [`ProcedureError::Amplitude`]
+/// for an amplitude outside `(0, 0.05]` rad; [`ProcedureError::RobotParams`],
+/// [`ProcedureError::LeftCommanding`] or [`ProcedureError::ControllerAborted`] from
+/// the FRI session; [`ProcedureError::Calibration`] when [`fit_robot_latency`] refuses.
 pub fn run_robot(
     scenario: &Scenario,
     world: &HiddenWorld,

@@ -78,6 +78,12 @@ pub const MIN_REST_PASSES: usize = 5;
 /// 6 cm misses the arc's bottom by 0.2 mm); the swing's axis in the image.
 /// Refused as [`fit_swing`] refuses, and with fewer than [`MIN_REST_PASSES`]
 /// passes.
+///
+/// # Errors
+///
+/// As [`fit_swing`], and [`CalibrationError::NotFinite`] for a non-finite pixel;
+/// [`CalibrationError::TooFewSamples`] with fewer than [`MIN_REST_PASSES`] passes
+/// through the rest point.
 pub fn pendulum_from_swing(
     track: &[TrackedSwingSample],
     gravity_mps2: f64,
@@ -141,6 +147,13 @@ pub fn pendulum_from_swing(
 /// Fits the damped pendulum to a free swing's samples (any order; sorted here).
 /// `gravity_mps2` is the local gravity; `length_guess_m` a starting length (the
 /// tape measure). Refuses too few samples, too short a recording and too small a swing.
+///
+/// # Errors
+///
+/// [`CalibrationError::NotFinite`], [`CalibrationError::TooFewSamples`],
+/// [`CalibrationError::TooShort`] or [`CalibrationError::SwingTooSmall`] for bad,
+/// too few, too short or too small samples; [`CalibrationError::FitFailed`] for a
+/// bad gravity or length guess, a fit that does not converge or a non-physical length.
 pub fn fit_swing(
     samples: &[SwingSample],
     gravity_mps2: f64,

@@ -50,6 +50,11 @@ impl Default for Beliefs {
 impl Beliefs {
     /// Checks every section in the order `Scenario::validate` does; the error
     /// names the first bad field (`control.hold_time_s`, `robot.fri_period_ms`).
+    ///
+    /// # Errors
+    ///
+    /// The first [`ParamError`] of a section's check (pendulum, task, FRI period, EKF,
+    /// timing, control).
     pub fn validate(&self) -> Result<(), ParamError> {
         self.pendulum.validate()?;
         self.task.validate()?;
@@ -61,6 +66,10 @@ impl Beliefs {
 }
 
 /// Checks an FRI send period against [`FRI_PERIOD_MS_BOUNDS`].
+///
+/// # Errors
+///
+/// [`ParamError::OutOfRange`] when `ms` is outside [`FRI_PERIOD_MS_BOUNDS`].
 pub fn validate_fri_period_ms(field: &str, ms: u32) -> Result<(), ParamError> {
     let (lo, hi) = FRI_PERIOD_MS_BOUNDS;
     check::within_u32(field, ms, lo, hi)

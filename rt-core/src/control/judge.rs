@@ -243,6 +243,10 @@ impl JudgeScratch {
 }
 
 /// Judges one motion of a trial against the truth in `trace`.
+///
+/// # Errors
+///
+/// As [`judge_into`].
 pub fn judge(
     trace: &TrialTrace,
     motion: &PlannedMotion,
@@ -253,6 +257,13 @@ pub fn judge(
 
 /// [`judge`] with its working memory in `scratch` (the trial driver judges on
 /// the control thread without allocating).
+///
+/// # Errors
+///
+/// [`JudgeError::TooFewSamples`] for fewer than 3 samples or mismatched lengths;
+/// [`JudgeError::DegenerateMotion`] for a motion without length or duration;
+/// [`JudgeError::NoMotion`] when the tool never moved; [`JudgeError::NoPass`] when
+/// the ball never passed the intercept point.
 pub fn judge_into(
     trace: &TrialTrace,
     motion: &PlannedMotion,

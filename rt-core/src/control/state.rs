@@ -209,6 +209,11 @@ impl TrialMachine {
     }
 
     /// Goes to `to` if allowed; otherwise changes nothing.
+    ///
+    /// # Errors
+    ///
+    /// [`BadTransition`] when the state machine does not allow going from the current
+    /// state to `to`.
     pub fn go(&mut self, to: TrialState) -> Result<(), BadTransition> {
         if Self::allowed(self.state, to) {
             self.state = to;

@@ -134,6 +134,11 @@ impl Default for ControlParams {
 
 impl ControlParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within("control.home_move_time_s", self.home_move_time_s, 0.2, 30.0)?;
         check::within("control.hold_time_s", self.hold_time_s, 0.0, 10.0)?;
@@ -601,6 +606,10 @@ pub struct Controller {
 impl Controller {
     /// A controller for the lab `beliefs` describe (`params::Scenario::beliefs`)
     /// with an FRI period of `period_s`.
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::Params`] when the beliefs or the timing parameters are invalid.
     pub fn new(beliefs: &Beliefs, period_s: f64) -> Result<Self, ControlError> {
         beliefs.validate()?;
         let params = &beliefs.control;
@@ -652,6 +661,13 @@ impl Controller {
 
     /// Plans a trial's motion to the intercept point at `distance_m` (not
     /// real-time: run it off the control thread, then hand it to [`Self::arm`]).
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::Params`] for a distance outside 0.1..=1.2 m;
+    /// [`ControlError::Plan`] when the posture planner refuses (e.g. out of reach);
+    /// [`ControlError::Infeasible`] when the plan may not run as asked;
+    /// [`ControlError::Motion`] when the timed motion refuses the path.
     pub fn plan(beliefs: &Beliefs, distance_m: f64) -> Result<ArmPlan, ControlError> {
         let params = &beliefs.control;
         let timing = &beliefs.timing;
@@ -1079,6 +1095,12 @@ impl Controller {
     /// Arms a trial with a plan from [`Self::plan`]: builds the filter for
     /// the pendulum at the plan's distance and starts the move home in the
     /// motion's posture; `Armed` once there. Allowed from `Idle`.
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::State`] when not `Idle` or before the robot's first FRI
+    /// message; [`ControlError::Params`] or [`ControlError::Filter`] when the plan's
+    /// pendulum geometry or the filter is refused.
     pub fn arm(&mut self, t_s: f64, plan: &ArmPlan) -> Result<(), ControlError> {
         if self.machine.state() != TrialState::Idle || !self.have_meas {
             return Err(ControlError::State {
@@ -1143,6 +1165,10 @@ impl Controller {
     }
 
     /// The magnet let go of the ball at `t_s`: `Armed -> Released`.
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::State`] when the trial is not `Armed`.
     pub fn release(&mut self, t_s: f64) -> Result<(), ControlError> {
         self.machine
             .go(TrialState::Released)
@@ -1157,6 +1183,10 @@ impl Controller {
     }
 
     /// Back to `Idle` from `Done`, `Abort` or `Armed` (holding where it is).
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::State`] when the trial is not in `Done`, `Abort` or `Armed`.
     pub fn reset(&mut self, t_s: f64) -> Result<(), ControlError> {
         self.machine
             .go(TrialState::Idle)

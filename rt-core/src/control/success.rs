@@ -26,6 +26,11 @@ impl Default for SuccessParams {
 
 impl SuccessParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within(
             "success.position_tolerance_m",

@@ -125,6 +125,11 @@ impl Default for EkfParams {
 
 impl EkfParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within(
             "ekf.measurement_noise_m",
@@ -371,6 +376,11 @@ pub struct Ekf {
 impl Ekf {
     /// A filter for a pendulum of `model` (its damping is the prior for `alpha`) hanging
     /// as `geometry` describes. The lengths of both must agree.
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::Params`] when `params` are invalid, the model's length, gravity or
+    /// damping is out of range, or the geometry's length differs from the model's.
     pub fn new(
         params: EkfParams,
         model: PendulumModel,
@@ -411,6 +421,11 @@ impl Ekf {
 
     /// A filter for one trial of a scenario: the `[pendulum]` section, and the
     /// intercept point drawn for the trial (`task.distance_m`, `task.intercept_height_m`).
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::Params`] when the pendulum section, the distance or the intercept
+    /// height is out of range, or as [`Ekf::new`].
     pub fn for_trial(
         params: EkfParams,
         pendulum: &PendulumParams,
@@ -476,6 +491,10 @@ impl Ekf {
     /// Sets the state by hand at time `t_s` with angle and rate; the covariance comes
     /// from `initial_angle_std_deg`, `initial_rate_std_degps` and the priors of the
     /// estimated constants; `alpha`, `k` and `b` start at the model's values.
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] when `t_s`, `phi_rad` or `rate_radps` is NaN or infinite.
     pub fn initialise(&mut self, t_s: f64, phi_rad: f64, rate_radps: f64) -> Result<(), EkfError> {
         finite("t_s", t_s)?;
         finite("phi_rad", phi_rad)?;
@@ -496,6 +515,11 @@ impl Ekf {
     /// variance) for the next initialisation, e.g. with what the earlier trials
     /// of a session learned; a constant whose switch is off keeps its model
     /// value. Non-finite or negative values are refused and change nothing.
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] for a non-finite mean or variance;
+    /// [`EkfError::OutOfRange`] for a negative variance or a `k` mean that is not `> 0`.
     pub fn set_constant_priors(
         &mut self,
         k: Option<(f64, f64)>,
@@ -588,6 +612,11 @@ impl Ekf {
     /// assert!(ekf.measure(0.066, f64::NAN).is_err());
     /// assert_eq!(ekf.posterior(), before);
     /// ```
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] when `t_capture_s` or `z_m` is NaN or infinite (an
+    /// implausible measurement is `Ok(MeasureOutcome::Rejected)`).
     pub fn measure(&mut self, t_capture_s: f64, z_m: f64) -> Result<MeasureOutcome, EkfError> {
         finite("t_capture_s", t_capture_s)?;
         finite("z_m", z_m)?;

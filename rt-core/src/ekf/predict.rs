@@ -142,6 +142,12 @@ impl Ekf {
 
     /// The predicted state, ball position and their uncertainty at `t_s` (within twice
     /// `horizon_s` of the last measurement), written into `out`.
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] for a non-finite `t_s`; [`EkfError::NotInitialised`]
+    /// before the filter runs; [`EkfError::OutOfRange`] when `t_s` is more than twice
+    /// `horizon_s` from the last measurement.
     pub fn predict_at(&self, t_s: f64, out: &mut Prediction) -> Result<(), EkfError> {
         finite("t_s", t_s)?;
         let (t0, x0, p0) = self.posterior_or_err()?;
@@ -154,6 +160,12 @@ impl Ekf {
     /// Predictions at `t_start_s + i step_s` for each slot of `out` (the dashboard's
     /// horizon; the paper shows 300 steps); returns how many were filled (fewer when
     /// the span passes twice the horizon).
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] for non-finite input; [`EkfError::OutOfRange`] for a
+    /// `step_s` that is not `> 0` or a start more than twice `horizon_s` from the last
+    /// measurement; [`EkfError::NotInitialised`] before the filter runs.
     pub fn predict_horizon(
         &self,
         t_start_s: f64,
@@ -192,6 +204,12 @@ impl Ekf {
     /// (`|lateral_m| < l`; relative to the estimated rest point, i.e. `l sin(phi)`
     /// without the offset `b`: 0 is the bottom) at or after `t_from_s`, up to `horizon_s` after it, written
     /// into `out` in time order; returns how many were found (at most `out.len()`).
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] for non-finite input; [`EkfError::OutOfRange`] when
+    /// `|lateral_m|` reaches the length or `t_from_s` is more than twice `horizon_s`
+    /// from the last measurement; [`EkfError::NotInitialised`] before the filter runs.
     pub fn crossings(
         &self,
         t_from_s: f64,
@@ -280,6 +298,12 @@ impl Ekf {
     /// `now_s`, to meet pass `req.pass_index` among those it can still reach, and
     /// whether the prediction is confident enough to commit. `Ok(None)` when no such
     /// pass lies within the horizon.
+    ///
+    /// # Errors
+    ///
+    /// [`EkfError::NotFinite`] for non-finite input; [`EkfError::OutOfRange`] for a
+    /// negative duration or latency, a `pass_index` of 8 or more, or as
+    /// [`Self::crossings`]; [`EkfError::NotInitialised`] before the filter runs.
     pub fn plan_motion(
         &self,
         now_s: f64,

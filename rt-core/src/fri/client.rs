@@ -56,6 +56,11 @@ impl Default for FriClientParams {
 
 impl FriClientParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// (the guard's included) that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within("fri.silence_periods", self.silence_periods, 1.0, 100.0)?;
         check::within("fri.late_fraction", self.late_fraction, 0.01, 10.0)?;
@@ -381,6 +386,10 @@ pub struct FriClient {
 
 impl FriClient {
     /// A client; `params` are validated.
+    ///
+    /// # Errors
+    ///
+    /// The [`ParamError`] of [`FriClientParams::validate`] when `params` are invalid.
     pub fn new(params: FriClientParams) -> Result<Self, ParamError> {
         params.validate()?;
         let stats = SessionStats::default();

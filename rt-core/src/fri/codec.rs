@@ -376,6 +376,13 @@ fn opt_enum<E: TryFrom<i32>>(v: Option<i32>) -> Option<E> {
 ///
 /// Joint arrays that are present but empty count as absent (so a decoder that
 /// reuses its message can keep their allocations).
+///
+/// # Errors
+///
+/// [`CodecError::MissingField`] for an absent required field or header;
+/// [`CodecError::WrongIdentifier`] for another message type; [`CodecError::UnknownEnum`]
+/// for an undefined session state or quality; [`CodecError::JointCount`] or
+/// [`CodecError::ValueCount`] for an array of the wrong size.
 pub fn monitoring_view(
     msg: &FriMonitoringMessage,
     version: FriVersion,
@@ -475,6 +482,12 @@ pub fn monitoring_view(
 }
 
 /// Checks a decoded command message and returns its view.
+///
+/// # Errors
+///
+/// [`CodecError::MissingField`] or [`CodecError::WrongIdentifier`] for a bad header
+/// or a missing required field; [`CodecError::JointCount`] or
+/// [`CodecError::ValueCount`] for an array of the wrong size.
 pub fn command_view(msg: &FriCommandMessage, version: FriVersion) -> Result<Command, CodecError> {
     let (seq, refl) = check_header(msg.header.as_ref(), COMMAND_MESSAGE_ID)?;
     let mut c = Command {
@@ -526,6 +539,11 @@ fn check_len(bytes: &[u8]) -> Result<(), CodecError> {
 
 /// The protobuf bytes of a datagram of `version`: checks the size and, for
 /// 2.7, the frame's length and CRC.
+///
+/// # Errors
+///
+/// [`CodecError::TooLong`] for a datagram longer than FRI allows;
+/// [`CodecError::Frame`] for a 2.7 frame with a wrong length field or CRC-32.
 pub fn payload(bytes: &[u8], version: FriVersion) -> Result<&[u8], CodecError> {
     check_len(bytes)?;
     if version.framed() {
@@ -537,11 +555,21 @@ pub fn payload(bytes: &[u8], version: FriVersion) -> Result<&[u8], CodecError> {
 
 /// Decodes and checks an FRI 1.15 monitoring datagram into a fresh message
 /// (allocates; for tools and tests; the session uses [`MonitoringDecoder`]).
+///
+/// # Errors
+///
+/// As [`decode_monitoring_message_of`].
 pub fn decode_monitoring_message(bytes: &[u8]) -> Result<FriMonitoringMessage, CodecError> {
     decode_monitoring_message_of(bytes, FriVersion::V1_15)
 }
 
 /// Decodes and checks a monitoring datagram of `version` (allocates).
+///
+/// # Errors
+///
+/// [`CodecError::TooLong`] or [`CodecError::Frame`] as [`payload`];
+/// [`CodecError::Malformed`] or [`CodecError::WrongIdentifier`] when the bytes do not
+/// decode as a monitoring message; the errors of [`monitoring_view`].
 pub fn decode_monitoring_message_of(
     bytes: &[u8],
     version: FriVersion,
@@ -555,11 +583,21 @@ pub fn decode_monitoring_message_of(
 }
 
 /// Decodes and checks an FRI 1.15 command datagram into a fresh message (allocates).
+///
+/// # Errors
+///
+/// As [`decode_command_message_of`].
 pub fn decode_command_message(bytes: &[u8]) -> Result<FriCommandMessage, CodecError> {
     decode_command_message_of(bytes, FriVersion::V1_15)
 }
 
 /// Decodes and checks a command datagram of `version` (allocates).
+///
+/// # Errors
+///
+/// [`CodecError::TooLong`] or [`CodecError::Frame`] as [`payload`];
+/// [`CodecError::Malformed`] or [`CodecError::WrongIdentifier`] when the bytes do not
+/// decode as a command message; the errors of [`command_view`].
 pub fn decode_command_message_of(
     bytes: &[u8],
     version: FriVersion,
@@ -664,6 +702,10 @@ impl MonitoringDecoder {
     }
 
     /// Decodes and checks one datagram.
+    ///
+    /// # Errors
+    ///
+    /// As [`decode_monitoring_message_of`].
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Monitoring, CodecError> {
         let pb = payload(bytes, self.version)?;
         self.reset();
@@ -723,6 +765,10 @@ impl CommandDecoder {
     }
 
     /// Decodes and checks one datagram.
+    ///
+    /// # Errors
+    ///
+    /// As [`decode_command_message_of`].
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Command, CodecError> {
         let pb = payload(bytes, self.version)?;
         self.reset();
@@ -778,6 +824,11 @@ impl CommandEncoder {
 
     /// Encodes a command: header only when `joint_position_rad` is `None`, else
     /// the header and 7 joint positions (unpacked). Returns the datagram.
+    ///
+    /// # Errors
+    ///
+    /// [`CodecError::EncodeOverflow`] when the encoded message does not fit in one
+    /// datagram.
     pub fn encode(
         &mut self,
         sequence_counter: u32,
@@ -866,6 +917,11 @@ impl MonitoringEncoder {
     /// Encodes `m`: every field that is `Some` in the view and defined in the
     /// encoder's version is written, joint arrays as 7 unpacked doubles.
     /// Returns the datagram.
+    ///
+    /// # Errors
+    ///
+    /// [`CodecError::EncodeOverflow`] when the encoded message does not fit in one
+    /// datagram.
     pub fn encode(&mut self, m: &Monitoring) -> Result<&[u8], CodecError> {
         let msg = &mut self.msg;
         msg.header = Some(MessageHeader {

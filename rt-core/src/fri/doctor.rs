@@ -315,6 +315,11 @@ struct Seen {
 /// Runs the doctor: listens for `params.duration` and returns what it found.
 /// Only a failure to bind the listen address is reported as a finding without
 /// listening; other I/O errors are returned.
+///
+/// # Errors
+///
+/// [`io::Error`] when the bound socket's address cannot be read or set
+/// non-blocking, polling fails, or (`InvalidInput`) the client refuses the version.
 pub fn run(params: &DoctorParams) -> io::Result<DoctorReport> {
     let mut report = DoctorReport {
         listen: params.listen,

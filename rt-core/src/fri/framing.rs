@@ -40,6 +40,11 @@ pub enum FrameError {
 }
 
 /// The protobuf message inside a framed datagram, after checking its length and CRC.
+///
+/// # Errors
+///
+/// [`FrameError::Length`] when the datagram is shorter than a frame or its length
+/// field does not match; [`FrameError::Crc`] when the CRC-32 does not match.
 pub fn unframe(datagram: &[u8]) -> Result<&[u8], FrameError> {
     if datagram.len() < FRAME_OVERHEAD {
         return Err(FrameError::Length {

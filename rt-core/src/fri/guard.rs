@@ -33,6 +33,11 @@ impl Default for GuardParams {
 
 impl GuardParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within(
             "fri.guard.position_margin_deg",

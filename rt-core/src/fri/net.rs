@@ -12,6 +12,10 @@ use std::time::Duration;
 use rustix::event::{PollFd, PollFlags, Timespec, poll};
 
 /// Waits until `socket` is readable or `timeout` has passed; `Ok(true)` when readable.
+///
+/// # Errors
+///
+/// [`io::Error`] when `poll` fails (other than by an interrupt, which is `Ok(false)`).
 pub fn wait_readable(socket: &UdpSocket, timeout: Duration) -> io::Result<bool> {
     let ts = Timespec {
         tv_sec: i64::try_from(timeout.as_secs()).unwrap_or(i64::MAX),

@@ -121,6 +121,10 @@ impl RtTuning {
 
     /// Parses `auto`, `all`, `none` or a comma-separated list of `fifo`, `pin`,
     /// `isolate`, `mlock`, `spin` (`isolate` implies `pin`).
+    ///
+    /// # Errors
+    ///
+    /// A message naming the word when a list item is not one of the known measures.
     pub fn parse(text: &str) -> Result<Self, String> {
         match text.trim() {
             "auto" => return Ok(Self::auto()),

@@ -84,6 +84,12 @@ pub struct FriSession<C> {
 
 impl<C: ControlStep + Send + 'static> FriSession<C> {
     /// Binds the socket and starts the session thread with `control`.
+    ///
+    /// # Errors
+    ///
+    /// [`SessionError::Params`] for invalid client parameters; [`SessionError::Bind`]
+    /// when the socket cannot be bound; [`SessionError::Io`] when its address cannot be
+    /// read or the thread cannot be started.
     pub fn spawn(params: FriSessionParams, control: C) -> Result<Self, SessionError> {
         let client = FriClient::new(params.client.clone())?;
         let socket = UdpSocket::bind(params.bind).map_err(|source| SessionError::Bind {
@@ -127,6 +133,11 @@ impl<C: ControlStep + Send + 'static> FriSession<C> {
     }
 
     /// Stops the thread (within one receive timeout) and returns the control.
+    ///
+    /// # Errors
+    ///
+    /// [`SessionError::Io`] when the session thread's socket failed;
+    /// [`SessionError::Panicked`] when the thread panicked.
     pub fn stop(mut self) -> Result<C, SessionError> {
         self.stop.store(true, Relaxed);
         match self.handle.take() {

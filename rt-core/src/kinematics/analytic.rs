@@ -196,6 +196,12 @@ pub struct ArmGeometry {
 
 impl ArmGeometry {
     /// Prepares the solution for `base_from_flange`.
+    ///
+    /// # Errors
+    ///
+    /// [`IkError::NotFinite`] for a pose with NaN or infinite entries;
+    /// [`IkError::OutOfReach`] when the wrist centre is beyond the stretched arm;
+    /// [`IkError::WristAtShoulder`] when it coincides with the shoulder.
     pub fn new(base_from_flange: &Pose) -> Result<Self, IkError> {
         let r07 = base_from_flange.rotation.matrix();
         let p = base_from_flange.translation.vector;
@@ -300,6 +306,10 @@ impl ArmGeometry {
 
     /// Like [`Self::solve`], then checks every joint against its position limit
     /// shrunk by `margin_rad`.
+    ///
+    /// # Errors
+    ///
+    /// [`IkError::JointLimit`] for the first joint outside its limit shrunk by `margin_rad`.
     #[inline]
     pub fn solve_within(
         &self,
@@ -422,6 +432,10 @@ fn inside(v: f64, limit: f64) -> bool {
 }
 
 /// Checks every joint against its position limit shrunk by `margin_rad`.
+///
+/// # Errors
+///
+/// [`IkError::JointLimit`] for the first joint outside its limit shrunk by `margin_rad`.
 #[inline]
 pub fn check_limits(q: &Joints, margin_rad: f64) -> Result<(), IkError> {
     for i in 0..JOINTS {
@@ -456,6 +470,12 @@ pub struct IkSolution {
 /// angle and flags that keep the joints farthest from their limits. Cost: one
 /// `ArmGeometry` plus up to 8 x 360 cheap evaluations (tens of microseconds) when
 /// the seed's own arm angle does not fit.
+///
+/// # Errors
+///
+/// As [`ArmGeometry::new`] for a pose that is not finite or out of reach;
+/// [`IkError::NoFeasibleArmAngle`] when no arm angle and flags keep every joint
+/// within its limits; [`IkError::JointLimit`] when the refined solution leaves them.
 pub fn solve(
     base_from_flange: &Pose,
     seed: Option<&Joints>,

@@ -83,6 +83,11 @@ impl Default for KinematicsParams {
 
 impl KinematicsParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] for the first tool offset
+    /// component that is not finite or outside -0.5..=0.5 m.
     pub fn validate(&self) -> Result<(), ParamError> {
         for (i, v) in self.tool_offset_m.iter().enumerate() {
             check::within(&format!("kinematics.tool_offset_m[{i}]"), *v, -0.5, 0.5)?;
@@ -159,6 +164,11 @@ pub enum PoseError {
 
 /// A pose from a position (metres) and a rotation matrix given by rows, checked to
 /// be a rotation within 1e-6 and then re-orthonormalised (parse at the boundary).
+///
+/// # Errors
+///
+/// [`PoseError::NotFinite`] for a NaN or infinite entry; [`PoseError::NotRotation`]
+/// when the matrix is not orthonormal within 1e-6 or is a reflection.
 pub fn pose_from_rows(p_m: [f64; 3], r_rows: [[f64; 3]; 3]) -> Result<Pose, PoseError> {
     if !p_m
         .iter()

@@ -122,6 +122,11 @@ impl NumericIk {
 
     /// Iterates [`Self::step`] from `seed` until within tolerance; the answer (always
     /// within the position limits) is written into `out`.
+    ///
+    /// # Errors
+    ///
+    /// [`IkError::NotFinite`] for a target with NaN or infinite entries;
+    /// [`IkError::NotConverged`] when the iterations end outside the tolerance.
     pub fn solve(
         &self,
         target: &Pose,

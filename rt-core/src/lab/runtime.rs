@@ -410,6 +410,14 @@ impl std::fmt::Debug for LabRuntime {
 impl LabRuntime {
     /// Starts every thread; the control thread talks to the server only
     /// through `control` (and `frames`, from the vision thread).
+    ///
+    /// # Errors
+    ///
+    /// [`RuntimeError::Param`] for an invalid scenario or video section;
+    /// [`RuntimeError::Control`], [`RuntimeError::Magnet`], [`RuntimeError::Vision`] or
+    /// [`RuntimeError::Session`] when the controller, magnet, vision or FRI session does
+    /// not start; [`RuntimeError::Io`] when a thread cannot be spawned; the error of a
+    /// simulated device's start function.
     pub fn start(
         setup: LabSetup,
         control: ControlEnd,
@@ -661,6 +669,11 @@ impl LabRuntime {
     }
 
     /// Waits until the FRI session is COMMANDING_ACTIVE.
+    ///
+    /// # Errors
+    ///
+    /// [`RuntimeError::NotCommanding`] when the session is not COMMANDING_ACTIVE
+    /// within `timeout`.
     pub fn wait_commanding(&self, timeout: Duration) -> Result<(), RuntimeError> {
         let deadline = Instant::now() + timeout;
         while self.session_stats.state() != crate::fri::LinkState::CommandingActive {
@@ -729,6 +742,11 @@ impl LabRuntime {
     }
 
     /// Stops every thread; returns the control step (its counters).
+    ///
+    /// # Errors
+    ///
+    /// [`RuntimeError::Thread`] when the FRI session thread panicked, failed or was
+    /// already stopped.
     pub fn stop(mut self) -> Result<LabStep, RuntimeError> {
         self.shutdown()
     }

@@ -69,6 +69,10 @@ pub trait TruthObserver: Send {
     /// A trial starts: the true ball hangs at the drawn release angle (not
     /// yet shown to the camera: [`Self::show`]). `Err`: the world cannot
     /// hang it (the trial is refused).
+    ///
+    /// # Errors
+    ///
+    /// A [`Refusal`] when the world cannot hang the ball for this trial.
     fn hang(&mut self, start: &TrialStart<'_>) -> Result<(), Refusal>;
 
     /// The trial is armed: from now on the camera sees the hanging ball.

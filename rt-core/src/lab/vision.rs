@@ -57,6 +57,12 @@ impl Default for VideoParams {
 
 impl VideoParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`](crate::check::ParamError::NotFinite) or
+    /// [`ParamError::OutOfRange`](crate::check::ParamError::OutOfRange) naming the first
+    /// field that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), crate::check::ParamError> {
         check::within_u32("video.width_px", self.width_px, 64, 3840)?;
         check::within("video.fps", self.fps, 0.5, 60.0)?;
@@ -148,6 +154,10 @@ impl LedFeed {
 /// Mean brightness (over the three channels, 0..255) of the square of
 /// half-side `roi_px[2]` around (`roi_px[0]`, `roi_px[1]`), clipped to the
 /// image; `None` when nothing of it is in the image.
+///
+/// # Errors
+///
+/// [`VisionError::OpenCv`] when taking the region or its mean fails.
 pub fn led_level(image: &Mat, roi_px: [f64; 3]) -> Result<Option<f64>, VisionError> {
     let (w, h) = (image.cols(), image.rows());
     let r = roi_px[2].max(0.0).round() as i32;
@@ -233,6 +243,11 @@ impl std::fmt::Debug for VisionParts {
 
 impl VisionLoop {
     /// Starts `isochron-vision`.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid video parameters; the error of
+    /// [`VisionPipeline::new`]; [`VisionError::Spawn`] when the thread cannot start.
     pub fn spawn(parts: VisionParts) -> Result<Self, VisionError> {
         if let Some((_, v)) = &parts.video {
             v.validate()?;
@@ -270,6 +285,10 @@ impl VisionLoop {
     }
 
     /// Stops the thread and returns how it ended.
+    ///
+    /// # Errors
+    ///
+    /// The error the vision thread ended with; [`VisionError::Panicked`] when it panicked.
     pub fn stop(mut self) -> Result<(), VisionError> {
         self.stop.store(true, Ordering::Relaxed);
         match self.handle.take() {
@@ -419,6 +438,11 @@ fn run(
 }
 
 /// Downscales `image` to `p.width_px` wide and encodes it as JPEG into `out`.
+///
+/// # Errors
+///
+/// [`VisionError::BadFrame`] for an empty image or when JPEG encoding is refused;
+/// [`VisionError::OpenCv`] when resizing or encoding fails.
 pub fn encode_jpeg(
     image: &Mat,
     p: &VideoParams,

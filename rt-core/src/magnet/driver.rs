@@ -100,6 +100,13 @@ impl Pending {
 
     /// Waits for the answer. The magnet thread answers every request (with an
     /// error after its timeout at the latest), so this always returns.
+    ///
+    /// # Errors
+    ///
+    /// The error the magnet thread answered with ([`MagnetError::NotConnected`],
+    /// [`MagnetError::DeviceLost`], [`MagnetError::Timeout`], [`MagnetError::Device`],
+    /// [`MagnetError::Busy`] when its queue was full); [`MagnetError::Stopped`] when
+    /// the thread stopped before answering.
     pub fn wait(self) -> Result<Answer, MagnetError> {
         self.rx.recv().unwrap_or(Err(MagnetError::Stopped))
     }
@@ -151,6 +158,10 @@ impl MagnetHandle {
     /// Validates `params` and starts the `isochron-magnet` thread, which opens the
     /// port, resynchronises, sets the hold limit, asks the state, and from then on
     /// keeps the view current and reconnects whenever the device comes back.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::spawn_with_hook`].
     pub fn spawn(params: MagnetParams) -> Result<Self, MagnetError> {
         Self::spawn_with_hook(params, Box::new(|_| {}))
     }
@@ -158,6 +169,11 @@ impl MagnetHandle {
     /// As [`spawn`](Self::spawn), calling `hook` on the magnet thread for every
     /// event: the simulated lab releases its pendulum on
     /// `EventKind::Switched { on: false, .. }` at `event.at`.
+    ///
+    /// # Errors
+    ///
+    /// [`MagnetError::Params`] for invalid `params`; [`MagnetError::Spawn`] when the
+    /// thread cannot start (a missing device is not an error: the thread reconnects).
     pub fn spawn_with_hook(params: MagnetParams, hook: EventHook) -> Result<Self, MagnetError> {
         params.validate()?;
         let (tx, rx) = sync_channel(QUEUE_CAPACITY + 64);
@@ -204,6 +220,11 @@ impl MagnetHandle {
     }
 
     /// Queues a command without blocking; [`MagnetError::Busy`] when the queue is full.
+    ///
+    /// # Errors
+    ///
+    /// [`MagnetError::Busy`] when the queue is full; [`MagnetError::Stopped`] when the
+    /// magnet thread has stopped.
     pub fn submit(&self, cmd: Command) -> Result<Pending, MagnetError> {
         let (reply, rx) = sync_channel(1);
         match self
@@ -218,6 +239,11 @@ impl MagnetHandle {
     }
 
     /// Switches the magnet and returns the state the device reports (blocking).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::submit`] and [`Pending::wait`]; [`MagnetError::Protocol`] when the
+    /// answer carries no device state.
     pub fn set_magnet(&self, on: bool) -> Result<DeviceStatus, MagnetError> {
         let a = self.submit(Command::Magnet(on))?.wait()?;
         a.status()
@@ -227,6 +253,11 @@ impl MagnetHandle {
     /// Switches the calibration LED (blocking). The answer carries the command's
     /// send time and round trip: the LED switched within them (half the round trip
     /// is the usual estimate of when).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::submit`] and [`Pending::wait`]; [`MagnetError::Protocol`] when the
+    /// answer is not an LED answer in the asked state.
     pub fn set_led(&self, on: bool) -> Result<Answer, MagnetError> {
         let a = self.submit(Command::Led(on))?.wait()?;
         match a.reply {
@@ -236,6 +267,11 @@ impl MagnetHandle {
     }
 
     /// Asks the device's state (blocking).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::submit`] and [`Pending::wait`]; [`MagnetError::Protocol`] when the
+    /// answer carries no device state.
     pub fn status(&self) -> Result<DeviceStatus, MagnetError> {
         let a = self.submit(Command::Status)?.wait()?;
         a.status()
@@ -243,6 +279,11 @@ impl MagnetHandle {
     }
 
     /// Sets the coil's maximum hold time, seconds (blocking); returns it in ms.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::submit`] and [`Pending::wait`]; [`MagnetError::Protocol`] when the
+    /// answer is not a hold answer.
     pub fn set_hold_limit(&self, seconds: u16) -> Result<u32, MagnetError> {
         match self.submit(Command::Hold(seconds))?.wait()?.reply {
             OkReply::Hold { hold_max_ms } => Ok(hold_max_ms),

@@ -76,6 +76,11 @@ impl MagnetParams {
     }
 
     /// Checks every field, naming the first bad one (`magnet.command_timeout_ms`).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::OutOfRange`] for an empty port, and [`ParamError::NotFinite`] or
+    /// [`ParamError::OutOfRange`] naming the first other field outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         if self.port.trim().is_empty() {
             return Err(ParamError::OutOfRange {

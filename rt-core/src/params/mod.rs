@@ -76,6 +76,12 @@ impl Default for CameraParams {
 
 impl CameraParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first bad
+    /// field (a drop rate above 0.9 included), or the error of the pose's or
+    /// intrinsics' check.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within("camera.fps", self.fps, 1.0, 500.0)?;
         check::within_u32("camera.width_px", self.width_px, 64, 7680)?;
@@ -132,6 +138,11 @@ impl Default for RobotParams {
 
 impl RobotParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         crate::control::beliefs::validate_fri_period_ms("robot.fri_period_ms", self.fri_period_ms)?;
         check::within("robot.latency_ms", self.latency_ms, 0.0, 200.0)?;
@@ -186,6 +197,10 @@ impl Default for Scenario {
 
 impl Scenario {
     /// Checks every section; the error names the first bad field.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::validate_but_world`], then the first error of the `[world]` section's check.
     pub fn validate(&self) -> Result<(), ParamError> {
         self.validate_but_world()?;
         if let Some(w) = &self.world {
@@ -196,6 +211,11 @@ impl Scenario {
 
     /// Checks every section but `[world]` (what the lab believes; the
     /// controller checks its own part again, `control::Beliefs::validate`).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::OutOfRange`] for a name that is empty or longer than 64
+    /// characters; otherwise the first error of a section's check.
     pub fn validate_but_world(&self) -> Result<(), ParamError> {
         if self.name.is_empty() || self.name.len() > 64 {
             return Err(ParamError::OutOfRange {
@@ -240,6 +260,11 @@ impl Scenario {
     /// // An unknown key is refused too.
     /// assert!(Scenario::from_toml_str("[pendulum]\nlenght_m = 2.0\n").is_err());
     /// ```
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Parse`] for bad TOML, a wrong type or an unknown key; a
+    /// validation error of [`Self::validate`] naming the first bad field.
     pub fn from_toml_str(text: &str) -> Result<Self, ParamError> {
         let scenario: Self = toml::from_str(text).map_err(|e| toml_error(text, &e))?;
         scenario.validate()?;
@@ -247,6 +272,11 @@ impl Scenario {
     }
 
     /// Reads, parses and validates a scenario file.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::Io`] when the file cannot be read; otherwise as
+    /// [`Self::from_toml_str`], with the file named.
     pub fn from_file(path: &Path) -> Result<Self, ParamError> {
         let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
             path: path.display().to_string(),

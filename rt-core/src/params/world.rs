@@ -308,6 +308,11 @@ fn range(field: &str, r: &RangeParam, lo: f64, hi: f64) -> Result<(), ParamError
 
 impl WorldParams {
     /// Checks every field; the error names the first bad one (`world.camera.latency_ms`).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`], [`ParamError::OutOfRange`] or [`ParamError::Reversed`]
+    /// naming the first field that is not finite, outside its range or a reversed range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within_u32(
             "world.sessions.trials_per_session",

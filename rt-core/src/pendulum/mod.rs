@@ -33,6 +33,10 @@ pub struct PendulumModel {
 
 impl PendulumModel {
     /// The model of a validated `[pendulum]` section.
+    ///
+    /// # Errors
+    ///
+    /// The error of [`PendulumParams::validate`] naming the first bad field.
     pub fn from_params(p: &PendulumParams) -> Result<Self, ParamError> {
         p.validate()?;
         Ok(Self {
@@ -43,6 +47,11 @@ impl PendulumModel {
     }
 
     /// The model with a different damping (e.g. a mis-modelled truth), checked.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] when `damping_per_s` is
+    /// not finite or outside -5..=5 per second.
     pub fn with_damping(self, damping_per_s: f64) -> Result<Self, ParamError> {
         check::within("pendulum.damping_per_s", damping_per_s, -5.0, 5.0)?;
         Ok(Self {
@@ -131,6 +140,11 @@ impl PendulumGeometry {
     /// The geometry of a pendulum of length `length_m` whose ball rests at the intercept
     /// point `distance_m` in front of the robot's base axis (along +x) and
     /// `intercept_height_m` above the base.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] when the length, distance
+    /// or intercept height is not finite or outside its range.
     pub fn new(
         length_m: f64,
         distance_m: f64,
@@ -218,6 +232,10 @@ pub struct PendulumSim {
 
 impl PendulumSim {
     /// A pendulum held at rest at `angle_rad` at time `t_s` (the magnet is on).
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::NotFinite`] when `angle_rad` or `t_s` is NaN or infinite.
     pub fn held_at(
         model: PendulumModel,
         geometry: PendulumGeometry,
@@ -240,6 +258,10 @@ impl PendulumSim {
     }
 
     /// A free pendulum in state `state` at time `t_s`.
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::NotFinite`] when `state` or `t_s` is NaN or infinite.
     pub fn free(
         model: PendulumModel,
         geometry: PendulumGeometry,
@@ -262,6 +284,10 @@ impl PendulumSim {
     }
 
     /// The magnet lets go at `t_s` (>= the current time): the ball swings from rest.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::advance_to`].
     pub fn release(&mut self, t_s: f64) -> Result<(), SimError> {
         self.advance_to(t_s)?;
         self.held = false;
@@ -269,12 +295,22 @@ impl PendulumSim {
     }
 
     /// Advances to `t_s` (>= the current time) with no disturbance.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::advance_to_with_accel`].
     pub fn advance_to(&mut self, t_s: f64) -> Result<(), SimError> {
         self.advance_to_with_accel(t_s, 0.0)
     }
 
     /// Advances to `t_s` with a constant external angular acceleration `accel_radps2`
     /// (the process noise a test wants the truth to carry).
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::NotFinite`] for a non-finite `t_s` or `accel_radps2`;
+    /// [`SimError::TimeBackwards`] when `t_s` is before the current time;
+    /// [`SimError::TooFar`] when the step is longer than [`SIM_MAX_SPAN_S`].
     pub fn advance_to_with_accel(&mut self, t_s: f64, accel_radps2: f64) -> Result<(), SimError> {
         if !t_s.is_finite() {
             return Err(SimError::NotFinite { what: "t_s" });

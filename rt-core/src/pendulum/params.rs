@@ -34,6 +34,11 @@ impl Default for PendulumParams {
 
 impl PendulumParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`], [`ParamError::OutOfRange`] or [`ParamError::Reversed`]
+    /// naming the first field that is not finite, outside its range or a reversed range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within("pendulum.length_m", self.length_m, 0.1, 10.0)?;
         check::within("pendulum.damping_per_s", self.damping_per_s, 0.0, 5.0)?;

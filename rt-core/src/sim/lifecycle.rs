@@ -279,6 +279,11 @@ fn run_until(
 }
 
 /// Runs one sequence on a fresh lab of `scenario`, deterministic for `seed`.
+///
+/// # Errors
+///
+/// A [`LifecycleViolation`] (what did not hold, the seed, the actions) when the lab
+/// cannot be built or an invariant of the sequence breaks.
 pub fn run_sequence(
     scenario: &Scenario,
     seed: u64,
@@ -460,6 +465,11 @@ pub fn run_sequence(
 
 /// Runs `sequences` sequences, seeds `seed`, `seed + 1`, ...; stops at the
 /// first violation.
+///
+/// # Errors
+///
+/// The first sequence's [`LifecycleViolation`], with the report of the sequences
+/// run until then.
 pub fn run(
     scenario: &Scenario,
     seed: u64,

@@ -281,6 +281,10 @@ impl std::fmt::Debug for VirtualLab {
 impl VirtualLab {
     /// A lab for `scenario`, its simulated robot seeded from `seed`
     /// ([`robot_params`]).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::with_robot`].
     pub fn new(scenario: &Scenario, seed: u64) -> Result<Self, LabError> {
         Self::with_robot(scenario, seed, robot_params(scenario, seed))
     }
@@ -288,6 +292,13 @@ impl VirtualLab {
     /// A lab for `scenario` whose simulated KUKA controller has `robot`
     /// (e.g. [`robot_params`] with injected faults). Brings the FRI session up
     /// to COMMANDING_ACTIVE.
+    ///
+    /// # Errors
+    ///
+    /// [`LabError::Control`] when the controller refuses the scenario;
+    /// [`LabError::Robot`] when the simulated robot refuses `robot`; [`LabError::Camera`],
+    /// [`LabError::Vision`] or [`LabError::NoOpenCv`] when the camera cannot start;
+    /// [`LabError::NotCommanding`] when the session does not reach COMMANDING_ACTIVE.
     pub fn with_robot(
         scenario: &Scenario,
         seed: u64,

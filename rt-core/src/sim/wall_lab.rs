@@ -183,6 +183,11 @@ pub fn sim_server(lab: &LabRuntime) -> Option<&SimServer> {
 /// Runs the simulated lab at the scenario's FRI period and measures the loop
 /// for `duration` once the session commands (no server attached: the bridge's
 /// server end is dropped, so every hand-off is counted, never waited on).
+///
+/// # Errors
+///
+/// The [`RuntimeError`] of [`LabRuntime::start`], [`LabRuntime::wait_commanding`]
+/// (not commanding within 5 s) or [`LabRuntime::stop`].
 pub fn run_loop(scenario: &Scenario, duration: Duration) -> Result<LoopReport, RuntimeError> {
     let (control, _server) = crate::bridge::bridge(crate::bridge::BridgeCapacity::default());
     let lab = LabRuntime::start(simulated(scenario.clone(), 1), control, None)?;

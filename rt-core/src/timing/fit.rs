@@ -23,6 +23,12 @@ pub struct ArrivalFit {
 ///
 /// Refuses mismatched or short (< 3) sample slices, non-finite samples and a
 /// non-positive distance or duration.
+///
+/// # Errors
+///
+/// [`TimingError::OutOfRange`] for a distance or duration that is not finite and
+/// positive, or fewer than 3 (or mismatched) samples; [`TimingError::NotFinite`]
+/// for a non-finite sample.
 pub fn fit_arrival(
     kind: ProfileKind,
     distance_m: f64,

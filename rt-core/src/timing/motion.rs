@@ -153,6 +153,10 @@ pub struct TimedMotion {
 
 impl TimedMotion {
     /// An idle motion at the origin; the parameters are validated first.
+    ///
+    /// # Errors
+    ///
+    /// The error of [`TimingParams::validate`] naming the first bad field.
     pub fn new(params: TimingParams) -> Result<Self, ParamError> {
         params.validate()?;
         let dynamics = SpeedDynamics::new(&params);
@@ -245,6 +249,12 @@ impl TimedMotion {
     /// let fit = rt_core::timing::fit_arrival(ProfileKind::Hopf, d, 1.5, &times, &progress).unwrap();
     /// assert!((fit.arrival_s - 1.5).abs() < 0.001);
     /// ```
+    ///
+    /// # Errors
+    ///
+    /// [`TimingError::Busy`] while a motion runs; [`TimingError::NotFinite`] for
+    /// non-finite input; [`TimingError::OutOfRange`] while the previous motion has not
+    /// come to rest, or for a too-short path or a duration out of range.
     pub fn begin(
         &mut self,
         start_m: &Vector3<f64>,
@@ -323,6 +333,11 @@ impl TimedMotion {
     /// and the oscillator's amplitude are re-planned so the arrival time stays
     /// fixed; the new target is approached through a critically damped filter,
     /// so the commanded velocity stays continuous. Refused before any `begin`.
+    ///
+    /// # Errors
+    ///
+    /// [`TimingError::NotStarted`] before any `begin`; [`TimingError::NotFinite`] for a
+    /// non-finite target.
     pub fn retarget(&mut self, target_m: &Vector3<f64>) -> Result<(), TimingError> {
         if self.phase == MotionPhase::Idle {
             return Err(TimingError::NotStarted);
@@ -343,6 +358,12 @@ impl TimedMotion {
 
     /// Moves the planned arrival time (seconds since `begin`) while moving; it
     /// must leave at least [`MIN_DURATION_S`] from now.
+    ///
+    /// # Errors
+    ///
+    /// [`TimingError::NotStarted`] when not moving; [`TimingError::NotFinite`] for a
+    /// non-finite time; [`TimingError::OutOfRange`] for a time out of range or once the
+    /// motion is in its last (frozen) phase.
     pub fn retime(&mut self, arrival_time_s: f64) -> Result<(), TimingError> {
         if self.phase != MotionPhase::Moving {
             return Err(TimingError::NotStarted);
@@ -374,6 +395,10 @@ impl TimedMotion {
 
     /// Back to idle at `position_m` (an abort or a new session); refused for
     /// non-finite input.
+    ///
+    /// # Errors
+    ///
+    /// [`TimingError::NotFinite`] when `position_m` has a NaN or infinite coordinate.
     pub fn reset(&mut self, position_m: &Vector3<f64>) -> Result<(), TimingError> {
         finite_vec("position_m", position_m)?;
         let floor = self.dynamics.neuron_floor();
@@ -405,6 +430,11 @@ impl TimedMotion {
     ///
     /// A `dt_s` that is not finite, not positive or above [`MAX_STEP_S`], or a
     /// non-finite measurement, is refused and changes nothing.
+    ///
+    /// # Errors
+    ///
+    /// [`TimingError::NotFinite`] for a non-finite `dt_s` or measurement;
+    /// [`TimingError::OutOfRange`] for a `dt_s` that is not positive or above [`MAX_STEP_S`].
     pub fn step(
         &mut self,
         dt_s: f64,

@@ -79,6 +79,11 @@ impl Default for TimingParams {
 
 impl TimingParams {
     /// Checks every field; the error names the first bad one (`timing.<field>`).
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite, outside its range or inconsistent with another.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within(
             "timing.hopf_lambda_per_s",

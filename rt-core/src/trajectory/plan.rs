@@ -73,6 +73,11 @@ impl Default for TrajectoryParams {
 
 impl TrajectoryParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within(
             "trajectory.velocity_fraction",
@@ -560,6 +565,10 @@ impl MotionPlan {
     }
 
     /// The per-cycle IK ([`Posture::joints_for_point`] in this plan's posture).
+    ///
+    /// # Errors
+    ///
+    /// As [`Posture::joints_for_point`].
     pub fn joints_for_point(
         &self,
         p_m: &Vector3<f64>,
@@ -593,6 +602,10 @@ impl MotionPlan {
     }
 
     /// [`Self::joints_for_point`] at path fraction `s` of the planned line.
+    ///
+    /// # Errors
+    ///
+    /// As [`Posture::joints_for_point`].
     pub fn joints_at(&self, s: f64, prev: &Joints, out: &mut Joints) -> Result<(), IkError> {
         self.joints_for_point(&self.request.point_at(s), prev, out)
     }
@@ -629,6 +642,12 @@ impl Posture {
     /// wrist singularity. Exact (analytic), allocation-free, under a
     /// microsecond; refuses (and leaves `out` unchanged) a point the arm cannot
     /// reach or a solution outside the joint limits.
+    ///
+    /// # Errors
+    ///
+    /// An [`IkError`] when the arm cannot reach `p_m` in this posture
+    /// ([`IkError::OutOfReach`], [`IkError::NotFinite`], ...) or a joint leaves its limits
+    /// ([`IkError::JointLimit`]).
     pub fn joints_for_point(
         &self,
         p_m: &Vector3<f64>,
@@ -705,6 +724,12 @@ struct Cand {
 /// assert!(p.feasible);
 /// assert!(p.speed_ratio.iter().all(|r| *r <= 1.0));
 /// ```
+///
+/// # Errors
+///
+/// [`PlanError::NotFinitePoints`], [`PlanError::MovementTime`] or
+/// [`PlanError::PointsCoincide`] for a bad request; [`PlanError::Params`] for bad
+/// `params`; [`PlanError::Unreachable`] when the line leaves the arm's reach at every tilt.
 pub fn plan(req: &MotionRequest, params: &TrajectoryParams) -> Result<MotionPlan, PlanError> {
     validate_request(req)?;
     params.validate()?;
@@ -900,6 +925,11 @@ fn finish(
 }
 
 /// Evaluates a given posture (no search), e.g. to compare with a plan.
+///
+/// # Errors
+///
+/// As [`plan`] for a bad request or `params`; [`PlanError::Unreachable`] when the
+/// line leaves the arm's reach in the given posture.
 pub fn evaluate(
     req: &MotionRequest,
     params: &TrajectoryParams,

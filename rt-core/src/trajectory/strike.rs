@@ -125,6 +125,12 @@ impl Stroke {
     /// The stroke through `contact_m` along `direction` (normalised here)
     /// meeting the ball at `speed_mps` after `movement_time_s`, contact at
     /// `contact_fraction` of the cycle (in (0, 1)), with `tool`.
+    ///
+    /// # Errors
+    ///
+    /// [`StrikeError::OutOfRange`] for a speed or movement time that is not positive,
+    /// a contact fraction outside (0, 1), a zero or non-finite direction, or a
+    /// non-finite contact point.
     pub fn new(
         contact_m: Vector3<f64>,
         direction: Vector3<f64>,
@@ -222,6 +228,10 @@ impl TorqueCheck {
 /// the path every `dt_s`, by recursive Newton-Euler on `arm` (gravity
 /// included): joint velocities and accelerations by central differences of
 /// the tracked joint path.
+///
+/// # Errors
+///
+/// [`StrikeError::Ik`] when a point of the path leaves the arm's reach.
 pub fn torque_check(
     request: &MotionRequest,
     planned: &MotionPlan,
@@ -307,6 +317,11 @@ pub const TORQUE_FRACTION: f64 = 0.8;
 
 /// Plans `stroke`: the posture and kinematic limits by [`plan`], then the
 /// torques along it with `tool_mass_kg` at the flange.
+///
+/// # Errors
+///
+/// [`StrikeError::Plan`] when [`plan`] refuses the request (an unreachable stroke is
+/// a refused plan, not an error); [`StrikeError::Ik`] as [`torque_check`].
 pub fn plan_strike(
     stroke: Stroke,
     params: &TrajectoryParams,
@@ -387,6 +402,11 @@ pub struct StrikeSearch {
 /// `direction` is feasible, over the contact phases [`CONTACT_PHASES`];
 /// bisection per phase (feasibility falls with speed: longer strokes, faster
 /// joints, larger torques).
+///
+/// # Errors
+///
+/// The errors of [`Stroke::new`] and [`plan_strike`] for a tried speed and phase
+/// (e.g. [`StrikeError::OutOfRange`] for a bad direction or contact point).
 pub fn largest_strike_speed(
     contact_m: Vector3<f64>,
     direction: Vector3<f64>,

@@ -55,6 +55,11 @@ impl TaskParams {
     }
 
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`], [`ParamError::OutOfRange`] or [`ParamError::Reversed`]
+    /// naming the first field that is not finite, outside its range or a reversed range.
     pub fn validate(&self) -> Result<(), ParamError> {
         self.distance_m
             .validate_with("task.distance_m", |f, v| check::within(f, v, 0.1, 1.2))?;

@@ -34,6 +34,10 @@ pub struct Fig4Data {
 
 /// Runs the filter over the recording and collects the figure's signals; the
 /// prediction starts after a third of the recording and runs 300 capture intervals.
+///
+/// # Errors
+///
+/// As [`run_filter`].
 pub fn fig4_data(
     series: &Series,
     params: &EkfParams,

@@ -128,6 +128,13 @@ impl Series {
     /// time): while the magnet holds it the ball does not follow the pendulum's
     /// dynamics. Rows without a measurement (`measured_valid` 0) are skipped; a
     /// measurement that is not a finite number is an error naming the line.
+    ///
+    /// # Errors
+    ///
+    /// [`TuneError::Csv`] when the CSV reader refuses the text; [`TuneError::Empty`],
+    /// [`TuneError::MissingColumns`], [`TuneError::TooFewColumns`],
+    /// [`TuneError::BadNumber`] or [`TuneError::TimeGoesBack`] naming the bad line;
+    /// [`TuneError::NotReleased`] for a trial recording without a release.
     pub fn from_csv(text: &str) -> Result<Self, TuneError> {
         let mut reader = csv::ReaderBuilder::new()
             .comment(Some(b'#'))
@@ -221,6 +228,11 @@ impl Series {
     /// Refuses a series `tune` cannot work on: too few measurements, or a ball
     /// that does not swing (the lateral span must exceed [`MIN_SWING_SPAN_M`] and
     /// twenty times the noise seen in the second differences).
+    ///
+    /// # Errors
+    ///
+    /// [`TuneError::TooShort`] with fewer than [`MIN_MEASUREMENTS`] measurements;
+    /// [`TuneError::NoMotion`] when the lateral span is too small for the noise.
     pub fn check_tunable(&self) -> Result<(), TuneError> {
         if self.len() < MIN_MEASUREMENTS {
             return Err(TuneError::TooShort(self.len()));
@@ -413,6 +425,11 @@ fn pass(
 ///
 /// Calls `each(i, prediction_before, outcome, innovation, innovation_variance)` per
 /// measurement after the filter is running, for figures.
+///
+/// # Errors
+///
+/// [`TuneError::Params`] for invalid `params`; [`TuneError::Filter`] when the
+/// filter refuses its set-up or a measurement.
 pub fn run_filter(
     series: &Series,
     params: &EkfParams,
@@ -428,6 +445,11 @@ pub fn run_filter(
 
 /// The filter over several recordings (a fresh filter for each, as each trial
 /// starts one), their innovations pooled.
+///
+/// # Errors
+///
+/// [`TuneError::Params`] for invalid `params`; [`TuneError::Filter`] when the
+/// filter refuses its set-up or a measurement.
 pub fn run_filters(
     recordings: &[Series],
     params: &EkfParams,
@@ -488,6 +510,10 @@ pub fn with_noise(params: &EkfParams, r_std_m: f64, q: f64) -> EkfParams {
 /// (Nelder-Mead on the logarithms of both), then reports the consistency of the
 /// result. `params` supplies everything else (model, gate, damping estimation) and
 /// the starting point of the search.
+///
+/// # Errors
+///
+/// As [`tune_recordings`].
 pub fn tune(
     series: &Series,
     params: &EkfParams,
@@ -501,6 +527,12 @@ pub fn tune(
 /// service records them): each is run by a fresh filter and the likelihoods of
 /// all their innovations are maximised together. Every recording must show a
 /// swing, and together they must hold at least [`MIN_MEASUREMENTS`].
+///
+/// # Errors
+///
+/// [`TuneError::TooShort`] with fewer than [`MIN_MEASUREMENTS`] measurements in all;
+/// [`TuneError::NoMotion`] when a recording does not swing; [`TuneError::Params`] or
+/// [`TuneError::Filter`] as [`run_filters`].
 pub fn tune_recordings(
     recordings: &[Series],
     params: &EkfParams,
@@ -673,6 +705,11 @@ pub fn params_toml(params: &EkfParams, report: &TuneReport) -> String {
 /// section by section; every other key keeps the scenario's value. The file is
 /// checked like a scenario file (unknown keys, types and ranges refused, naming
 /// the line and field) and so is the result; on error nothing is returned.
+///
+/// # Errors
+///
+/// [`ParamError::Parse`] for bad TOML, a wrong type or an unknown key (in the file
+/// or the merge); a validation error naming the first bad field of the file or the result.
 pub fn overlay_params(scenario: &Scenario, text: &str) -> Result<Scenario, ParamError> {
     // Alone first: its errors then name the file's line and field.
     Scenario::from_toml_str(text)?;
@@ -687,6 +724,11 @@ pub fn overlay_params(scenario: &Scenario, text: &str) -> Result<Scenario, Param
 }
 
 /// [`overlay_params`] with a file; errors name the file.
+///
+/// # Errors
+///
+/// [`ParamError::Io`] when the file cannot be read; otherwise as
+/// [`overlay_params`], with the file named.
 pub fn overlay_params_file(scenario: &Scenario, path: &Path) -> Result<Scenario, ParamError> {
     let text = std::fs::read_to_string(path).map_err(|e| ParamError::Io {
         path: path.display().to_string(),

@@ -59,6 +59,11 @@ impl CameraIntrinsics {
     }
 
     /// Checks every field; `prefix` is the dotted path of this struct.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self, prefix: &str) -> Result<(), ParamError> {
         check::within(&format!("{prefix}.fx_px"), self.fx_px, 10.0, 1e5)?;
         check::within(&format!("{prefix}.fy_px"), self.fy_px, 10.0, 1e5)?;
@@ -159,6 +164,11 @@ impl Default for CameraPose {
 
 impl CameraPose {
     /// Checks every field; `prefix` is the dotted path of this struct.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite or outside its range.
     pub fn validate(&self, prefix: &str) -> Result<(), ParamError> {
         for (i, v) in self.position_m.iter().enumerate() {
             check::within(&format!("{prefix}.position_m[{i}]"), *v, -10.0, 10.0)?;
@@ -255,6 +265,12 @@ impl SwingPlaneCalibration {
     /// computed from `rest_b`, the rest position in the base frame). The apparent
     /// size gives a second distance; if the two differ by more than
     /// `size_tolerance` (relative) the calibration is refused.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for bad intrinsics, pose, distance, radius, tolerance or
+    /// detection; [`VisionError::PlaneEdgeOn`] when the camera looks along the swing
+    /// plane; [`VisionError::SizeDisagrees`] when the two distances differ too much.
     pub fn from_rest_observation(
         intrinsics: CameraIntrinsics,
         pose: &CameraPose,

@@ -124,6 +124,10 @@ impl HsvRange {
 
     /// `out` = 255 where `img` (8-bit BGR, a view of a frame is fine) is in the
     /// range, 0 elsewhere; `out` is reallocated only when its size changes.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::mask_sampled`].
     pub fn mask(&self, img: &impl MatTraitConst, out: &mut Mat) -> Result<(), VisionError> {
         self.mask_sampled(img, 1, out)
     }
@@ -131,6 +135,11 @@ impl HsvRange {
     /// [`Self::mask`] of every `step`-th pixel of every `step`-th row (the
     /// pixel at the top left of each `step` x `step` block): `out` is
     /// `rows / step` x `cols / step`, as `resize` to that size would make it.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::BadFrame`] when `img` is not 8-bit BGR; [`VisionError::OpenCv`]
+    /// when `out` cannot be allocated or a row cannot be accessed.
     pub fn mask_sampled(
         &self,
         img: &impl MatTraitConst,

@@ -98,11 +98,20 @@ impl Default for DetectorParams {
 
 impl DetectorParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::validate_at`].
     pub fn validate(&self) -> Result<(), ParamError> {
         self.validate_at("vision.detector")
     }
 
     /// Checks every field under the dotted path `prefix`.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// outside its range; [`ParamError::Reversed`] for a reversed hue or radius range.
     pub fn validate_at(&self, prefix: &str) -> Result<(), ParamError> {
         let f = |name: &str| format!("{prefix}.{name}");
         check::within(&f("hue_deg[0]"), self.hue_deg[0], 0.0, 360.0)?;
@@ -219,6 +228,11 @@ struct Blob {
 
 impl Detector {
     /// A detector with validated parameters; limits OpenCV to one thread.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid `params`; [`VisionError::OpenCv`] when
+    /// OpenCV's thread count cannot be set.
     pub fn new(params: DetectorParams) -> Result<Self, VisionError> {
         params.validate()?;
         super::limit_opencv_threads()?;
@@ -280,6 +294,11 @@ impl Detector {
 
     /// Finds the ball in an 8-bit BGR image taken at `t_s` (seconds, any clock;
     /// used to predict the tracking window).
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::BadFrame`] when `image` is empty or not 8-bit BGR;
+    /// [`VisionError::OpenCv`] when an OpenCV call fails (no ball found is `Ok(None)`).
     pub fn detect(&mut self, image: &Mat, t_s: f64) -> Result<Option<Detection>, VisionError> {
         if image.empty() || image.typ() != core::CV_8UC3 {
             return Err(FrameProblem::NotBgr {

@@ -231,6 +231,10 @@ pub fn measurement_ring(
 /// Limits OpenCV to one worker thread, so the control thread keeps a core.
 ///
 /// OpenCV's setting is process-wide; calling it again is harmless.
+///
+/// # Errors
+///
+/// [`VisionError::OpenCv`] when OpenCV refuses the setting.
 #[cfg(feature = "opencv")]
 pub fn limit_opencv_threads() -> Result<(), VisionError> {
     opencv::core::set_num_threads(1)?;

@@ -100,6 +100,10 @@ pub struct Morphology {
 impl Morphology {
     /// `dst` = the opening of `src` (`w` x `h`) by `k`: erosion, then dilation.
     /// Refused (nothing written) if `src` or `dst` is not `w * h` bytes long.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::BadFrame`] when `src` or `dst` is not `w * h` bytes long.
     pub fn open(
         &mut self,
         src: &[u8],
@@ -113,6 +117,10 @@ impl Morphology {
 
     /// `dst` = the closing of `src` (`w` x `h`) by `k`: dilation, then erosion.
     /// Refused (nothing written) if `src` or `dst` is not `w * h` bytes long.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::BadFrame`] when `src` or `dst` is not `w * h` bytes long.
     pub fn close(
         &mut self,
         src: &[u8],

@@ -63,6 +63,11 @@ pub struct Frame<'a> {
 /// Anything that delivers timestamped frames.
 pub trait FrameSource: Send {
     /// Waits for the next frame; `Ok(None)` at the end of the stream.
+    ///
+    /// # Errors
+    ///
+    /// A [`VisionError`] when the source cannot deliver a frame (e.g.
+    /// [`VisionError::Open`] for a lost device, [`VisionError::BadFrame`] for an empty one).
     fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError>;
 
     /// The nominal frame rate, frames per second.
@@ -110,6 +115,12 @@ impl std::fmt::Debug for WebcamSource {
 
 impl WebcamSource {
     /// Opens the device and asks for the resolution, frame rate and a buffer of 1.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid camera parameters; [`VisionError::Open`] when
+    /// the device is missing or cannot be opened as a V4L2 camera;
+    /// [`VisionError::OpenCv`] when a capture property cannot be set or read.
     pub fn open(params: &WebcamParams, clock: Clock) -> Result<Self, VisionError> {
         params.camera.validate()?;
         let what = params.device.display().to_string();
@@ -276,6 +287,12 @@ impl std::fmt::Debug for StreamSource {
 impl StreamSource {
     /// Opens the stream at `url` (at most [`STREAM_TIMEOUT_MS`]); `camera`
     /// gives the believed frame rate and latency.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid camera parameters; [`VisionError::Open`] for
+    /// a URL that is not a stream URL, a host that does not answer, or a stream that
+    /// cannot be opened in time; [`VisionError::OpenCv`] when OpenCV fails.
     pub fn open(url: &str, camera: &CameraParams, clock: Clock) -> Result<Self, VisionError> {
         camera.validate()?;
         let open_err = |reason: String| VisionError::Open {
@@ -384,6 +401,11 @@ impl VideoFileSource {
     /// Opens a video file. With a clock, frames are delivered at the file's frame
     /// rate and stamped on the clock; without, as fast as they decode, stamped
     /// `index / fps` (the file's own time).
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Open`] when `path` is not a file or not a video OpenCV can
+    /// decode; [`VisionError::OpenCv`] when OpenCV fails.
     pub fn open(path: &Path, pace: Option<Clock>, looping: bool) -> Result<Self, VisionError> {
         let what = path.display().to_string();
         if !path.is_file() {
@@ -485,6 +507,12 @@ impl std::fmt::Debug for Recorder {
 
 impl Recorder {
     /// Creates (or replaces) `path` for `width_px` x `height_px` BGR frames at `fps`.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for a frame rate or size out of range;
+    /// [`VisionError::Open`] when the MJPG file cannot be written at `path`;
+    /// [`VisionError::OpenCv`] when OpenCV fails.
     pub fn create(
         path: &Path,
         width_px: u32,
@@ -518,6 +546,11 @@ impl Recorder {
     }
 
     /// Appends one frame of the recorder's size.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::BadFrame`] when `image` is not of the recorder's size and type;
+    /// [`VisionError::OpenCv`] when writing fails.
     pub fn write(&mut self, image: &Mat) -> Result<(), VisionError> {
         if image.size()? != self.size || image.typ() != opencv::core::CV_8UC3 {
             return Err(FrameProblem::RecorderSize {
@@ -540,6 +573,10 @@ impl Recorder {
     }
 
     /// Finishes the file.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when the writer cannot be released.
     pub fn finish(mut self) -> Result<u64, VisionError> {
         self.writer.release()?;
         Ok(self.frames)

@@ -14,6 +14,10 @@ pub struct VisionPipeline {
 
 impl VisionPipeline {
     /// A pipeline with validated detector parameters.
+    ///
+    /// # Errors
+    ///
+    /// As [`Detector::new`].
     pub fn new(
         detector: DetectorParams,
         calibration: SwingPlaneCalibration,
@@ -25,6 +29,11 @@ impl VisionPipeline {
     }
 
     /// Detects the ball in `frame` and converts it to the swing plane.
+    ///
+    /// # Errors
+    ///
+    /// As [`Detector::detect`]: [`VisionError::BadFrame`] for an image that is not
+    /// 8-bit BGR, [`VisionError::OpenCv`] when OpenCV fails.
     pub fn process(
         &mut self,
         frame: &Frame<'_>,

@@ -72,6 +72,11 @@ impl Default for SimCameraParams {
 
 impl SimCameraParams {
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// (the pose's included) that is not finite or outside its range.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within("sim_camera.hfov_deg", self.hfov_deg, 10.0, 150.0)?;
         self.pose.validate("sim_camera.pose")?;

@@ -88,6 +88,12 @@ impl SimCamera {
     /// Builds the camera and renders its background. `seed` drives the per-frame
     /// randomness (noise, lighting, drops); the background comes from
     /// `params.scene_seed`.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid camera or simulator parameters or a ball
+    /// radius outside 0.005..=0.2 m; [`VisionError::OpenCv`] when painting the
+    /// background fails.
     pub fn new(
         camera: &CameraParams,
         params: &SimCameraParams,
@@ -254,6 +260,11 @@ impl SimCamera {
     /// Renders the frame taken with the ball in `ball` at the middle of the
     /// exposure (`None`: no ball in view). The returned image stays valid until
     /// the next call.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when the image data cannot be accessed or the ball
+    /// cannot be drawn.
     pub fn render(&mut self, ball: Option<&BallState>) -> Result<&Mat, VisionError> {
         // Undo the previous frame's ball.
         if let Some((k, rect)) = self.dirty.take() {
@@ -581,6 +592,10 @@ impl SimVision {
     /// The camera of `camera` + `sim`, the detector, and the calibration the
     /// system believes in (from [`SwingPlaneCalibration::from_rest_observation`] or
     /// [`SimCamera::true_calibration`]).
+    ///
+    /// # Errors
+    ///
+    /// The error of [`Detector::new`] when it refuses `detector`.
     pub fn new(
         camera: SimCamera,
         detector: DetectorParams,
@@ -627,6 +642,11 @@ impl SimVision {
     /// One frame taken at `t_capture_s` (middle of the exposure) of the ball in
     /// `ball` (`None`: not in view). `Ok(None)` when the frame is lost; otherwise
     /// the measurement (found or not) with its availability time.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] or [`VisionError::BadFrame`] when rendering or
+    /// detection fails (a lost frame is `Ok(None)`).
     pub fn capture(
         &mut self,
         t_capture_s: f64,
@@ -795,6 +815,10 @@ impl std::fmt::Debug for EdgeScene {
 impl EdgeScene {
     /// A `width` x `height` scene: texture from `seed`, the look-alikes in the
     /// ball's colour `ball_rgb` (0..255), pixel noise `noise_sigma` (grey levels).
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when an OpenCV call fails while painting the scene.
     pub fn new(
         width: i32,
         height: i32,
@@ -852,6 +876,10 @@ impl EdgeScene {
 
     /// Draws one frame: the ball (if any, shaded, blurred over its travel),
     /// then the occluder polygon (if any) in `occluder_rgb`, then noise.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when an OpenCV call fails while drawing the frame.
     pub fn render(
         &mut self,
         ball: Option<&ImageBall>,

@@ -132,6 +132,11 @@ impl FriSimParams {
     }
 
     /// Checks every field; the error names the first bad one.
+    ///
+    /// # Errors
+    ///
+    /// [`ParamError::NotFinite`] or [`ParamError::OutOfRange`] naming the first field
+    /// that is not finite, outside its range or inconsistent with another.
     pub fn validate(&self) -> Result<(), ParamError> {
         check::within_u32("fri_sim.fri_period_ms", self.fri_period_ms, 1, 100)?;
         check::within_u32(
@@ -851,6 +856,10 @@ impl WorldRobot {
 impl SimController {
     /// A controller in MONITORING_WAIT (quality FAIR) with the joints at rest;
     /// `epoch_unix_ns` is the Unix time of time 0 (for the message timestamps).
+    ///
+    /// # Errors
+    ///
+    /// The error of [`FriSimParams::validate`] when `params` are invalid.
     pub fn new(params: FriSimParams, epoch_unix_ns: u64) -> Result<Self, ParamError> {
         params.validate()?;
         let q: Joints = std::array::from_fn(|i| params.initial_joint_position_deg[i].to_radians());

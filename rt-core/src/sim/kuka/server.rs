@@ -80,6 +80,10 @@ pub struct SimServer {
 
 impl SimServer {
     /// Binds `bind` and starts sending to `client` every period.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::spawn_with`].
     pub fn spawn(
         params: FriSimParams,
         bind: SocketAddr,
@@ -91,6 +95,11 @@ impl SimServer {
 
     /// As [`spawn`](Self::spawn), with the reality lab's robot plugged in
     /// (`world`) and `hook` called after each message sent.
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::Params`] for invalid `params`; [`SimError::Bind`] when `bind`
+    /// cannot be bound; [`SimError::Io`] when the socket or the thread cannot be set up.
     pub fn spawn_with(
         params: FriSimParams,
         bind: SocketAddr,
@@ -181,12 +190,22 @@ impl SimServer {
     }
 
     /// Sends IDLE, waits for the thread (at most `timeout`) and reports.
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::Timeout`] when the thread does not end within `timeout`;
+    /// [`SimError::Panicked`] when it panicked.
     pub fn close(mut self, timeout: Duration) -> Result<SimReport, SimError> {
         self.close.store(true, Relaxed);
         self.join(timeout)
     }
 
     /// Waits for the thread to end by itself (the run's duration), at most `timeout`.
+    ///
+    /// # Errors
+    ///
+    /// [`SimError::Timeout`] when the thread does not end within `timeout`;
+    /// [`SimError::Panicked`] when it panicked.
     pub fn wait(mut self, timeout: Duration) -> Result<SimReport, SimError> {
         self.join(timeout)
     }

@@ -62,11 +62,20 @@ impl std::fmt::Debug for FakeDevice {
 
 impl FakeDevice {
     /// Plugs a fake board in at `link` (replacing whatever is there).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::start_with_pin_hook`].
     pub fn start(link: impl AsRef<Path>) -> io::Result<Self> {
         Self::start_with_pin_hook(link, Box::new(|_, _| {}))
     }
 
     /// As [`start`](Self::start), calling `hook(on, at)` at every coil switch.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::replug`]: an [`io::Error`] when the pty, the link or the board's
+    /// thread cannot be created.
     pub fn start_with_pin_hook(link: impl AsRef<Path>, hook: PinHook) -> io::Result<Self> {
         let mut dev = Self {
             link: link.as_ref().to_path_buf(),
@@ -112,12 +121,22 @@ impl FakeDevice {
     }
 
     /// Sends raw bytes to the host as if the board had (stale output, noise).
+    ///
+    /// # Errors
+    ///
+    /// [`io::Error`] of kind `NotConnected` when the board is unplugged, `WouldBlock`
+    /// when its control queue is full.
     pub fn inject(&self, bytes: &[u8]) -> io::Result<()> {
         self.send(Ctl::Inject(bytes.to_vec()))
     }
 
     /// Resets the board: coil off at once; the boot banner after `boot_delay`
     /// (an Uno's bootloader waits ~1 s), input ignored until then.
+    ///
+    /// # Errors
+    ///
+    /// [`io::Error`] of kind `NotConnected` when the board is unplugged, `WouldBlock`
+    /// when its control queue is full.
     pub fn reset(&self, cause: ResetCause, boot_delay: Duration) -> io::Result<()> {
         self.send(Ctl::Reset { cause, boot_delay })
     }
@@ -145,6 +164,11 @@ impl FakeDevice {
     }
 
     /// Plugs the board (back) in at the same path: a fresh pty, a power-on boot.
+    ///
+    /// # Errors
+    ///
+    /// [`io::Error`] when the pty pair cannot be opened or has no name, the symlink at
+    /// the link path cannot be made, or the board's thread cannot start.
     pub fn replug(&mut self) -> io::Result<()> {
         self.unplug();
         let (master, slave) = TTYPort::pair().map_err(io::Error::other)?;

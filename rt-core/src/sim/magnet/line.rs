@@ -76,6 +76,11 @@ impl VirtualMagnet {
     /// goes over the line (delays drawn from `rng`), the firmware switches and
     /// answers. Errors carry the device's answer when it is not the expected
     /// `OK MAGNET` with the asked state.
+    ///
+    /// # Errors
+    ///
+    /// A message with the board's answer when it does not confirm the asked state
+    /// with `OK MAGNET` (or the coil is not in it).
     pub fn switch<R: Rng>(&mut self, t_s: f64, on: bool, rng: &mut R) -> Result<Switch, String> {
         let t_written_s = t_s + rng.random_range(0.0..HOST_WRITE_DELAY_MAX_S);
         let line: &[u8] = if on { b"MAGNET ON\n" } else { b"MAGNET OFF\n" };

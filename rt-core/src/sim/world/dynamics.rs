@@ -43,6 +43,10 @@ pub struct TorqueTrip {
 
 /// Checks `tau` against the iiwa 7's torque limits times `scale`; the first
 /// joint over its limit by the largest ratio trips.
+///
+/// # Errors
+///
+/// A [`TorqueTrip`] naming the joint most over its limit times `scale`.
 pub fn check_torques(tau: &[f64; JOINTS], scale: f64) -> Result<(), TorqueTrip> {
     let mut worst: Option<(usize, f64)> = None;
     for (i, t) in tau.iter().enumerate() {

@@ -41,6 +41,11 @@ pub use crate::lab::truth::PhysicalJudgeError;
 /// Judges `trace` physically. `passes` are the true passes (exact times),
 /// `committed_pass_s` the controller's predicted pass, `ball_radius_m` the
 /// true ball's, `tolerance_ms` the timing tolerance.
+///
+/// # Errors
+///
+/// [`PhysicalJudgeError::TooFewSamples`] for fewer than 2 samples;
+/// [`PhysicalJudgeError::NoPass`] when the ball never passed the intercept point.
 pub fn judge_physical(
     trace: &[WorldSample],
     passes: &[f64],

@@ -71,6 +71,10 @@ impl std::fmt::Debug for WorldWebcam {
 impl WorldWebcam {
     /// The session's true camera for `scenario`'s believed one (the
     /// simulated lab's pose, `SimCameraParams::default()`).
+    ///
+    /// # Errors
+    ///
+    /// The error of [`SimCamera::new`] (invalid camera parameters, OpenCV).
     pub fn new(scenario: &Scenario, session: &SessionDraw, seed: u64) -> Result<Self, VisionError> {
         let params = SimCameraParams::default();
         let render = SimCamera::new(
@@ -229,6 +233,11 @@ impl WorldWebcam {
     /// The JPEG of the frame whose exposure starts at `t_start_s` (the ball
     /// where the true camera sees it; out of view: no ball), with the LED
     /// lit for the share `led` (0..1) of its row's exposure.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when rendering, drawing the LED or encoding fails;
+    /// [`VisionError::BadFrame`] when the JPEG encoder refuses the image.
     pub fn frame_jpeg(&mut self, t_start_s: f64, led: f64) -> Result<&[u8], VisionError> {
         let sight = self.camera.sight(t_start_s, |t| {
             self.ball_at(t).map_or(Vector3::zeros(), |b| b.0)
