@@ -412,7 +412,16 @@ async fn events_of_a_trial_arrive_in_order_with_type_and_time() {
                     Some("trial_finished" | "aborted")
                 )
         };
-        while !events.iter().any(end) {
+        // A finished trial's `trial_finished` and its state's change to
+        // `done` are two messages: on a loaded machine they come in
+        // different reads, so wait for both (an abort ends it alone).
+        let complete = |events: &[Value]| {
+            events.iter().any(end)
+                && events
+                    .iter()
+                    .any(|e| e["event"]["kind"] == "aborted" || e["event"]["to"] == "done")
+        };
+        while !complete(&events) {
             assert!(
                 Instant::now() < deadline,
                 "no trial_finished event: {events:?}"
