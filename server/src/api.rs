@@ -730,13 +730,18 @@ pub async fn start_calibration(
     }
     let lab = Arc::clone(lab(&state)?);
     let desk = Arc::clone(desk(&state)?);
-    if let Some((snapshot, _)) = lab.latest()
-        && snapshot.trial_state.busy()
-    {
+    // A trial's start checks for a running step under the same gate.
+    let gate = lab.start_gate.lock().await;
+    let running = lab
+        .latest()
+        .map(|(snapshot, _)| snapshot.trial_state)
+        .filter(|t| t.busy())
+        .map(rt_core::bridge::TrialState::as_str)
+        .or_else(|| lab.trial_unshown().then_some("starting"));
+    if let Some(trial_state) = running {
         return Err(AppError::Conflict {
             message: format!(
-                "refused: a trial runs (state: {}); calibrate when it has finished",
-                snapshot.trial_state.as_str()
+                "refused: a trial runs (state: {trial_state}); calibrate when it has finished"
             ),
             field: None,
             reason: Some(Refusal::Busy.as_str()),
@@ -751,6 +756,7 @@ pub async fn start_calibration(
             StartRefused::NotAvailable(_) => "not_available",
         }),
     })?;
+    drop(gate);
     tokio::spawn(async move {
         let scenario = lab.params();
         let beliefs = if desk.real_lab() {
@@ -930,6 +936,12 @@ pub async fn start_trial(
 /// Creates a trial's record and starts the trial (`POST /api/trials`, and
 /// each trial of a run); a refused trial's record is removed.
 pub(crate) async fn start_one(state: &AppState, setup: TrialSetup) -> Result<u64, AppError> {
+    // A calibration step's start checks for a running trial under the same
+    // gate: the check and the start are one step for both.
+    let _gate = match state.lab.as_ref() {
+        Some(lab) => Some(lab.start_gate.lock().await),
+        None => None,
+    };
     if let Some((reason, message)) = service_blocker(state) {
         return Err(AppError::Conflict {
             message,

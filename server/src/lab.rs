@@ -180,6 +180,16 @@ pub struct Lab {
     params: Mutex<Scenario>,
     /// Serialises parameter changes (read-merge-validate-send-store).
     pub params_update: tokio::sync::Mutex<()>,
+    /// Serialises starting a trial and starting a calibration step: each
+    /// checks that the other is not running, then starts, under it.
+    /// Without it both passed their checks at once (a demo trial and a
+    /// calibration step ran side by side).
+    pub start_gate: tokio::sync::Mutex<()>,
+    /// The newest trial the control loop accepted, and the newest trial a
+    /// published state has shown: a trial accepted but not shown yet still
+    /// runs ([`Lab::trial_unshown`]).
+    trial_accepted: AtomicU64,
+    trial_shown: AtomicU64,
     bridge_stats: Arc<BridgeStats>,
     stream: StreamStats,
     options: LabOptions,
@@ -266,6 +276,9 @@ impl Lab {
             latest: Mutex::new(None),
             params: Mutex::new(params),
             params_update: tokio::sync::Mutex::new(()),
+            start_gate: tokio::sync::Mutex::new(()),
+            trial_accepted: AtomicU64::new(0),
+            trial_shown: AtomicU64::new(0),
             bridge_stats: stats,
             stream: StreamStats::default(),
             options,
@@ -463,7 +476,16 @@ impl Lab {
         setup: rt_core::bridge::TrialSetup,
     ) -> Result<(), CommandError> {
         self.send(Command::RunTrial { trial_id, setup }, Some(trial_id))
-            .await
+            .await?;
+        self.trial_accepted.fetch_max(trial_id, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Whether the control loop accepted a trial that no published state has
+    /// shown yet (the acknowledgement comes before the next state): it runs,
+    /// though [`Lab::latest`] does not say so yet.
+    pub fn trial_unshown(&self) -> bool {
+        self.trial_accepted.load(Ordering::Relaxed) > self.trial_shown.load(Ordering::Relaxed)
     }
 
     async fn send(&self, command: Command, trial: Option<u64>) -> Result<(), CommandError> {
@@ -697,6 +719,9 @@ impl Pump {
             .stream
             .state_messages
             .fetch_add(1, Ordering::Relaxed);
+        self.lab
+            .trial_shown
+            .fetch_max(snapshot.trial_id, Ordering::Relaxed);
         if let Ok(mut l) = self.lab.latest.lock() {
             *l = Some((snapshot, text.clone()));
         }

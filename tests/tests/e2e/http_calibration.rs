@@ -255,3 +255,79 @@ fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     assert_eq!(c[0].key, "s.y[1]");
     assert_eq!((c[0].before, c[0].after), (2.0, 2.5));
 }
+
+/// A trial and a calibration step posted at the same moment: at most one
+/// starts (each checks that the other is not running, then starts, as one
+/// step). Before the start gate both passed their checks: a demo trial ran
+/// beside the calibration step that was to pause it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trial_and_a_calibration_step_posted_together_never_both_start() {
+    let tmp = tempfile::tempdir().unwrap();
+    let records = Arc::new(server::Records::open(&tmp.path().join("data")).unwrap());
+    let (lab, _sim) = start_simulated(
+        Scenario::default(),
+        Some(Arc::clone(&records)),
+        LabOptions::default(),
+        3,
+    )
+    .unwrap();
+    let desk = Arc::new(CalibrationDesk::new(
+        tmp.path().join("calibration.toml"),
+        false,
+        Box::new(|_: &CalibrationFile| None),
+    ));
+    let state = AppState::new(tmp.path().join("web"))
+        .with_lab(Arc::clone(&lab))
+        .with_records(records)
+        .with_calibration(desk);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
+    });
+
+    let (mut trials, mut steps) = (0, 0);
+    for round in 0..6 {
+        // Both free: the lab ready for a trial and no step running.
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while get(addr, "/api/health").await["ready"] != true
+            || get(addr, "/api/calibration").await["job"]["state"] == "running"
+        {
+            assert!(
+                Instant::now() < deadline,
+                "round {round}: the lab never got free"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let (trial, step) = tokio::join!(
+            http(addr, "POST", "/api/trials", &[], b""),
+            http(addr, "POST", "/api/calibration/camera", &[], b"")
+        );
+        let (trial, step) = (trial.unwrap(), step.unwrap());
+        let (t, s) = (trial.json().unwrap(), step.json().unwrap());
+        assert!(
+            !(trial.status == 202 && step.status == 202),
+            "round {round}: both started: trial {t}, step {s}"
+        );
+        // The one refused says the other runs.
+        for (code, body) in [(trial.status, &t), (step.status, &s)] {
+            assert!(code == 202 || code == 409, "round {round}: {code} {body}");
+        }
+        if trial.status == 202 {
+            trials += 1;
+            let id = t["id"].as_u64().unwrap();
+            assert_eq!(step.status, 409, "{s}");
+            let deadline = Instant::now() + Duration::from_secs(60);
+            while get(addr, &format!("/api/trials/{id}")).await["status"] == "running" {
+                assert!(Instant::now() < deadline, "trial {id} never ended");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        } else {
+            steps += 1;
+            assert_eq!(step.status, 202, "round {round}: neither started: {t} {s}");
+            assert_eq!(t["reason"], "calibrating", "{t}");
+            finished(addr, s["id"].as_u64().unwrap(), Duration::from_secs(60)).await;
+        }
+    }
+    println!("posted together 6 times: {trials} trials and {steps} steps started, never both");
+}
