@@ -23,7 +23,12 @@
 //! A test binary of its own (issue #34): a world and its lab load both cores,
 //! and beside the other end-to-end tests (tests/tests/e2e) and `stress-ng`
 //! the pendulum step measured a 1.98 m string as 1.917 m and boards starved.
-//! Cargo runs test binaries one after another, so these run alone.
+//! Cargo runs test binaries one after another, so these run alone, and
+//! their labs take `serve`'s default real-time measures (`auto`: the FRI
+//! threads pinned to the last CPU, spinning there). With `fifo,mlock`
+//! instead (`isochron_tests::SHARED_RT`) the pendulum step measured the
+//! 1.98 m string as 1.956 m on a quiet machine, and the served reality
+//! world's first trial disagreed with its truth line on contact.
 
 use std::{
     net::SocketAddr,
@@ -223,7 +228,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     let (mut serve, line) = start(
         "isochron serve",
         Process::new(&bin)
-            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .arg("serve")
             .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&lab)
             .arg("--data-dir")
@@ -441,7 +446,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     let (_serve, line) = start(
         "isochron serve (no camera)",
         Process::new(&bin)
-            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .arg("serve")
             .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&nocam)
             .arg("--data-dir")
@@ -533,7 +538,7 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
         let (p, line) = start(
             "isochron serve --scenario",
             Process::new(&bin)
-                .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+                .arg("serve")
                 .args(["--bind", "127.0.0.1:0", "--scenario"])
                 .arg(&scenario)
                 .arg("--data-dir")
@@ -672,14 +677,7 @@ async fn a_lab_config_pointing_at_nothing_names_each_device_and_starts_nothing()
     .unwrap();
     let (_p, line) = start(
         "isochron serve --config (pointing at nothing)",
-        Process::new(&bin)
-            .args([
-                "serve",
-                "--rt-tuning",
-                isochron_tests::SHARED_RT,
-                "--config",
-            ])
-            .arg(&cfg),
+        Process::new(&bin).args(["serve", "--config"]).arg(&cfg),
         "listening on http://",
         Duration::from_secs(60),
     );
@@ -779,7 +777,7 @@ async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
     let (_serve, line) = start(
         "isochron serve",
         Process::new(&bin)
-            .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+            .arg("serve")
             .args(["--bind", "127.0.0.1:0", "--config"])
             .arg(&lab)
             .arg("--data-dir")
