@@ -199,18 +199,22 @@ test-web: web
 	$(STAGE)
 	cd web && npm run typecheck && npm test
 
-## test-rust: every Rust test, TEST_THREADS (default 1) at a time in each test
-## binary. The end-to-end binary's tests (tests/tests/e2e) mostly wait on lab
-## processes and sockets: 247 s with 2 at a time, 172 s with 4. But side by
-## side they starve each other's simulated devices: with 3 at a time on a
-## quiet machine a simavr board missed its 1 s timeout and a lab's control
-## loop its acknowledgement (issue #34). One at a time until each test that
-## starts a lab or a board holds a lock against the others.
+## test-rust: every Rust test. The unit tests (in-process, CPU-bound) run as
+## many at a time as the harness likes (one per core); the integration test
+## binaries TEST_THREADS (default 1) at a time. The end-to-end binary's tests
+## (tests/tests/e2e) mostly wait on lab processes and sockets: 247 s with 2 at
+## a time, 172 s with 4. But side by side they starve each other's simulated
+## devices: with 3 at a time on a quiet machine a simavr board missed its 1 s
+## timeout and a lab's control loop its acknowledgement (issue #34). One at a
+## time until each test that starts a lab or a board holds a lock against the
+## others. (The three runs select targets only: one build graph, nothing rebuilt.)
 TEST_THREADS ?= 1
 test-rust: deps firmware
 	$(STAGE)
 	@mkdir -p target
-	$(CARGO) test --workspace -- --test-threads $(TEST_THREADS) 2>&1 | tee target/test-rust.log
+	{ $(CARGO) test --workspace --lib --bins && \
+	  $(CARGO) test --workspace --test '*' -- --test-threads $(TEST_THREADS) && \
+	  $(CARGO) test --workspace --doc; } 2>&1 | tee target/test-rust.log
 	@awk '/^test result:/ {p += $$4; f += $$6} END {printf "rust: %d passed, %d failed\n", p, f}' target/test-rust.log
 
 ## test-core: the core builds and runs with Rust alone (no OpenCV, libclang or
