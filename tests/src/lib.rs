@@ -10,16 +10,6 @@ mod table;
 pub use served::{ServedLab, TrialEnds};
 pub use table::CsvTable;
 
-/// The real-time measures of every lab these tests start as a process
-/// (`isochron serve --rt-tuning`): SCHED_FIFO and locked memory, not `auto`.
-/// On a 2-core machine `auto` pins the FRI threads to the last CPU and spins
-/// there; the test binary runs several labs, simavr boards and worlds side by
-/// side, and two spinning labs (or one beside `stress-ng`) starved the boards
-/// past their command timeouts. A FIFO thread that sleeps between periods
-/// still runs first when it wakes. `auto` is what `serve` does by default
-/// and what the benches measure.
-pub const SHARED_RT: &str = "fifo,mlock";
-
 /// A plain HTTP/1.1 response.
 #[derive(Debug)]
 pub struct HttpResponse {

@@ -40,8 +40,7 @@ fn bin() -> Option<PathBuf> {
 /// `isochron serve --demo` on a free loopback port with a token.
 fn serve(bin: &Path, data: &Path, extra: &[&str]) -> Service {
     let mut child = Command::new(bin)
-        .args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
-        .args(["--bind", "127.0.0.1:0", "--token", TOKEN, "--demo"])
+        .args(["serve", "--bind", "127.0.0.1:0", "--token", TOKEN, "--demo"])
         .args(extra)
         .arg("--data-dir")
         .arg(data)
@@ -234,8 +233,6 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     let out = Command::new(&bin)
         .args([
             "serve",
-            "--rt-tuning",
-            isochron_tests::SHARED_RT,
             "--bind",
             "127.0.0.1:0",
             "--demo",

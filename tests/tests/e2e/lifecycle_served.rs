@@ -49,8 +49,6 @@ fn serve(bin: &Path, data: &Path) -> Service {
     let mut child = Command::new(bin)
         .args([
             "serve",
-            "--rt-tuning",
-            isochron_tests::SHARED_RT,
             "--bind",
             "127.0.0.1:0",
             "--token",

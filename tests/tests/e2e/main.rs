@@ -7,8 +7,8 @@
 //! (`rt-core/tests/control_step_no_alloc.rs`, a global allocator) and the
 //! real-time priority checks (`rt-core/tests/rt_tuning.rs`); and the lab
 //! against `isochron world` (`tests/tests/world`), which needs the machine's
-//! two cores to itself. The labs started here as processes run with
-//! [`isochron_tests::SHARED_RT`].
+//! two cores to itself. `make test` runs these one at a time
+//! (`TEST_THREADS`): side by side they starved each other's simulated boards.
 
 mod closed_loop_trials;
 mod dead_man;

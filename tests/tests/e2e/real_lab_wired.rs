@@ -345,14 +345,7 @@ async fn the_real_lab_wired_as_three_processes_finishes_every_trial_and_survives
     .unwrap();
     let (mut serve, line) = start(
         "isochron serve",
-        Process::new(&bin)
-            .args([
-                "serve",
-                "--rt-tuning",
-                isochron_tests::SHARED_RT,
-                "--config",
-            ])
-            .arg(&config),
+        Process::new(&bin).arg("serve").arg("--config").arg(&config),
         "listening on http://",
         Duration::from_secs(30),
     );

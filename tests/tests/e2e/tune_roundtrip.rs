@@ -73,7 +73,7 @@ async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
     .unwrap();
     let addr = free_addr();
     let mut cmd = Command::new(bin);
-    cmd.args(["serve", "--rt-tuning", isochron_tests::SHARED_RT])
+    cmd.arg("serve")
         .arg("--config")
         .arg(&config)
         .args(["--bind", &addr.to_string()])

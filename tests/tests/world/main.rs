@@ -23,12 +23,12 @@
 //! A test binary of its own (issue #34): a world and its lab load both cores,
 //! and beside the other end-to-end tests (tests/tests/e2e) and `stress-ng`
 //! the pendulum step measured a 1.98 m string as 1.917 m and boards starved.
-//! Cargo runs test binaries one after another, so these run alone, and
-//! their labs take `serve`'s default real-time measures (`auto`: the FRI
-//! threads pinned to the last CPU, spinning there). With `fifo,mlock`
-//! instead (`isochron_tests::SHARED_RT`) the pendulum step measured the
-//! 1.98 m string as 1.956 m on a quiet machine, and the served reality
-//! world's first trial disagreed with its truth line on contact.
+//! Cargo runs test binaries one after another, so these run alone. Their
+//! labs take `serve`'s default real-time measures (`auto`: the FRI threads
+//! pinned to the last CPU, spinning there); with `--rt-tuning fifo,mlock`
+//! the pendulum step measured the 1.98 m string as 1.956 m on a quiet
+//! machine, and the served reality world's first trial disagreed with its
+//! truth line on contact.
 
 use std::{
     net::SocketAddr,
