@@ -286,8 +286,10 @@ async fn a_trial_and_a_calibration_step_posted_together_never_both_start() {
         let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
     });
 
-    let (mut trials, mut steps) = (0, 0);
-    for round in 0..6 {
+    let (mut trials, mut steps, mut neither) = (0, 0, 0);
+    let mut round = 0;
+    while trials + steps < 6 {
+        round += 1;
         // Both free: the lab ready for a trial and no step running.
         let deadline = Instant::now() + Duration::from_secs(60);
         while get(addr, "/api/health").await["ready"] != true
@@ -322,12 +324,21 @@ async fn a_trial_and_a_calibration_step_posted_together_never_both_start() {
                 assert!(Instant::now() < deadline, "trial {id} never ended");
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
+        } else if step.status != 202 {
+            // Neither: the trial refused for a reason of its own (the robot
+            // not commanding for a moment on a busy machine), not for the
+            // step. Another round, a bounded number of times.
+            neither += 1;
+            assert_ne!(t["reason"], "calibrating", "round {round}: {t} {s}");
+            assert!(neither <= 10, "round {round}: neither started: {t} {s}");
         } else {
             steps += 1;
-            assert_eq!(step.status, 202, "round {round}: neither started: {t} {s}");
             assert_eq!(t["reason"], "calibrating", "{t}");
             finished(addr, s["id"].as_u64().unwrap(), Duration::from_secs(60)).await;
         }
     }
-    println!("posted together 6 times: {trials} trials and {steps} steps started, never both");
+    println!(
+        "posted together {round} times: {trials} trials and {steps} steps started, never both \
+         ({neither} rounds neither)"
+    );
 }
