@@ -16,10 +16,10 @@ pub enum ParamError {
     OutOfRange {
         /// Dotted path of the field, e.g. `pendulum.length_m`.
         field: String,
-        /// The refused value, as written.
-        value: String,
+        /// The refused value.
+        value: Value,
         /// The bound it broke, e.g. `must be > 0`.
-        bound: String,
+        bound: Bound,
     },
     /// NaN or an infinity.
     #[error("{field} = {value} is not a finite number")]
@@ -65,6 +65,69 @@ pub enum ParamError {
         /// The operating system's reason.
         reason: String,
     },
+}
+
+/// A refused value, kept as the type it had (a number stays a number).
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Value {
+    /// A real number.
+    Number(f64),
+    /// An integer.
+    Integer(i64),
+    /// A text (a name, a port, an origin, a size such as `1280x720`).
+    Text(String),
+}
+
+impl std::fmt::Display for Value {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Number(v) => write!(f, "{v}"),
+            Self::Integer(v) => write!(f, "{v}"),
+            Self::Text(v) => write!(f, "{v:?}"),
+        }
+    }
+}
+
+/// The bound a value broke: its limits as numbers where it has them, a rule
+/// in words where it relates the value to another field.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Bound {
+    /// Must be greater than this.
+    Above(f64),
+    /// Must be at least this.
+    AtLeast(f64),
+    /// Must be in `[lo, hi]`.
+    Within {
+        /// Lowest allowed value.
+        lo: f64,
+        /// Highest allowed value.
+        hi: f64,
+    },
+    /// Must be 0 (the effect off) or at least this.
+    ZeroOrAtLeast(f64),
+    /// A rule that relates the value to others, in words.
+    Rule(String),
+}
+
+impl std::fmt::Display for Bound {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Above(v) => write!(f, "must be > {v}"),
+            Self::AtLeast(v) => write!(f, "must be >= {v}"),
+            Self::Within { lo, hi } => write!(f, "must be in [{lo}, {hi}]"),
+            Self::ZeroOrAtLeast(v) => write!(f, "must be 0 (off) or >= {v}"),
+            Self::Rule(r) => f.write_str(r),
+        }
+    }
+}
+
+impl Bound {
+    /// A rule in words.
+    pub fn rule(text: impl Into<String>) -> Self {
+        Self::Rule(text.into())
+    }
 }
 
 impl ParamError {
@@ -140,7 +203,7 @@ pub fn positive(field: &str, value: f64) -> Result<(), ParamError> {
     if value > 0.0 {
         Ok(())
     } else {
-        Err(out_of_range(field, value, "must be > 0"))
+        Err(out_of_range(field, value, Bound::Above(0.0)))
     }
 }
 
@@ -155,7 +218,7 @@ pub fn non_negative(field: &str, value: f64) -> Result<(), ParamError> {
     if value >= 0.0 {
         Ok(())
     } else {
-        Err(out_of_range(field, value, "must be >= 0"))
+        Err(out_of_range(field, value, Bound::AtLeast(0.0)))
     }
 }
 
@@ -177,11 +240,7 @@ pub fn within(field: &str, value: f64, lo: f64, hi: f64) -> Result<(), ParamErro
     if (lo..=hi).contains(&value) {
         Ok(())
     } else {
-        Err(out_of_range(
-            field,
-            value,
-            &format!("must be in [{lo}, {hi}]"),
-        ))
+        Err(out_of_range(field, value, Bound::Within { lo, hi }))
     }
 }
 
@@ -206,18 +265,21 @@ pub fn within_u32(field: &str, value: u32, lo: u32, hi: u32) -> Result<(), Param
     } else {
         Err(ParamError::OutOfRange {
             field: field.to_owned(),
-            value: value.to_string(),
-            bound: format!("must be in [{lo}, {hi}]"),
+            value: Value::Integer(i64::from(value)),
+            bound: Bound::Within {
+                lo: f64::from(lo),
+                hi: f64::from(hi),
+            },
         })
     }
 }
 
 /// Builds an out-of-range error.
-pub fn out_of_range(field: &str, value: f64, bound: &str) -> ParamError {
+pub fn out_of_range(field: &str, value: f64, bound: Bound) -> ParamError {
     ParamError::OutOfRange {
         field: field.to_owned(),
-        value: value.to_string(),
-        bound: bound.to_owned(),
+        value: Value::Number(value),
+        bound,
     }
 }
 
@@ -294,5 +356,43 @@ impl<'de> Deserialize<'de> for RangeParam {
                 "expected a number or a two-element array [lo, hi]",
             )),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refusal_keeps_its_value_and_limits_as_numbers_and_says_them() {
+        let e = within("pendulum.length_m", 7.5, 0.1, 5.0).unwrap_err();
+        assert_eq!(
+            e,
+            ParamError::OutOfRange {
+                field: "pendulum.length_m".into(),
+                value: Value::Number(7.5),
+                bound: Bound::Within { lo: 0.1, hi: 5.0 },
+            }
+        );
+        assert_eq!(
+            e.to_string(),
+            "pendulum.length_m = 7.5 is out of range: must be in [0.1, 5]"
+        );
+        assert_eq!(
+            positive("a", -1.0).unwrap_err().to_string(),
+            "a = -1 is out of range: must be > 0"
+        );
+        let e = within_u32("magnet.baud", 12, 300, 2_000_000).unwrap_err();
+        assert!(matches!(
+            e,
+            ParamError::OutOfRange { value: Value::Integer(12), bound: Bound::Within { lo, hi }, .. }
+                if lo == 300.0 && hi == 2_000_000.0
+        ));
+        // A NaN is refused as not finite before any bound is looked at.
+        assert!(matches!(
+            within("x", f64::NAN, 0.0, 1.0),
+            Err(ParamError::NotFinite { .. })
+        ));
+        assert_eq!(Value::Text("ttyACM0".into()).to_string(), "\"ttyACM0\"");
     }
 }

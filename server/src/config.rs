@@ -285,8 +285,8 @@ impl ServeConfig {
             if !(o.starts_with("http://") || o.starts_with("https://")) || o.ends_with('/') {
                 return Err(ParamError::OutOfRange {
                     field: format!("server.cors_origins[{i}]"),
-                    value: o.clone(),
-                    bound: "must be an origin like https://host:port (no path)".into(),
+                    value: check::Value::Text(o.clone()),
+                    bound: check::Bound::rule("must be an origin like https://host:port (no path)"),
                 });
             }
         }

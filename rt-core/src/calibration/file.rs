@@ -155,12 +155,12 @@ impl CalibrationFile {
             if (r.width_px, r.height_px) != (s.camera.width_px, s.camera.height_px) {
                 return Err(ParamError::OutOfRange {
                     field: "camera.intrinsics".to_owned(),
-                    value: format!("{}x{}", r.width_px, r.height_px),
-                    bound: format!(
+                    value: crate::check::Value::Text(format!("{}x{}", r.width_px, r.height_px)),
+                    bound: crate::check::Bound::Rule(format!(
                         "the calibration file's camera step was measured at {}x{} px, the lab's camera is {}x{}: \
                          run `isochron calibrate camera` at the lab's resolution",
                         r.width_px, r.height_px, s.camera.width_px, s.camera.height_px
-                    ),
+                    )),
                 });
             }
             s.camera.intrinsics = Some(r.intrinsics);

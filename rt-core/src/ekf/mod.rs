@@ -393,11 +393,11 @@ impl Ekf {
         if (model.length_m - geometry.length_m).abs() > 1e-9 {
             return Err(ParamError::OutOfRange {
                 field: "pendulum.length_m".to_owned(),
-                value: geometry.length_m.to_string(),
-                bound: format!(
+                value: check::Value::Number(geometry.length_m),
+                bound: check::Bound::Rule(format!(
                     "the geometry's length must equal the model's {}",
                     model.length_m
-                ),
+                )),
             }
             .into());
         }

@@ -85,8 +85,8 @@ impl MagnetParams {
         if self.port.trim().is_empty() {
             return Err(ParamError::OutOfRange {
                 field: "magnet.port".to_owned(),
-                value: format!("{:?}", self.port),
-                bound: "must name a serial port".to_owned(),
+                value: check::Value::Text(self.port.clone()),
+                bound: check::Bound::rule("must name a serial port"),
             });
         }
         check::within_u32("magnet.baud", self.baud, 300, 2_000_000)?;

@@ -96,7 +96,7 @@ impl CameraParams {
             return Err(check::out_of_range(
                 "camera.drop_rate",
                 self.drop_rate,
-                "must be <= 0.9 (the ball must be seen)",
+                check::Bound::rule("must be <= 0.9 (the ball must be seen)"),
             ));
         }
         if let Some(k) = &self.intrinsics {
@@ -220,8 +220,8 @@ impl Scenario {
         if self.name.is_empty() || self.name.len() > 64 {
             return Err(ParamError::OutOfRange {
                 field: "name".to_owned(),
-                value: format!("{:?}", self.name),
-                bound: "must be 1..=64 characters".to_owned(),
+                value: check::Value::Text(self.name.clone()),
+                bound: check::Bound::rule("must be 1..=64 characters"),
             });
         }
         self.pendulum.validate()?;

@@ -296,7 +296,7 @@ fn off_or_within(field: &str, v: f64, lo: f64, hi: f64) -> Result<(), ParamError
         return Err(check::out_of_range(
             field,
             v,
-            &format!("must be 0 (none) or >= {lo}"),
+            check::Bound::ZeroOrAtLeast(lo),
         ));
     }
     Ok(())
@@ -428,7 +428,7 @@ impl WorldParams {
             return Err(check::out_of_range(
                 "world.robot.servo_natural_hz",
                 r.servo_natural_hz.lo,
-                "must be 0 (first-order lag) or >= 2",
+                check::Bound::ZeroOrAtLeast(2.0),
             ));
         }
         range(

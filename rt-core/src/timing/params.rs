@@ -122,7 +122,7 @@ impl TimingParams {
             return Err(check::out_of_range(
                 "timing.neuron_competition",
                 self.neuron_competition,
-                "must exceed timing.neuron_advantage (winner takes all)",
+                check::Bound::rule("must exceed timing.neuron_advantage (winner takes all)"),
             ));
         }
         check::within("timing.neuron_floor", self.neuron_floor, 1e-6, 0.1)?;
@@ -139,7 +139,9 @@ impl TimingParams {
             return Err(check::out_of_range(
                 "timing.max_substep_s",
                 self.max_substep_s,
-                "too large for the fastest rate of the dynamics (rate * step must be <= 2.5)",
+                check::Bound::rule(
+                    "too large for the fastest rate of the dynamics (rate * step must be <= 2.5)",
+                ),
             ));
         }
         check::within(

@@ -286,7 +286,7 @@ async fn a_trial_and_a_calibration_step_posted_together_never_both_start() {
         let _ = axum::serve(server::tuned_listener(listener), app(Arc::new(state))).await;
     });
 
-    let (mut trials, mut steps, mut neither) = (0, 0, 0);
+    let (mut trials, mut steps, mut neither, mut own) = (0, 0, 0, 0);
     let mut round = 0;
     while trials + steps < 6 {
         round += 1;
@@ -333,12 +333,21 @@ async fn a_trial_and_a_calibration_step_posted_together_never_both_start() {
             assert!(neither <= 10, "round {round}: neither started: {t} {s}");
         } else {
             steps += 1;
-            assert_eq!(t["reason"], "calibrating", "{t}");
+            // Refused for the step, or for a reason of the control loop's
+            // own that it met first (a plan still pending on a busy machine).
+            if t["reason"] != "calibrating" {
+                own += 1;
+                assert!(
+                    ["busy", "robot_not_commanding", "device_unavailable"]
+                        .contains(&t["reason"].as_str().unwrap_or_default()),
+                    "round {round}: {t}"
+                );
+            }
             finished(addr, s["id"].as_u64().unwrap(), Duration::from_secs(60)).await;
         }
     }
     println!(
         "posted together {round} times: {trials} trials and {steps} steps started, never both \
-         ({neither} rounds neither)"
+         ({neither} rounds neither; {own} steps beside a trial refused for its own reason)"
     );
 }

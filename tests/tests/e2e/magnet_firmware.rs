@@ -736,7 +736,12 @@ fn the_cli_switches_the_simulated_magnet_and_prints_json() {
     let board = SimBoard::start(&elf, &host, &link);
     let port = link.to_string_lossy().into_owned();
     for (action, level) in [("on", 1u8), ("status", 1), ("off", 0), ("status", 0)] {
-        let (ok, stdout, stderr) = isochron_magnet(&bin, &["--port", &port, action]);
+        // simavr shares the machine with the other tests: 2 s for an answer
+        // (a real Uno's 300 ms default is the driver's, tested above).
+        let (ok, stdout, stderr) = isochron_magnet(
+            &bin,
+            &["--port", &port, "--command-timeout-ms", "2000", action],
+        );
         assert!(ok, "isochron magnet {action}: {stderr}");
         let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
         assert_eq!(

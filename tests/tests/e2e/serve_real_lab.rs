@@ -69,7 +69,9 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
             auto_command: true,
             duration: None,
             normal_priority: false,
-            keep_commanding: false,
+            // A robot application that asks for commanding again when a late
+            // answer (a busy machine) drops the session to MONITORING_READY.
+            keep_commanding: true,
         },
     )
     .unwrap();
@@ -105,17 +107,18 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
             .stats()
             .reached(rt_core::fri::SessionState::CommandingActive)
     );
-    let deadline = Instant::now() + Duration::from_secs(10);
+    let deadline = Instant::now() + Duration::from_secs(30);
     let snap = loop {
         if let Some((s, _)) = lab.latest()
             && s.counters.measurements > 10
             && s.magnet != MagnetState::Unknown
+            && s.fri.session == FriSessionState::CommandingActive
         {
             break s;
         }
         assert!(
             Instant::now() < deadline,
-            "no detections or magnet state: {:?}",
+            "no detections, magnet state or commanding session: {:?}",
             lab.latest().map(|(s, _)| (s.counters, s.magnet, s.fri))
         );
         std::thread::sleep(Duration::from_millis(20));
@@ -124,7 +127,6 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
         "real lab: fri {:?}, {} measurements, last {:?}, magnet {:?}",
         snap.fri, snap.counters.measurements, snap.pendulum.measured, snap.magnet
     );
-    assert_eq!(snap.fri.session, FriSessionState::CommandingActive);
     assert!(snap.pendulum.measured.valid);
     assert!(
         snap.pendulum.measured.x_m.abs() < 0.5,

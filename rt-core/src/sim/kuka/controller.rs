@@ -155,7 +155,7 @@ impl FriSimParams {
             check::out_of_range(
                 "fri_sim.receive_multiplier",
                 f64::from(self.receive_multiplier),
-                "receive_multiplier * fri_period_ms must be <= 100 ms",
+                check::Bound::rule("receive_multiplier * fri_period_ms must be <= 100 ms"),
             )
         })?;
         check::within("fri_sim.latency_ms", self.latency_ms, 0.0, 200.0)?;
@@ -169,7 +169,7 @@ impl FriSimParams {
             return Err(check::out_of_range(
                 "fri_sim.latency_jitter_ms",
                 self.latency_jitter_ms,
-                "must not exceed fri_sim.latency_ms",
+                check::Bound::rule("must not exceed fri_sim.latency_ms"),
             ));
         }
         check::within(
