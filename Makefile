@@ -346,10 +346,15 @@ envelope: release
 
 ## eval-world: the real lab end to end against `isochron world` (tests/tests/world/main.rs):
 ## EVAL_WORLD_N trials over REST on the truthful world, then on the reality world
-## (uncalibrated: the real-lab calibration procedures are not built yet), each paired with
+## (its pendulum and latency steps first; the other three steps' real-lab procedures are not
+## built yet, so the lab runs with `allow_uncalibrated`), each paired with
 ## the world's truth; the figures (successes, the measured judge's agreement, |measured -
 ## true timing| p50/p95, CPU per second of service and world) go to reports/eval/world.txt.
+## Then the accuracy of the real lab's pendulum and latency steps over EVAL_WORLD_DRAWS hidden
+## draws of the reality world (a world and a lab each), against the truth each world printed:
+## reports/eval/calibration-world.txt.
 EVAL_WORLD_N ?= 100
+EVAL_WORLD_DRAWS ?= 10
 eval-world: deps firmware test-build
 	@mkdir -p reports/eval
 	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) $(CARGO) test -p isochron-tests --test world trials_on -- --nocapture 2>&1 \
@@ -357,3 +362,6 @@ eval-world: deps firmware test-build
 	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) WORLD_LAB_SCENARIO=$(CURDIR)/scenarios/reality.toml \
 	  $(CARGO) test -p isochron-tests --test world trials_on -- --nocapture 2>&1 \
 	  | grep -E "^(world lab|trial )" | tee -a reports/eval/world.txt
+	WORLD_CALIB_DRAWS=$(EVAL_WORLD_DRAWS) $(CARGO) test -p isochron-tests --test world \
+	  the_calibration_steps_accuracy -- --ignored --nocapture 2>&1 \
+	  | grep -E "^calibration accuracy" | tee reports/eval/calibration-world.txt

@@ -61,6 +61,14 @@ pub struct WorldReady {
     /// The world's truth of what the latency step measures: from the middle
     /// of the LED row's exposure to the frame's delivery, on average, ms.
     pub led_latency_ms: f64,
+    /// The world's truth of what the pendulum step measures: the string's
+    /// length (pivot to the ball's centre), m.
+    pub pendulum_length_m: f64,
+    /// The world's linear damping of the swing, 1/s (its quadratic air drag
+    /// beside it: `pendulum_drag_per_m`).
+    pub pendulum_damping_per_s: f64,
+    /// The world's quadratic air drag, 1/m (0 in a truthful world).
+    pub pendulum_drag_per_m: f64,
 }
 
 /// The LED's switches the board made, `(world time, on)` in order (the
@@ -87,6 +95,54 @@ struct TruthLine<'a> {
     contact_unix_s: Option<f64>,
     success: bool,
     not_judged: Option<&'a str>,
+}
+
+/// How late the webcam delivered its frames: its drawn latency is what the
+/// world means, but a frame is rendered and encoded only after its exposure
+/// (and the truth it needs) is over, so on a slow or busy machine it leaves
+/// later than drawn. Served as the world's truth at `GET /truth`.
+#[derive(Debug, Default)]
+struct Lateness {
+    frames: u64,
+    /// Frames delivered more than [`LATE_S`] after their drawn time.
+    late: u64,
+    sum_s: f64,
+    /// The latest frames' lateness, s (at most [`RECENT_FRAMES`]).
+    recent: std::collections::VecDeque<f64>,
+}
+
+/// A frame counts as late past this, s.
+const LATE_S: f64 = 0.001;
+/// Frames the recent lateness is the mean of (8.5 s at 30 fps).
+const RECENT_FRAMES: usize = 256;
+
+impl Lateness {
+    fn add(&mut self, late_s: f64) {
+        let late_s = late_s.max(0.0);
+        self.frames += 1;
+        self.late += u64::from(late_s > LATE_S);
+        self.sum_s += late_s;
+        if self.recent.len() == RECENT_FRAMES {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(late_s);
+    }
+
+    /// The world's camera truth as JSON: the drawn LED latency, and what it
+    /// delivered (drawn + the recent frames' mean lateness).
+    fn json(&self, led_latency_ms: f64) -> serde_json::Value {
+        let mean = |sum: f64, n: usize| if n == 0 { 0.0 } else { sum / n as f64 };
+        let recent_ms = mean(self.recent.iter().sum(), self.recent.len()) * 1e3;
+        serde_json::json!({
+            "led_latency_ms": led_latency_ms,
+            "frames": self.frames,
+            "late_frames": self.late,
+            "mean_lateness_ms": mean(self.sum_s, usize::try_from(self.frames).unwrap_or(usize::MAX)) * 1e3,
+            "recent_frames": self.recent.len(),
+            "recent_lateness_ms": recent_ms,
+            "led_delivered_latency_ms": led_latency_ms + recent_ms,
+        })
+    }
 }
 
 /// The webcam stream's clients: each one's queue of JPEG frames.
@@ -181,6 +237,7 @@ impl LabWorld {
         // The world and the cabinet, which steps it every controller cycle.
         let mut world = LiveWorld::new(scenario, spec.seed, intercept, 0.0);
         let session = world.world().session;
+        let true_pendulum = world.world().pendulum;
         let wp = scenario.world.clone().unwrap_or_default();
         let mut params = rt_core::sim::robot_params(scenario, spec.seed);
         params.fri_version = spec.fri_version;
@@ -280,18 +337,23 @@ impl LabWorld {
         let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
         let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
         let clients: Clients = Arc::default();
-        {
-            let clients = Arc::clone(&clients);
-            std::thread::Builder::new()
-                .name("isochron-world-http".into())
-                .spawn(move || serve_stream(&listener, &clients))?;
-        }
         let frames = Arc::new(AtomicU64::new(0));
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
         let led_latency_ms = webcam.led_latency_s() * 1e3;
+        let lateness = Arc::new(Mutex::new(Lateness::default()));
         {
-            let (clients, frames, led) =
-                (Arc::clone(&clients), Arc::clone(&frames), Arc::clone(&led));
+            let (clients, lateness) = (Arc::clone(&clients), Arc::clone(&lateness));
+            std::thread::Builder::new()
+                .name("isochron-world-http".into())
+                .spawn(move || serve_stream(&listener, &clients, &lateness, led_latency_ms))?;
+        }
+        {
+            let (clients, frames, led, lateness) = (
+                Arc::clone(&clients),
+                Arc::clone(&frames),
+                Arc::clone(&led),
+                Arc::clone(&lateness),
+            );
             std::thread::Builder::new()
                 .name("isochron-world-camera".into())
                 .spawn(move || {
@@ -323,6 +385,9 @@ impl LabWorld {
                         sleep_until(epoch, timing.t_delivered_s);
                         publish(&clients, &jpeg);
                         frames.fetch_add(1, Relaxed);
+                        if let Ok(mut l) = lateness.lock() {
+                            l.add(now() - timing.t_delivered_s);
+                        }
                         k += 1;
                         // Fallen behind by more than a few frames (a stalled
                         // machine): the camera goes on from now, as a webcam
@@ -342,6 +407,9 @@ impl LabWorld {
             camera_url,
             serial_port: tty,
             led_latency_ms,
+            pendulum_length_m: true_pendulum.length_m,
+            pendulum_damping_per_s: true_pendulum.damping_per_s,
+            pendulum_drag_per_m: true_pendulum.drag_per_m,
         };
         Ok(Self {
             ready,
@@ -498,16 +566,28 @@ fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) 
 }
 
 /// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream
-/// (`multipart/x-mixed-replace`), anything else 404.
-fn serve_stream(listener: &TcpListener, clients: &Clients) {
+/// (`multipart/x-mixed-replace`), `GET /truth` the camera's truth (JSON:
+/// [`Lateness::json`]), anything else 404.
+fn serve_stream(
+    listener: &TcpListener,
+    clients: &Clients,
+    lateness: &Arc<Mutex<Lateness>>,
+    led_latency_ms: f64,
+) {
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
         let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
-        let clients = Arc::clone(clients);
+        let (clients, lateness) = (Arc::clone(clients), Arc::clone(lateness));
         let _ = std::thread::Builder::new()
             .name("isochron-world-client".into())
             .spawn(move || {
-                let _ = stream_client(stream, &clients, tx, &rx);
+                let truth = || {
+                    lateness
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .json(led_latency_ms)
+                };
+                let _ = stream_client(stream, &clients, tx, &rx, truth);
             });
     }
 }
@@ -517,6 +597,7 @@ fn stream_client(
     clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>,
     tx: SyncSender<Arc<Vec<u8>>>,
     rx: &Receiver<Arc<Vec<u8>>>,
+    truth: impl FnOnce() -> serde_json::Value,
 ) -> std::io::Result<()> {
     stream.set_read_timeout(Some(Duration::from_secs(2)))?;
     stream.set_write_timeout(Some(Duration::from_secs(2)))?;
@@ -532,7 +613,18 @@ fn stream_client(
     }
     let line = String::from_utf8_lossy(&head);
     let mut words = line.split_whitespace();
-    if (words.next(), words.next()) != (Some("GET"), Some("/video.mjpg")) {
+    let request = (words.next(), words.next());
+    if request == (Some("GET"), Some("/truth")) {
+        let body = truth().to_string();
+        return stream.write_all(
+            format!(
+                "HTTP/1.0 200 OK\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+                body.len()
+            )
+            .as_bytes(),
+        );
+    }
+    if request != (Some("GET"), Some("/video.mjpg")) {
         return stream.write_all(
             b"HTTP/1.0 404 Not Found\r\nContent-Type: text/plain\r\n\r\nthe stream is /video.mjpg\n",
         );
