@@ -92,8 +92,9 @@ async fn a_missed_heartbeat_stops_the_moving_arm_within_the_dead_man_time_and_is
         after > TIMEOUT_S,
         "stopped {after:.4} s after the last heartbeat, before the dead-man time"
     );
-    // The motion decelerates to rest.
-    let deadline = Instant::now() + Duration::from_secs(3);
+    // The motion decelerates to rest (the lab's clock says how fast; the
+    // wall-clock deadline only bounds a busy machine's wait).
+    let deadline = Instant::now() + Duration::from_secs(10);
     loop {
         let s = lab.latest().unwrap().0;
         if s.path.speed_executed_mps < 1e-3 && s.t_s > aborted_at + 0.2 {

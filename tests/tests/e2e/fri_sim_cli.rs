@@ -145,7 +145,7 @@ fn fri_sim_runs_a_session_with_a_real_client_and_reports_json() {
         .read_to_string(&mut err)
         .unwrap();
     assert!(status.success(), "fri-sim failed: {err}");
-    wait_for("IDLE at the client", Duration::from_secs(2), || {
+    wait_for("IDLE at the client", Duration::from_secs(10), || {
         cl.state() == LinkState::Idle
     });
     let control = session.stop().unwrap();
