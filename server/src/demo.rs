@@ -366,6 +366,20 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         }
         let operator_present = last_beat.is_some_and(|t| t.elapsed() <= operator_timeout);
         if let Some(cur) = current.as_mut() {
+            // A calibration step can start between the trial's end and its
+            // record's (the step takes ~2 s): the pause is noted now, so it
+            // is shown once the record is in.
+            let lab_hold = hold(
+                crate::not_ready(&state).as_ref(),
+                opts.operator_required,
+                operator_present,
+            );
+            if lab_hold
+                .as_ref()
+                .is_some_and(|h| h.reason.as_deref() == Some("calibrating"))
+            {
+                let _ = pause.shown(lab_hold, Instant::now());
+            }
             // A demo trial runs: the operator's hold, then its record.
             if opts.operator_required && !operator_present && !cur.stopped {
                 cur.stopped = true;
