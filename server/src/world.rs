@@ -69,6 +69,12 @@ pub struct WorldReady {
     pub pendulum_damping_per_s: f64,
     /// The world's quadratic air drag, 1/m (0 in a truthful world).
     pub pendulum_drag_per_m: f64,
+    /// The world's contact force pulse, ms (the measured judge believes
+    /// `success.contact_pulse_ms`).
+    pub contact_pulse_ms: f64,
+    /// How late the world's robot shows a contact in its external torques,
+    /// ms (the measured judge believes `success.torque_lag_periods` FRI periods).
+    pub torque_lag_ms: f64,
 }
 
 /// The LED's switches the board made, `(world time, on)` in order (the
@@ -410,6 +416,8 @@ impl LabWorld {
             pendulum_length_m: true_pendulum.length_m,
             pendulum_damping_per_s: true_pendulum.damping_per_s,
             pendulum_drag_per_m: true_pendulum.drag_per_m,
+            contact_pulse_ms: session.contact_pulse_s * 1e3,
+            torque_lag_ms: session.torque_lag_periods * period_s * 1e3,
         };
         Ok(Self {
             ready,

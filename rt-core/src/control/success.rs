@@ -13,6 +13,13 @@ pub struct SuccessParams {
     pub position_tolerance_m: f64,
     /// Largest |arrival - t*| that counts as timed precisely, milliseconds.
     pub timing_tolerance_ms: f64,
+    /// The measured judge's belief of how long a contact's force pulse on
+    /// the tool lasts (ball and disc compliance), milliseconds: a tennis ball
+    /// on a rigid disc, a few.
+    pub contact_pulse_ms: f64,
+    /// The measured judge's belief of how late the robot's external torque
+    /// estimate shows a contact's force (its filtering), FRI periods.
+    pub torque_lag_periods: f64,
 }
 
 impl Default for SuccessParams {
@@ -20,6 +27,8 @@ impl Default for SuccessParams {
         Self {
             position_tolerance_m: 0.02,
             timing_tolerance_ms: 20.0,
+            contact_pulse_ms: 4.0,
+            torque_lag_periods: 1.0,
         }
     }
 }
@@ -43,6 +52,13 @@ impl SuccessParams {
             self.timing_tolerance_ms,
             0.1,
             1000.0,
+        )?;
+        check::within("success.contact_pulse_ms", self.contact_pulse_ms, 0.5, 50.0)?;
+        check::within(
+            "success.torque_lag_periods",
+            self.torque_lag_periods,
+            0.0,
+            10.0,
         )
     }
 }

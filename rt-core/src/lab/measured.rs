@@ -7,15 +7,6 @@
 
 use crate::control::measured::{MeasuredInputs, MeasuredJudgement, Sighting, judge_measured};
 
-/// How late the robot's external torque estimate shows a contact's force,
-/// FRI periods: a belief about the robot's torque sensing, here the
-/// simulated robot's (`sim/world/contact.rs`). A real lab calibrates it
-/// (one knock on the tool, seen by the camera and the torques).
-pub const TORQUE_LAG_PERIODS: f64 = 1.0;
-/// How long a contact's force pulse lasts, s: a belief about ball and tool
-/// (a tennis ball on a rigid disc: a few milliseconds).
-pub const CONTACT_PULSE_S: f64 = 0.004;
-
 /// The measured judge's recording of one trial.
 #[derive(Debug)]
 pub(crate) struct MeasuredTrace {
@@ -54,6 +45,11 @@ pub(crate) struct MeasuredBeliefs {
     pub intercept_y_m: f64,
     /// Ball centre to tool point along the swing at the first touch, m.
     pub contact_reach_m: f64,
+    /// How late the external torques show a contact's force, s
+    /// (`success.torque_lag_periods` FRI periods: a belief).
+    pub contact_delay_s: f64,
+    /// How long a contact's force pulse lasts, s (`success.contact_pulse_ms`: a belief).
+    pub contact_pulse_s: f64,
 }
 
 impl MeasuredTrace {
@@ -126,8 +122,8 @@ impl MeasuredTrace {
             settle_m: b.settle_m,
             arrival_lead_s: b.settle_lead_s,
             tolerance_ms: b.tolerance_ms,
-            contact_delay_s: TORQUE_LAG_PERIODS * b.period_s,
-            contact_pulse_s: CONTACT_PULSE_S,
+            contact_delay_s: b.contact_delay_s,
+            contact_pulse_s: b.contact_pulse_s,
             contact_period_s: b.period_s,
             intercept_y_m: b.intercept_y_m,
             contact_reach_m: b.contact_reach_m,

@@ -1180,6 +1180,8 @@ impl LabStep {
                 settle_lead_s: trial.plan.settle_lead_s,
                 tolerance_ms: self.p.scenario.success.timing_tolerance_ms,
                 period_s: self.period_s,
+                contact_delay_s: self.p.scenario.success.torque_lag_periods * self.period_s,
+                contact_pulse_s: self.p.scenario.success.contact_pulse_ms * 1e-3,
                 intercept_y_m: trial.plan.intercept_m.y,
                 // The ball first touches the disc's rim (the ball's radius
                 // and the disc's extent along the swing at the measured

@@ -95,6 +95,26 @@ fn every_rule_names_its_field() {
             "[success]\ntiming_tolerance_ms = -20.0",
             "success.timing_tolerance_ms",
         ),
+        (
+            "[success]\ncontact_pulse_ms = 0.0",
+            "success.contact_pulse_ms",
+        ),
+        (
+            "[success]\ncontact_pulse_ms = nan",
+            "success.contact_pulse_ms",
+        ),
+        (
+            "[success]\ntorque_lag_periods = -1.0",
+            "success.torque_lag_periods",
+        ),
+        (
+            "[world.pendulum]\ncontact_pulse_ms = [0.1, 4.0]",
+            "world.pendulum.contact_pulse_ms",
+        ),
+        (
+            "[world.robot]\ntorque_lag_periods = [1.0, 11.0]",
+            "world.robot.torque_lag_periods",
+        ),
     ];
     for (text, field) in cases {
         refused(text, field);

@@ -57,6 +57,10 @@ pub struct WorldPendulumParams {
     /// Standard deviation of a random horizontal acceleration (air), held for
     /// 50 ms at a time, m/s^2, per trial.
     pub disturbance_mps2: RangeParam,
+    /// How long a contact's force pulse on the tool lasts (ball and disc
+    /// compliance), ms, per session. The measured judge's belief of it is
+    /// `success.contact_pulse_ms`.
+    pub contact_pulse_ms: RangeParam,
 }
 
 impl Default for WorldPendulumParams {
@@ -71,6 +75,7 @@ impl Default for WorldPendulumParams {
             out_of_plane_deg: RangeParam::fixed(0.0),
             release_delay_ms: None,
             disturbance_mps2: RangeParam::fixed(0.0),
+            contact_pulse_ms: RangeParam::fixed(4.0),
         }
     }
 }
@@ -195,6 +200,10 @@ pub struct WorldRobotParams {
     /// A contact's impulse pushes the true arm (through its mass matrix);
     /// the servos pull it back.
     pub contact_push: bool,
+    /// How late the robot's external torque estimate shows a contact's
+    /// force (its filtering), FRI periods, per session. The measured judge's
+    /// belief of it is `success.torque_lag_periods`.
+    pub torque_lag_periods: RangeParam,
 }
 
 impl Default for WorldRobotParams {
@@ -217,6 +226,7 @@ impl Default for WorldRobotParams {
             velocity_limit_scale: 0.0,
             acceleration_limit_scale: 0.0,
             contact_push: false,
+            torque_lag_periods: RangeParam::fixed(1.0),
         }
     }
 }
@@ -362,6 +372,12 @@ impl WorldParams {
             0.0,
             1.0,
         )?;
+        range(
+            "world.pendulum.contact_pulse_ms",
+            &p.contact_pulse_ms,
+            0.5,
+            50.0,
+        )?;
         let c = &self.camera;
         range("world.camera.latency_ms", &c.latency_ms, -500.0, 500.0)?;
         range(
@@ -463,6 +479,12 @@ impl WorldParams {
             &r.message_jitter_ms,
             0.0,
             20.0,
+        )?;
+        range(
+            "world.robot.torque_lag_periods",
+            &r.torque_lag_periods,
+            0.0,
+            10.0,
         )?;
         off_or_within(
             "world.robot.velocity_limit_scale",
@@ -596,6 +618,10 @@ pub struct SessionDraw {
     pub message_latency_s: f64,
     /// One-way datagram jitter bound, s.
     pub message_jitter_s: f64,
+    /// The external torque estimate's lag behind a contact's force, FRI periods.
+    pub torque_lag_periods: f64,
+    /// A contact's force pulse, s.
+    pub contact_pulse_s: f64,
 }
 
 /// Values drawn per trial.
@@ -702,6 +728,8 @@ impl WorldParams {
         let command_jitter_s = pick(&r.command_jitter_ms, &mut rng) * 1e-3;
         let message_latency_s = pick(&r.message_latency_ms, &mut rng) * 1e-3;
         let message_jitter_s = pick(&r.message_jitter_ms, &mut rng) * 1e-3;
+        let torque_lag_periods = pick(&r.torque_lag_periods, &mut rng);
+        let contact_pulse_s = pick(&p.contact_pulse_ms, &mut rng) * 1e-3;
         SessionDraw {
             session,
             length_error_m,
@@ -739,6 +767,8 @@ impl WorldParams {
             command_jitter_s,
             message_latency_s,
             message_jitter_s,
+            torque_lag_periods,
+            contact_pulse_s,
         }
     }
 

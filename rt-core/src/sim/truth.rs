@@ -340,7 +340,13 @@ impl TruthObserver for SimTruth {
                 // The true tool (the world's kinematics at the robot's true
                 // joints); the ball stops against its disc.
                 let disc = w.world.arm.disc(q_true);
-                if let Some(contact) = w.on_tool.meet(t, disc, period_s, w.mass_kg) {
+                if let Some(contact) = w.on_tool.meet(
+                    t,
+                    disc,
+                    period_s,
+                    w.mass_kg,
+                    w.world.session.contact_pulse_s,
+                ) {
                     // The camera sees the ball where the tool stopped it.
                     let _ = self
                         .to_camera

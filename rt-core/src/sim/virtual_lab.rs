@@ -1540,6 +1540,56 @@ mod tests {
     }
 
     #[test]
+    fn the_measured_judge_times_contacts_by_its_beliefs_not_by_the_world() {
+        // A world whose torque estimate lags 3 FRI periods (15 ms) and whose
+        // contact pulse lasts 8 ms. The judge believing the defaults (1
+        // period, 4 ms) puts every contact's onset 2 periods + 2 ms late, so
+        // the pass it anchors on it late and the measured timing 12 ms early;
+        // believing the world's values, it agrees with the physical judge.
+        let paper = Scenario::from_toml_str(include_str!("../../../scenarios/paper.toml")).unwrap();
+        let mut w = crate::sim::world::WorldParams::default();
+        w.robot.torque_lag_periods = crate::params::RangeParam::fixed(3.0);
+        w.pendulum.contact_pulse_ms = crate::params::RangeParam::fixed(8.0);
+        let period_ms = f64::from(paper.robot.fri_period_ms);
+        let offsets = |lag: f64, pulse_ms: f64| {
+            let mut s = paper.clone();
+            s.camera.vision = VisionMode::Model;
+            // Timed for the physical judge's arrival (the tool settled within 2 mm).
+            s.control.arrival_settle_m = 0.002;
+            s.world = Some(w.clone());
+            s.success.torque_lag_periods = lag;
+            s.success.contact_pulse_ms = pulse_ms;
+            let mut lab = VirtualLab::new(&s, 1).unwrap();
+            let mut d = Vec::new();
+            for i in 0..6 {
+                let r = lab.run_trial(i);
+                if let (Some(m), Some(p)) = (r.measured, r.physical)
+                    && let Some(e) = m.timing_error_ms
+                    && m.contact
+                {
+                    d.push(e - p.timing_error_ms);
+                }
+            }
+            assert!(d.len() >= 5, "contacts measured in {} of 6: {d:?}", d.len());
+            d
+        };
+        let mean = |d: &[f64]| d.iter().sum::<f64>() / d.len() as f64;
+        let believed = offsets(3.0, 8.0);
+        let wrong = offsets(1.0, 4.0);
+        let (mb, mw) = (mean(&believed), mean(&wrong));
+        let expect = -(2.0 * period_ms + 2.0);
+        assert!(
+            believed.iter().all(|e| e.abs() <= 3.0),
+            "beliefs as the world: measured - true {believed:?} ms"
+        );
+        assert!(
+            (mw - mb - expect).abs() <= 2.0,
+            "beliefs off by 2 periods and 4 ms of pulse: measured - true {wrong:?} ms \
+             (mean {mw:.2}) against {believed:?} (mean {mb:.2}); expected a shift of {expect} ms"
+        );
+    }
+
+    #[test]
     fn the_measured_judge_agrees_with_the_physical_one_in_the_reality_lab() {
         // Twenty trials as the lab runs them (rendered frames, the detector:
         // the held ball's detections are the judge's anchor), then four

@@ -777,41 +777,10 @@ async fn a_lab_config_pointing_at_nothing_names_each_device_and_starts_nothing()
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
 }
 
-/// The pendulum step on a real lab, through `isochron world`'s cabinet,
-/// webcam and Arduino: a world whose string is 5 cm longer than the lab
-/// believes. `POST /api/calibration/pendulum` moves the arm home, switches the
-/// magnet on (the world's operator hangs the ball), lets go, records the free
-/// swing through the lab's own camera and fits it: the length the world has,
-/// not the one the lab believed, written with its source and taken by the
-/// lab's beliefs.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
-    let _one = ONE_LAB.lock().await;
-    let Some(_) = firmware() else {
-        return;
-    };
-    let Some(bin) = isochron_tests::isochron_bin(&[
-        (&["world", "--help"], "--lab-config"),
-        (&["serve", "--help"], "--config"),
-    ]) else {
-        return;
-    };
-    let dir = tempfile::tempdir().unwrap();
-    let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/paper.toml");
-    let believed = rt_core::params::Scenario::from_file(&paper)
-        .unwrap()
-        .pendulum
-        .length_m;
-    let scenario = dir.path().join("longer.toml");
-    std::fs::write(
-        &scenario,
-        std::fs::read_to_string(&paper).unwrap()
-            + "\n[world.pendulum]\nlength_error_m = [0.05, 0.05]\n",
-    )
-    .unwrap();
-    let (_world, _serve, addr, _) = world_and_lab(&bin, &scenario, dir.path(), &[]);
-    // Uncalibrated, the real lab refuses trials; the other steps' real-lab
-    // procedures are not built (409 not_available, nothing written).
+/// A real lab straight from `isochron world`'s configuration: uncalibrated,
+/// it refuses trials, and the steps whose real-lab procedures are not built
+/// refuse too (409 `not_available`, nothing written).
+async fn refuses_until_calibrated(addr: SocketAddr) {
     let deadline = Instant::now() + Duration::from_secs(30);
     let mut h = get(addr, "/api/health").await;
     while h["not_ready"]["reason"] == "starting" && Instant::now() < deadline {
@@ -824,45 +793,26 @@ async fn the_pendulum_step_on_a_real_lab_measures_the_worlds_string() {
         .unwrap();
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json().unwrap()["reason"], "not_available");
-
-    // The operator's page: a heartbeat every 200 ms (the real lab's dead-man).
-    let heart = Heartbeat::start(addr);
-    let result = calibrate(addr, "pendulum").await;
-    heart.stop().await;
-    let status = get(addr, "/api/calibration").await;
-    let swing = &result["swing"];
-    let length = swing["length_m"].as_f64().unwrap();
-    let true_length = believed + 0.05;
-    println!(
-        "pendulum step through isochron world: length {length:.4} m (world {true_length:.4}, \
-         believed {believed:.4}), damping {} /s, residual {} m, {} samples",
-        swing["damping_per_s"], swing["residual_rms_m"], swing["samples"]
-    );
-    assert!(
-        (length - true_length).abs() < 0.005,
-        "length {length} vs the world's {true_length} (believed {believed})"
-    );
-    // Written with where it was measured; the lab's beliefs took it.
-    let file =
-        std::fs::read_to_string(status["file"].as_str().unwrap()).expect("the calibration file");
-    assert!(file.contains("source = \"the real lab\""), "{file}");
-    let p = get(addr, "/api/params").await;
-    let taken = p["pendulum"]["length_m"].as_f64().unwrap();
-    assert!(
-        (taken - length).abs() < 1e-9,
-        "beliefs {taken} vs step {length}"
-    );
 }
 
-/// The accuracy of the calibration steps a real lab runs today (pendulum,
-/// latency), through `isochron world`: `WORLD_CALIB_DRAWS` (default 10) hidden
-/// draws of `scenarios/reality.toml` (seeds 1..=N), each a world process and a
-/// lab brought up from its configuration, both steps over REST, and the
-/// estimates set against the truth the world printed when it started. A
-/// table, one row a draw, then each error's mean and largest. Minutes: `make
-/// eval-world` runs it (`--ignored`); the tests above check each step once.
+/// The calibration steps a real lab runs today (pendulum, latency) and their
+/// accuracy, through `isochron world`'s cabinet, webcam and Arduino. The
+/// pendulum step moves the arm home, switches the magnet on (the world's
+/// operator hangs the ball), lets go, records the free swing through the
+/// lab's own camera and fits it; the latency step switches the board's LED
+/// and watches it in the frames. First draw: the lab refuses trials until
+/// calibrated, and the step's length is the world's, not the believed one,
+/// written with its source and taken by the lab's beliefs. Over `WORLD_CALIB_DRAWS` (default 1: `make
+/// test`; `make eval-world` takes 10) hidden draws of `scenarios/reality.toml`
+/// (seeds 1..=N), each a world process and a lab brought up from its
+/// configuration, both steps over REST, and the estimates set against the
+/// truth the world printed when it started. A table, one row a draw, then
+/// each error's mean and largest. The latency estimate is never earlier than
+/// the webcam delivered its frames; how much later (the stream's transport
+/// and the lab's decoding, longer on a loaded machine) is reported, and
+/// bounded only when `WORLD_CALIB_LATENCY_MAX_MS` says so (`make eval-world`:
+/// 20 ms, on a quiet machine).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "minutes (10 worlds): `make eval-world` runs it"]
 async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world() {
     let _one = ONE_LAB.lock().await;
     assert!(firmware().is_some(), "the magnet firmware (make firmware)");
@@ -874,8 +824,15 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
     let draws: u64 = std::env::var("WORLD_CALIB_DRAWS")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(10);
+        .unwrap_or(1);
+    let latency_max_ms: Option<f64> = std::env::var("WORLD_CALIB_LATENCY_MAX_MS")
+        .ok()
+        .and_then(|v| v.parse().ok());
     let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
+    let believed = rt_core::params::Scenario::from_file(&scenario)
+        .unwrap()
+        .pendulum
+        .length_m;
     println!(
         "calibration accuracy: {draws} hidden draws of {} through isochron world (reality world)",
         scenario.display()
@@ -891,6 +848,9 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
         let (_world, _serve, addr, ready) =
             world_and_lab(&bin, &scenario, dir.path(), &["--seed", &seed_arg]);
         assert_eq!(ready["world"], "reality", "{ready}");
+        if seed == 1 {
+            refuses_until_calibrated(addr).await;
+        }
         let heart = Heartbeat::start(addr);
         let pendulum = calibrate(addr, "pendulum").await;
         let latency = calibrate(addr, "latency").await;
@@ -900,6 +860,27 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
             v.as_f64()
                 .unwrap_or_else(|| panic!("seed {seed}: no {what} in {v}"))
         };
+        if seed == 1 {
+            // Seed 1's string is 2 cm shorter than the lab believed: the
+            // step measures the world's, writes it with where it was
+            // measured, and the lab's beliefs take it.
+            let length = num(&pendulum["swing"]["length_m"], "length");
+            let true_length = num(&ready["pendulum_length_m"], "true length");
+            assert!(
+                (believed - true_length).abs() > 0.015 && (length - true_length).abs() < 0.005,
+                "length {length} vs the world's {true_length} (believed {believed})"
+            );
+            let status = get(addr, "/api/calibration").await;
+            let file = std::fs::read_to_string(status["file"].as_str().unwrap())
+                .expect("the calibration file");
+            assert!(file.contains("source = \"the real lab\""), "{file}");
+            let p = get(addr, "/api/params").await;
+            let taken = p["pendulum"]["length_m"].as_f64().unwrap();
+            assert!(
+                (taken - length).abs() < 1e-9,
+                "beliefs {taken} vs step {length}"
+            );
+        }
         let (length, true_length) = (
             num(&pendulum["swing"]["length_m"], "length"),
             num(&ready["pendulum_length_m"], "true length"),
@@ -908,6 +889,16 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
             num(&latency["latency_ms"], "latency"),
             num(&ready["led_latency_ms"], "drawn latency"),
             num(&camera["led_delivered_latency_ms"], "delivered latency"),
+        );
+        // The world draws its own contact, within reality.toml's ranges;
+        // the judge's beliefs (4 ms, 1 period of 5 ms) are not read from it.
+        let (pulse, lag) = (
+            num(&ready["contact_pulse_ms"], "contact pulse"),
+            num(&ready["torque_lag_ms"], "torque lag"),
+        );
+        assert!(
+            (3.5..=5.0).contains(&pulse) && (4.0..=6.0).contains(&lag),
+            "seed {seed}: the world's contact {ready}"
         );
         length_err_mm.push((length - true_length) * 1e3);
         latency_err_ms.push(lat - delivered);
@@ -942,7 +933,13 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
     // holds too.
     assert!(l_max < 10.0, "length errors (mm): {length_err_mm:?}");
     assert!(
-        latency_err_ms.iter().all(|&e| (-2.0..=20.0).contains(&e)),
-        "latency errors against the delivered latency (ms): {latency_err_ms:?}"
+        latency_err_ms.iter().all(|&e| e >= -2.0),
+        "latency estimates earlier than the webcam delivered (ms): {latency_err_ms:?}"
     );
+    if let Some(max) = latency_max_ms {
+        assert!(
+            latency_err_ms.iter().all(|&e| e <= max),
+            "latency estimates more than {max} ms later than delivered (ms): {latency_err_ms:?}"
+        );
+    }
 }

@@ -726,7 +726,7 @@ impl NetworkModel {
 impl WorldRobot {
     /// The reality lab's robot: `latency`, `joints`, the external torques'
     /// noise drawn from `seed`, and their lag behind a contact's force
-    /// (`torque_lag_s`, `sim::world::contact::TORQUE_LAG_PERIODS` FRI periods).
+    /// (`torque_lag_s`: the session's `world.robot.torque_lag_periods` FRI periods).
     pub fn new(
         latency: crate::sim::world::LatencyModel,
         joints: crate::sim::world::WorldJoints,
@@ -780,7 +780,7 @@ impl WorldRobot {
             crate::sim::world::LatencyModel::from_session(session, t0_s),
             joints,
             seeds[1],
-            crate::sim::world::contact::TORQUE_LAG_PERIODS * period_s,
+            session.torque_lag_periods * period_s,
         );
         w.net = NetworkModel::from_session(session);
         w

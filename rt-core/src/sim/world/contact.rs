@@ -5,12 +5,12 @@
 //! trial driver's truth, `sim::truth::SimTruth`,
 //! [`super::TruePendulum::collide`]) the tool receives the
 //! impulse that changed the ball's velocity, `-m dv` (ball mass
-//! `world.pendulum.ball_mass_kg`), as a half-sine force pulse of
-//! [`CONTACT_DURATION_S`] from the contact (its exact time between two
-//! control steps, found there). The robot reports, with each
+//! `world.pendulum.ball_mass_kg`), as a half-sine force pulse of the
+//! session's `world.pendulum.contact_pulse_ms` from the contact (its exact
+//! time between two control steps, found there). The robot reports, with each
 //! monitoring message, the pulse's mean force over the period since its last
-//! message, [`TORQUE_LAG_PERIODS`] FRI periods late (the estimate's
-//! filtering: a contact between two messages shows in the next ones, split
+//! message, the session's `world.robot.torque_lag_periods` FRI periods late
+//! (the estimate's filtering: a contact between two messages shows in the next ones, split
 //! between them as its pulse falls), mapped to the joints by the transposed Jacobian of the contact
 //! point, `tau = J^T F` (`tau_i = z_i . ((p - o_i) x F)` over the iiwa's
 //! joint axes at the true joint angles), plus white noise of
@@ -29,12 +29,6 @@ use crate::kinematics::iiwa7::JOINTS;
 use crate::kinematics::{Pose, frames};
 use crate::sim::camera::gaussian;
 
-/// Duration of a contact's force pulse, seconds.
-pub const CONTACT_DURATION_S: f64 = 0.004;
-/// The external torque estimate shows a contact's force this many FRI
-/// periods late (its filtering): a contact that begins between two messages
-/// shows, in the next messages, the part of its pulse after a period.
-pub const TORQUE_LAG_PERIODS: f64 = 1.0;
 /// Standard deviation of the reported external torque of each joint, N m.
 pub const EXTERNAL_TORQUE_NOISE_NM: f64 = 0.2;
 
@@ -47,6 +41,8 @@ pub struct Contact {
     pub point_m: Vector3<f64>,
     /// The impulse the tool receives, newton seconds.
     pub impulse_ns: Vector3<f64>,
+    /// How long its force pulse lasts, seconds (`world.pendulum.contact_pulse_ms`).
+    pub duration_s: f64,
 }
 
 impl Contact {
@@ -55,7 +51,7 @@ impl Contact {
     pub fn mean_force_n(&self, a_s: f64, b_s: f64) -> Vector3<f64> {
         // Impulse delivered by time t: J (1 - cos(pi u)) / 2, u = (t - t0) / D.
         let part = |t: f64| {
-            let u = ((t - self.t_s) / CONTACT_DURATION_S).clamp(0.0, 1.0);
+            let u = ((t - self.t_s) / self.duration_s.max(1e-6)).clamp(0.0, 1.0);
             0.5 * (1.0 - (std::f64::consts::PI * u).cos())
         };
         let dt = b_s - a_s;
@@ -67,7 +63,7 @@ impl Contact {
 
     /// Whether the pulse is over by `t_s`.
     pub fn over_by(&self, t_s: f64) -> bool {
-        t_s >= self.t_s + CONTACT_DURATION_S
+        t_s >= self.t_s + self.duration_s
     }
 }
 
@@ -152,8 +148,15 @@ impl BallOnTool {
     /// The tool's disc is `disc` at `t_s` (one step of `period_s` after the
     /// previous one): a ball that met it since is stopped at that moment, and
     /// the contact (its time, where the force acts, the impulse on a ball of
-    /// `mass_kg`) is returned.
-    pub fn meet(&mut self, t_s: f64, disc: Disc, period_s: f64, mass_kg: f64) -> Option<Contact> {
+    /// `mass_kg`, a force pulse of `pulse_s`) is returned.
+    pub fn meet(
+        &mut self,
+        t_s: f64,
+        disc: Disc,
+        period_s: f64,
+        mass_kg: f64,
+        pulse_s: f64,
+    ) -> Option<Contact> {
         let last = self.last_disc.unwrap_or(disc);
         let v_disc = (disc.centre_m - last.centre_m) / period_s;
         self.last_disc = Some(disc);
@@ -185,6 +188,7 @@ impl BallOnTool {
                 t_s: contact_at,
                 point_m: contact_ball_m - n * radius_m,
                 impulse_ns: -dv * mass_kg,
+                duration_s: pulse_s,
             }
         })
     }
@@ -290,6 +294,7 @@ mod tests {
             point_m: Vector3::new(0.6, 0.0, 0.6),
             // A 57 g ball stopped from 0.7 m/s along y.
             impulse_ns: Vector3::new(0.0, 0.057 * 0.7, 0.0),
+            duration_s: 0.004,
         };
         // The means over the periods add up to the impulse.
         let period = 0.005;
@@ -300,7 +305,7 @@ mod tests {
             })
             .sum();
         assert!((total - c.impulse_ns).norm() < 1e-12, "{total}");
-        assert!(c.over_by(1.0012 + CONTACT_DURATION_S) && !c.over_by(1.003));
+        assert!(c.over_by(1.0012 + c.duration_s) && !c.over_by(1.003));
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         // Without a contact: noise only, the norm of seven joints' noise
         // stays far below the judge's threshold.

@@ -227,7 +227,13 @@ impl LiveWorld {
             .world
             .as_ref()
             .map_or(0.0, |w| w.pendulum.ball_mass_kg);
-        let contact = self.on_tool.meet(t_s, disc, period_s, mass_kg);
+        let contact = self.on_tool.meet(
+            t_s,
+            disc,
+            period_s,
+            mass_kg,
+            self.world.session.contact_pulse_s,
+        );
         let mut over = false;
         if let Some(r) = self.release.as_mut()
             && r.drop_s.is_finite()
