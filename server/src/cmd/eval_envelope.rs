@@ -258,6 +258,9 @@ fn factor(name: &'static str, keys: &[Key]) -> Factor {
 ///   more oscillatory), clamped into `[0.2, 3]`;
 /// - `robot.torque_limit_scale`: benign 1 (KUKA's specification); below 1
 ///   moves further below (it matters only with `robot.torque_trip`).
+/// - `pendulum.contact_pulse_ms` and `robot.torque_lag_periods`: benign the
+///   measured judge's default beliefs (4 ms, 1 period: `success.*`); their
+///   distance from them grows both ways.
 ///
 /// Lens distortion (`k1`, `k2`, `p1`, `p2`) is one factor, "lens"; the
 /// camera's rotation and position errors are one, "camera pose"; the
@@ -283,6 +286,7 @@ pub fn factors() -> Vec<Factor> {
         factor("out-of-plane release", &[range("pendulum.out_of_plane_deg", |w| &mut w.pendulum.out_of_plane_deg, 0.0, (0.0, 10.0))]),
         factor("magnet release delay", &[optional("pendulum.release_delay_ms", |w| &mut w.pendulum.release_delay_ms, belief_release, (0.0, 500.0))]),
         factor("air disturbance", &[range("pendulum.disturbance_mps2", |w| &mut w.pendulum.disturbance_mps2, 0.0, (0.0, 1.0))]),
+        factor("contact pulse", &[range("pendulum.contact_pulse_ms", |w| &mut w.pendulum.contact_pulse_ms, 4.0, (0.5, 50.0))]),
         // The camera.
         factor("camera latency offset", &[range("camera.latency_ms", |w| &mut w.camera.latency_ms, 0.0, (-500.0, 500.0))]),
         factor("camera latency jitter", &[range("camera.latency_jitter_ms", |w| &mut w.camera.latency_jitter_ms, 0.0, (0.0, 100.0))]),
@@ -324,6 +328,7 @@ pub fn factors() -> Vec<Factor> {
             range("robot.message_jitter_ms", |w| &mut w.robot.message_jitter_ms, 0.0, (0.0, 20.0)),
         ]),
         factor("command jitter", &[range("robot.command_jitter_ms", |w| &mut w.robot.command_jitter_ms, 0.0, (0.0, 50.0))]),
+        factor("torque estimate lag", &[range("robot.torque_lag_periods", |w| &mut w.robot.torque_lag_periods, 1.0, (0.0, 10.0))]),
         // The geometry.
         factor("intercept point", &[range("geometry.intercept_error_m", |w| &mut w.geometry.intercept_error_m, 0.0, (-0.1, 0.1))]),
         factor("tool length", &[range("geometry.tool_length_error_m", |w| &mut w.geometry.tool_length_error_m, 0.0, (-0.05, 0.05))]),
