@@ -75,13 +75,16 @@ fn the_real_lab_config_runs_the_runtime_with_a_controller_a_video_camera_and_a_s
         },
     )
     .unwrap();
+    // The board's answers may wait on a busy machine (the tests run four at
+    // a time): the driver waits 2 s for one (its 300 ms default is the
+    // magnet driver's own tests').
     let board = FakeDevice::start(dir.join("ttyMAGNET")).unwrap();
 
     let toml = format!(
         "[lab]\nmode = \"real\"\n\
          [fri]\nlocal_bind = \"{client}\"\ncontroller = \"{}\"\nperiod_ms = 5\n\
          [camera]\ndevice = \"{}\"\n\
-         [magnet]\nport = \"{}\"\n\
+         [magnet]\nport = \"{}\"\ncommand_timeout_ms = 2000.0\n\
          [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
          plane_distance_m = 1.6\npivot_m = [0.6, 0.0, 2.23]\n\
          [calibration.camera_pose]\nposition_m = [{}, {}, {}]\n\
