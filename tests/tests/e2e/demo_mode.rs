@@ -296,7 +296,7 @@ fn real_lab(
         "[lab]\nmode = \"real\"\nallow_uncalibrated = {allow_uncalibrated}\n\
          [fri]\nlocal_bind = \"{client}\"\ncontroller = \"{controller}\"\nperiod_ms = 5\n\
          [camera]\ndevice = \"{}\"\n\
-         [magnet]\nport = \"{}\"\n\
+         [magnet]\nport = \"{}\"\ncommand_timeout_ms = 2000.0\n\
          [calibration]\nfocal_length_px = 914.0\nprincipal_point_px = [640.0, 360.0]\n\
          plane_distance_m = 1.6\npivot_m = [0.6, 0.0, 2.23]\n\
          [calibration.camera_pose]\nposition_m = [{}, {}, {}]\n\
