@@ -325,14 +325,23 @@ impl PauseShown {
             self.last = Some(h.clone());
             return hold;
         }
-        if let Some(since) = self.since {
-            if now.duration_since(since) < PAUSE_SHOWN && hold.is_none() {
+        if self.last.is_some() && hold.is_none() {
+            // A noted pause starts its time when it can first be shown.
+            let since = *self.since.get_or_insert(now);
+            if now.duration_since(since) < PAUSE_SHOWN {
                 return self.last.clone();
             }
         }
         self.since = None;
         self.last = None;
         hold
+    }
+
+    /// A pause seen while it cannot be shown (a demo trial's record is
+    /// awaited): shown for [`PAUSE_SHOWN`] from when it can be.
+    fn note(&mut self, hold: Hold) {
+        self.last = Some(hold);
+        self.since = None;
     }
 }
 
@@ -374,11 +383,8 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
                 opts.operator_required,
                 operator_present,
             );
-            if lab_hold
-                .as_ref()
-                .is_some_and(|h| h.reason.as_deref() == Some("calibrating"))
-            {
-                let _ = pause.shown(lab_hold, Instant::now());
+            if let Some(h) = lab_hold.filter(|h| h.reason.as_deref() == Some("calibrating")) {
+                pause.note(h);
             }
             // A demo trial runs: the operator's hold, then its record.
             if opts.operator_required && !operator_present && !cur.stopped {
@@ -587,6 +593,15 @@ mod tests {
             p.shown(None, t0 + PAUSE_SHOWN).is_none(),
             "resumes by itself"
         );
+        // A pause noted while a trial's record was awaited (the step may be
+        // over by then) is shown for the whole minimum from when it can be.
+        let mut q = PauseShown::default();
+        q.note(paused.clone().unwrap());
+        q.note(paused.clone().unwrap());
+        let later = t0 + Duration::from_secs(20);
+        assert_eq!(q.shown(None, later), paused);
+        assert_eq!(q.shown(None, later + Duration::from_millis(4999)), paused);
+        assert!(q.shown(None, later + PAUSE_SHOWN).is_none());
         // A wait for another trial is not a pause and ends the one shown.
         let busy = hold(
             Some(&NotReady {
