@@ -17,7 +17,7 @@ pub const HORIZON_POINTS: usize = 25;
 
 /// Where a trial is: the controller's state machine's state, one type for
 /// the controller and the API.
-pub use crate::control::TrialState;
+pub use crate::control::{Excitation, TrialState};
 
 /// The last sighting the filter was given ([`crate::control::Sighting`]), as
 /// the dashboard shows it.
@@ -814,6 +814,10 @@ pub enum Command {
     /// Replace the parameters (already validated by the sender). The control
     /// thread hands the old ones back in the [`Ack`] so that it never frees memory.
     SetParams(Box<Scenario>),
+    /// Excite one joint with small steps from where the arm rests (the robot
+    /// calibration step): accepted at rest, between trials, while the robot
+    /// commands; the published states carry the commanded and measured joints.
+    Excite(Excitation),
 }
 
 /// What one trial may set for itself (`POST /api/trials`): each `None`
@@ -839,6 +843,7 @@ impl Command {
             Self::Stop => "stop",
             Self::RunTrial { .. } => "run_trial",
             Self::SetParams(_) => "set_params",
+            Self::Excite(_) => "excite",
         }
     }
 }

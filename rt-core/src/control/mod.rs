@@ -18,7 +18,7 @@ pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
 pub use step::{
-    ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Sighting, StepInput,
-    StepOutput,
+    ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Excitation,
+    Sighting, StepInput, StepOutput,
 };
 pub use success::SuccessParams;

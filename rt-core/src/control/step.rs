@@ -218,6 +218,13 @@ pub enum ControlError {
     /// The timed motion refused its set-up.
     #[error(transparent)]
     Motion(#[from] TimingError),
+    /// An excitation out of range (`Excitation::is_valid`).
+    #[error(
+        "excitation out of range: joint {} (A1-A7 are 0-6), amplitude {} rad (0 < a <= 0.05), \
+         duration {} s (1-20)",
+        .0.joint, .0.amplitude_rad, .0.duration_s
+    )]
+    Excitation(Excitation),
     /// Not allowed in the current state.
     #[error("cannot {what} while {state}")]
     State {
@@ -560,6 +567,60 @@ impl JointMove {
     }
 }
 
+/// A small excitation of one joint from rest: the robot calibration step's
+/// motion ([`Controller::excite`]). From where the arm rests, the joint
+/// moves `amplitude_rad` away and back every [`EXCITE_STEP_EVERY_S`], each
+/// move a minimum-jerk transition of [`EXCITE_RAMP_S`] (at 0.05 rad: peak
+/// speed 0.47 rad/s, peak acceleration 7.2 rad/s^2, within every joint's
+/// limits, so that drives which saturate there still follow it), for
+/// `duration_s`; then it rests where it began.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Excitation {
+    /// The joint, 0-based (6 is A7, the wrist).
+    pub joint: usize,
+    /// The steps' height, radians, in `(0, 0.05]`.
+    pub amplitude_rad: f64,
+    /// How long the steps go on, seconds, in `[1, 20]`.
+    pub duration_s: f64,
+}
+
+/// Seconds between an excitation's moves.
+pub const EXCITE_STEP_EVERY_S: f64 = 0.4;
+/// Each move's duration, seconds.
+pub const EXCITE_RAMP_S: f64 = 0.2;
+
+impl Excitation {
+    /// Whether the joint, amplitude and duration are in range.
+    pub fn is_valid(&self) -> bool {
+        self.joint < JOINTS
+            && self.amplitude_rad > 0.0
+            && self.amplitude_rad <= 0.05
+            && (1.0..=20.0).contains(&self.duration_s)
+    }
+
+    /// The joint's offset from where it rested, `s` seconds after the start,
+    /// radians: 0 before the first move and from `duration_s` on.
+    pub fn offset_rad(&self, s: f64) -> f64 {
+        if !(s > 0.0 && s < self.duration_s) {
+            return 0.0;
+        }
+        // Slot k holds `amplitude_rad` away when k is odd and the move back
+        // (in slot k + 1) ends within the duration; each slot begins with
+        // the move from the previous slot's level to its own.
+        let level = |k: f64| {
+            f64::from(u8::from(
+                k.rem_euclid(2.0) == 1.0
+                    && (k + 1.0) * EXCITE_STEP_EVERY_S + EXCITE_RAMP_S <= self.duration_s,
+            ))
+        };
+        let k = (s / EXCITE_STEP_EVERY_S).floor();
+        let from = if k >= 1.0 { level(k - 1.0) } else { 0.0 };
+        let to = level(k);
+        let u = ((s - k * EXCITE_STEP_EVERY_S) / EXCITE_RAMP_S).min(1.0);
+        self.amplitude_rad * (from + (to - from) * ProfileKind::MinJerk.position(u))
+    }
+}
+
 /// The closed-loop controller: one per robot; trials come and go.
 #[derive(Debug, Clone)]
 pub struct Controller {
@@ -577,6 +638,8 @@ pub struct Controller {
     plan: Option<ArmPlan>,
     home_m: Vector3<f64>,
     jmove: Option<JointMove>,
+    /// A running excitation, its start (s) and the joints it rests at.
+    excite: Option<(Excitation, f64, Joints)>,
     q_meas: Joints,
     q_cmd: Joints,
     v_cmd: Joints,
@@ -636,6 +699,7 @@ impl Controller {
             plan: None,
             home_m: Vector3::new(hx, hy, hz),
             jmove: None,
+            excite: None,
             q_meas: Joints::zeros(),
             q_cmd: Joints::zeros(),
             v_cmd: Joints::zeros(),
@@ -1090,6 +1154,60 @@ impl Controller {
         self.abort_reason = Some(reason);
         self.counters.aborts += 1;
         self.jmove = None;
+        self.excite = None;
+    }
+
+    /// Starts an excitation of one joint from where the arm rests (the
+    /// robot calibration step; see [`Excitation`]): allowed in `Idle`
+    /// (between trials) with the commands at rest, once the robot has sent
+    /// a message, while no other excitation runs. The commands stay within the guard; a stop or an
+    /// abort ends it where it is (the safe stop), arming waits until it is
+    /// over ([`Self::exciting`]).
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::Excitation`] for a joint, amplitude or duration out of
+    /// range; [`ControlError::State`] when not `Idle`, before the robot's
+    /// first message, or while an excitation runs.
+    pub fn excite(&mut self, t_s: f64, e: Excitation) -> Result<(), ControlError> {
+        if !e.is_valid() {
+            return Err(ControlError::Excitation(e));
+        }
+        if self.machine.state() != TrialState::Idle
+            || !self.have_meas
+            || self.excite.is_some()
+            || !self.at_rest()
+        {
+            return Err(ControlError::State {
+                what: if self.excite.is_some() {
+                    "excite (an excitation runs)"
+                } else if !self.at_rest() {
+                    "excite (the arm moves)"
+                } else if self.have_meas {
+                    "excite"
+                } else {
+                    "excite before the robot's first FRI message"
+                },
+                state: self.machine.state().name(),
+            });
+        }
+        let hold = if self.have_cmd {
+            self.q_cmd
+        } else {
+            self.q_meas
+        };
+        self.excite = Some((e, t_s, hold));
+        Ok(())
+    }
+
+    /// Whether an excitation runs ([`Self::excite`]).
+    pub fn exciting(&self) -> bool {
+        self.excite.is_some()
+    }
+
+    /// Whether the commands stand still (the last step commanded no motion).
+    pub fn at_rest(&self) -> bool {
+        self.v_cmd.iter().all(|v| v.abs() < 1e-9)
     }
 
     /// Arms a trial with a plan from [`Self::plan`]: builds the filter for
@@ -1102,7 +1220,7 @@ impl Controller {
     /// message; [`ControlError::Params`] or [`ControlError::Filter`] when the plan's
     /// pendulum geometry or the filter is refused.
     pub fn arm(&mut self, t_s: f64, plan: &ArmPlan) -> Result<(), ControlError> {
-        if self.machine.state() != TrialState::Idle || !self.have_meas {
+        if self.machine.state() != TrialState::Idle || !self.have_meas || self.excite.is_some() {
             return Err(ControlError::State {
                 what: if self.have_meas {
                     "arm"
@@ -1245,7 +1363,16 @@ impl Controller {
         }
         let mut target = self.q_cmd;
         match self.machine.state() {
-            TrialState::Idle | TrialState::Armed | TrialState::Done => {}
+            TrialState::Idle => {
+                if let Some((e, t0, hold)) = self.excite {
+                    target = hold;
+                    target[e.joint] += e.offset_rad(t - t0);
+                    if t - t0 >= e.duration_s || !input.commanding {
+                        self.excite = None;
+                    }
+                }
+            }
+            TrialState::Armed | TrialState::Done => {}
             TrialState::Arming => {
                 if let Some(m) = self.jmove {
                     target = m.at(t);
@@ -2140,5 +2267,131 @@ mod tests {
         assert!(c.release(t).is_err());
         c.reset(t).unwrap();
         assert_eq!(c.state(), TrialState::Idle);
+    }
+
+    /// The robot step's excitation: only the chosen joint moves, by at most
+    /// its amplitude, within the speed and acceleration limits; the arm
+    /// rests where it began at the end; bad requests and a busy controller
+    /// are refused with nothing changed; a stop ends it at once.
+    #[test]
+    fn an_excitation_moves_one_joint_within_the_limits_and_rests_where_it_began() {
+        let s = Beliefs::default();
+        let dt = 0.005;
+        let mut c = Controller::new(&s, dt).unwrap();
+        let q0 = [0.1, 0.5, -0.2, -1.4, 0.3, 1.2, 0.4];
+        let mut out = StepOutput::default();
+        let step = |c: &mut Controller, t: f64, q: [f64; JOINTS], out: &mut StepOutput| {
+            c.step(
+                &StepInput {
+                    t_s: t,
+                    q_measured_rad: q,
+                    commanding: true,
+                },
+                std::iter::empty::<Sighting>(),
+                out,
+            );
+        };
+        let e = Excitation {
+            joint: 6,
+            amplitude_rad: 0.05,
+            duration_s: 4.0,
+        };
+        assert!(
+            matches!(c.excite(0.0, e), Err(ControlError::State { .. })),
+            "before the first message"
+        );
+        step(&mut c, 0.0, q0, &mut out);
+        for bad in [
+            Excitation { joint: 7, ..e },
+            Excitation {
+                amplitude_rad: 0.0,
+                ..e
+            },
+            Excitation {
+                amplitude_rad: 0.06,
+                ..e
+            },
+            Excitation {
+                amplitude_rad: f64::NAN,
+                ..e
+            },
+            Excitation {
+                duration_s: 0.5,
+                ..e
+            },
+            Excitation {
+                duration_s: f64::INFINITY,
+                ..e
+            },
+        ] {
+            assert!(
+                matches!(c.excite(0.0, bad), Err(ControlError::Excitation(b)) if b.joint == bad.joint),
+                "{bad:?}"
+            );
+            assert!(!c.exciting());
+        }
+        c.excite(0.0, e).unwrap();
+        assert!(c.exciting());
+        assert!(c.excite(0.0, e).is_err(), "one at a time");
+        let plan = Controller::plan(&s, 0.5).unwrap();
+        assert!(c.arm(0.0, &plan).is_err(), "no trial while it runs");
+        let (mut t, mut q) = (0.0, q0);
+        let (mut v_prev, mut peak, mut moves) = (0.0_f64, 0.0_f64, 0);
+        let mut was_out = false;
+        while c.exciting() {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            let next = out.q_command_rad;
+            for j in 0..JOINTS - 1 {
+                assert_eq!(next[j], q0[j], "joint {j} moved at {t}");
+            }
+            let d = next[6] - q0[6];
+            assert!((-1e-12..=0.05 + 1e-12).contains(&d), "A7 {d} rad at {t}");
+            let v = (next[6] - q[6]) / dt;
+            assert!(v.abs() <= VELOCITY_LIMIT_RADPS[6], "{v} rad/s");
+            assert!(
+                ((v - v_prev) / dt).abs() <= ACCELERATION_LIMIT_RADPS2[6],
+                "{} rad/s^2",
+                (v - v_prev) / dt
+            );
+            v_prev = v;
+            peak = peak.max(d);
+            let out_now = d > 0.04;
+            moves += usize::from(out_now != was_out);
+            was_out = out_now;
+            q = next;
+            assert!(t < 5.0, "the excitation did not end");
+        }
+        assert!((t - 4.0).abs() <= dt, "ended at {t}");
+        assert!((peak - 0.05).abs() < 1e-9, "peak {peak}");
+        // A move every 0.4 s: out in slots 1, 3, 5 and 7, back in 2, 4, 6
+        // and 8 (slot 9's would not be back within the 4 s).
+        assert_eq!(moves, 8);
+        assert_eq!(out.q_command_rad, q0, "rests where it began");
+        assert_eq!(c.state(), TrialState::Idle);
+        // A stop ends a running one where it is and the arm decelerates.
+        c.excite(t, e).unwrap();
+        for _ in 0..100 {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            q = out.q_command_rad;
+        }
+        c.abort(t, AbortReason::StopRequested);
+        assert!(!c.exciting());
+        assert!(c.excite(t, e).is_err(), "not while aborted");
+        let before = q[6];
+        for _ in 0..200 {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            q = out.q_command_rad;
+        }
+        // Mid-move (0.47 rad/s) at half the acceleration limit: 0.014 rad.
+        assert!(
+            (q[6] - before).abs() < 0.02,
+            "stopped near where it was: {} -> {}",
+            before,
+            q[6]
+        );
+        assert!(c.at_rest());
     }
 }

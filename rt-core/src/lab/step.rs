@@ -658,7 +658,8 @@ impl LabStep {
         if matches!(
             state,
             TrialState::Idle | TrialState::Done | TrialState::Aborted
-        ) {
+        ) && !self.inner.controller().exciting()
+        {
             return;
         }
         let last = self
@@ -776,6 +777,7 @@ impl LabStep {
         let state = self.inner.controller().state();
         if self.pending.is_some()
             || self.finishing()
+            || self.inner.controller().exciting()
             || !matches!(
                 state,
                 TrialState::Idle | TrialState::Done | TrialState::Aborted
@@ -794,6 +796,7 @@ impl LabStep {
     fn handle(&mut self, t: f64, id: u64, command: Command) {
         let state = self.inner.controller().state();
         let busy = self.pending.is_some()
+            || self.inner.controller().exciting()
             || !matches!(
                 state,
                 TrialState::Idle | TrialState::Done | TrialState::Aborted
@@ -856,6 +859,27 @@ impl LabStep {
                     }
                 }
             },
+            Command::Excite(_) if busy || !self.inner.controller().at_rest() => {
+                (Err(Refusal::Busy), None)
+            }
+            Command::Excite(_) if !self.commanding() => (Err(Refusal::RobotNotCommanding), None),
+            Command::Excite(e) => {
+                // Between trials: a finished trial is concluded (it was,
+                // unless it still records its after-done trace, when commands
+                // wait) and the controller rests in `Idle`.
+                self.conclude(t);
+                if state != TrialState::Idle {
+                    let _ = self.controller().reset(t);
+                }
+                match self.controller().excite(t, e) {
+                    Ok(()) => {
+                        // A motion: the dead-man counts from here.
+                        self.operator_since_s = t;
+                        (Ok(()), None)
+                    }
+                    Err(_) => (Err(Refusal::Invalid), None),
+                }
+            }
             Command::SetParams(p) if busy => (Err(Refusal::Busy), Some(p)),
             Command::SetParams(p) => {
                 match self.p.io_requests.push(IoRequest::Params {

@@ -136,6 +136,8 @@ impl Machine {
                 let old = std::mem::replace(&mut self.params, p);
                 (Ok(()), Some(old))
             }
+            Command::Excite(_) if st.busy() => (Err(Refusal::Busy), None),
+            Command::Excite(_) => (Ok(()), None),
         };
         self.control.ack(id, outcome, returned);
     }
