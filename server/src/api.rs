@@ -764,6 +764,8 @@ pub async fn start_calibration(
             // steps whose real-lab procedure is built through).
             if step == Step::Latency {
                 crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await
+            } else if step == Step::Robot {
+                crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await
             } else {
                 crate::calibration::run_real_pendulum(
                     &lab,

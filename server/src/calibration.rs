@@ -71,10 +71,10 @@ impl Step {
     }
 
     /// Whether the step's real-lab procedure is built (through the lab's own
-    /// camera, magnet and robot): the pendulum's free swing and the LED's
-    /// latency.
+    /// camera, magnet and robot): the pendulum's free swing, the LED's
+    /// latency and the robot's excitation.
     pub fn real_lab_procedure(self) -> bool {
-        matches!(self, Self::Pendulum | Self::Latency)
+        matches!(self, Self::Pendulum | Self::Latency | Self::Robot)
     }
 
     /// Whether the calibration file holds this step's result.
@@ -708,7 +708,7 @@ impl CalibrationDesk {
         if self.real_lab && !step.real_lab_procedure() {
             return Err(StartRefused::NotAvailable(format!(
                 "calibrate {}: the real-lab procedure of this step is not built yet \
-                 (on a real lab: pendulum, latency); the panel runs every step on the simulated lab",
+                 (on a real lab: pendulum, latency, robot); the panel runs every step on the simulated lab",
                 step.name()
             )));
         }
@@ -1232,6 +1232,147 @@ async fn real_latency(
         ),
         write: Box::new(move |file, stamp| {
             file.latency = Some(step_record(stamp, result));
+        }),
+    })
+}
+
+/// The joint the real-lab robot step excites (A7, the wrist: the smallest
+/// moving mass, far from its limits in any posture the lab rests in).
+pub const REAL_ROBOT_JOINT: usize = 6;
+/// The real-lab robot step's steps, radians.
+pub const REAL_ROBOT_AMPLITUDE_RAD: f64 = 0.02;
+/// How long the real-lab robot step excites the joint, seconds.
+pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
+
+/// The robot step on the real lab, through its own FRI session (job `id`,
+/// claimed): the control loop moves A7 by [`REAL_ROBOT_AMPLITUDE_RAD`] and
+/// back every 0.4 s for [`REAL_ROBOT_DURATION_S`] from where the arm rests
+/// (`Command::Excite`: minimum-jerk moves within every joint's speed and
+/// acceleration limits, through the command guard), every published state's
+/// commanded and measured A7 is recorded ([`crate::Lab::tap_joint`]) and
+/// [`fit_robot_latency`](rt_core::calibration::fit_robot_latency) finds the
+/// command-to-measurement delay and the servo lag. The lab's beliefs take
+/// their sum as `control.latency_prior_ms` (what the online estimate starts
+/// from). The joint moves: an operator's heartbeat must come meanwhile when
+/// the lab's dead-man is on. Refused, nothing written, when the robot does
+/// not command, a stop or the dead-man interrupts it, or the fit refuses
+/// (the joint did not follow).
+pub async fn run_real_robot(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> Option<Scenario> {
+    let outcome = real_robot(lab, desk, id).await;
+    // A tap left by a step that failed half-way is let go.
+    let _ = lab.take_tap();
+    desk.conclude(id, Step::Robot, scenario, outcome, "the real lab")
+}
+
+async fn real_robot(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+) -> anyhow::Result<StepOutcome> {
+    use rt_core::bridge::{Command, Excitation};
+    use rt_core::calibration::robot::JointSample;
+    use rt_core::calibration::{StepView, ViewKind, fit_robot_latency};
+    use std::time::{Duration, Instant};
+    let joint = REAL_ROBOT_JOINT;
+    let series = |s: &[JointSample], t0: f64| -> Vec<[f64; 2]> {
+        rt_core::calibration::view::thin(
+            &s.iter().map(|j| [j.t_s - t0, j.q_rad]).collect::<Vec<_>>(),
+            800,
+        )
+    };
+    if let Some(p) = lab
+        .device_problems()
+        .into_iter()
+        .find(|p| p.device == "robot")
+    {
+        anyhow::bail!("calibrate robot: the robot does not command: {}", p.message);
+    }
+    lab.tap_joint(joint);
+    lab.command(Command::Excite(Excitation {
+        joint,
+        amplitude_rad: REAL_ROBOT_AMPLITUDE_RAD,
+        duration_s: REAL_ROBOT_DURATION_S,
+    }))
+    .await
+    .map_err(|e| {
+        anyhow::anyhow!("calibrate robot: the control loop did not start the excitation: {e}")
+    })?;
+    let start = Instant::now();
+    // The excitation, then 0.5 s of rest (the last move's settling).
+    let total_s = REAL_ROBOT_DURATION_S + 0.5;
+    let mut shown = 0.0;
+    while start.elapsed().as_secs_f64() < total_s {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        if let Some((s, _)) = lab.latest()
+            && s.trial_state != rt_core::bridge::TrialState::Idle
+        {
+            anyhow::bail!(
+                "calibrate robot: the excitation was interrupted ({}: a stop, no operator's \
+                 heartbeat while the lab's dead-man is on, or the robot left COMMANDING_ACTIVE)",
+                s.trial_state.as_str()
+            );
+        }
+        let t = start.elapsed().as_secs_f64();
+        if t - shown >= 1.0 {
+            shown = t;
+            desk.progress(
+                id,
+                StepView {
+                    progress: 0.02 + 0.9 * t / total_s,
+                    message: format!(
+                        "A{} excited: {t:.0} of {REAL_ROBOT_DURATION_S:.0} s, {} states recorded",
+                        joint + 1,
+                        lab.tap_len()
+                    ),
+                    kind: ViewKind::Series,
+                    points: Vec::new(),
+                    fit: Vec::new(),
+                },
+            );
+        }
+    }
+    let tap = lab
+        .take_tap()
+        .context("calibrate robot: the recording of the joint went missing")?;
+    if !tap.idle {
+        anyhow::bail!("calibrate robot: a trial ran during the excitation: not used");
+    }
+    let result = fit_robot_latency(&tap.commands, &tap.measured).context("calibrate robot")?;
+    let t0 = tap.commands.first().map_or(0.0, |c| c.t_s);
+    desk.progress(
+        id,
+        StepView {
+            progress: 0.98,
+            message: format!(
+                "A{} excited: latency {:.2} ms, servo lag {:.2} ms ({:.1} Hz), from {} states",
+                joint + 1,
+                result.latency_ms,
+                result.servo_time_constant_ms,
+                result.bandwidth_hz,
+                tap.measured.len()
+            ),
+            kind: ViewKind::Series,
+            points: series(&tap.measured, t0),
+            fit: series(&tap.commands, t0),
+        },
+    );
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: (
+            "robot_latency_ms",
+            result.latency_ms,
+            f64::NAN,
+            TARGET_ROBOT_LATENCY_MS,
+        ),
+        write: Box::new(move |file, stamp| {
+            file.robot = Some(step_record(stamp, result));
         }),
     })
 }

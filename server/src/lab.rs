@@ -197,7 +197,31 @@ pub struct Lab {
     thread: Mutex<Option<JoinHandle<()>>>,
     foxglove: Arc<foxglove::Context>,
     devices: std::sync::OnceLock<Devices>,
+    /// One joint's commanded and measured positions from every published
+    /// state, while the robot calibration step records them ([`Lab::tap_joint`]).
+    joint_tap: Mutex<Option<JointTap>>,
 }
+
+/// One joint's commanded and measured positions, in the control clock, from
+/// every state the control loop published (the telemetry ring: the states
+/// it lost when full are missing here too: `telemetry_overflows`).
+#[derive(Debug, Clone, Default)]
+pub struct JointTap {
+    /// The joint, 0-based.
+    pub joint: usize,
+    /// What the control loop commanded at each step.
+    pub commands: Vec<rt_core::calibration::robot::JointSample>,
+    /// What the robot measured, received at each step.
+    pub measured: Vec<rt_core::calibration::robot::JointSample>,
+    /// The steps' trial states were all `idle` (no trial ran meanwhile).
+    pub idle: bool,
+    /// The control step count of the latest sample (states published
+    /// between the robot's messages repeat the last step: left out).
+    last_step: u64,
+}
+
+/// At most this many samples a tap keeps (60 s at 1 kHz).
+const JOINT_TAP_MAX: usize = 60_000;
 
 /// The lab's devices as the service reads them for people (off the real-time
 /// path): why a camera or a magnet board does not deliver.
@@ -286,6 +310,7 @@ impl Lab {
             thread: Mutex::new(None),
             foxglove: Arc::clone(fox.context()),
             devices: std::sync::OnceLock::new(),
+            joint_tap: Mutex::new(None),
         });
         let pump = Pump {
             lab: Arc::clone(&lab),
@@ -396,6 +421,34 @@ impl Lab {
     /// The bridge counters.
     pub fn bridge_counters(&self) -> BridgeCounters {
         self.bridge_stats.read()
+    }
+
+    /// Starts recording `joint`'s commanded and measured positions from
+    /// every state published from now on (a tap already running starts over).
+    pub fn tap_joint(&self, joint: usize) {
+        if let Ok(mut t) = self.joint_tap.lock() {
+            *t = Some(JointTap {
+                joint,
+                commands: Vec::with_capacity(16_384),
+                measured: Vec::with_capacity(16_384),
+                idle: true,
+                last_step: 0,
+            });
+        }
+    }
+
+    /// Ends the recording [`Self::tap_joint`] began and takes what it holds.
+    pub fn take_tap(&self) -> Option<JointTap> {
+        self.joint_tap.lock().ok().and_then(|mut t| t.take())
+    }
+
+    /// How many states the running tap holds (0: none runs).
+    pub fn tap_len(&self) -> usize {
+        self.joint_tap
+            .lock()
+            .ok()
+            .and_then(|t| t.as_ref().map(|t| t.measured.len()))
+            .unwrap_or(0)
     }
 
     /// The latest snapshot and its JSON state message, once the lab published one.
@@ -595,7 +648,26 @@ impl Pump {
     }
 
     fn record_telemetry(&mut self) {
+        let mut tap = self.lab.joint_tap.lock().ok();
         while let Some(s) = self.end_telemetry.pop() {
+            if let Some(t) = tap.as_mut().and_then(|t| t.as_mut())
+                && t.measured.len() < JOINT_TAP_MAX
+                && s.counters.steps > t.last_step
+                && let (Some(&c), Some(&m)) =
+                    (s.robot.q_cmd_rad.get(t.joint), s.robot.q_rad.get(t.joint))
+            {
+                use rt_core::calibration::robot::JointSample;
+                t.last_step = s.counters.steps;
+                t.idle &= s.trial_state == rt_core::bridge::TrialState::Idle;
+                t.commands.push(JointSample {
+                    t_s: s.t_s,
+                    q_rad: c,
+                });
+                t.measured.push(JointSample {
+                    t_s: s.t_s,
+                    q_rad: m,
+                });
+            }
             let Some(records) = &self.records else {
                 continue;
             };

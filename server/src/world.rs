@@ -75,6 +75,19 @@ pub struct WorldReady {
     /// How late the world's robot shows a contact in its external torques,
     /// ms (the measured judge believes `success.torque_lag_periods` FRI periods).
     pub torque_lag_ms: f64,
+    /// The world's command-to-motion latency at the session's start, ms
+    /// (from the controller cycle whose message a command answers to the
+    /// setpoint's taking effect; it drifts by `[world.robot] latency_drift_ms`).
+    pub robot_latency_ms: f64,
+    /// The world's servo lag behind a ramp, ms: `2 zeta / omega` of its
+    /// second-order servo, or the first-order lag's time constant.
+    pub robot_servo_lag_ms: f64,
+    /// The world's truth of what the robot step measures (its latency plus
+    /// its servo lag): from a command's computation to the measured joints
+    /// that show it, on average, ms: the latency, the servo lag, half an
+    /// FRI period with the second-order servo (the drive's interpolation)
+    /// and the monitoring message's age (latency plus half its jitter).
+    pub robot_delay_ms: f64,
 }
 
 /// The LED's switches the board made, `(world time, on)` in order (the
@@ -248,6 +261,18 @@ impl LabWorld {
         let mut params = rt_core::sim::robot_params(scenario, spec.seed);
         params.fri_version = spec.fri_version;
         let period_s = f64::from(params.fri_period_ms) * 1e-3;
+        let robot_latency_ms = session.robot_latency_s * 1e3;
+        // The second-order servo follows the drive's interpolation of each
+        // setpoint over one FRI period (half a period late on average); the
+        // first-order lag takes each setpoint as it comes.
+        let (robot_servo_lag_ms, robot_interpolation_ms) = if session.servo_omega_radps > 0.0 {
+            (
+                2.0 * session.servo_damping_ratio / session.servo_omega_radps * 1e3,
+                0.5 * period_s * 1e3,
+            )
+        } else {
+            (params.servo_time_constant_ms, 0.0)
+        };
         let robot = WorldRobot::for_session(
             &wp,
             &session,
@@ -418,6 +443,12 @@ impl LabWorld {
             pendulum_drag_per_m: true_pendulum.drag_per_m,
             contact_pulse_ms: session.contact_pulse_s * 1e3,
             torque_lag_ms: session.torque_lag_periods * period_s * 1e3,
+            robot_latency_ms,
+            robot_servo_lag_ms,
+            robot_delay_ms: robot_latency_ms
+                + robot_servo_lag_ms
+                + robot_interpolation_ms
+                + (session.message_latency_s + 0.5 * session.message_jitter_s) * 1e3,
         };
         Ok(Self {
             ready,

@@ -214,7 +214,7 @@ async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
 fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     let tmp = tempfile::tempdir().unwrap();
     let desk = CalibrationDesk::new(tmp.path().join("c.toml"), true, Box::new(|_| None));
-    for step in [Step::Camera, Step::CameraRobot, Step::Robot] {
+    for step in [Step::Camera, Step::CameraRobot] {
         let e = desk.claim(step).unwrap_err();
         assert!(e.to_string().contains("real-lab procedure"), "{e}");
         assert!(!desk.running());
@@ -227,6 +227,9 @@ fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
     assert!(Step::Latency.real_lab_procedure());
     assert!(Step::Latency.prerequisites_on(true).is_empty());
     assert_eq!(Step::Latency.prerequisites_on(false), [Step::Camera]);
+    // And the robot's excitation (through FRI alone).
+    assert!(Step::Robot.real_lab_procedure());
+    assert!(Step::Robot.prerequisites_on(true).is_empty());
     let id = desk
         .claim(Step::Pendulum)
         .expect("the pendulum step on a real lab");

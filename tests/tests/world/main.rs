@@ -47,6 +47,10 @@ use isochron_tests::http;
 /// cabinet and a simavr board, and two worlds with their labs side by side
 /// on a 2-core machine starve each other's camera.
 static ONE_LAB: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// How far the robot step's delay (latency plus servo lag) may be from the
+/// world's, ms.
+const ROBOT_DELAY_TOLERANCE_MS: f64 = 3.0;
 use isochron_tests::procs::{Proc, firmware, start};
 use serde_json::Value;
 
@@ -310,7 +314,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     // The operator's page: a heartbeat every 200 ms (the real lab's dead-man).
     let heart = Heartbeat::start(addr);
 
-    // The pendulum step through the lab's own robot, camera and magnet (the
+    // The pendulum step through the lab's own robot, camera and magnet (a
     // real-lab procedure built so far): the lab's beliefs take the swing the
     // world has before the trials.
     let pendulum = calibrate(addr, "pendulum").await;
@@ -360,6 +364,28 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         latency["bound_ms"].as_f64().unwrap() <= 5.0
             && latency["edges_consistent"].as_u64().unwrap() >= 10,
         "{latency}"
+    );
+
+    // The robot step through FRI: A7 in small steps, the measured joint
+    // fitted to the commands; their delay (latency plus servo lag) is the
+    // world's within a few ms, and becomes what the lab's online latency
+    // estimate starts from.
+    let robot = calibrate(addr, "robot").await;
+    let (delay, true_delay) = (
+        robot["latency_ms"].as_f64().unwrap() + robot["servo_time_constant_ms"].as_f64().unwrap(),
+        ready["robot_delay_ms"].as_f64().unwrap(),
+    );
+    println!(
+        "world lab: robot step: latency {} ms + servo lag {} ms = {delay:.2} ms; the world's {true_delay:.2} ms \
+         (latency {} + servo {})",
+        robot["latency_ms"],
+        robot["servo_time_constant_ms"],
+        ready["robot_latency_ms"],
+        ready["robot_servo_lag_ms"]
+    );
+    assert!(
+        (delay - true_delay).abs() <= ROBOT_DELAY_TOLERANCE_MS,
+        "robot delay {delay} ms vs the world's {true_delay} ms: {robot}"
     );
 
     // The step's own release is in the truth (concluded 8 s after its drop,
@@ -788,19 +814,20 @@ async fn refuses_until_calibrated(addr: SocketAddr) {
         h = get(addr, "/api/health").await;
     }
     assert_eq!(h["not_ready"]["reason"], "uncalibrated", "{h}");
-    let r = http(addr, "POST", "/api/calibration/robot", &[], b"")
+    let r = http(addr, "POST", "/api/calibration/camera-robot", &[], b"")
         .await
         .unwrap();
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json().unwrap()["reason"], "not_available");
 }
 
-/// The calibration steps a real lab runs today (pendulum, latency) and their
-/// accuracy, through `isochron world`'s cabinet, webcam and Arduino. The
-/// pendulum step moves the arm home, switches the magnet on (the world's
-/// operator hangs the ball), lets go, records the free swing through the
-/// lab's own camera and fits it; the latency step switches the board's LED
-/// and watches it in the frames. First draw: the lab refuses trials until
+/// The calibration steps a real lab runs today (pendulum, latency, robot)
+/// and their accuracy, through `isochron world`'s cabinet, webcam and
+/// Arduino. The pendulum step moves the arm home, switches the magnet on
+/// (the world's operator hangs the ball), lets go, records the free swing
+/// through the lab's own camera and fits it; the latency step switches the
+/// board's LED and watches it in the frames; the robot step moves A7 in
+/// small steps through FRI and fits the measured joint to the commands. First draw: the lab refuses trials until
 /// calibrated, and the step's length is the world's, not the believed one,
 /// written with its source and taken by the lab's beliefs. Over `WORLD_CALIB_DRAWS` (default 1: `make
 /// test`; `make eval-world` takes 10) hidden draws of `scenarios/reality.toml`
@@ -839,9 +866,10 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
     );
     println!(
         "calibration accuracy: seed | length est / true (m) | error (mm) | damping est / true (1/s), drag (1/m) \
-         | latency est / delivered (ms) | error (ms) | bound (ms)"
+         | latency est / delivered (ms) | error (ms) | bound (ms) | robot delay est / true (ms) | error (ms)"
     );
-    let (mut length_err_mm, mut latency_err_ms) = (Vec::new(), Vec::new());
+    let (mut length_err_mm, mut latency_err_ms, mut robot_err_ms) =
+        (Vec::new(), Vec::new(), Vec::new());
     for seed in 1..=draws {
         let dir = tempfile::tempdir().unwrap();
         let seed_arg = seed.to_string();
@@ -855,6 +883,7 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
         let pendulum = calibrate(addr, "pendulum").await;
         let latency = calibrate(addr, "latency").await;
         let camera = camera_truth(&ready).await;
+        let robot = calibrate(addr, "robot").await;
         heart.stop().await;
         let num = |v: &Value, what: &str| {
             v.as_f64()
@@ -900,11 +929,28 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
             (3.5..=5.0).contains(&pulse) && (4.0..=6.0).contains(&lag),
             "seed {seed}: the world's contact {ready}"
         );
+        // The robot step's delay (latency plus servo lag: what the lab's
+        // timing takes, `control.latency_prior_ms`) against the world's.
+        let (robot_delay, true_delay) = (
+            num(&robot["latency_ms"], "robot latency")
+                + num(&robot["servo_time_constant_ms"], "servo lag"),
+            num(&ready["robot_delay_ms"], "robot delay"),
+        );
+        if seed == 1 {
+            let p = get(addr, "/api/params").await;
+            let taken = p["control"]["latency_prior_ms"].as_f64().unwrap();
+            assert!(
+                (taken - robot_delay).abs() < 1e-6,
+                "beliefs {taken} vs step {robot_delay}"
+            );
+        }
         length_err_mm.push((length - true_length) * 1e3);
         latency_err_ms.push(lat - delivered);
+        robot_err_ms.push(robot_delay - true_delay);
         println!(
             "calibration accuracy: {seed} | {length:.4} / {true_length:.4} | {:+.1} | {:.4} / {:.4}, {:.4} \
-             | {lat:.2} / {delivered:.2} (drawn {drawn:.2}, {} of {} frames late) | {:+.2} | {:.2}",
+             | {lat:.2} / {delivered:.2} (drawn {drawn:.2}, {} of {} frames late) | {:+.2} | {:.2} \
+             | {robot_delay:.2} / {true_delay:.2} (latency {:.2} + servo {:.2}; the world's {:.2} + {:.2}) | {:+.2}",
             (length - true_length) * 1e3,
             num(&pendulum["swing"]["damping_per_s"], "damping"),
             num(&ready["pendulum_damping_per_s"], "true damping"),
@@ -912,7 +958,12 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
             camera["late_frames"],
             camera["frames"],
             lat - delivered,
-            num(&latency["bound_ms"], "bound")
+            num(&latency["bound_ms"], "bound"),
+            num(&robot["latency_ms"], "robot latency"),
+            num(&robot["servo_time_constant_ms"], "servo lag"),
+            num(&ready["robot_latency_ms"], "true robot latency"),
+            num(&ready["robot_servo_lag_ms"], "true servo lag"),
+            robot_delay - true_delay
         );
     }
     let summary = |e: &[f64]| {
@@ -922,9 +973,18 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
     };
     let (l_mean, l_max) = summary(&length_err_mm);
     let (t_mean, t_max) = summary(&latency_err_ms);
+    let (r_mean, r_max) = summary(&robot_err_ms);
     println!(
         "calibration accuracy: |length error| mean {l_mean:.1} mm, max {l_max:.1} mm; \
-         |latency error| mean {t_mean:.2} ms, max {t_max:.2} ms ({draws} draws)"
+         |latency error| mean {t_mean:.2} ms, max {t_max:.2} ms; |robot delay error| mean {r_mean:.2} ms, \
+         max {r_max:.2} ms ({draws} draws)"
+    );
+    // The robot's delay within 3 ms: what the online estimate starts from
+    // (it learns the rest from the motions); a sign or clock error, or a
+    // fit of the wrong samples, is tens of ms off.
+    assert!(
+        r_max <= ROBOT_DELAY_TOLERANCE_MS,
+        "robot delay errors (ms): {robot_err_ms:?}"
     );
     // What the lab's timing can live with: the string within 1 cm (0.25% of
     // the period); the latency never earlier than the webcam delivered its
