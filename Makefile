@@ -346,11 +346,11 @@ envelope: release
 
 ## eval-world: the real lab end to end against `isochron world` (tests/tests/world/main.rs):
 ## EVAL_WORLD_N trials over REST on the truthful world, then on the reality world
-## (its pendulum and latency steps first; the other three steps' real-lab procedures are not
+## (its pendulum, latency and robot steps first; the camera steps' real-lab procedures are not
 ## built yet, so the lab runs with `allow_uncalibrated`), each paired with
 ## the world's truth; the figures (successes, the measured judge's agreement, |measured -
 ## true timing| p50/p95, CPU per second of service and world) go to reports/eval/world.txt.
-## Then the accuracy of the real lab's pendulum and latency steps over EVAL_WORLD_DRAWS hidden
+## Then the accuracy of the real lab's pendulum, latency and robot steps over EVAL_WORLD_DRAWS hidden
 ## draws of the reality world (a world and a lab each), against the truth each world printed:
 ## reports/eval/calibration-world.txt.
 EVAL_WORLD_N ?= 100
