@@ -846,6 +846,11 @@ pub const REAL_HOLD_WAIT_S: f64 = 60.0;
 /// Time given to hang the ball before a ball the camera does not see counts
 /// as held out of its view, seconds.
 pub const HANG_TIME_S: f64 = 5.0;
+/// How long the real-lab pendulum step waits for the camera's first
+/// [`CAMERA_WAIT_FRAMES`] frames before it hangs the ball, seconds.
+pub const CAMERA_WAIT_S: f64 = 10.0;
+/// Frames the camera must deliver before the pendulum step hangs the ball.
+pub const CAMERA_WAIT_FRAMES: usize = 10;
 /// No detection for this long (after [`HANG_TIME_S`]): the ball is held out
 /// of the camera's view, seconds.
 pub const HELD_UNSEEN_S: f64 = 3.0;
@@ -853,7 +858,8 @@ pub const HELD_UNSEEN_S: f64 = 3.0;
 /// The pendulum step on the real lab, through its own robot, camera and
 /// magnet (job `id`, claimed): the arm moves home, out of the swing (arm,
 /// then disarm: an operator's heartbeat must come meanwhile when the lab's
-/// dead-man is on), the magnet is switched on and the step waits (at most
+/// dead-man is on), the camera must deliver [`CAMERA_WAIT_FRAMES`] frames
+/// within [`CAMERA_WAIT_S`], the magnet is switched on and the step waits (at most
 /// [`REAL_HOLD_WAIT_S`]) until the camera sees the ball held still at least
 /// 5 cm from the rest point (an operator hangs it there: the job's message
 /// says so), or, after [`HANG_TIME_S`], sees no ball for [`HELD_UNSEEN_S`]
@@ -918,21 +924,38 @@ pub async fn run_real_pendulum(
         lab.command(Command::Disarm)
             .await
             .map_err(|e| anyhow::anyhow!("calibrate pendulum: disarm: {e}"))?;
-        // New detections: one sample per camera frame in which the ball was found.
+        // New camera frames: `None` while no new frame came, `Some(None)` for
+        // a frame without the ball, `Some(Some(sample))` for one with it.
         let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
-        let mut next = move || -> Option<TrackedSwingSample> {
+        let mut next = move || -> Option<Option<TrackedSwingSample>> {
             let (s, _) = lab.latest()?;
             if s.camera.frame == last_frame {
                 return None;
             }
             last_frame = s.camera.frame;
             let m = s.pendulum.measured;
-            (s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(TrackedSwingSample {
+            Some((s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(TrackedSwingSample {
                 t_s: m.t_s,
                 lateral_m: m.x_m,
                 px: [s.camera.x_px, s.camera.y_px],
-            })
+            }))
         };
+        // The camera must deliver before the ball is hung: a swing recorded
+        // while it does not is a swing never seen.
+        let wait_from = Instant::now();
+        let mut frames = 0_usize;
+        while frames < CAMERA_WAIT_FRAMES {
+            if wait_from.elapsed().as_secs_f64() > CAMERA_WAIT_S {
+                anyhow::bail!(
+                    "calibrate pendulum: the camera delivered {frames} frames in {CAMERA_WAIT_S:.0} s \
+                     (GET /api/health's devices says why)"
+                );
+            }
+            if next().is_some() {
+                frames += 1;
+            }
+            tokio::time::sleep(Duration::from_millis(4)).await;
+        }
         // 1. The ball held on the magnet, away from the rest point.
         desk.progress(
             id,
@@ -962,7 +985,7 @@ pub async fn run_real_pendulum(
             {
                 break;
             }
-            if let Some(s) = next() {
+            if let Some(Some(s)) = next() {
                 last_seen = Instant::now();
                 recent.push_back(s);
                 while recent.front().is_some_and(|f| s.t_s - f.t_s > 1.0) {
@@ -997,10 +1020,16 @@ pub async fn run_real_pendulum(
             .map_err(|e| anyhow::anyhow!("calibrate pendulum: the magnet: {e}"))?;
         let start = Instant::now();
         let mut track = Vec::new();
+        let mut frames = 0_usize;
         let mut shown = 0.0;
         while start.elapsed().as_secs_f64() < record_s {
-            if let Some(s) = next() {
-                track.push(s);
+            match next() {
+                Some(Some(s)) => {
+                    frames += 1;
+                    track.push(s);
+                }
+                Some(None) => frames += 1,
+                None => {}
             }
             let t = start.elapsed().as_secs_f64();
             if t - shown >= 1.0 {
@@ -1016,7 +1045,12 @@ pub async fn run_real_pendulum(
             }
             tokio::time::sleep(Duration::from_millis(4)).await;
         }
-        real_pendulum_outcome(&track, scenario)
+        real_pendulum_outcome(&track, scenario).map_err(|e| {
+            anyhow::anyhow!(
+                "{e:#} (the camera's frames in the free swing: {frames}, the ball found in {})",
+                track.len()
+            )
+        })
     }
     .await;
     desk.conclude(id, Step::Pendulum, scenario, outcome, "the real lab")

@@ -667,6 +667,10 @@ fn a_command_burst_from_two_callers_is_serialised_not_lost() {
     let board = SimBoard::start(&elf, &host, &link);
     let h = MagnetHandle::spawn(MagnetParams {
         status_poll_ms: 600_000.0,
+        // The property is order and no loss, not speed: 30 exchanges in a
+        // row against simavr timed out once at 3 s beside `stress-ng --cpu 2`
+        // (session 22's streak), so each gets 10 s here.
+        command_timeout_ms: 10_000.0,
         ..params(&link)
     })
     .unwrap();

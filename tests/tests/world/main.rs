@@ -244,11 +244,13 @@ async fn calibrate(addr: SocketAddr, step: &str) -> Value {
             .is_none_or(|s| {
                 s["fri"]["session"] != "commanding_active"
                     || !(s["magnet"] == "on" || s["magnet"] == "off")
+                    || s["camera"]["lost"] != false
+                    || s["camera"]["frame"].as_u64().is_none_or(|f| f == 0)
             })
         {
             assert!(
                 Instant::now() < deadline,
-                "the robot does not command, or the board does not answer"
+                "the robot does not command, the board does not answer, or the camera does not deliver"
             );
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -271,7 +273,14 @@ async fn calibrate(addr: SocketAddr, step: &str) -> Value {
             println!("world lab: {step} step refused (attempt {attempt}): {message}");
             continue;
         }
-        assert_eq!(status["job"]["state"], "done", "{status}");
+        if status["job"]["state"] != "done" {
+            let state = get(addr, "/api/state").await;
+            let health = get(addr, "/api/health").await;
+            panic!(
+                "the {step} step did not succeed: {status}\n camera: {}\n fri: {}\n devices: {}",
+                state["camera"], state["fri"], health["devices"]
+            );
+        }
         return status["job"]["result"].clone();
     }
     unreachable!("the third attempt returns or fails above")
@@ -598,6 +607,36 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
             .unwrap()
             .iter()
             .any(|s| s["name"] == "latency" && s["done"] == false),
+        "{c}"
+    );
+    // The pendulum step without a camera: refused before the ball is hung,
+    // saying it is the camera, and nothing written.
+    let r = http(addr, "POST", "/api/calibration/pendulum", &[], b"")
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let c = loop {
+        let c = get(addr, "/api/calibration").await;
+        if c["job"]["state"] != "running" {
+            break c;
+        }
+        assert!(Instant::now() < deadline, "the step did not end: {c}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(c["job"]["state"], "failed", "{c}");
+    assert!(
+        c["job"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("camera")),
+        "{c}"
+    );
+    assert!(
+        c["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|s| s["name"] == "pendulum" && s["done"] == false),
         "{c}"
     );
 }
