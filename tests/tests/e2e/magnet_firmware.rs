@@ -113,7 +113,7 @@ impl SimBoard {
             .unwrap();
         let board = Self { child, stdin, log };
         assert!(
-            board.wait(Duration::from_secs(5), |l| l.ready),
+            board.wait(Duration::from_secs(20), |l| l.ready),
             "magnet-sim did not become ready"
         );
         board
@@ -197,8 +197,11 @@ fn events_hook() -> (rt_core::magnet::EventHook, Arc<Mutex<Vec<MagnetEvent>>>) {
     )
 }
 
+/// Waits (up to 20 s: simavr beside `stress-ng --cpu 2` once took over 5 s
+/// from its banner to the driver's first answer) for the driver connected
+/// and the magnet's state known.
 fn connected(h: &MagnetHandle) {
-    let (v, ok) = h.wait_for(Duration::from_secs(5), |v| {
+    let (v, ok) = h.wait_for(Duration::from_secs(20), |v| {
         v.link == LinkState::Connected && v.magnet != MagnetState::Unknown
     });
     assert!(
@@ -510,9 +513,9 @@ fn killing_the_simulator_is_a_clear_device_lost_and_a_new_one_reconnects() {
     );
     assert!(e.to_string().contains(&*link.to_string_lossy()), "{e}");
     // Reported, not hung: within the command timeout on a quiet machine,
-    // bounded generously here.
+    // bounded generously here (a loaded machine).
     assert!(
-        took <= Duration::from_secs_f64(p.command_timeout_ms / 1000.0) + Duration::from_secs(2),
+        took <= Duration::from_secs_f64(p.command_timeout_ms / 1000.0) + Duration::from_secs(10),
         "device lost reported after {took:?}"
     );
     let (v, ok) = h.wait_for(Duration::from_secs(10), |v| v.link == LinkState::Lost);
@@ -525,7 +528,7 @@ fn killing_the_simulator_is_a_clear_device_lost_and_a_new_one_reconnects() {
 
     // A new board appears on the same path: the driver reconnects by itself.
     let board2 = SimBoard::start(&elf, &host, &link);
-    let (v, ok) = h.wait_for(Duration::from_secs(5), |v| {
+    let (v, ok) = h.wait_for(Duration::from_secs(20), |v| {
         v.link == LinkState::Connected && v.magnet == MagnetState::Off
     });
     assert!(ok, "no reconnection: {v:?}");
@@ -582,7 +585,7 @@ impl RawPort {
 
     fn ask(&mut self, bytes: &[u8]) -> String {
         self.send(bytes);
-        self.answer(Duration::from_secs(2))
+        self.answer(Duration::from_secs(5))
             .unwrap_or_else(|| panic!("no answer to {:?}", String::from_utf8_lossy(bytes)))
     }
 }
@@ -796,7 +799,8 @@ fn the_cli_reports_a_missing_or_silent_device_clearly() {
         stderr.contains("no answer") && stderr.contains(&silent),
         "{stderr}"
     );
-    assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+    // Not hung (its timeouts are 0.4 s; a loaded machine starts it late).
+    assert!(t0.elapsed() < Duration::from_secs(15), "{:?}", t0.elapsed());
 
     // Bad input is refused with the field named.
     let (ok, _, stderr) = isochron_magnet(&bin, &["--port", &silent, "--hold-s", "0", "on"]);
