@@ -756,13 +756,18 @@ pub async fn start_calibration(
             StartRefused::NotAvailable(_) => "not_available",
         }),
     })?;
+    // Trials wait until the lab has taken the step's result, not only until
+    // the job says it is done.
+    desk.set_taking(true);
     drop(gate);
     tokio::spawn(async move {
         let scenario = lab.params();
         let beliefs = if desk.real_lab() {
             // Through the lab's own camera and magnet (`claim` let only the
             // steps whose real-lab procedure is built through).
-            if step == Step::Latency {
+            if step == Step::Camera {
+                crate::calibration::run_real_camera(&lab, &desk, id, &scenario).await
+            } else if step == Step::Latency {
                 crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await
             } else if step == Step::Robot {
                 crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await
@@ -799,6 +804,7 @@ pub async fn start_calibration(
                 desk.note(id, "written to the calibration file; the control loop did not take the new beliefs (it takes them at the next start)".into());
             }
         }
+        desk.set_taking(false);
     });
     Ok((
         StatusCode::ACCEPTED,

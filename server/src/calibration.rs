@@ -71,10 +71,13 @@ impl Step {
     }
 
     /// Whether the step's real-lab procedure is built (through the lab's own
-    /// camera, magnet and robot): the pendulum's free swing, the LED's
-    /// latency and the robot's excitation.
+    /// camera, magnet and robot): the chessboard's views, the pendulum's free
+    /// swing, the LED's latency and the robot's excitation.
     pub fn real_lab_procedure(self) -> bool {
-        matches!(self, Self::Pendulum | Self::Latency | Self::Robot)
+        matches!(
+            self,
+            Self::Camera | Self::Pendulum | Self::Latency | Self::Robot
+        )
     }
 
     /// Whether the calibration file holds this step's result.
@@ -601,6 +604,9 @@ pub struct CalibrationDesk {
     rule: RefusalRule,
     job: std::sync::Mutex<CalibrationJob>,
     refused: std::sync::Mutex<Option<String>>,
+    /// From a step's start over the API until the lab has taken its result
+    /// (the job says `done` a moment before the control loop has the new beliefs).
+    taking: std::sync::atomic::AtomicBool,
 }
 
 impl std::fmt::Debug for CalibrationDesk {
@@ -632,6 +638,7 @@ impl CalibrationDesk {
                 ..CalibrationJob::default()
             }),
             refused: std::sync::Mutex::new(refused),
+            taking: std::sync::atomic::AtomicBool::new(false),
         }
     }
 
@@ -650,9 +657,16 @@ impl CalibrationDesk {
         lock(&self.refused).clone()
     }
 
-    /// A step runs.
+    /// A step runs, or the lab has not yet taken the result of the one that
+    /// just ended ([`Self::set_taking`]): trials wait for both.
     pub fn running(&self) -> bool {
-        lock(&self.job).state == "running"
+        self.taking.load(std::sync::atomic::Ordering::Acquire) || lock(&self.job).state == "running"
+    }
+
+    /// Marks a step started over the API (`true`) until the lab has taken its
+    /// result, or the step gave none (`false`).
+    pub fn set_taking(&self, on: bool) {
+        self.taking.store(on, std::sync::atomic::Ordering::Release);
     }
 
     /// The file's steps and the job.
@@ -708,7 +722,7 @@ impl CalibrationDesk {
         if self.real_lab && !step.real_lab_procedure() {
             return Err(StartRefused::NotAvailable(format!(
                 "calibrate {}: the real-lab procedure of this step is not built yet \
-                 (on a real lab: pendulum, latency, robot); the panel runs every step on the simulated lab",
+                 (on a real lab: camera, pendulum, latency, robot); the panel runs every step on the simulated lab",
                 step.name()
             )));
         }
@@ -1054,6 +1068,184 @@ pub async fn run_real_pendulum(
     }
     .await;
     desk.conclude(id, Step::Pendulum, scenario, outcome, "the real lab")
+}
+
+/// Board views the real-lab camera step asks for.
+pub const REAL_CAMERA_VIEWS: usize = 16;
+/// How long the real-lab camera step waits for the board held still at one
+/// pose, seconds (then the pose is skipped; at the first pose without any
+/// board seen, the step is refused).
+pub const REAL_BOARD_WAIT_S: f64 = 20.0;
+/// Held still: no corner moved more than this between two frames, pixels.
+pub const BOARD_STILL_PX: f64 = 0.5;
+/// A new pose: its corners at least this far (mean) from the last view's, pixels.
+pub const BOARD_NEW_POSE_PX: f64 = 20.0;
+
+/// The camera step on the real lab, through its own camera (job `id`,
+/// claimed): for each of [`REAL_CAMERA_VIEWS`] poses the job's message asks
+/// for the chessboard (9 x 6 inner corners, 30 mm squares) held still there;
+/// full-resolution frames are taken until two in a row show its corners
+/// within [`BOARD_STILL_PX`] of each other and at least [`BOARD_NEW_POSE_PX`]
+/// from the last view's (an operator moved it); then the corners of all views
+/// are fitted (`fit_intrinsics`). A pose where the board is not seen held
+/// still within [`REAL_BOARD_WAIT_S`] is skipped. Refused, nothing written,
+/// when the camera does not deliver, no board is seen at all within
+/// [`REAL_BOARD_WAIT_S`] of the first pose, or the fit refuses the views
+/// (fewer than 8 seen).
+pub async fn run_real_camera(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> Option<Scenario> {
+    let outcome = real_camera(lab, desk, id).await;
+    desk.conclude(id, Step::Camera, scenario, outcome, "the real lab")
+}
+
+/// Asks the vision thread for its next full-resolution frame and waits for it.
+async fn take_still(
+    stills: &rt_core::lab::StillSlot,
+    timeout: std::time::Duration,
+) -> anyhow::Result<rt_core::lab::Still> {
+    let start = std::time::Instant::now();
+    stills.request();
+    loop {
+        if let Some(s) = stills.take() {
+            return Ok(s);
+        }
+        if start.elapsed() > timeout {
+            anyhow::bail!(
+                "calibrate camera: the camera delivered no frame in {:.0} s (GET /api/health's \
+                 devices says why)",
+                timeout.as_secs_f64()
+            );
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    }
+}
+
+/// The largest and the mean distance between two views' corners, pixels.
+fn corner_shift_px(a: &[[f64; 2]], b: &[[f64; 2]]) -> (f64, f64) {
+    let d: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (p[0] - q[0]).hypot(p[1] - q[1]))
+        .collect();
+    let max = d.iter().copied().fold(0.0, f64::max);
+    (max, d.iter().sum::<f64>() / d.len().max(1) as f64)
+}
+
+async fn real_camera(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+) -> anyhow::Result<StepOutcome> {
+    use rt_core::calibration::intrinsics::detect_corners;
+    use rt_core::calibration::{BoardView, StepView, ViewKind, fit_intrinsics};
+    use std::time::{Duration, Instant};
+    let devices = lab
+        .devices()
+        .context("calibrate camera: the lab's devices have not started")?;
+    let Some(stills) = devices.stills.clone() else {
+        anyhow::bail!("calibrate camera: this lab's camera gives no full frames");
+    };
+    if let Some(p) = lab
+        .device_problems()
+        .into_iter()
+        .find(|p| p.device == "camera")
+    {
+        anyhow::bail!("calibrate camera: {}", p.message);
+    }
+    let board = Chessboard::default();
+    let views = REAL_CAMERA_VIEWS;
+    let mut seen: Vec<BoardView> = Vec::with_capacity(views);
+    let mut size = (0_u32, 0_u32);
+    let mut last_view: Option<Vec<[f64; 2]>> = None;
+    let mut seen_any = false;
+    for k in 0..views {
+        let prompt = format!(
+            "hold the chessboard ({} x {} inner corners, {:.0} mm squares) still at pose {} of \
+             {views}: all of it in view, somewhere else in the image than the last, tilted \
+             another way",
+            board.inner_cols,
+            board.inner_rows,
+            board.square_m * 1e3,
+            k + 1
+        );
+        desk.progress(
+            id,
+            StepView {
+                progress: k as f64 / (views + 1) as f64,
+                message: prompt,
+                kind: ViewKind::Image,
+                points: last_view.clone().unwrap_or_default(),
+                fit: Vec::new(),
+            },
+        );
+        let deadline = Instant::now() + Duration::from_secs_f64(REAL_BOARD_WAIT_S);
+        let (mut frames, mut found) = (0_usize, 0_usize);
+        let mut previous: Option<Vec<[f64; 2]>> = None;
+        let corners = loop {
+            if Instant::now() > deadline {
+                break None;
+            }
+            let still = take_still(&stills, Duration::from_secs(5)).await?;
+            size = (still.width_px, still.height_px);
+            let c = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+                Ok(detect_corners(&still.to_mat()?, &board)?)
+            })
+            .await
+            .context("calibrate camera: the corner search")??;
+            frames += 1;
+            let Some(c) = c else {
+                previous = None;
+                continue;
+            };
+            found += 1;
+            let new_pose = last_view
+                .as_ref()
+                .is_none_or(|l| corner_shift_px(&c, l).1 >= BOARD_NEW_POSE_PX);
+            let still_held = previous
+                .as_ref()
+                .is_some_and(|p| corner_shift_px(&c, p).0 <= BOARD_STILL_PX);
+            if new_pose && still_held {
+                break Some(c);
+            }
+            previous = Some(c);
+        };
+        seen_any |= found > 0;
+        if corners.is_none() && !seen_any {
+            anyhow::bail!(
+                "calibrate camera: no chessboard ({} x {} inner corners) seen at pose {} of {views} \
+                 in {REAL_BOARD_WAIT_S:.0} s ({frames} frames looked at)",
+                board.inner_cols,
+                board.inner_rows,
+                k + 1
+            );
+        }
+        // A pose where the board was not seen held still is skipped (the
+        // fit needs enough of the others).
+        seen.push(BoardView {
+            corners_px: corners.clone(),
+        });
+        if corners.is_some() {
+            last_view = corners;
+        }
+    }
+    let fit = fit_intrinsics(&board, &seen, size.0, size.1).context("calibrate camera")?;
+    for v in fit.views(&seen, views) {
+        desk.progress(id, v);
+    }
+    let result = fit.calibration;
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: ("k1", result.intrinsics.k1, f64::NAN, TARGET_K1),
+        write: Box::new(move |file, stamp| {
+            file.camera = Some(step_record(stamp, result));
+        }),
+    })
 }
 
 /// Switches of the LED the real-lab latency step makes.

@@ -233,6 +233,8 @@ pub struct Devices {
     pub magnet: Option<rt_core::magnet::MagnetHandle>,
     /// The camera's readings of the magnet board's LED (`calibration.led_px`).
     pub led: Option<Arc<rt_core::lab::LedFeed>>,
+    /// Full-resolution frames on request (a real camera's: the camera step).
+    pub stills: Option<Arc<rt_core::lab::StillSlot>>,
     /// The control clock's zero.
     pub epoch: Option<std::time::Instant>,
 }

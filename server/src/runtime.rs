@@ -38,6 +38,7 @@ pub fn start_lab(
         vision: runtime.vision_stats().cloned(),
         magnet: Some(runtime.magnet().clone()),
         led: runtime.led_feed().cloned(),
+        stills: runtime.stills().cloned(),
         epoch: Some(runtime.epoch()),
     });
     Ok((lab, runtime))

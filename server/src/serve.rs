@@ -224,6 +224,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("cannot listen on {bind}"))?;
         let local = listener.local_addr()?;
+        let _ = SERVICE_ADDR.set(local);
         println!("isochron {} listening on http://{local}/", crate::VERSION);
         axum::serve(crate::tuned_listener(listener), app(state))
             .with_graceful_shutdown(shutdown_signal())
@@ -263,6 +264,10 @@ pub fn uncalibrated_refusal(
         missing[0]
     ))
 }
+
+/// The service's address once it listens (the in-process world's operator
+/// reads the calibration job there).
+static SERVICE_ADDR: std::sync::OnceLock<SocketAddr> = std::sync::OnceLock::new();
 
 /// `serve --scenario`: starts the scenario's world in this process (its
 /// cabinet, webcam stream and magnet board, `crate::world`), and returns the
@@ -308,6 +313,8 @@ fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<Serve
         truth = %truth_path.display(),
         "serving a real lab on a simulated world"
     );
+    // The world's operator watches this service (its camera step's board).
+    world.start_operator_with(|| SERVICE_ADDR.get().copied())?;
     std::thread::Builder::new()
         .name("isochron-world".into())
         .spawn(move || {

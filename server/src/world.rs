@@ -88,7 +88,15 @@ pub struct WorldReady {
     /// FRI period with the second-order servo (the drive's interpolation)
     /// and the monitoring message's age (latency plus half its jitter).
     pub robot_delay_ms: f64,
+    /// The world's true camera: its focal lengths, principal point and lens
+    /// (what the camera step measures).
+    pub camera_intrinsics: rt_core::vision::CameraIntrinsics,
 }
+
+/// The board the operator holds for the camera step: `(pose, views)`, 0-based.
+type HeldBoard = Arc<Mutex<Option<(usize, usize)>>>;
+/// How often the operator reads the service's calibration job, ms.
+const OPERATOR_POLL_MS: u64 = 100;
 
 /// The LED's switches the board made, `(world time, on)` in order (the
 /// latest [`LED_SWITCHES`]).
@@ -213,6 +221,7 @@ pub struct LabWorld {
     epoch_unix_s: f64,
     frames: Arc<AtomicU64>,
     releases: usize,
+    held_board: HeldBoard,
 }
 
 impl std::fmt::Debug for LabWorld {
@@ -371,6 +380,9 @@ impl LabWorld {
         let frames = Arc::new(AtomicU64::new(0));
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
         let led_latency_ms = webcam.led_latency_s() * 1e3;
+        let camera_intrinsics =
+            rt_core::calibration::sim_intrinsics::true_intrinsics(webcam.camera());
+        let held_board: HeldBoard = Arc::default();
         let lateness = Arc::new(Mutex::new(Lateness::default()));
         {
             let (clients, lateness) = (Arc::clone(&clients), Arc::clone(&lateness));
@@ -379,11 +391,12 @@ impl LabWorld {
                 .spawn(move || serve_stream(&listener, &clients, &lateness, led_latency_ms))?;
         }
         {
-            let (clients, frames, led, lateness) = (
+            let (clients, frames, led, lateness, held_board) = (
                 Arc::clone(&clients),
                 Arc::clone(&frames),
                 Arc::clone(&led),
                 Arc::clone(&lateness),
+                Arc::clone(&held_board),
             );
             std::thread::Builder::new()
                 .name("isochron-world-camera".into())
@@ -406,6 +419,11 @@ impl LabWorld {
                                 .unwrap_or_else(std::sync::PoisonError::into_inner);
                             webcam.led_lit_share(timing.t_start_s, false, l.iter().copied())
                         };
+                        webcam.hold_board(
+                            *held_board
+                                .lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner),
+                        );
                         let jpeg = match webcam.frame_jpeg(timing.t_start_s, share) {
                             Ok(j) => Arc::new(j.to_vec()),
                             Err(e) => {
@@ -449,6 +467,7 @@ impl LabWorld {
                 + robot_servo_lag_ms
                 + robot_interpolation_ms
                 + (session.message_latency_s + 0.5 * session.message_jitter_s) * 1e3,
+            camera_intrinsics,
         };
         Ok(Self {
             ready,
@@ -462,7 +481,59 @@ impl LabWorld {
             epoch_unix_s,
             frames,
             releases: 0,
+            held_board,
         })
+    }
+
+    /// Starts the operator: the hands the camera step needs. It reads the
+    /// service's calibration job (`GET {service}/api/calibration`, as a person
+    /// reads the dashboard) every [`OPERATOR_POLL_MS`] and, while the camera
+    /// step asks for the chessboard at pose K of N, holds it there in front of
+    /// the webcam (its own plan of N holds over the true camera's image);
+    /// otherwise the board is lowered.
+    ///
+    /// # Errors
+    ///
+    /// When `service` is not `http://HOST:PORT` or its thread cannot start.
+    pub fn start_operator(&self, service: &str) -> anyhow::Result<()> {
+        use std::net::ToSocketAddrs;
+        let hostport = service
+            .strip_prefix("http://")
+            .with_context(|| format!("--operator {service}: give the service as http://HOST:PORT"))?
+            .trim_end_matches('/');
+        let addr = hostport
+            .to_socket_addrs()
+            .with_context(|| format!("--operator {service}: not an address"))?
+            .next()
+            .with_context(|| format!("--operator {service}: no address"))?;
+        self.start_operator_with(move || Some(addr))
+    }
+
+    /// [`Self::start_operator`] for a service whose address `service` gives
+    /// once it is known (`isochron serve --scenario`: after it binds).
+    ///
+    /// # Errors
+    ///
+    /// When its thread cannot start.
+    pub fn start_operator_with(
+        &self,
+        service: impl Fn() -> Option<SocketAddr> + Send + 'static,
+    ) -> anyhow::Result<()> {
+        let held = Arc::clone(&self.held_board);
+        std::thread::Builder::new()
+            .name("isochron-world-operator".into())
+            .spawn(move || {
+                loop {
+                    std::thread::sleep(Duration::from_millis(OPERATOR_POLL_MS));
+                    let asked = service()
+                        .and_then(|addr| http_get_json(addr, "/api/calibration").ok())
+                        .and_then(|c| asked_pose(&c));
+                    *held
+                        .lock()
+                        .unwrap_or_else(std::sync::PoisonError::into_inner) = asked;
+                }
+            })?;
+        Ok(())
     }
 
     /// The lab's configuration for this hardware (`isochron serve --config`):
@@ -545,6 +616,52 @@ impl LabWorld {
     pub fn counts(&self) -> (usize, u64) {
         (self.releases, self.frames.load(Relaxed))
     }
+}
+
+/// The pose the service's camera step asks the operator for, `(pose,
+/// views)` 0-based, read from its running job's message ("... at pose K of
+/// N ..."); `None` when no camera step runs.
+pub fn asked_pose(calibration: &serde_json::Value) -> Option<(usize, usize)> {
+    let job = &calibration["job"];
+    if job["state"] != "running" || job["step"] != "camera" {
+        return None;
+    }
+    let m = job["message"].as_str()?;
+    let rest = &m[m.find("at pose ")? + "at pose ".len()..];
+    let mut numbers = rest
+        .split(|c: char| !c.is_ascii_digit())
+        .filter(|w| !w.is_empty());
+    let k: usize = numbers.next()?.parse().ok()?;
+    let n: usize = numbers.next()?.parse().ok()?;
+    (1..=n).contains(&k).then(|| (k - 1, n))
+}
+
+/// `GET path` of the service at `addr`, its JSON body (HTTP/1.1, the
+/// connection closed after it).
+fn http_get_json(addr: SocketAddr, path: &str) -> anyhow::Result<serde_json::Value> {
+    let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2))?;
+    s.set_read_timeout(Some(Duration::from_secs(5)))?;
+    s.set_write_timeout(Some(Duration::from_secs(5)))?;
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut buf = Vec::new();
+    s.take(1 << 22).read_to_end(&mut buf)?;
+    let text = String::from_utf8_lossy(&buf);
+    let (head, body) = text
+        .split_once("\r\n\r\n")
+        .context("no end of the HTTP header")?;
+    if !head.starts_with("HTTP/1.1 200") {
+        bail!("GET {path}: {}", head.lines().next().unwrap_or_default());
+    }
+    if head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        bail!("GET {path}: a chunked answer");
+    }
+    Ok(serde_json::from_str(body)?)
 }
 
 fn absolute(p: &Path) -> PathBuf {
@@ -731,5 +848,33 @@ impl Drop for Board {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::asked_pose;
+    use serde_json::json;
+
+    #[test]
+    fn the_operator_holds_the_board_only_where_a_running_camera_step_asks() {
+        let job = |step: &str, state: &str, message: &str| json!({"job": {"step": step, "state": state, "message": message}});
+        let asking = "hold the chessboard (9 x 6 inner corners, 30 mm squares) still at pose 3 of 12: all of it in view";
+        assert_eq!(asked_pose(&job("camera", "running", asking)), Some((2, 12)));
+        assert_eq!(asked_pose(&job("camera", "done", asking)), None);
+        assert_eq!(asked_pose(&job("pendulum", "running", asking)), None);
+        assert_eq!(
+            asked_pose(&job("camera", "running", "fit: view 3 of 12")),
+            None
+        );
+        for bad in [
+            "at pose 0 of 12",
+            "at pose 13 of 12",
+            "at pose x of 12",
+            "at pose 3",
+        ] {
+            assert_eq!(asked_pose(&job("camera", "running", bad)), None, "{bad}");
+        }
+        assert_eq!(asked_pose(&json!({"job": null})), None);
     }
 }

@@ -20,9 +20,9 @@ mod tests;
 
 pub use extrinsics::CameraRobotCalibration;
 pub use file::{CalibrationFile, StepRecord};
-#[cfg(feature = "opencv")]
-pub use intrinsics::fit_intrinsics;
 pub use intrinsics::{BoardView, CameraCalibration, Chessboard};
+#[cfg(feature = "opencv")]
+pub use intrinsics::{detect_corners, fit_intrinsics};
 pub use latency::{LedEdge, LedLatency, estimate_led_latency};
 pub use robot::{RobotLatency, fit_robot_latency};
 pub use swing::{SwingFit, SwingSample, fit_swing};

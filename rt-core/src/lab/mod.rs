@@ -28,4 +28,6 @@ pub use step::{
 pub use trial::{TrialDraw, draw_trial};
 pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};
 #[cfg(feature = "opencv")]
-pub use vision::{LedFeed, LedReading, LedTap, VideoParams, VideoStats, VisionLoop, VisionParts};
+pub use vision::{
+    LedFeed, LedReading, LedTap, Still, StillSlot, VideoParams, VideoStats, VisionLoop, VisionParts,
+};

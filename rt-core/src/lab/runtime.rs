@@ -38,7 +38,7 @@ use serde::Serialize;
 
 pub use super::step::LabStep;
 use super::step::{IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params};
-use super::vision::LedFeed;
+use super::vision::{LedFeed, StillSlot};
 pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
 use crate::bridge::{ControlEnd, FrameSender};
@@ -396,6 +396,7 @@ pub struct LabRuntime {
     period_ms: u32,
     rt: crate::fri::priority::RtStatus,
     led_feed: Option<Arc<LedFeed>>,
+    stills: Option<Arc<StillSlot>>,
 }
 
 impl std::fmt::Debug for LabRuntime {
@@ -518,6 +519,8 @@ impl LabRuntime {
             }
             None => (None, None),
         };
+        // Full-resolution frames on request, from a real camera (the camera step).
+        let stills = reopen.is_some().then(|| Arc::new(StillSlot::default()));
         let stamp_latency = Arc::new(AtomicU64::new(f64::NAN.to_bits()));
         let vision = VisionLoop::spawn(VisionParts {
             source,
@@ -529,6 +532,7 @@ impl LabRuntime {
             clock,
             reopen,
             led: led_tap,
+            stills: stills.clone(),
             stamp_latency: Some(Arc::clone(&stamp_latency)),
         })?;
 
@@ -609,6 +613,7 @@ impl LabRuntime {
             period_ms,
             rt,
             led_feed,
+            stills,
         })
     }
 
@@ -641,6 +646,11 @@ impl LabRuntime {
     /// [`LabSetup::led_roi_px`]).
     pub fn led_feed(&self) -> Option<&Arc<LedFeed>> {
         self.led_feed.as_ref()
+    }
+
+    /// Full-resolution frames on request (a real camera's).
+    pub fn stills(&self) -> Option<&Arc<StillSlot>> {
+        self.stills.as_ref()
     }
 
     /// The magnet driver.

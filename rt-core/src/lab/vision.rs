@@ -10,6 +10,11 @@
 //! ([`LedFeed`]: the latency step). The stamps' latency follows the lab's
 //! belief when it changes (`stamp_latency`, set by the control thread).
 //!
+//! On request ([`StillSlot`]) the next full-resolution frame goes, in grey,
+//! into a one-frame slot the service takes it from (the camera step's board
+//! views): the vision thread never waits for it (a slot the service holds
+//! at that moment: the next frame).
+//!
 //! The simulated camera (`SimCameraSource`, `sim/camera/`) renders the
 //! ground-truth pendulum that the control thread's truth hands over
 //! (`sim/truth.rs`).
@@ -21,7 +26,7 @@ use std::sync::{
 use std::thread::JoinHandle;
 
 use opencv::{
-    core::{Mat, MatTraitConst, Rect, Size, Vector},
+    core::{Mat, MatTraitConst, MatTraitConstManual, Rect, Size, Vector},
     imgcodecs, imgproc,
 };
 use rtrb::{Consumer, Producer};
@@ -151,6 +156,98 @@ impl LedFeed {
     }
 }
 
+/// One full-resolution grey frame taken for a calibration step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Still {
+    /// The frame's number.
+    pub frame: u64,
+    /// Its capture time, control clock, seconds.
+    pub t_capture_s: f64,
+    /// Width, pixels.
+    pub width_px: u32,
+    /// Height, pixels.
+    pub height_px: u32,
+    /// Row-major 8-bit grey levels, `width_px * height_px` of them.
+    pub gray: Vec<u8>,
+}
+
+impl Still {
+    /// The frame as an OpenCV image (a copy).
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when OpenCV refuses the buffer;
+    /// [`VisionError::BadFrame`] when its size does not match.
+    pub fn to_mat(&self) -> Result<Mat, VisionError> {
+        let (w, h) = (self.width_px as usize, self.height_px as usize);
+        if w == 0 || h == 0 || self.gray.len() != w * h {
+            return Err(FrameProblem::Empty.into());
+        }
+        let flat = Mat::from_slice(&self.gray)?;
+        Ok(flat.reshape(1, self.height_px as i32)?.try_clone()?)
+    }
+}
+
+/// The service's request for one full-resolution frame, and the slot the
+/// vision thread puts it in (module docs).
+#[derive(Debug, Default)]
+pub struct StillSlot {
+    wanted: AtomicBool,
+    slot: Mutex<Option<Still>>,
+}
+
+impl StillSlot {
+    /// Asks for the next frame (an earlier one not yet taken is dropped).
+    pub fn request(&self) {
+        self.lock().take();
+        self.wanted.store(true, Ordering::Release);
+    }
+
+    /// The frame taken since the last [`Self::request`], if it came.
+    pub fn take(&self) -> Option<Still> {
+        self.lock().take()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Option<Still>> {
+        self.slot
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// The vision thread's side: copies `image` (grey or BGR) when a frame
+    /// is wanted and the slot is free; otherwise nothing.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when the conversion to grey fails.
+    pub fn offer(&self, frame: u64, t_capture_s: f64, image: &Mat) -> Result<(), VisionError> {
+        if !self.wanted.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        let mut slot = match self.slot.try_lock() {
+            Ok(g) => g,
+            Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
+            Err(std::sync::TryLockError::WouldBlock) => return Ok(()),
+        };
+        let mut gray = Mat::default();
+        match image.channels() {
+            1 => image.copy_to(&mut gray)?,
+            4 => imgproc::cvt_color_def(image, &mut gray, imgproc::COLOR_BGRA2GRAY)?,
+            _ => imgproc::cvt_color_def(image, &mut gray, imgproc::COLOR_BGR2GRAY)?,
+        }
+        let (w, h) = (gray.cols().max(0) as u32, gray.rows().max(0) as u32);
+        *slot = Some(Still {
+            frame,
+            t_capture_s,
+            width_px: w,
+            height_px: h,
+            gray: gray.data_bytes()?.to_vec(),
+        });
+        self.wanted.store(false, Ordering::Release);
+        Ok(())
+    }
+}
+
 /// Mean brightness (over the three channels, 0..255) of the square of
 /// half-side `roi_px[2]` around (`roi_px[0]`, `roi_px[1]`), clipped to the
 /// image; `None` when nothing of it is in the image.
@@ -205,6 +302,8 @@ pub struct VisionParts {
     pub reopen: Option<SourceFactory>,
     /// The LED's region and where its readings go (`None`: not read).
     pub led: Option<LedTap>,
+    /// Full-resolution frames on request (`None`: never asked for).
+    pub stills: Option<Arc<StillSlot>>,
     /// The exposure -> delivery latency the stamps take, seconds as `f64`
     /// bits (NaN: the source's own); the control thread sets it when the
     /// lab's belief changes.
@@ -390,6 +489,10 @@ fn run(
                 t_delivered_s: frame.t_capture_s + stamp_latency_s,
                 level,
             });
+        }
+        if let Some(stills) = parts.stills.as_ref() {
+            // A frame that cannot be copied stays wanted: the next one.
+            let _ = stills.offer(frame.index, frame.t_capture_s, frame.image);
         }
         let Ok(m) = pipeline.process(&frame, t0) else {
             video.detector_errors.fetch_add(1, Ordering::Relaxed);

@@ -654,6 +654,7 @@ fn the_vision_thread_fills_the_ring_and_counts_overflow() {
         clock,
         reopen: None,
         led: None,
+        stills: None,
         stamp_latency: None,
     })
     .unwrap();
@@ -759,6 +760,7 @@ fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
         clock,
         reopen: Some(reopen),
         led: None,
+        stills: None,
         stamp_latency: None,
     })
     .unwrap();

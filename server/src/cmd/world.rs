@@ -63,6 +63,11 @@ pub struct WorldArgs {
     /// truthful world, whose beliefs are its truth).
     #[arg(long)]
     pub allow_uncalibrated: bool,
+    /// The service the operator watches (`http://HOST:PORT`): while its
+    /// camera step asks for the chessboard at a pose, the operator holds it
+    /// there in front of the webcam.
+    #[arg(long)]
+    pub operator: Option<String>,
     /// Stop after this many seconds (default: run until killed).
     #[arg(long)]
     pub duration_s: Option<f64>,
@@ -102,6 +107,9 @@ pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
             .unwrap_or_else(default_firmware_dir),
         serial_port: args.lab_config.with_extension("tty"),
     })?;
+    if let Some(service) = &args.operator {
+        world.start_operator(service)?;
+    }
     // The lab's configuration for this hardware: written last, once all answers.
     std::fs::write(&beliefs_path, world.beliefs().to_toml_string())
         .with_context(|| format!("cannot write {}", beliefs_path.display()))?;

@@ -1,5 +1,7 @@
 #![doc = include_str!("README.md")]
 
+#[cfg(feature = "opencv")]
+pub mod board;
 pub mod camera;
 pub mod contact;
 pub mod dynamics;

@@ -22,8 +22,10 @@ use opencv::imgproc;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use super::board::BoardOperator;
 use super::camera::{FrameTiming, WorldCamera};
 use super::params::SessionDraw;
+use crate::calibration::Chessboard;
 use crate::params::Scenario;
 use crate::sim::camera::{BallState, SimCamera, SimCameraParams};
 use crate::vision::VisionError;
@@ -58,6 +60,12 @@ pub struct WorldWebcam {
     with_led: Mat,
     jpeg: Vector<u8>,
     period_s: f64,
+    /// The operator's board and the hold shown (0-based), when one is held.
+    board: Option<(BoardOperator, usize)>,
+    with_board: Mat,
+    noise: f64,
+    size: (f64, f64),
+    seed: u64,
 }
 
 impl std::fmt::Debug for WorldWebcam {
@@ -98,6 +106,14 @@ impl WorldWebcam {
             with_led: Mat::default(),
             jpeg: Vector::new(),
             period_s: camera.frame_period_s(1.0 / scenario.camera.fps),
+            board: None,
+            with_board: Mat::default(),
+            noise: scenario.camera.image_noise,
+            size: (
+                f64::from(scenario.camera.width_px),
+                f64::from(scenario.camera.height_px),
+            ),
+            seed,
         })
     }
 
@@ -115,6 +131,30 @@ impl WorldWebcam {
     /// The true camera.
     pub fn camera(&self) -> &WorldCamera {
         &self.camera
+    }
+
+    /// The operator holds the default chessboard (9 x 6 inner corners, 30 mm
+    /// squares) at hold `pose` of `views` (0-based; planned over the true
+    /// camera's image as a person watching the live view places it), or
+    /// lowers it (`None`). The holds stay planned while `views` does not change.
+    pub fn hold_board(&mut self, held: Option<(usize, usize)>) {
+        let Some((pose, views)) = held else {
+            self.board = None;
+            return;
+        };
+        match self.board.as_mut() {
+            Some((op, shown)) if op.views() == views => *shown = pose,
+            _ => {
+                let op = BoardOperator::new(
+                    &self.camera,
+                    Chessboard::default(),
+                    views,
+                    self.size,
+                    self.seed,
+                );
+                self.board = Some((op, pose));
+            }
+        }
     }
 
     /// One world step's true ball.
@@ -287,6 +327,14 @@ impl WorldWebcam {
         } else {
             image
         };
+        let image = match self.board.as_mut() {
+            Some((op, pose)) => {
+                image.copy_to(&mut self.with_board)?;
+                op.draw(&self.camera, *pose, &mut self.with_board, self.noise)?;
+                &self.with_board
+            }
+            None => image,
+        };
         let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
         self.jpeg.clear();
         if !imgcodecs::imencode(".jpg", image, &mut self.jpeg, &params)? {
@@ -301,15 +349,21 @@ mod tests {
     use super::*;
     use crate::vision::{Detector, DetectorParams, SwingPlaneCalibration};
 
-    #[test]
-    fn the_stream_shows_the_true_ball_where_the_detector_finds_it() {
+    /// The default scenario's truthful world's webcam (seed 1).
+    fn webcam() -> (Scenario, WorldWebcam) {
         let s = Scenario::default();
         let session = s
             .world
             .clone()
             .unwrap_or_default()
             .draw_session(1, 0, s.robot.latency_ms);
-        let mut cam = WorldWebcam::new(&s, &session, 1).unwrap();
+        let cam = WorldWebcam::new(&s, &session, 1).unwrap();
+        (s, cam)
+    }
+
+    #[test]
+    fn the_stream_shows_the_true_ball_where_the_detector_finds_it() {
+        let (s, mut cam) = webcam();
         // A ball swinging along y through the believed rest point.
         let rest = Vector3::new(s.task.distance_m.lerp(0.5), 0.0, s.task.intercept_height_m);
         for k in 0..200 {
@@ -355,14 +409,39 @@ mod tests {
     }
 
     #[test]
+    fn the_operators_board_shows_where_the_lab_finds_its_corners_and_goes_when_lowered() {
+        let (_, mut cam) = webcam();
+        let board = Chessboard::default();
+        let corners = |cam: &mut WorldWebcam| {
+            let jpeg = cam.frame_jpeg(0.2, 0.0).unwrap().to_vec();
+            let img = imgcodecs::imdecode(
+                &Vector::<u8>::from_slice(&jpeg),
+                imgcodecs::IMREAD_GRAYSCALE,
+            )
+            .unwrap();
+            crate::calibration::intrinsics::detect_corners(&img, &board).unwrap()
+        };
+        assert_eq!(corners(&mut cam), None, "a board before one is held");
+        let mut seen = Vec::new();
+        for pose in 0..4 {
+            cam.hold_board(Some((pose, 12)));
+            let c = corners(&mut cam).unwrap_or_else(|| panic!("hold {pose}: no corners"));
+            assert_eq!(c.len(), board.corners());
+            seen.push(c[0]);
+        }
+        // Each hold is somewhere else in the image.
+        for (i, a) in seen.iter().enumerate() {
+            for b in &seen[i + 1..] {
+                assert!((a[0] - b[0]).hypot(a[1] - b[1]) > 20.0, "{seen:?}");
+            }
+        }
+        cam.hold_board(None);
+        assert_eq!(corners(&mut cam), None, "the board lowered");
+    }
+
+    #[test]
     fn the_led_shows_the_share_of_its_rows_exposure_it_was_lit() {
-        let s = Scenario::default();
-        let session = s
-            .world
-            .clone()
-            .unwrap_or_default()
-            .draw_session(1, 0, s.robot.latency_ms);
-        let mut cam = WorldWebcam::new(&s, &session, 1).unwrap();
+        let (_, mut cam) = webcam();
         cam.camera.exposure_s = 0.010;
         cam.camera.rolling_shutter_s = 0.018;
         let (a, b) = cam.led_exposure_s(1.0);
