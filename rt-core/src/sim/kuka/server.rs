@@ -313,10 +313,17 @@ fn run(
     }
 }
 
-/// After IDLE, reads the answers still on their way for up to two periods, so
-/// that every answer the client sent to the session's messages is counted
-/// (an answer to the last message before IDLE, or answers queued while the
-/// thread was not scheduled, would otherwise be left in the socket).
+/// How long after IDLE the answers still on their way are read, at least.
+/// A client's thread can be kept from the CPU for more than two 2 ms periods
+/// on a loaded machine (the answer to the last message before IDLE was once
+/// missed beside `stress-ng --cpu 2`).
+const DRAIN_MIN: Duration = Duration::from_millis(100);
+
+/// After IDLE, reads the answers still on their way for two periods, at
+/// least [`DRAIN_MIN`], so that every answer the client sent to the
+/// session's messages is counted (an answer to the last message before
+/// IDLE, or answers queued while the thread was not scheduled, would
+/// otherwise be left in the socket).
 fn drain_replies(
     socket: &UdpSocket,
     client: SocketAddr,
@@ -326,7 +333,7 @@ fn drain_replies(
     stats: &SimStats,
     buf: &mut [u8],
 ) {
-    let until = epoch.elapsed() + 2 * period;
+    let until = epoch.elapsed() + (2 * period).max(DRAIN_MIN);
     loop {
         let wait = until.saturating_sub(epoch.elapsed());
         if !matches!(wait_readable(socket, wait), Ok(true)) {
