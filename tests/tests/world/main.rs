@@ -65,6 +65,20 @@ async fn get(addr: SocketAddr, path: &str) -> Value {
     r.json().unwrap()
 }
 
+/// Waits (up to `timeout`) until the calibration job is no longer running;
+/// returns `GET /api/calibration`.
+async fn job_end(addr: SocketAddr, timeout: Duration) -> Value {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let c = get(addr, "/api/calibration").await;
+        if c["job"]["state"] != "running" {
+            return c;
+        }
+        assert!(Instant::now() < deadline, "the step did not end: {c}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// Waits (up to `timeout`) until `GET /api/health` says a trial would start.
 async fn wait_ready(addr: SocketAddr, timeout: Duration) {
     let deadline = Instant::now() + timeout;
@@ -605,15 +619,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         .await
         .unwrap();
     assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let c = loop {
-        let c = get(addr, "/api/calibration").await;
-        if c["job"]["state"] != "running" {
-            break c;
-        }
-        assert!(Instant::now() < deadline, "the step did not end: {c}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
+    let c = job_end(addr, Duration::from_secs(60)).await;
     assert_eq!(c["job"]["state"], "failed", "{c}");
     assert!(
         c["job"]["message"]
@@ -635,15 +641,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         .await
         .unwrap();
     assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let c = loop {
-        let c = get(addr, "/api/calibration").await;
-        if c["job"]["state"] != "running" {
-            break c;
-        }
-        assert!(Instant::now() < deadline, "the step did not end: {c}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
+    let c = job_end(addr, Duration::from_secs(60)).await;
     assert_eq!(c["job"]["state"], "failed", "{c}");
     assert!(
         c["job"]["message"]
