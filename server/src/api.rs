@@ -771,6 +771,8 @@ pub async fn start_calibration(
                 crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await
             } else if step == Step::Robot {
                 crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await
+            } else if step == Step::CameraRobot {
+                crate::calibration::run_real_camera_robot(&lab, &desk, id, &scenario).await
             } else {
                 crate::calibration::run_real_pendulum(
                     &lab,

@@ -57,9 +57,9 @@ impl Step {
         }
     }
 
-    /// The prerequisites where the steps run: on a real lab the pendulum step
-    /// needs no camera step (whose real-lab procedure is not built): the
-    /// configuration's focal length and principal point stand in for it.
+    /// The prerequisites where the steps run: on a real lab the pendulum and
+    /// latency steps need no camera step: the configuration's focal length
+    /// and principal point stand in for it.
     pub fn prerequisites_on(self, real_lab: bool) -> &'static [Self] {
         if real_lab && matches!(self, Self::Pendulum | Self::Latency) {
             // Through the lab's own camera: the swing in the believed
@@ -68,16 +68,6 @@ impl Step {
         } else {
             self.prerequisites()
         }
-    }
-
-    /// Whether the step's real-lab procedure is built (through the lab's own
-    /// camera, magnet and robot): the chessboard's views, the pendulum's free
-    /// swing, the LED's latency and the robot's excitation.
-    pub fn real_lab_procedure(self) -> bool {
-        matches!(
-            self,
-            Self::Camera | Self::Pendulum | Self::Latency | Self::Robot
-        )
     }
 
     /// Whether the calibration file holds this step's result.
@@ -607,6 +597,9 @@ pub struct CalibrationDesk {
     /// From a step's start over the API until the lab has taken its result
     /// (the job says `done` a moment before the control loop has the new beliefs).
     taking: std::sync::atomic::AtomicBool,
+    /// A real lab's `[calibration]` (what it believes of its camera and
+    /// pendulum before the steps: the camera-robot step starts from it).
+    geometry: std::sync::OnceLock<crate::config::Calibration>,
 }
 
 impl std::fmt::Debug for CalibrationDesk {
@@ -625,7 +618,7 @@ fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 impl CalibrationDesk {
     /// A desk over the calibration file at `path` (it need not exist yet); `rule`
     /// says when trials are refused, `real_lab` whether the steps would run on
-    /// hardware (their real-lab procedures are not built: refused there).
+    /// hardware, through the lab's own robot, camera and magnet.
     pub fn new(path: std::path::PathBuf, real_lab: bool, rule: RefusalRule) -> Self {
         let file = CalibrationFile::load_or_empty(&path).unwrap_or_default();
         let refused = rule(&file);
@@ -639,7 +632,18 @@ impl CalibrationDesk {
             }),
             refused: std::sync::Mutex::new(refused),
             taking: std::sync::atomic::AtomicBool::new(false),
+            geometry: std::sync::OnceLock::new(),
         }
+    }
+
+    /// Gives a real lab's `[calibration]` (set once, at the start).
+    pub fn set_lab_geometry(&self, k: crate::config::Calibration) {
+        let _ = self.geometry.set(k);
+    }
+
+    /// A real lab's `[calibration]`, when given.
+    pub fn lab_geometry(&self) -> Option<&crate::config::Calibration> {
+        self.geometry.get()
     }
 
     /// Whether the steps run on a real lab (else on the simulated world).
@@ -715,17 +719,9 @@ impl CalibrationDesk {
     ///
     /// # Errors
     ///
-    /// [`StartRefused::NotAvailable`] when the real lab has no procedure for `step` or
-    /// the file cannot be read; [`StartRefused::Prerequisites`] when steps it needs are
+    /// [`StartRefused::NotAvailable`] when the file cannot be read; [`StartRefused::Prerequisites`] when steps it needs are
     /// missing; [`StartRefused::Busy`] while another step runs.
     pub fn claim(&self, step: Step) -> Result<u64, StartRefused> {
-        if self.real_lab && !step.real_lab_procedure() {
-            return Err(StartRefused::NotAvailable(format!(
-                "calibrate {}: the real-lab procedure of this step is not built yet \
-                 (on a real lab: camera, pendulum, latency, robot); the panel runs every step on the simulated lab",
-                step.name()
-            )));
-        }
         let file = CalibrationFile::load_or_empty(&self.path)
             .map_err(|e| StartRefused::NotAvailable(format!("the calibration file: {e}")))?;
         let missing: Vec<&str> = step
@@ -1106,17 +1102,21 @@ pub async fn run_real_camera(
 async fn take_still(
     stills: &rt_core::lab::StillSlot,
     timeout: std::time::Duration,
+    colour: bool,
 ) -> anyhow::Result<rt_core::lab::Still> {
     let start = std::time::Instant::now();
-    stills.request();
+    if colour {
+        stills.request_colour();
+    } else {
+        stills.request();
+    }
     loop {
         if let Some(s) = stills.take() {
             return Ok(s);
         }
         if start.elapsed() > timeout {
             anyhow::bail!(
-                "calibrate camera: the camera delivered no frame in {:.0} s (GET /api/health's \
-                 devices says why)",
+                "the camera delivered no frame in {:.0} s (GET /api/health's devices says why)",
                 timeout.as_secs_f64()
             );
         }
@@ -1189,10 +1189,12 @@ async fn real_camera(
             if Instant::now() > deadline {
                 break None;
             }
-            let still = take_still(&stills, Duration::from_secs(5)).await?;
+            let still = take_still(&stills, Duration::from_secs(5), false)
+                .await
+                .context("calibrate camera")?;
             size = (still.width_px, still.height_px);
             let c = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
-                Ok(detect_corners(&still.to_mat()?, &board)?)
+                Ok(detect_corners(&still.to_gray_mat()?, &board)?)
             })
             .await
             .context("calibrate camera: the corner search")??;
@@ -1599,6 +1601,289 @@ async fn real_robot(
         ),
         write: Box::new(move |file, stamp| {
             file.robot = Some(step_record(stamp, result));
+        }),
+    })
+}
+
+/// How long the real-lab camera-robot step waits for the arm to reach a
+/// tour pose (its slow move plus settling), seconds.
+pub const REAL_TOUR_MOVE_WAIT_S: f64 = 60.0;
+/// How near the commanded and the measured joints must be to the pose, rad
+/// (0.2 degrees).
+const REAL_TOUR_AT_POSE_RAD: f64 = 0.0035;
+
+/// The camera-robot step on the real lab, through its own robot, camera and
+/// magnet (job `id`, claimed): the magnet hangs the ball out of the arm's
+/// way; the operator fits the green marker disc to the tool (the job's
+/// message asks for it); the arm tours the marker poses
+/// (`calibration::marker::tour_targets` over the pendulum's region) by slow
+/// joint moves through the control loop (`Command::MoveTo`, every target 5
+/// degrees inside the limits, checked by the controller); at each, after
+/// [`marker::SETTLE_S`], the disc is found in full colour frames
+/// (`find_marker`, near where the believed camera expects it) and the
+/// measured joints are averaged; then back where it started. The camera's
+/// pose is fitted to the sightings (`fit_pose`: with `k1` unless the camera
+/// step gave the lens); the intercept point is the pendulum step's rest
+/// pixel (the calibration file) seen through the fitted camera, met with
+/// the believed swing plane (`x` of the pivot: the touch that measures the
+/// depth on the simulated world needs hands on the robot, not built here).
+/// Refused, nothing written, when the robot does not command, the camera
+/// gives no colour frames, the pendulum step is missing, a move is refused
+/// or interrupted, or the marker is seen at fewer than [`marker::MIN_POSES`]
+/// poses.
+///
+/// [`marker::SETTLE_S`]: rt_core::calibration::marker::SETTLE_S
+/// [`marker::MIN_POSES`]: rt_core::calibration::marker::MIN_POSES
+pub async fn run_real_camera_robot(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> Option<Scenario> {
+    let start = lab.latest().map(|(s, _)| s.robot.q_cmd_rad);
+    let outcome = real_camera_robot(lab, desk, id, scenario).await;
+    // Wherever the tour stopped, the arm goes back where it started (a
+    // refused move leaves it where it is).
+    if let Some(q) = start
+        && let Some((s, _)) = lab.latest()
+        && s.robot.q_cmd_rad != q
+    {
+        let _ = move_to_pose(lab, &q).await;
+    }
+    desk.conclude(id, Step::CameraRobot, scenario, outcome, "the real lab")
+}
+
+/// Moves the arm to `target` through the control loop and waits until the
+/// commanded and the measured joints are there.
+async fn move_to_pose(
+    lab: &crate::Lab,
+    target: &[f64; rt_core::kinematics::iiwa7::JOINTS],
+) -> anyhow::Result<()> {
+    use rt_core::bridge::{Command, TrialState};
+    use std::time::{Duration, Instant};
+    lab.command(Command::MoveTo(*target))
+        .await
+        .map_err(|e| anyhow::anyhow!("the control loop refused the move: {e}"))?;
+    let deadline = Instant::now() + Duration::from_secs_f64(REAL_TOUR_MOVE_WAIT_S);
+    loop {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        if let Some((s, _)) = lab.latest() {
+            if s.trial_state != TrialState::Idle {
+                anyhow::bail!(
+                    "the move was interrupted ({}: a stop, no operator's heartbeat while the \
+                     lab's dead-man is on, or the robot left COMMANDING_ACTIVE)",
+                    s.trial_state.as_str()
+                );
+            }
+            let near =
+                |q: &[f64; 7], tol: f64| q.iter().zip(target).all(|(a, b)| (a - b).abs() <= tol);
+            if near(&s.robot.q_cmd_rad, 1e-9) && near(&s.robot.q_rad, REAL_TOUR_AT_POSE_RAD) {
+                return Ok(());
+            }
+        }
+        if Instant::now() > deadline {
+            anyhow::bail!(
+                "the arm did not reach the pose in {REAL_TOUR_MOVE_WAIT_S:.0} s (GET /api/health's \
+                 devices says why)"
+            );
+        }
+    }
+}
+
+async fn real_camera_robot(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> anyhow::Result<StepOutcome> {
+    use nalgebra::{Vector2, Vector3};
+    use rt_core::bridge::Command;
+    use rt_core::calibration::extrinsics::{
+        CameraRobotCalibration, camera_pose_of, ray_b, reproject,
+    };
+    use rt_core::calibration::marker::{
+        FRAMES_PER_POSE, MARKER_OFFSET_M, MARKER_RADIUS_M, MIN_POSES, SETTLE_S, TOUR_SEED_DEG,
+        find_marker, fit_pose, marker_believed, tour_points, tour_targets,
+    };
+    use rt_core::calibration::{StepView, ViewKind};
+    use std::time::Duration;
+    let k = desk
+        .lab_geometry()
+        .context("calibrate camera-robot: the lab's [calibration] is not known")?
+        .clone();
+    let devices = lab
+        .devices()
+        .context("calibrate camera-robot: the lab's devices have not started")?;
+    let Some(stills) = devices.stills.clone() else {
+        anyhow::bail!("calibrate camera-robot: this lab's camera gives no full frames");
+    };
+    if let Some(p) = lab.device_problems().into_iter().next() {
+        anyhow::bail!("calibrate camera-robot: {}: {}", p.device, p.message);
+    }
+    let file = CalibrationFile::load_or_empty(desk.path()).context("calibrate camera-robot")?;
+    let Some(pendulum) = file.pendulum.as_ref() else {
+        anyhow::bail!(
+            "calibrate camera-robot: the pendulum step's rest point is missing (run it first)"
+        );
+    };
+    let rest_px = Vector2::from(pendulum.result.rest_px);
+    let (intrinsics, believed_pose, rest_b) =
+        crate::serve::camera_basis(&k, scenario).believed(scenario);
+    // The camera step's lens, when the file has it; else k1 is fitted here.
+    let k1_fixed = scenario.camera.intrinsics.map(|i| i.k1);
+    let seed: [f64; 7] = std::array::from_fn(|j| TOUR_SEED_DEG[j].to_radians());
+    let targets = tour_targets(&tour_points(scenario), &seed);
+    let n = targets.len();
+    if n < MIN_POSES {
+        anyhow::bail!(
+            "calibrate camera-robot: {n} marker poses are within reach ({MIN_POSES} needed)"
+        );
+    }
+    // The ball out of the tour's way: held on the magnet.
+    lab.command(Command::Magnet { on: true })
+        .await
+        .map_err(|e| {
+            anyhow::anyhow!("calibrate camera-robot: the magnet did not switch on: {e}")
+        })?;
+    let progress = |p: f64, message: String, points: Vec<[f64; 2]>, fit: Vec<[f64; 2]>| {
+        desk.progress(
+            id,
+            StepView {
+                progress: p,
+                message,
+                kind: ViewKind::Image,
+                points,
+                fit,
+            },
+        );
+    };
+    let ask = format!(
+        "fit the green marker disc (radius {:.0} mm) to the tool, {:.0} mm out along it, and hang \
+         the ball on the magnet: the arm tours {n} poses in the camera's view",
+        MARKER_RADIUS_M * 1e3,
+        MARKER_OFFSET_M[2] * 1e3
+    );
+    progress(0.0, ask.clone(), Vec::new(), Vec::new());
+    let mut points_b: Vec<Vector3<f64>> = Vec::new();
+    let mut pixels: Vec<Vector2<f64>> = Vec::new();
+    for (i, target) in targets.iter().enumerate() {
+        move_to_pose(lab, target)
+            .await
+            .with_context(|| format!("calibrate camera-robot: pose {} of {n}", i + 1))?;
+        tokio::time::sleep(Duration::from_secs_f64(SETTLE_S)).await;
+        let (mut seen, mut q_sum, mut q_n) = (Vec::new(), [0.0; 7], 0_usize);
+        for _ in 0..2 * FRAMES_PER_POSE {
+            if seen.len() >= FRAMES_PER_POSE {
+                break;
+            }
+            let still = take_still(&stills, Duration::from_secs(5), true)
+                .await
+                .context("calibrate camera-robot")?;
+            let Some((s, _)) = lab.latest() else { continue };
+            for (a, b) in q_sum.iter_mut().zip(s.robot.q_rad) {
+                *a += b;
+            }
+            q_n += 1;
+            let (c_b, _) = marker_believed(&s.robot.q_rad);
+            let pc = believed_pose.to_camera(&c_b);
+            let Some(guess) = intrinsics.project(&pc) else {
+                continue;
+            };
+            let r_px = intrinsics.fx_px * MARKER_RADIUS_M / pc.z.max(0.1);
+            let found = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+                Ok(find_marker(&still.to_mat()?, &guess, r_px)?)
+            })
+            .await
+            .context("calibrate camera-robot: the marker search")??;
+            if let Some(px) = found {
+                seen.push(px);
+            }
+        }
+        if seen.len() > FRAMES_PER_POSE / 2 && q_n > 0 {
+            let q: [f64; 7] = std::array::from_fn(|j| q_sum[j] / q_n as f64);
+            points_b.push(marker_believed(&q).0);
+            pixels.push(seen.iter().fold(Vector2::zeros(), |a, p| a + p) / seen.len() as f64);
+        }
+        progress(
+            0.9 * (i + 1) as f64 / n as f64,
+            format!(
+                "{ask}; marker pose {} of {n}: seen in {} frames ({} poses seen)",
+                i + 1,
+                seen.len(),
+                pixels.len()
+            ),
+            pixels.iter().map(|p| [p.x, p.y]).collect(),
+            Vec::new(),
+        );
+    }
+    if pixels.len() < MIN_POSES {
+        anyhow::bail!(
+            "calibrate camera-robot: marker never seen: {} of {n} poses ({MIN_POSES} needed; is \
+             the green disc on the tool and in the camera's view?)",
+            pixels.len()
+        );
+    }
+    let fit = fit_pose(&intrinsics, &points_b, &pixels, &believed_pose, k1_fixed)
+        .context("calibrate camera-robot: the pose fit")?;
+    // The intercept point: the rest pixel's ray through the fitted camera met
+    // with the believed swing plane (x of the ball at rest).
+    let ray = ray_b(&intrinsics, &fit, rest_px.x, rest_px.y);
+    if ray.x <= 0.05 {
+        anyhow::bail!("calibrate camera-robot: the rest point's ray misses the swing plane");
+    }
+    let s = (rest_b.x - fit.position_m.x) / ray.x;
+    let intercept = fit.position_m + ray * s;
+    let distance = rest_b.x.hypot(rest_b.y);
+    let nominal = Vector3::new(distance, 0.0, scenario.task.intercept_height_m);
+    let pose = camera_pose_of(&fit.base_from_camera, &fit.position_m);
+    let fitted = reproject(&intrinsics, &fit, &points_b);
+    progress(
+        1.0,
+        format!(
+            "camera at ({:.4}, {:.4}, {:.4}) m from {} marker poses (reprojection rms {:.2} px), \
+             intercept point ({:.4}, {:.4}, {:.4}) m; the marker may come off",
+            pose.position_m[0],
+            pose.position_m[1],
+            pose.position_m[2],
+            pixels.len(),
+            fit.rms_px,
+            intercept.x,
+            intercept.y,
+            intercept.z
+        ),
+        pixels.iter().map(|p| [p.x, p.y]).collect(),
+        fitted,
+    );
+    let std_mm = fit.position_std_m.norm() * 1e3;
+    let result = CameraRobotCalibration {
+        camera_pose: pose,
+        base_from_camera_rows: std::array::from_fn(|r| {
+            std::array::from_fn(|c| fit.base_from_camera[(r, c)])
+        }),
+        reprojection_rms_px: fit.rms_px,
+        poses: pixels.len(),
+        poses_commanded: n,
+        k1: fit.k1,
+        k1_fitted: k1_fixed.is_none(),
+        position_std_m: fit.position_std_m.into(),
+        marker_offset_m: MARKER_OFFSET_M,
+        intercept_m: intercept.into(),
+        intercept_offset_m: (intercept - nominal).into(),
+        rest_px: [rest_px.x, rest_px.y],
+        intercept_depth_from: "plane".into(),
+    };
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: (
+            "camera_position_std_mm",
+            std_mm,
+            f64::NAN,
+            TARGET_CAMERA_POSITION_MM,
+        ),
+        write: Box::new(move |file, stamp| {
+            file.camera_robot = Some(step_record(stamp, result));
         }),
     })
 }

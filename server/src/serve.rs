@@ -13,8 +13,8 @@ use rt_core::{
     lab::{CameraLink, FriLink, LabSetup, MagnetLink},
     magnet::MagnetParams,
     vision::{
-        CameraIntrinsics, CameraPose, FrameSource, StreamSource, SwingPlaneCalibration,
-        VideoFileSource, WebcamParams, WebcamSource, is_stream_url,
+        CameraIntrinsics, CameraPose, FrameSource, StreamSource, VideoFileSource, WebcamParams,
+        WebcamSource, is_stream_url,
     },
 };
 
@@ -153,6 +153,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         cfg.lab.mode == LabMode::Real,
         Box::new(move |file| uncalibrated_refusal(&rule_cfg, file)),
     ));
+    if cfg.lab.mode == LabMode::Real {
+        desk.set_lab_geometry(cfg.calibration.clone());
+    }
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
     let options = crate::LabOptions {
         state_hz: cfg.server.state_hz,
@@ -335,6 +338,39 @@ pub const WORLD_IN_SERVE: &str = "[world] (the reality lab: a simulated world th
     controller's beliefs) is not a lab's beliefs: serve that world with `isochron serve --scenario FILE` \
     (or run it as `isochron world`), or remove [world] from the scenario and parameter files";
 
+/// What a real lab believes of its camera and pendulum before its
+/// calibration file (`[calibration]`): the configured focal length and
+/// principal point without distortion; `calibration.camera_pose`, else on
+/// the pivot's line along -x at the ball's height, `plane_distance_m`
+/// before the swing plane, looking along +x; the pivot. The camera step's
+/// lens, the camera-robot step's pose and intercept offset and the
+/// pendulum step's length go over it (`CameraBasis::believed`).
+pub fn camera_basis(
+    k: &crate::config::Calibration,
+    scenario: &Scenario,
+) -> rt_core::lab::CameraBasis {
+    let [px, py, pz] = k.pivot_m;
+    let intrinsics = CameraIntrinsics {
+        fx_px: k.focal_length_px,
+        fy_px: k.focal_length_px,
+        cx_px: k.principal_point_px[0],
+        cy_px: k.principal_point_px[1],
+        k1: 0.0,
+        k2: 0.0,
+        p1: 0.0,
+        p2: 0.0,
+    };
+    let pose = k.camera_pose.unwrap_or(CameraPose {
+        position_m: [px - k.plane_distance_m, py, pz - scenario.pendulum.length_m],
+        ..CameraPose::default()
+    });
+    rt_core::lab::CameraBasis {
+        intrinsics,
+        pose,
+        pivot_m: k.pivot_m,
+    }
+}
+
 /// The real lab of `cfg` (`lab.mode = "real"`; its motion timed for the
 /// settling arrival its measured judge sees, `control.arrival_settle_m`): the same runtime as the
 /// simulated lab with the FRI client answering the configured controller, the
@@ -367,31 +403,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
     scenario.camera.height_px = cfg.camera.height_px;
     scenario.camera.fps = cfg.camera.fps;
     scenario.validate()?;
-    let k = &cfg.calibration;
-    let [px, py, pz] = k.pivot_m;
-    let rest = nalgebra::Vector3::new(px, py, pz - scenario.pendulum.length_m);
-    // The camera step's intrinsics and lens (the calibration file laid over the
-    // scenario), else the configured focal length and principal point, no lens.
-    let intrinsics = scenario.camera.intrinsics.unwrap_or(CameraIntrinsics {
-        fx_px: k.focal_length_px,
-        fy_px: k.focal_length_px,
-        cx_px: k.principal_point_px[0],
-        cy_px: k.principal_point_px[1],
-        k1: 0.0,
-        k2: 0.0,
-        p1: 0.0,
-        p2: 0.0,
-    });
-    let pose = scenario
-        .camera
-        .pose
-        .or(k.camera_pose)
-        .unwrap_or(CameraPose {
-            position_m: [px - k.plane_distance_m, py, rest.z],
-            ..CameraPose::default()
-        });
-    let calibration =
-        SwingPlaneCalibration::from_pose(intrinsics, &pose, &rest, scenario.pendulum.ball_radius_m);
+    let basis = camera_basis(&cfg.calibration, &scenario);
     let device = cfg.camera.device.clone();
     let webcam = WebcamParams {
         device: device.clone(),
@@ -414,7 +426,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
             bind: cfg.fri.local_bind,
             controller: cfg.fri.controller,
         },
-        CameraLink::Source { open, calibration },
+        CameraLink::Source { open, basis },
         MagnetLink::Port(MagnetParams {
             baud: cfg.magnet.baud,
             command_timeout_ms: cfg.magnet.command_timeout_ms,
@@ -425,6 +437,7 @@ pub fn real_lab(cfg: &ServeConfig, mut scenario: Scenario, seed: u64) -> anyhow:
         version: cfg.fri.version,
         ..rt_core::fri::FriClientParams::default()
     };
+    let [px, py, _] = cfg.calibration.pivot_m;
     setup.fixed_distance_m = Some(px.hypot(py));
     setup.led_roi_px = cfg.calibration.led_px;
     Ok(setup)

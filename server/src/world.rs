@@ -40,6 +40,7 @@ use rt_core::params::{Scenario, check};
 use rt_core::sim::kuka::controller::WorldRobot;
 use rt_core::sim::kuka::{SimRunOptions, SimServer};
 use rt_core::sim::world::live::{LiveWorld, ReleaseTruth};
+use rt_core::sim::world::marker::marker_pose;
 use rt_core::sim::world::webcam::{BallSample, WorldWebcam};
 use serde::Serialize;
 
@@ -91,10 +92,19 @@ pub struct WorldReady {
     /// The world's true camera: its focal lengths, principal point and lens
     /// (what the camera step measures).
     pub camera_intrinsics: rt_core::vision::CameraIntrinsics,
+    /// The world's true camera pose in the robot base frame (what the
+    /// camera-robot step measures).
+    pub camera_pose: rt_core::vision::CameraPose,
+    /// The hanging ball's true centre at rest, robot base frame, m (the
+    /// camera-robot step's intercept point).
+    pub ball_rest_m: [f64; 3],
 }
 
 /// The board the operator holds for the camera step: `(pose, views)`, 0-based.
 type HeldBoard = Arc<Mutex<Option<(usize, usize)>>>;
+/// Whether the operator has fitted the marker disc to the tool (the
+/// camera-robot step).
+type MarkerOn = Arc<AtomicBool>;
 /// How often the operator reads the service's calibration job, ms.
 const OPERATOR_POLL_MS: u64 = 100;
 
@@ -222,6 +232,7 @@ pub struct LabWorld {
     frames: Arc<AtomicU64>,
     releases: usize,
     held_board: HeldBoard,
+    marker_on: MarkerOn,
 }
 
 impl std::fmt::Debug for LabWorld {
@@ -300,6 +311,8 @@ impl LabWorld {
         let (truth_tx, truth_rx) = std::sync::mpsc::sync_channel::<ReleaseTruth>(256);
         let client = free_udp_port()?;
         let occludes = wp.camera.arm_occludes;
+        let marker_on: MarkerOn = Arc::default();
+        let marker_seen = Arc::clone(&marker_on);
         let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
             let t = t_ns as f64 * 1e-9;
             while let Ok((on, at)) = coil_rx.pop() {
@@ -309,12 +322,16 @@ impl LabWorld {
                 sim.contact(c);
             }
             let arm_m = occludes.then(|| world.world().arm.points(sim.joint_rad()));
+            let marker_m = marker_seen
+                .load(Relaxed)
+                .then(|| marker_pose(&world.world().arm.flange(sim.joint_rad())));
             let b = world.ball();
             let _ = ball_tx.push(BallSample {
                 t_s: t,
                 centre_m: b.ball_position_m(),
                 velocity_mps: b.ball_velocity_mps(),
                 arm_m,
+                marker_m,
             });
             for r in world.take_truth() {
                 let _ = truth_tx.try_send(r);
@@ -380,6 +397,7 @@ impl LabWorld {
         let frames = Arc::new(AtomicU64::new(0));
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
         let led_latency_ms = webcam.led_latency_s() * 1e3;
+        let webcam_camera = *webcam.camera();
         let camera_intrinsics =
             rt_core::calibration::sim_intrinsics::true_intrinsics(webcam.camera());
         let held_board: HeldBoard = Arc::default();
@@ -468,6 +486,12 @@ impl LabWorld {
                 + robot_interpolation_ms
                 + (session.message_latency_s + 0.5 * session.message_jitter_s) * 1e3,
             camera_intrinsics,
+            camera_pose: rt_core::calibration::extrinsics::camera_pose_of(
+                &webcam_camera.base_from_camera,
+                &webcam_camera.position_m,
+            ),
+            ball_rest_m: (true_pendulum.pivot_m - Vector3::new(0.0, 0.0, true_pendulum.length_m))
+                .into(),
         };
         Ok(Self {
             ready,
@@ -482,6 +506,7 @@ impl LabWorld {
             frames,
             releases: 0,
             held_board,
+            marker_on,
         })
     }
 
@@ -520,17 +545,19 @@ impl LabWorld {
         service: impl Fn() -> Option<SocketAddr> + Send + 'static,
     ) -> anyhow::Result<()> {
         let held = Arc::clone(&self.held_board);
+        let marker = Arc::clone(&self.marker_on);
         std::thread::Builder::new()
             .name("isochron-world-operator".into())
             .spawn(move || {
                 loop {
                     std::thread::sleep(Duration::from_millis(OPERATOR_POLL_MS));
-                    let asked = service()
-                        .and_then(|addr| http_get_json(addr, "/api/calibration").ok())
-                        .and_then(|c| asked_pose(&c));
+                    let job =
+                        service().and_then(|addr| http_get_json(addr, "/api/calibration").ok());
+                    let asked = job.as_ref().and_then(asked_pose);
                     *held
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner) = asked;
+                    marker.store(job.as_ref().is_some_and(asked_marker), Relaxed);
                 }
             })?;
         Ok(())
@@ -634,6 +661,14 @@ pub fn asked_pose(calibration: &serde_json::Value) -> Option<(usize, usize)> {
     let k: usize = numbers.next()?.parse().ok()?;
     let n: usize = numbers.next()?.parse().ok()?;
     (1..=n).contains(&k).then(|| (k - 1, n))
+}
+
+/// Whether the service's running job is the camera-robot step, which asks
+/// for the marker disc on the tool (the operator fits it for the step and
+/// takes it off after).
+pub fn asked_marker(calibration: &serde_json::Value) -> bool {
+    let job = &calibration["job"];
+    job["state"] == "running" && job["step"] == "camera-robot"
 }
 
 /// `GET path` of the service at `addr`, its JSON body (HTTP/1.1, the

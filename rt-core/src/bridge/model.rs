@@ -818,6 +818,11 @@ pub enum Command {
     /// calibration step): accepted at rest, between trials, while the robot
     /// commands; the published states carry the commanded and measured joints.
     Excite(Excitation),
+    /// Move the arm slowly to these joint angles (radians) and hold there
+    /// (the camera-robot calibration's tour; `Controller::move_to`):
+    /// accepted at rest, between trials, while the robot commands; a target
+    /// within 5 degrees of a joint limit, or not finite, is refused.
+    MoveTo([f64; JOINTS]),
 }
 
 /// What one trial may set for itself (`POST /api/trials`): each `None`
@@ -844,6 +849,7 @@ impl Command {
             Self::RunTrial { .. } => "run_trial",
             Self::SetParams(_) => "set_params",
             Self::Excite(_) => "excite",
+            Self::MoveTo(_) => "move_to",
         }
     }
 }

@@ -5,6 +5,8 @@ pub mod file;
 pub mod intrinsics;
 pub mod latency;
 pub mod lsq;
+#[cfg(feature = "opencv")]
+pub mod marker;
 pub mod robot;
 #[cfg(feature = "opencv")]
 pub mod sim_extrinsics;

@@ -18,20 +18,18 @@
 //! returned beside the estimate.
 
 use nalgebra::{Rotation3, SVector, Vector2, Vector3};
-use opencv::{
-    calib3d,
-    core::{
-        self, Mat, MatTraitConst, MatTraitManual, Point, Point2d, Point3d, Rect, Scalar, Vector,
-    },
-    imgproc,
-};
+use opencv::core::MatTraitConst;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::extrinsics::{
-    CameraRobotCalibration, PnpFit, camera_pose_of, ray_b, refine_pose, reproject,
-    rotation_angle_rad,
+    CameraRobotCalibration, camera_pose_of, ray_b, reproject, rotation_angle_rad,
+};
+use super::marker::{
+    FRAMES_PER_POSE, MARKER_OFFSET_M, MARKER_RADIUS_M, MIN_POSES, REST_FRAMES, SETTLE_S,
+    TARGET_MARGIN_RAD, TILTS_RAD, find_marker, fit_pose, marker_believed, move_duration_s,
+    step_distance_m, tool_rotation, tour_points, tour_targets,
 };
 use super::simworld::{HiddenWorld, ProcedureError};
 use super::view::{StepView, ViewKind, Watch};
@@ -43,31 +41,8 @@ use crate::params::{Scenario, VisionMode};
 use crate::sim::camera::{BallState, SimCamera, SimCameraParams, SimVision};
 use crate::sim::kuka::{FriSimParams, SimController};
 use crate::sim::world::TrueArm;
+use crate::sim::world::marker::{draw_marker, marker_rim};
 use crate::vision::{CameraIntrinsics, CameraPose, DetectorParams, SwingPlaneCalibration};
-
-/// The marker disc's centre in the flange frame, metres: on the tool's shaft,
-/// 6 cm out along the flange's z axis (a constant of the tool, measured once).
-pub const MARKER_OFFSET_M: [f64; 3] = [0.0, 0.0, 0.06];
-/// The marker disc's radius, metres (painted on both faces, normal along the tool axis).
-pub const MARKER_RADIUS_M: f64 = 0.02;
-/// The marker's colour: hue (degrees), saturation, value. A green no clutter
-/// object has (the renderer's clutter keeps hues 0..32 and 125..350 or is grey,
-/// the ball and its decoys are 48..100).
-const MARKER_HSV: (f64, f64, f64) = (112.0, 0.9, 0.8);
-/// Hue band the detector accepts, OpenCV hue units (degrees / 2).
-const HUE_BAND: (f64, f64) = (51.0, 61.0);
-/// Joint speed of the moves, rad/s (slow: a tenth of the iiwa's slowest limit).
-const MOVE_SPEED_RADPS: f64 = 0.17;
-/// Joint margin of every target, rad (10 degrees inside the limits).
-const TARGET_MARGIN_RAD: f64 = 0.1745;
-/// After a move: wait before the frames (the servo settles), s.
-const SETTLE_S: f64 = 0.6;
-/// Frames averaged per pose.
-const FRAMES_PER_POSE: usize = 5;
-/// Frames of the hanging ball averaged for the rest pixel.
-const REST_FRAMES: usize = 30;
-/// Least poses for a pose fit.
-const MIN_POSES: usize = 8;
 
 /// Options of the procedure.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -127,16 +102,6 @@ fn to_vec(q: &Joints) -> SVector<f64, 7> {
     SVector::<f64, 7>::from_column_slice(q)
 }
 
-/// The believed marker centre and the disc normal for measured joints `q`.
-fn marker_believed(q: &Joints) -> (Vector3<f64>, Vector3<f64>) {
-    let f = kinematics::flange_pose(&to_vec(q));
-    let r = f.rotation.matrix();
-    (
-        f.translation.vector + r * Vector3::from(MARKER_OFFSET_M),
-        r.column(2).into_owned(),
-    )
-}
-
 /// The true marker centre and normal for the robot's true joints.
 fn marker_true(arm: &TrueArm, q: &Joints) -> (Vector3<f64>, Vector3<f64>) {
     let (p, r) = arm.flange(q);
@@ -189,16 +154,6 @@ impl Tour {
             min_margin_rad: f64::INFINITY,
         }
     }
-}
-
-fn move_duration_s(a: &Joints, b: &Joints) -> f64 {
-    let d = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max);
-    // Cosine profile: peak speed (pi/2) d / T.
-    (std::f64::consts::FRAC_PI_2 * d / MOVE_SPEED_RADPS).max(1.0)
 }
 
 impl ControlStep for Tour {
@@ -265,69 +220,6 @@ impl ControlStep for Tour {
     }
 }
 
-/// Marker positions of the tour (base frame, m): a grid over the pendulum's
-/// region, across the image and in depth.
-fn tour_points(scenario: &Scenario) -> Vec<Vector3<f64>> {
-    let d = &scenario.task.distance_m;
-    let h = scenario.task.intercept_height_m;
-    let mut out = Vec::new();
-    for (ix, x) in [d.lo, 0.5 * (d.lo + d.hi), d.hi].into_iter().enumerate() {
-        for y in [-0.30, 0.0, 0.30] {
-            for dz in [-0.15, 0.15] {
-                // Stagger the rows per depth so the image is covered evenly.
-                let yy = y + 0.05 * ix as f64;
-                out.push(Vector3::new(x.min(0.75), yy, h + dz + 0.03 * ix as f64));
-            }
-        }
-    }
-    out
-}
-
-/// Tilts of the tool tried, from along +x down towards -z, radians (near the
-/// base a horizontal tool is out of reach: the arm comes from above, as the
-/// interception's planned tilt does).
-const TILTS_RAD: [f64; 5] = [0.0, 0.35, 0.7, 0.9, 1.05];
-
-/// The flange orientation with the tool along +x tilted down by `tilt` (the
-/// disc faces the camera behind the robot).
-fn tool_rotation(tilt: f64) -> Rotation3<f64> {
-    Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2 + tilt)
-}
-
-/// The tour's orientation at pose `i` and tilt: a little yaw and roll per pose.
-fn tour_rotation(i: usize, tilt: f64) -> Rotation3<f64> {
-    let (a, b) = [
-        (0.0, 0.0),
-        (0.15, 0.0),
-        (-0.15, 0.1),
-        (0.0, -0.15),
-        (0.1, 0.15),
-    ][i % 5];
-    Rotation3::from_euler_angles(0.0, 0.0, a)
-        * tool_rotation(tilt)
-        * Rotation3::from_euler_angles(0.0, 0.0, b)
-}
-
-/// Joint targets (inside the limits by `TARGET_MARGIN_RAD`) putting the marker at
-/// each point; unreachable points are skipped.
-fn tour_targets(points: &[Vector3<f64>], start: &Joints) -> Vec<Joints> {
-    let mut seed = to_vec(start);
-    let mut out = Vec::new();
-    for (i, p) in points.iter().enumerate() {
-        for tilt in TILTS_RAD {
-            let r = tour_rotation(i, tilt);
-            let flange = p - r * Vector3::from(MARKER_OFFSET_M);
-            let pose = kinematics::Pose::from_parts(nalgebra::Translation3::from(flange), r);
-            if let Ok(sol) = kinematics::analytic::solve(&pose, Some(&seed), TARGET_MARGIN_RAD) {
-                seed = sol.q;
-                out.push(std::array::from_fn(|j| sol.q[j]));
-                break;
-            }
-        }
-    }
-    out
-}
-
 /// Joints that put the *true* tool point at `target` with the tool along `r`:
 /// the believed IK corrected on the true arm (a few fixed-point steps); what a
 /// hand guiding the tool to a place does.
@@ -350,125 +242,6 @@ fn true_ik(
         aim += target - arm.tool_point(&qa);
     }
     Some(std::array::from_fn(|j| q[j]))
-}
-
-/// Draws the marker disc (projected rim through the true camera) into `img`,
-/// with pixel noise over its region.
-fn draw_marker(
-    img: &mut Mat,
-    rim: &[Vector2<f64>],
-    noise: f64,
-    rng: &mut ChaCha8Rng,
-) -> Result<(), ProcedureError> {
-    const SHIFT: i32 = 4;
-    let scale = f64::from(1 << SHIFT);
-    let pts: Vector<Point> = rim
-        .iter()
-        .map(|p| Point::new((p.x * scale).round() as i32, (p.y * scale).round() as i32))
-        .collect();
-    let mut polys = Vector::<Vector<Point>>::new();
-    polys.push(pts);
-    let (h, s, v) = MARKER_HSV;
-    let c = v * s;
-    let hp = h / 60.0;
-    let x = c * (1.0 - (hp % 2.0 - 1.0).abs());
-    let m = v - c;
-    // Hue 112: between green and cyan (r = 0 side).
-    let (r, g, b) = (x + m, c + m, m);
-    let colour = Scalar::new(b * 255.0, g * 255.0, r * 255.0, 0.0);
-    imgproc::fill_poly(
-        img,
-        &polys,
-        colour,
-        imgproc::LINE_AA,
-        SHIFT,
-        Point::default(),
-    )?;
-    // Sensor noise on the disc's box (the background has its own).
-    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
-    for p in rim {
-        x0 = x0.min(p.x);
-        y0 = y0.min(p.y);
-        x1 = x1.max(p.x);
-        y1 = y1.max(p.y);
-    }
-    let rect = Rect::new(
-        (x0.floor() as i32 - 2).max(0),
-        (y0.floor() as i32 - 2).max(0),
-        0,
-        0,
-    );
-    let rect = Rect::new(
-        rect.x,
-        rect.y,
-        ((x1.ceil() as i32 + 2).min(img.cols()) - rect.x).max(0),
-        ((y1.ceil() as i32 + 2).min(img.rows()) - rect.y).max(0),
-    );
-    if noise > 0.0 && rect.width > 0 && rect.height > 0 {
-        let mut patch = Mat::roi(img, rect)?.try_clone()?;
-        for v in patch.data_bytes_mut()? {
-            *v = (f64::from(*v) + noise * crate::sim::camera::gaussian(rng))
-                .round()
-                .clamp(0.0, 255.0) as u8;
-        }
-        let mut roi = Mat::roi_mut(img, rect)?;
-        patch.copy_to(&mut roi)?;
-    }
-    Ok(())
-}
-
-/// Finds the marker near `guess_px` (the believed camera's prediction): the
-/// pixels of its hue, their largest blob, its centroid. `None`: not seen.
-fn find_marker(
-    img: &Mat,
-    guess_px: &Vector2<f64>,
-    expect_r_px: f64,
-) -> Result<Option<Vector2<f64>>, ProcedureError> {
-    let half = (3.0 * expect_r_px + 40.0).round() as i32;
-    let (cx, cy) = (guess_px.x.round() as i32, guess_px.y.round() as i32);
-    let x0 = (cx - half).clamp(0, img.cols());
-    let y0 = (cy - half).clamp(0, img.rows());
-    let x1 = (cx + half).clamp(0, img.cols());
-    let y1 = (cy + half).clamp(0, img.rows());
-    if x1 - x0 < 8 || y1 - y0 < 8 {
-        return Ok(None);
-    }
-    let roi = Mat::roi(img, Rect::new(x0, y0, x1 - x0, y1 - y0))?;
-    let mut blur = Mat::default();
-    imgproc::gaussian_blur_def(&roi, &mut blur, core::Size::new(3, 3), 0.0)?;
-    let mut hsv = Mat::default();
-    imgproc::cvt_color_def(&blur, &mut hsv, imgproc::COLOR_BGR2HSV)?;
-    let mut mask = Mat::default();
-    core::in_range(
-        &hsv,
-        &Scalar::new(HUE_BAND.0, 120.0, 60.0, 0.0),
-        &Scalar::new(HUE_BAND.1, 255.0, 255.0, 0.0),
-        &mut mask,
-    )?;
-    let mut contours = Vector::<Vector<Point>>::new();
-    imgproc::find_contours_def(
-        &mask,
-        &mut contours,
-        imgproc::RETR_EXTERNAL,
-        imgproc::CHAIN_APPROX_NONE,
-    )?;
-    let mut best: Option<(f64, Vector2<f64>)> = None;
-    for c in &contours {
-        let m = imgproc::moments_def(&c)?;
-        if m.m00 <= 0.0 {
-            continue;
-        }
-        if best.is_none_or(|b| m.m00 > b.0) {
-            best = Some((
-                m.m00,
-                Vector2::new(m.m10 / m.m00 + f64::from(x0), m.m01 / m.m00 + f64::from(y0)),
-            ));
-        }
-    }
-    let expect_area = std::f64::consts::PI * expect_r_px * expect_r_px;
-    Ok(best
-        .filter(|(a, _)| *a > 0.3 * expect_area && *a < 3.0 * expect_area)
-        .map(|(_, c)| c))
 }
 
 /// The camera-robot step on the simulated world (module docs). `watch` gets a
@@ -612,17 +385,7 @@ pub fn run_camera_robot(
         let img = camera.render(None)?;
         let mut img = img.try_clone()?;
         if options.marker_visible {
-            let u = n
-                .cross(&Vector3::z())
-                .try_normalize(1e-9)
-                .unwrap_or(Vector3::y());
-            let v = n.cross(&u);
-            let rim: Option<Vec<Vector2<f64>>> = (0..48)
-                .map(|k| {
-                    let a = std::f64::consts::TAU * f64::from(k) / 48.0;
-                    true_cam.project(&(c + MARKER_RADIUS_M * (a.cos() * u + a.sin() * v)))
-                })
-                .collect();
+            let rim = marker_rim(&true_cam, &c, &n);
             if let Some(rim) = rim {
                 draw_marker(&mut img, &rim, scenario.camera.image_noise, &mut rng)?;
             }
@@ -691,7 +454,13 @@ pub fn run_camera_robot(
     }
 
     // 3. The pose: solvePnP (iterative, from the believed pose), then least squares.
-    let fit = fit_pose(&intrinsics, &points_b, &pixels, &believed_pose, options)?;
+    let fit = fit_pose(
+        &intrinsics,
+        &points_b,
+        &pixels,
+        &believed_pose,
+        options.intrinsics.map(|k| k.k1),
+    )?;
     let fitted = reproject(&intrinsics, &fit, &points_b);
     watch.seen(StepView {
         progress: 0.85,
@@ -835,65 +604,7 @@ pub fn run_camera_robot(
     })
 }
 
-/// Where the ball hangs during the step: the far end of the distances, m.
-pub fn step_distance_m(s: &Scenario) -> f64 {
-    s.task.distance_m.hi
-}
-
 /// The intercept point the scenario believes (nominal plus its offset).
 fn scenario_intercept(s: &Scenario) -> Vector3<f64> {
     s.task.intercept_m(step_distance_m(s))
-}
-
-/// `cv::solvePnP` (iterative, from the believed pose) on all sightings, then the
-/// least-squares refinement (with `k1` unless the camera step gave it).
-fn fit_pose(
-    intrinsics: &CameraIntrinsics,
-    points_b: &[Vector3<f64>],
-    pixels: &[Vector2<f64>],
-    believed: &CameraPose,
-    options: &CameraRobotOptions,
-) -> Result<PnpFit, ProcedureError> {
-    let obj: Vector<Point3d> = points_b
-        .iter()
-        .map(|p| Point3d::new(p.x, p.y, p.z))
-        .collect();
-    let img: Vector<Point2d> = pixels.iter().map(|p| Point2d::new(p.x, p.y)).collect();
-    let k = Mat::from_slice_2d(&[
-        [intrinsics.fx_px, 0.0, intrinsics.cx_px],
-        [0.0, intrinsics.fy_px, intrinsics.cy_px],
-        [0.0, 0.0, 1.0],
-    ])?;
-    let dist_v = [intrinsics.k1, intrinsics.k2, 0.0, 0.0];
-    let dist = Mat::from_slice(&dist_v)?;
-    let r0 = believed.base_from_camera().inverse();
-    let t0 = -(r0 * believed.position());
-    let rv0 = r0.scaled_axis();
-    let mut rvec = Mat::from_slice(&[rv0.x, rv0.y, rv0.z])?.try_clone()?;
-    let mut tvec = Mat::from_slice(&[t0.x, t0.y, t0.z])?.try_clone()?;
-    let ok = calib3d::solve_pnp(
-        &obj,
-        &img,
-        &k,
-        &dist,
-        &mut rvec,
-        &mut tvec,
-        true,
-        calib3d::SOLVEPNP_ITERATIVE,
-    )?;
-    let get = |m: &Mat| -> Result<Vector3<f64>, ProcedureError> {
-        Ok(Vector3::new(
-            *m.at::<f64>(0)?,
-            *m.at::<f64>(1)?,
-            *m.at::<f64>(2)?,
-        ))
-    };
-    let (r, t) = if ok {
-        (Rotation3::new(get(&rvec)?), get(&tvec)?)
-    } else {
-        (r0, t0)
-    };
-    let start = (r.inverse(), -(r.inverse() * t));
-    let k1_fixed = options.intrinsics.map(|k| k.k1);
-    Ok(refine_pose(intrinsics, points_b, pixels, start, k1_fixed)?)
 }

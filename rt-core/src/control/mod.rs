@@ -19,6 +19,6 @@ pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
 pub use step::{
     ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Excitation,
-    Sighting, StepInput, StepOutput,
+    MOVE_TO_LIMIT_SHARE, MOVE_TO_MARGIN_RAD, Sighting, StepInput, StepOutput,
 };
 pub use success::SuccessParams;

@@ -225,6 +225,13 @@ pub enum ControlError {
         .0.joint, .0.amplitude_rad, .0.duration_s
     )]
     Excitation(Excitation),
+    /// A joint target out of range (`Controller::move_to`): the joint,
+    /// 0-based, and the value asked, radians (NaN included).
+    #[error(
+        "joint target out of range: A{} = {} rad (finite, within the joint's limit less {} rad)",
+        .0 + 1, .1, MOVE_TO_MARGIN_RAD
+    )]
+    Target(usize, f64),
     /// Not allowed in the current state.
     #[error("cannot {what} while {state}")]
     State {
@@ -588,6 +595,13 @@ pub struct Excitation {
 pub const EXCITE_STEP_EVERY_S: f64 = 0.4;
 /// Each move's duration, seconds.
 pub const EXCITE_RAMP_S: f64 = 0.2;
+
+/// How far inside every joint's limit a [`Controller::move_to`] target must
+/// stay, radians (5 degrees).
+pub const MOVE_TO_MARGIN_RAD: f64 = 0.0873;
+/// The share of each joint's speed and acceleration limits a
+/// [`Controller::move_to`] move may use (a slow, calibration-tour move).
+pub const MOVE_TO_LIMIT_SHARE: f64 = 0.2;
 
 impl Excitation {
     /// Whether the joint, amplitude and duration are in range.
@@ -1176,12 +1190,13 @@ impl Controller {
         if self.machine.state() != TrialState::Idle
             || !self.have_meas
             || self.excite.is_some()
+            || self.jmove.is_some()
             || !self.at_rest()
         {
             return Err(ControlError::State {
                 what: if self.excite.is_some() {
                     "excite (an excitation runs)"
-                } else if !self.at_rest() {
+                } else if !self.at_rest() || self.jmove.is_some() {
                     "excite (the arm moves)"
                 } else if self.have_meas {
                     "excite"
@@ -1198,6 +1213,75 @@ impl Controller {
         };
         self.excite = Some((e, t_s, hold));
         Ok(())
+    }
+
+    /// Starts a slow move of the arm to joint `target` (radians) from where
+    /// it rests: a minimum-jerk joint move at [`MOVE_TO_LIMIT_SHARE`] of each
+    /// joint's speed and acceleration limits (at least 1 s), after which the
+    /// commands hold at the target (the camera-robot calibration's tour).
+    /// Allowed in `Idle` with the commands at rest, once the robot has sent
+    /// a message. Every target stays [`MOVE_TO_MARGIN_RAD`] inside the limits;
+    /// a stop ends the move where it is. Returns the move's duration, s.
+    ///
+    /// # Errors
+    ///
+    /// [`ControlError::Target`] for a joint value that is not finite or too
+    /// near its limit; [`ControlError::State`] when not `Idle`, before the
+    /// robot's first message, while the arm moves or an excitation runs.
+    pub fn move_to(&mut self, t_s: f64, target: &[f64; JOINTS]) -> Result<f64, ControlError> {
+        for (j, (&q, lim)) in target.iter().zip(POSITION_LIMIT_RAD).enumerate() {
+            if !(q.is_finite() && q.abs() <= lim - MOVE_TO_MARGIN_RAD) {
+                return Err(ControlError::Target(j, q));
+            }
+        }
+        if self.machine.state() != TrialState::Idle
+            || !self.have_meas
+            || self.excite.is_some()
+            || self.jmove.is_some()
+            || !self.at_rest()
+        {
+            return Err(ControlError::State {
+                what: if !self.have_meas {
+                    "move before the robot's first FRI message"
+                } else if self.excite.is_some() {
+                    "move (an excitation runs)"
+                } else {
+                    "move (the arm moves)"
+                },
+                state: self.machine.state().name(),
+            });
+        }
+        let q0 = if self.have_cmd {
+            self.q_cmd
+        } else {
+            self.q_meas
+        };
+        let q1 = Joints::from_column_slice(target);
+        let mut dur: f64 = 1.0;
+        for j in 0..JOINTS {
+            let d = (q1[j] - q0[j]).abs();
+            dur = dur
+                .max(1.875 * d / (MOVE_TO_LIMIT_SHARE * VELOCITY_LIMIT_RADPS[j]))
+                .max((5.78 * d / (MOVE_TO_LIMIT_SHARE * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
+        }
+        self.jmove = Some(JointMove {
+            q0,
+            q1,
+            t0: t_s,
+            duration_s: dur,
+        });
+        Ok(dur)
+    }
+
+    /// Whether a [`Self::move_to`] move runs.
+    pub fn moving_to(&self) -> bool {
+        self.machine.state() == TrialState::Idle && self.jmove.is_some()
+    }
+
+    /// Whether a calibration's motion runs: an excitation or a move to a
+    /// pose (the dead-man watches it; no trial starts meanwhile).
+    pub fn calibrating_motion(&self) -> bool {
+        self.excite.is_some() || self.moving_to()
     }
 
     /// Whether an excitation runs ([`Self::excite`]).
@@ -1220,7 +1304,11 @@ impl Controller {
     /// message; [`ControlError::Params`] or [`ControlError::Filter`] when the plan's
     /// pendulum geometry or the filter is refused.
     pub fn arm(&mut self, t_s: f64, plan: &ArmPlan) -> Result<(), ControlError> {
-        if self.machine.state() != TrialState::Idle || !self.have_meas || self.excite.is_some() {
+        if self.machine.state() != TrialState::Idle
+            || !self.have_meas
+            || self.excite.is_some()
+            || self.jmove.is_some()
+        {
             return Err(ControlError::State {
                 what: if self.have_meas {
                     "arm"
@@ -1364,6 +1452,18 @@ impl Controller {
         let mut target = self.q_cmd;
         match self.machine.state() {
             TrialState::Idle => {
+                if let Some(m) = self.jmove {
+                    // A move to a pose (`move_to`); the robot leaving
+                    // COMMANDING_ACTIVE ends it where it is.
+                    if !input.commanding {
+                        self.jmove = None;
+                    } else if m.done(t) {
+                        self.jmove = None;
+                        target = m.q1;
+                    } else {
+                        target = m.at(t);
+                    }
+                }
                 if let Some((e, t0, hold)) = self.excite {
                     target = hold;
                     target[e.joint] += e.offset_rad(t - t0);
@@ -2267,6 +2367,111 @@ mod tests {
         assert!(c.release(t).is_err());
         c.reset(t).unwrap();
         assert_eq!(c.state(), TrialState::Idle);
+    }
+
+    /// The camera-robot tour's move: the commands go to the target within
+    /// the share of the speed and acceleration limits and hold there; a
+    /// target out of the limits (or NaN) and a busy controller are refused
+    /// with nothing moving; a stop ends the move; no trial arms meanwhile.
+    #[test]
+    fn a_move_to_a_pose_stays_slow_inside_the_limits_holds_there_and_refuses_bad_targets() {
+        let s = Beliefs::default();
+        let dt = 0.005;
+        let mut c = Controller::new(&s, dt).unwrap();
+        let q0 = [0.1, 0.5, -0.2, -1.4, 0.3, 1.2, 0.4];
+        let target = [0.4, 0.7, -0.1, -1.0, 0.5, 0.9, 0.2];
+        let mut out = StepOutput::default();
+        let step = |c: &mut Controller, t: f64, q: [f64; JOINTS], out: &mut StepOutput| {
+            c.step(
+                &StepInput {
+                    t_s: t,
+                    q_measured_rad: q,
+                    commanding: true,
+                },
+                std::iter::empty::<Sighting>(),
+                out,
+            );
+        };
+        assert!(
+            matches!(c.move_to(0.0, &target), Err(ControlError::State { .. })),
+            "before the first message"
+        );
+        step(&mut c, 0.0, q0, &mut out);
+        let mut beyond = target;
+        beyond[3] = -(POSITION_LIMIT_RAD[3] - MOVE_TO_MARGIN_RAD) - 0.01;
+        let mut nan = target;
+        nan[5] = f64::NAN;
+        for (bad, joint) in [(beyond, 3), (nan, 5)] {
+            match c.move_to(0.0, &bad) {
+                Err(ControlError::Target(j, _)) => assert_eq!(j, joint),
+                other => panic!("{bad:?}: {other:?}"),
+            }
+            assert!(!c.moving_to());
+        }
+        let dur = c.move_to(0.0, &target).unwrap();
+        assert!(dur >= 1.0);
+        assert!(c.moving_to());
+        assert!(c.move_to(0.0, &target).is_err(), "one at a time");
+        let e = Excitation {
+            joint: 6,
+            amplitude_rad: 0.05,
+            duration_s: 4.0,
+        };
+        assert!(c.excite(0.0, e).is_err(), "no excitation while it moves");
+        let plan = Controller::plan(&s, 0.5).unwrap();
+        assert!(c.arm(0.0, &plan).is_err(), "no trial while it moves");
+        let (mut t, mut q) = (0.0, q0);
+        let mut v_prev = [0.0; JOINTS];
+        while c.moving_to() {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            let next = out.q_command_rad;
+            for j in 0..JOINTS {
+                let v = (next[j] - q[j]) / dt;
+                assert!(
+                    v.abs() <= MOVE_TO_LIMIT_SHARE * VELOCITY_LIMIT_RADPS[j] + 1e-9,
+                    "A{} {v} rad/s at {t}",
+                    j + 1
+                );
+                assert!(
+                    ((v - v_prev[j]) / dt).abs()
+                        <= MOVE_TO_LIMIT_SHARE * ACCELERATION_LIMIT_RADPS2[j] + 1e-6,
+                    "A{} {} rad/s^2 at {t}",
+                    j + 1,
+                    (v - v_prev[j]) / dt
+                );
+                assert!(next[j].abs() < POSITION_LIMIT_RAD[j]);
+                v_prev[j] = v;
+            }
+            q = next;
+            assert!(t < dur + 1.0, "the move did not end");
+        }
+        assert_eq!(q, target, "at the target");
+        for _ in 0..20 {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            assert_eq!(out.q_command_rad, target, "holds there");
+        }
+        assert!(c.at_rest());
+        // A stop during a move: it ends, and the commands come to rest.
+        c.move_to(t, &q0).unwrap();
+        for _ in 0..100 {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            q = out.q_command_rad;
+        }
+        c.abort(t, AbortReason::StopRequested);
+        assert!(!c.moving_to());
+        for _ in 0..400 {
+            t += dt;
+            step(&mut c, t, q, &mut out);
+            q = out.q_command_rad;
+        }
+        assert!(c.at_rest());
+        assert!(
+            (q[0] - q0[0]).abs() > 0.01,
+            "stopped on its way, not at the end"
+        );
     }
 
     /// The robot step's excitation: only the chosen joint moves, by at most

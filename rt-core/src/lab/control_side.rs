@@ -110,6 +110,7 @@ impl ControlSide {
                 // No operator in virtual time: no dead-man.
                 operator_timeout_s: None,
                 stamp_latency: None,
+                real_plane: None,
             },
         );
         Ok(Self {

@@ -23,7 +23,7 @@ pub use runtime::{
     SimulatedCamera, SimulatedRobot, SourceFactory,
 };
 pub use step::{
-    AFTER_DONE_S, CameraModel, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
+    AFTER_DONE_S, CameraBasis, CameraModel, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
 };
 pub use trial::{TrialDraw, draw_trial};
 pub use truth::{PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver};

@@ -37,7 +37,9 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use super::step::LabStep;
-use super::step::{IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params};
+use super::step::{
+    CameraBasis, IoReply, IoRequest, LabClock, LabParts, MagnetNote, Truth, plan_or_params,
+};
 use super::vision::{LedFeed, StillSlot};
 pub use super::vision::{VideoParams, VideoStats, VisionLoop, VisionParts};
 
@@ -263,12 +265,14 @@ pub type CameraFactory =
 pub enum CameraLink {
     /// The simulated camera rendering the ground-truth pendulum (`sim`'s).
     Simulated(CameraFactory),
-    /// A real source (webcam, video file) with its calibration.
+    /// A real source (webcam, video file, network stream) and what the lab
+    /// believes of it before its calibration file.
     Source {
         /// Opens the source on the lab's clock.
         open: SourceFactory,
-        /// The swing plane as this camera sees it.
-        calibration: SwingPlaneCalibration,
+        /// The camera and pendulum as the lab's configuration puts them: the
+        /// swing plane follows the beliefs from there ([`CameraBasis::plane`]).
+        basis: CameraBasis,
     },
 }
 
@@ -276,9 +280,9 @@ impl std::fmt::Debug for CameraLink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             Self::Simulated(_) => f.write_str("Simulated"),
-            Self::Source { calibration, .. } => f
+            Self::Source { basis, .. } => f
                 .debug_struct("Source")
-                .field("calibration", calibration)
+                .field("basis", basis)
                 .finish_non_exhaustive(),
         }
     }
@@ -472,6 +476,7 @@ impl LabRuntime {
         // The camera: the simulated one renders the truth the control thread hands over.
         let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
         let mut reopen = None;
+        let mut real_plane = None;
         let (source, calibration, truth, calibrations): (
             Box<dyn FrameSource>,
             SwingPlaneCalibration,
@@ -493,10 +498,7 @@ impl LabRuntime {
                     Some(cam.calibrations),
                 )
             }
-            CameraLink::Source {
-                mut open,
-                calibration,
-            } => {
+            CameraLink::Source { mut open, basis } => {
                 // A camera that does not answer at start (unplugged, its
                 // stream not up) is a lost camera, not a service that does
                 // not start: tried again every REOPEN_EVERY_S, trials
@@ -509,7 +511,13 @@ impl LabRuntime {
                     Box::new(super::vision::NoCamera(e.to_string()))
                 });
                 reopen = Some(open);
-                (source, calibration, None, None)
+                // New beliefs move the plane (`LabParts::real_plane`).
+                let (planes_tx, planes_rx) = rtrb::RingBuffer::<SwingPlaneCalibration>::new(4);
+                real_plane = Some(super::step::RealPlane {
+                    basis,
+                    planes: planes_tx,
+                });
+                (source, basis.plane(&scenario), None, Some(planes_rx))
             }
         };
         let (led_tap, led_feed) = match led_roi_px {
@@ -556,6 +564,7 @@ impl LabRuntime {
                 calibration,
                 operator_timeout_s,
                 stamp_latency: Some(stamp_latency),
+                real_plane,
             },
         );
         // On the FRI thread the reply is the only system call of a cycle: the

@@ -271,6 +271,65 @@ pub(crate) struct LabParts {
     /// vision thread reads it): set when new beliefs change the camera's
     /// latency. `None`: stamps not the lab's (the virtual lab).
     pub stamp_latency: Option<Arc<std::sync::atomic::AtomicU64>>,
+    /// A real camera's swing plane, derived from its basis and the beliefs
+    /// in force, handed to the vision thread when new beliefs are taken
+    /// (`None`: the simulated labs, whose plane moves with each trial's truth).
+    pub real_plane: Option<RealPlane>,
+}
+
+/// What a real lab believes of its camera and pendulum without the
+/// calibration file's camera and camera-robot steps (its configuration's
+/// `[calibration]`): the swing plane the detector measures on is derived
+/// from it and the beliefs in force, at the start and whenever new beliefs
+/// are taken (a calibration step's result), so that the detector sees the
+/// camera the controller believes in.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraBasis {
+    /// The intrinsics without the camera step (no lens).
+    pub intrinsics: crate::vision::CameraIntrinsics,
+    /// The camera's pose without the camera-robot step, base frame.
+    pub pose: crate::vision::CameraPose,
+    /// The pendulum's pivot, base frame, m.
+    pub pivot_m: [f64; 3],
+}
+
+impl CameraBasis {
+    /// The camera and the ball's rest centre as `scenario`'s beliefs have
+    /// them: the camera step's intrinsics and lens, else the basis's; the
+    /// camera-robot step's pose, else the basis's; the rest centre the
+    /// believed length below the pivot, moved by the believed intercept
+    /// offset (`task.intercept_offset_m`, the camera-robot step's).
+    pub fn believed(
+        &self,
+        scenario: &Scenario,
+    ) -> (
+        crate::vision::CameraIntrinsics,
+        crate::vision::CameraPose,
+        nalgebra::Vector3<f64>,
+    ) {
+        let [px, py, pz] = self.pivot_m;
+        let rest = nalgebra::Vector3::new(px, py, pz - scenario.pendulum.length_m)
+            + nalgebra::Vector3::from(scenario.task.intercept_offset_m);
+        (
+            scenario.camera.intrinsics.unwrap_or(self.intrinsics),
+            scenario.camera.pose.unwrap_or(self.pose),
+            rest,
+        )
+    }
+
+    /// The swing plane the detector measures on under `scenario`'s beliefs.
+    pub fn plane(&self, scenario: &Scenario) -> SwingPlaneCalibration {
+        let (k, pose, rest) = self.believed(scenario);
+        SwingPlaneCalibration::from_pose(k, &pose, &rest, scenario.pendulum.ball_radius_m)
+    }
+}
+
+/// A real camera's basis and the ring its new swing planes go out on.
+pub struct RealPlane {
+    /// What the lab's configuration believes of the camera and pendulum.
+    pub basis: CameraBasis,
+    /// To the vision thread (a fresh detector on each).
+    pub planes: Producer<SwingPlaneCalibration>,
 }
 
 /// The lab's control step (see the module documentation).
@@ -658,7 +717,7 @@ impl LabStep {
         if matches!(
             state,
             TrialState::Idle | TrialState::Done | TrialState::Aborted
-        ) && !self.inner.controller().exciting()
+        ) && !self.inner.controller().calibrating_motion()
         {
             return;
         }
@@ -777,7 +836,7 @@ impl LabStep {
         let state = self.inner.controller().state();
         if self.pending.is_some()
             || self.finishing()
-            || self.inner.controller().exciting()
+            || self.inner.controller().calibrating_motion()
             || !matches!(
                 state,
                 TrialState::Idle | TrialState::Done | TrialState::Aborted
@@ -796,7 +855,7 @@ impl LabStep {
     fn handle(&mut self, t: f64, id: u64, command: Command) {
         let state = self.inner.controller().state();
         let busy = self.pending.is_some()
-            || self.inner.controller().exciting()
+            || self.inner.controller().calibrating_motion()
             || !matches!(
                 state,
                 TrialState::Idle | TrialState::Done | TrialState::Aborted
@@ -880,6 +939,27 @@ impl LabStep {
                     Err(_) => (Err(Refusal::Invalid), None),
                 }
             }
+            Command::MoveTo(_) if busy || !self.inner.controller().at_rest() => {
+                (Err(Refusal::Busy), None)
+            }
+            Command::MoveTo(_) if !self.commanding() => (Err(Refusal::RobotNotCommanding), None),
+            Command::MoveTo(q) => {
+                // Between trials, as an excitation.
+                self.conclude(t);
+                if state != TrialState::Idle {
+                    let _ = self.controller().reset(t);
+                }
+                match self.controller().move_to(t, &q) {
+                    Ok(_) => {
+                        self.operator_since_s = t;
+                        (Ok(()), None)
+                    }
+                    Err(crate::control::ControlError::Target(..)) => {
+                        (Err(Refusal::Infeasible), None)
+                    }
+                    Err(_) => (Err(Refusal::Busy), None),
+                }
+            }
             Command::SetParams(p) if busy => (Err(Refusal::Busy), Some(p)),
             Command::SetParams(p) => {
                 match self.p.io_requests.push(IoRequest::Params {
@@ -961,6 +1041,17 @@ impl LabStep {
                             (self.p.scenario.camera.latency_ms * 1e-3).to_bits(),
                             std::sync::atomic::Ordering::Relaxed,
                         );
+                    }
+                    if let Some(rp) = self.p.real_plane.as_mut() {
+                        // The detector measures on the plane the new
+                        // beliefs put the camera and the ball at (a
+                        // calibration step's lens, pose, length, offset).
+                        let cal = rp.basis.plane(&self.p.scenario);
+                        let cam = &self.p.scenario.camera;
+                        self.snap
+                            .camera
+                            .set_calibration(&cal, cam.width_px, cam.height_px);
+                        let _ = rp.planes.push(cal);
                     }
                     // The old controller is freed off this thread.
                     let _ = self.p.io_requests.push(IoRequest::Free(controller));
@@ -1738,4 +1829,56 @@ pub(crate) fn plan_or_params(
         IoRequest::Magnet(_) | IoRequest::Free(_) => return None,
     };
     Some((reply, why))
+}
+
+#[cfg(test)]
+mod camera_basis_tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    /// A real camera's swing plane follows the beliefs taken: before any
+    /// step, the basis's camera and the rest the believed length below the
+    /// pivot; after the camera-robot step (its pose and intercept offset),
+    /// the pendulum step (its length) and the camera step (its lens), the
+    /// plane reads a ball 10 cm out from the new rest as 10 cm, where the
+    /// basis's plane is millimetres off.
+    #[test]
+    fn a_real_cameras_plane_follows_the_beliefs_taken() {
+        let mut s = Scenario::default();
+        let basis = CameraBasis {
+            intrinsics: CameraIntrinsics::from_hfov(1280, 720, 70.0),
+            pose: CameraPose {
+                position_m: [-0.9, 0.0, 0.6],
+                ..CameraPose::default()
+            },
+            pivot_m: [0.6, 0.0, 0.6 + s.pendulum.length_m],
+        };
+        let (k, pose, rest) = basis.believed(&s);
+        assert_eq!((k, pose), (basis.intrinsics, basis.pose));
+        assert!((rest - Vector3::new(0.6, 0.0, 0.6)).norm() < 1e-12);
+        let before = basis.plane(&s);
+        s.camera.pose = Some(CameraPose {
+            position_m: [-0.91, 0.012, 0.615],
+            yaw_deg: 0.4,
+            pitch_deg: -0.3,
+            roll_deg: 0.2,
+        });
+        s.camera.intrinsics = Some(CameraIntrinsics {
+            k1: 0.01,
+            ..CameraIntrinsics::from_hfov(1280, 720, 69.0)
+        });
+        s.task.intercept_offset_m = [0.0, 0.004, -0.003];
+        s.pendulum.length_m += 0.02;
+        let (k, pose, rest) = basis.believed(&s);
+        assert_eq!(Some(k), s.camera.intrinsics);
+        assert_eq!(Some(pose), s.camera.pose);
+        assert!((rest - Vector3::new(0.6, 0.004, 0.6 - 0.02 - 0.003)).norm() < 1e-12);
+        let after = basis.plane(&s);
+        let ball = rest + Vector3::new(0.0, 0.1, 0.0);
+        let px = k.project(&pose.to_camera(&ball)).unwrap();
+        let lateral = after.lateral_m(px.x, px.y).unwrap();
+        assert!((lateral - 0.1).abs() < 1e-5, "{lateral}");
+        let stale = before.lateral_m(px.x, px.y).unwrap();
+        assert!((stale - 0.1).abs() > 0.002, "{stale}");
+    }
 }

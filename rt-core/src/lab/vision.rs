@@ -10,7 +10,8 @@
 //! ([`LedFeed`]: the latency step). The stamps' latency follows the lab's
 //! belief when it changes (`stamp_latency`, set by the control thread).
 //!
-//! On request ([`StillSlot`]) the next full-resolution frame goes, in grey,
+//! On request ([`StillSlot`]) the next full-resolution frame goes, in grey
+//! or in colour,
 //! into a one-frame slot the service takes it from (the camera step's board
 //! views): the vision thread never waits for it (a slot the service holds
 //! at that moment: the next frame).
@@ -167,24 +168,48 @@ pub struct Still {
     pub width_px: u32,
     /// Height, pixels.
     pub height_px: u32,
-    /// Row-major 8-bit grey levels, `width_px * height_px` of them.
-    pub gray: Vec<u8>,
+    /// Channels of `pixels`: 1 (grey) or 3 (BGR, when asked for colour and
+    /// the camera delivers it).
+    pub channels: u32,
+    /// Row-major 8-bit pixels, `width_px * height_px * channels` of them.
+    pub pixels: Vec<u8>,
 }
 
 impl Still {
-    /// The frame as an OpenCV image (a copy).
+    /// The frame as an OpenCV image as it was kept (a copy).
     ///
     /// # Errors
     ///
     /// [`VisionError::OpenCv`] when OpenCV refuses the buffer;
     /// [`VisionError::BadFrame`] when its size does not match.
     pub fn to_mat(&self) -> Result<Mat, VisionError> {
-        let (w, h) = (self.width_px as usize, self.height_px as usize);
-        if w == 0 || h == 0 || self.gray.len() != w * h {
+        let (w, h, c) = (
+            self.width_px as usize,
+            self.height_px as usize,
+            self.channels as usize,
+        );
+        if w == 0 || h == 0 || !matches!(c, 1 | 3) || self.pixels.len() != w * h * c {
             return Err(FrameProblem::Empty.into());
         }
-        let flat = Mat::from_slice(&self.gray)?;
-        Ok(flat.reshape(1, self.height_px as i32)?.try_clone()?)
+        let flat = Mat::from_slice(&self.pixels)?;
+        Ok(flat
+            .reshape(self.channels as i32, self.height_px as i32)?
+            .try_clone()?)
+    }
+
+    /// The frame in grey (a copy; converted when kept in colour).
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::to_mat`], and [`VisionError::OpenCv`] when the conversion fails.
+    pub fn to_gray_mat(&self) -> Result<Mat, VisionError> {
+        let m = self.to_mat()?;
+        if self.channels == 1 {
+            return Ok(m);
+        }
+        let mut gray = Mat::default();
+        imgproc::cvt_color_def(&m, &mut gray, imgproc::COLOR_BGR2GRAY)?;
+        Ok(gray)
     }
 }
 
@@ -193,17 +218,28 @@ impl Still {
 #[derive(Debug, Default)]
 pub struct StillSlot {
     wanted: AtomicBool,
+    colour: AtomicBool,
     slot: Mutex<Option<Still>>,
 }
 
 impl StillSlot {
-    /// Asks for the next frame (an earlier one not yet taken is dropped).
+    /// Asks for the next frame in grey (an earlier one not yet taken is dropped).
     pub fn request(&self) {
+        self.ask(false);
+    }
+
+    /// Asks for the next frame in colour (BGR; grey when the camera gives grey).
+    pub fn request_colour(&self) {
+        self.ask(true);
+    }
+
+    fn ask(&self, colour: bool) {
         self.lock().take();
+        self.colour.store(colour, Ordering::Release);
         self.wanted.store(true, Ordering::Release);
     }
 
-    /// The frame taken since the last [`Self::request`], if it came.
+    /// The frame taken since the last request, if it came.
     pub fn take(&self) -> Option<Still> {
         self.lock().take()
     }
@@ -229,19 +265,23 @@ impl StillSlot {
             Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
             Err(std::sync::TryLockError::WouldBlock) => return Ok(()),
         };
-        let mut gray = Mat::default();
-        match image.channels() {
-            1 => image.copy_to(&mut gray)?,
-            4 => imgproc::cvt_color_def(image, &mut gray, imgproc::COLOR_BGRA2GRAY)?,
-            _ => imgproc::cvt_color_def(image, &mut gray, imgproc::COLOR_BGR2GRAY)?,
+        let colour = self.colour.load(Ordering::Acquire);
+        let mut kept = Mat::default();
+        match (image.channels(), colour) {
+            (1, _) => image.copy_to(&mut kept)?,
+            (4, true) => imgproc::cvt_color_def(image, &mut kept, imgproc::COLOR_BGRA2BGR)?,
+            (4, false) => imgproc::cvt_color_def(image, &mut kept, imgproc::COLOR_BGRA2GRAY)?,
+            (_, true) => image.copy_to(&mut kept)?,
+            (_, false) => imgproc::cvt_color_def(image, &mut kept, imgproc::COLOR_BGR2GRAY)?,
         }
-        let (w, h) = (gray.cols().max(0) as u32, gray.rows().max(0) as u32);
+        let (w, h) = (kept.cols().max(0) as u32, kept.rows().max(0) as u32);
         *slot = Some(Still {
             frame,
             t_capture_s,
             width_px: w,
             height_px: h,
-            gray: gray.data_bytes()?.to_vec(),
+            channels: kept.channels().max(0) as u32,
+            pixels: kept.data_bytes()?.to_vec(),
         });
         self.wanted.store(false, Ordering::Release);
         Ok(())

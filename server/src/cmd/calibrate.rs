@@ -222,20 +222,12 @@ fn accuracy_camera_robot(
 /// gave a result.
 pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
     if let Some(config) = &args.config {
-        if args.step.real_lab_procedure() {
-            anyhow::bail!(
-                "calibrate {step} --config {cfg}: on a real lab this step runs in the service, \
-                 through the lab's own robot, camera and magnet: `isochron serve --config {cfg}`, \
-                 then `POST /api/calibration/{step}` (or the dashboard's Calibration panel)",
-                step = args.step.name(),
-                cfg = config.display()
-            );
-        }
         anyhow::bail!(
-            "calibrate {} --config {}: the real-lab procedure of this step is not implemented yet \
-             (run it on a scenario's simulated world with --scenario)",
-            args.step.name(),
-            config.display()
+            "calibrate {step} --config {cfg}: on a real lab the steps run in the service, through \
+             the lab's own robot, camera and magnet: `isochron serve --config {cfg}`, then `POST \
+             /api/calibration/{step}` (or the dashboard's Calibration panel)",
+            step = args.step.name(),
+            cfg = config.display()
         );
     }
     let scenario = match &args.scenario {

@@ -211,26 +211,30 @@ async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
 }
 
 #[test]
-fn a_real_lab_desk_refuses_steps_it_cannot_run_and_changes_lists_numbers() {
+fn a_real_lab_desk_refuses_steps_whose_prerequisites_are_missing_and_changes_lists_numbers() {
     let tmp = tempfile::tempdir().unwrap();
     let desk = CalibrationDesk::new(tmp.path().join("c.toml"), true, Box::new(|_| None));
+    // Every step runs on a real lab; the camera-robot step needs the camera
+    // step (the lens) and the pendulum step (the rest pixel) first.
     let e = desk.claim(Step::CameraRobot).unwrap_err();
-    assert!(e.to_string().contains("real-lab procedure"), "{e}");
+    assert!(
+        e.to_string().contains("camera") && e.to_string().contains("pendulum"),
+        "{e}"
+    );
     assert!(!desk.running());
-    // The chessboard's views are built on a real lab (through the lab's own
-    // camera; an operator holds the board where the job asks).
-    assert!(Step::Camera.real_lab_procedure());
+    assert_eq!(
+        Step::CameraRobot.prerequisites_on(true),
+        [Step::Camera, Step::Pendulum]
+    );
     assert!(Step::Camera.prerequisites_on(true).is_empty());
-    // The pendulum's free swing is built on a real lab, without the camera
-    // step (the configuration's intrinsics stand in for it).
+    // The pendulum's free swing runs on a real lab without the camera step
+    // (the configuration's intrinsics stand in for it).
     assert!(Step::Pendulum.prerequisites_on(true).is_empty());
     assert_eq!(Step::Pendulum.prerequisites_on(false), [Step::Camera]);
-    // So is the LED's latency (through the LED's region of the image).
-    assert!(Step::Latency.real_lab_procedure());
+    // So does the LED's latency (through the LED's region of the image).
     assert!(Step::Latency.prerequisites_on(true).is_empty());
     assert_eq!(Step::Latency.prerequisites_on(false), [Step::Camera]);
     // And the robot's excitation (through FRI alone).
-    assert!(Step::Robot.real_lab_procedure());
     assert!(Step::Robot.prerequisites_on(true).is_empty());
     let id = desk
         .claim(Step::Pendulum)

@@ -8,6 +8,8 @@ pub mod dynamics;
 pub mod geometry;
 pub mod judge;
 pub mod live;
+#[cfg(feature = "opencv")]
+pub mod marker;
 /// `[world]`, parsed with the rest of the scenario (`params::world`).
 pub use crate::params::world as params;
 pub mod pendulum;

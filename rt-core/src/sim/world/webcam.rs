@@ -24,6 +24,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::board::BoardOperator;
 use super::camera::{FrameTiming, WorldCamera};
+use super::marker::{draw_marker, marker_rim};
 use super::params::SessionDraw;
 use crate::calibration::Chessboard;
 use crate::params::Scenario;
@@ -42,6 +43,9 @@ pub struct BallSample {
     /// The true arm's points (`TrueArm::points`), when it may hide the ball
     /// (`world.camera.arm_occludes`).
     pub arm_m: Option<[Vector3<f64>; crate::kinematics::iiwa7::JOINTS + 2]>,
+    /// The tool's marker disc, when it is on the tool: its centre and
+    /// normal, base frame (`marker::marker_pose` of the true flange).
+    pub marker_m: Option<(Vector3<f64>, Vector3<f64>)>,
 }
 
 /// Samples kept (2 s at 1 ms steps).
@@ -63,6 +67,7 @@ pub struct WorldWebcam {
     /// The operator's board and the hold shown (0-based), when one is held.
     board: Option<(BoardOperator, usize)>,
     with_board: Mat,
+    with_marker: Mat,
     noise: f64,
     size: (f64, f64),
     seed: u64,
@@ -108,6 +113,7 @@ impl WorldWebcam {
             period_s: camera.frame_period_s(1.0 / scenario.camera.fps),
             board: None,
             with_board: Mat::default(),
+            with_marker: Mat::default(),
             noise: scenario.camera.image_noise,
             size: (
                 f64::from(scenario.camera.width_px),
@@ -214,6 +220,15 @@ impl WorldWebcam {
         h[i].arm_m
     }
 
+    /// The marker disc nearest `t_s` (`None`: not on the tool).
+    fn marker_at(&self, t_s: f64) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        let h = &self.history;
+        let i = h
+            .partition_point(|s| s.t_s <= t_s)
+            .min(h.len().checked_sub(1)?);
+        h[i].marker_m
+    }
+
     /// When the LED's row of the frame whose exposure starts at
     /// `t_start_s` is exposed: from, to (the rolling shutter reads it
     /// `LED_PX.1 / height` of the readout after the top row), s.
@@ -279,6 +294,11 @@ impl WorldWebcam {
     /// [`VisionError::OpenCv`] when rendering, drawing the LED or encoding fails;
     /// [`VisionError::BadFrame`] when the JPEG encoder refuses the image.
     pub fn frame_jpeg(&mut self, t_start_s: f64, led: f64) -> Result<&[u8], VisionError> {
+        // The tool's marker disc (on while the operator has fitted it),
+        // where the true camera sees the true arm's tool.
+        let rim = self
+            .marker_at(t_start_s)
+            .and_then(|(c, n)| marker_rim(&self.camera, &c, &n));
         let sight = self.camera.sight(t_start_s, |t| {
             self.ball_at(t).map_or(Vector3::zeros(), |b| b.0)
         });
@@ -335,6 +355,14 @@ impl WorldWebcam {
             }
             None => image,
         };
+        let image = match rim {
+            Some(rim) => {
+                image.copy_to(&mut self.with_marker)?;
+                draw_marker(&mut self.with_marker, &rim, self.noise, &mut self.rng)?;
+                &self.with_marker
+            }
+            None => image,
+        };
         let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
         self.jpeg.clear();
         if !imgcodecs::imencode(".jpg", image, &mut self.jpeg, &params)? {
@@ -374,6 +402,7 @@ mod tests {
                 centre_m: rest + Vector3::new(0.0, y, 0.0),
                 velocity_mps: Vector3::new(0.0, 0.9 * (3.0 * t).cos(), 0.0),
                 arm_m: None,
+                marker_m: None,
             });
         }
         // Interpolation between samples is exact to well under a mm here.
