@@ -27,7 +27,12 @@ fn main() {
 /// the first paragraph of their doc comment, as `(struct, field, type, doc)`,
 /// written to `OUT_DIR/param_docs.rs`.
 fn param_docs() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../rt-core/src");
+    // Read when the script runs, not baked in when it was compiled: cargo
+    // reuses one build script's binary for the same package built from
+    // another checkout (a worktree sharing the target directory), and a
+    // baked-in path then points at the other checkout, or at nothing.
+    let manifest = std::env::var("CARGO_MANIFEST_DIR").unwrap_or_else(|_| ".".into());
+    let root = Path::new(&manifest).join("../rt-core/src");
     println!("cargo:rerun-if-changed={}", root.display());
     let mut files = Vec::new();
     walk(&root, &mut files);

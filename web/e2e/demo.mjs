@@ -133,7 +133,7 @@ try {
         !(down && e.t >= down[0] && e.t <= down[1] && /ERR_CONNECTION_REFUSED|WebSocket connection to .* failed|Failed to load resource/.test(e.text)),
     );
   await page.goto(new URL("demo", base).href, { waitUntil: "load" });
-  await page.waitForFunction(() => window.__demo !== undefined, null, { timeout: 10_000 });
+  await page.waitForFunction(() => window.__demo !== undefined, null, { timeout: 60_000 });
   const shown = () => page.evaluate(() => window.__demo.shown());
 
   await check("demo: no operator controls on the page (no button, input, form or stop)", async () => {
@@ -156,7 +156,7 @@ try {
   });
   await check("demo: the twin, the camera and the speed plot are live", async () => {
     const a = await page.evaluate(() => [window.__demo.twinFrames(), window.__demo.cameraFrames(), window.__demo.received()]);
-    await page.waitForFunction((b) => window.__demo.twinFrames() > b[0] && window.__demo.cameraFrames() > b[1] && window.__demo.received() > b[2], a, { timeout: 10_000 });
+    await page.waitForFunction((b) => window.__demo.twinFrames() > b[0] && window.__demo.cameraFrames() > b[1] && window.__demo.received() > b[2], a, { timeout: 60_000 });
   });
   if (SOAK_S === 0) {
     await check("demo: a calibration step pauses the demo and the page says why; it resumes by itself", async () => {
@@ -166,7 +166,7 @@ try {
         assert(r.status === 409 && Date.now() < end, `calibration: ${JSON.stringify(r)}`);
         await new Promise((res) => setTimeout(res, 10));
       }
-      await page.waitForFunction(() => window.__demo.shown().state === "paused", null, { timeout: 30_000 });
+      await page.waitForFunction(() => window.__demo.shown().state === "paused", null, { timeout: 60_000 });
       const s = await shown();
       assert(/^Paused: the lab is being calibrated/.test(s.text) && /resumes by itself/.test(s.text), s.text);
       measured.paused_text = s.text;
@@ -176,7 +176,7 @@ try {
       const before = (await shown()).trials;
       down = [Date.now(), Infinity];
       await stop(service);
-      await page.waitForFunction(() => window.__demo.shown().state === "connecting", null, { timeout: 15_000 });
+      await page.waitForFunction(() => window.__demo.shown().state === "connecting", null, { timeout: 60_000 });
       const s = await shown();
       assert(/Reconnecting/.test(s.text), s.text);
       service = await serve();

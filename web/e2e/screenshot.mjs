@@ -17,15 +17,15 @@ const browser = await chromium.launch({
 try {
   const page = await browser.newPage({ viewport: { width: 1400, height: 1050 } });
   await page.goto(base, { waitUntil: "load" });
-  await page.waitForFunction(() => window.__isochron !== undefined, null, { timeout: 10_000 });
+  await page.waitForFunction(() => window.__isochron !== undefined, null, { timeout: 60_000 });
   await page.fill("#token", token);
   await page.click("#token-form button[type=submit]");
-  await page.waitForFunction(() => !document.querySelector("#btn-trial").disabled, null, { timeout: 5_000 });
+  await page.waitForFunction(() => !document.querySelector("#btn-trial").disabled, null, { timeout: 60_000 });
   // A first trial fills the history; the second one is photographed.
   for (let i = 0; i < 2; i++) {
     await page.click("#btn-trial");
     await page.waitForFunction(() => window.__isochron.state() === "intercepting", null, { timeout: 90_000 });
-    if (i === 0) await page.waitForFunction(() => window.__isochron.state() === "idle", null, { timeout: 30_000 });
+    if (i === 0) await page.waitForFunction(() => window.__isochron.state() === "idle", null, { timeout: 60_000 });
   }
   // Most of the way through the motion: the speed profile and the phase portrait's
   // arc nearly complete, the Hopf neuron leading, the ball swinging towards the arm.
@@ -33,7 +33,7 @@ try {
   await page.waitForTimeout(800 * T);
   await page.evaluate(() => (document.getElementById("toast").className = "toast hidden"));
   if (part === "twin") {
-    await page.waitForFunction(() => window.__isochron.twinLoaded(), null, { timeout: 5_000 });
+    await page.waitForFunction(() => window.__isochron.twinLoaded(), null, { timeout: 60_000 });
     await page.locator("#twin").screenshot({ path: out });
   } else {
     await page.screenshot({ path: out, fullPage: false });
