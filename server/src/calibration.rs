@@ -1642,10 +1642,12 @@ pub async fn run_real_camera_robot(
 ) -> Option<Scenario> {
     let start = lab.latest().map(|(s, _)| s.robot.q_cmd_rad);
     let outcome = real_camera_robot(lab, desk, id, scenario).await;
-    // Wherever the tour stopped, the arm goes back where it started (a
-    // refused move leaves it where it is).
+    // Wherever the tour stopped, the arm goes back where it started; never
+    // after a stop or an abort (the lab's state is then not idle: the arm
+    // stays where the stop left it).
     if let Some(q) = start
         && let Some((s, _)) = lab.latest()
+        && s.trial_state == rt_core::bridge::TrialState::Idle
         && s.robot.q_cmd_rad != q
     {
         let _ = move_to_pose(lab, &q).await;
