@@ -60,8 +60,19 @@ pub struct LedLatency {
 /// Sending a switch -> the pin switching: the command's wire time plus half of
 /// the round trip's remainder after both wire times (never negative).
 pub fn switch_delay_s(e: &LedEdge) -> f64 {
-    let rest = (e.round_trip_s - e.command_wire_s - e.answer_wire_s).max(0.0);
-    (e.command_wire_s + 0.5 * rest).min(e.round_trip_s)
+    let (early, late) = switch_window_s(e);
+    0.5 * (early + late)
+}
+
+/// The earliest and latest the pin can have switched after sending, seconds:
+/// once the command's bytes were on the wire, and before the answer's bytes
+/// started back (the firmware switches before it answers). A round trip the
+/// host read late (a loaded machine, a slow USB frame) widens the window and
+/// leaves its middle uncertain; the window itself still holds the switch.
+pub fn switch_window_s(e: &LedEdge) -> (f64, f64) {
+    let early = e.command_wire_s.min(e.round_trip_s);
+    let late = (e.round_trip_s - e.answer_wire_s).max(early);
+    (early, late)
 }
 
 /// When to send `n` switches: the frame grid is fitted from `deliveries` (delivery
@@ -111,6 +122,13 @@ pub fn plan_switches(
         })
         .collect()
 }
+
+/// Round trips within this of the fastest of a run are the board's usual ones
+/// (USB frames and the firmware's loop vary by about a millisecond): their
+/// switch is taken at the middle of its window ([`switch_delay_s`]). A slower
+/// one was read late or answered late, and its switch is only known to lie
+/// in its window ([`switch_window_s`]).
+pub const USUAL_ROUND_TRIP_SPREAD_S: f64 = 0.002;
 
 /// Smallest brightness difference between the LED's off and on levels, in the
 /// brightness unit (8-bit: 255).
@@ -203,13 +221,23 @@ pub fn estimate_led_latency(
     .sqrt();
 
     // Each switch seen: the last frame with the old state and the first with the new
-    // one bound the latency L: grid(k_old) - L < t_switch <= grid(k_new) - L.
+    // one bound the latency L: grid(k_old) - L < t_switch <= grid(k_new) - L, with
+    // t_switch the middle of its window after a usual round trip, anywhere in it
+    // after a slow one (`USUAL_ROUND_TRIP_SPREAD_S`): a switch whose answer was
+    // read late allows more latencies, never a wrong one.
+    let fastest = edges
+        .iter()
+        .map(|e| e.round_trip_s)
+        .fold(f64::INFINITY, f64::min);
     let mut intervals = Vec::with_capacity(edges.len());
     let mut one_way_sum = 0.0;
     for e in edges {
-        let one_way = switch_delay_s(e);
-        let t_switch = e.t_sent_s + one_way;
-        one_way_sum += one_way;
+        let (mut early, mut late) = switch_window_s(e);
+        one_way_sum += 0.5 * (early + late);
+        if e.round_trip_s <= fastest + USUAL_ROUND_TRIP_SPREAD_S {
+            early = 0.5 * (early + late);
+            late = early;
+        }
         // Frames delivered after the command was sent (only they can show it).
         let start = frames.partition_point(|f| f.t_delivered_s <= e.t_sent_s);
         let Some(offset) = lit[start..].iter().position(|&l| l == e.on) else {
@@ -219,8 +247,8 @@ pub fn estimate_led_latency(
         if i_new == 0 || lit[i_new - 1] == e.on {
             continue;
         }
-        let lo_l = grid(ks[i_new - 1]) - t_switch;
-        let hi_l = grid(ks[i_new]) - t_switch;
+        let lo_l = grid(ks[i_new - 1]) - (e.t_sent_s + late);
+        let hi_l = grid(ks[i_new]) - (e.t_sent_s + early);
         if lo_l < hi_l {
             intervals.push((lo_l, hi_l));
         }
