@@ -111,6 +111,8 @@ impl ControlSide {
                 operator_timeout_s: None,
                 stamp_latency: None,
                 real_plane: None,
+                // Virtual time: a camera is never lost.
+                camera_lost_after_s: super::step::CAMERA_LOST_AFTER_S,
             },
         );
         Ok(Self {

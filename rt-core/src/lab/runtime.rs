@@ -477,6 +477,7 @@ impl LabRuntime {
         let (meas_tx, meas_rx) = crate::vision::measurement_ring(64);
         let mut reopen = None;
         let mut real_plane = None;
+        let mut camera_lost_after_s = super::step::CAMERA_LOST_AFTER_S;
         let (source, calibration, truth, calibrations): (
             Box<dyn FrameSource>,
             SwingPlaneCalibration,
@@ -484,6 +485,7 @@ impl LabRuntime {
             _,
         ) = match camera {
             CameraLink::Simulated(start) => {
+                camera_lost_after_s = super::step::SIMULATED_CAMERA_LOST_AFTER_S;
                 let cam = start(&CameraSetup {
                     scenario: &scenario,
                     seed,
@@ -565,6 +567,7 @@ impl LabRuntime {
                 operator_timeout_s,
                 stamp_latency: Some(stamp_latency),
                 real_plane,
+                camera_lost_after_s,
             },
         );
         // On the FRI thread the reply is the only system call of a cycle: the

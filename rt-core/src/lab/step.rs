@@ -55,6 +55,10 @@ pub const NOT_JUDGED_REAL: &str =
 /// its stream broken): a running trial aborts as `camera_lost`, new ones
 /// are refused until frames come again, seconds.
 pub const CAMERA_LOST_AFTER_S: f64 = 1.0;
+/// The simulated lab's camera is a thread of this process rendering frames:
+/// on a loaded machine it renders late, which is not a lost camera (as the
+/// simulated magnet board's answers get 2 s). Seconds without a frame.
+pub const SIMULATED_CAMERA_LOST_AFTER_S: f64 = 5.0;
 /// An abort's detail when the camera stopped delivering frames mid-trial.
 pub const CAMERA_LOST: &str =
     "the camera stopped delivering frames (unplugged or its stream broke)";
@@ -275,6 +279,10 @@ pub(crate) struct LabParts {
     /// in force, handed to the vision thread when new beliefs are taken
     /// (`None`: the simulated labs, whose plane moves with each trial's truth).
     pub real_plane: Option<RealPlane>,
+    /// Seconds without a frame after which the camera is lost (wall clock):
+    /// [`CAMERA_LOST_AFTER_S`], or [`SIMULATED_CAMERA_LOST_AFTER_S`] for the
+    /// simulated lab's rendering thread.
+    pub camera_lost_after_s: f64,
 }
 
 /// What a real lab believes of its camera and pendulum without the
@@ -470,15 +478,14 @@ impl LabStep {
         self.session == SessionState::CommandingActive && self.silent_since.is_none()
     }
 
-    /// The magnet board does not answer (its driver reports the link lost).
-    /// The camera stopped delivering frames (none for over
-    /// [`CAMERA_LOST_AFTER_S`] after some arrived; on the wall clock, where
-    /// a real camera can be unplugged).
-    /// No frame for `CAMERA_LOST_AFTER_S` (wall clock), counted from the
-    /// lab's start when none ever came (a camera that does not answer).
+    /// The camera stopped delivering frames: none for over
+    /// `LabParts::camera_lost_after_s` ([`CAMERA_LOST_AFTER_S`] for a real
+    /// camera) on the wall clock, where a real camera can be unplugged,
+    /// counted from the lab's start when none ever came (a camera that does
+    /// not answer).
     fn camera_lost(&self, t: f64) -> bool {
         matches!(self.p.clock, LabClock::Wall(_))
-            && t - self.last_frame_s.unwrap_or(0.0) > CAMERA_LOST_AFTER_S
+            && t - self.last_frame_s.unwrap_or(0.0) > self.p.camera_lost_after_s
     }
 
     fn magnet_lost(&self) -> bool {

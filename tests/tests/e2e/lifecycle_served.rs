@@ -172,7 +172,15 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     let (mut ids, mut on_done) = (Vec::new(), 0);
     for i in 0..n {
         let (code, body) = request(addr, "POST", "/api/trials", "").await;
-        assert_eq!(code, 202, "trial {i}: {body}");
+        if code != 202 {
+            // Say which device or state refused it.
+            let (_, h) = request(addr, "GET", "/api/health", "").await;
+            let (_, s) = request(addr, "GET", "/api/state", "").await;
+            panic!(
+                "trial {i}: {code} {body}; health {h}; camera {}",
+                s["camera"]
+            );
+        }
         let id = body["id"].as_u64().unwrap();
         ids.push(id);
         // While it runs the lab says it is busy (and why), and a trial is refused.
