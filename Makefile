@@ -359,7 +359,7 @@ eval-world: deps firmware test-build
 	@mkdir -p reports/eval
 	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) $(CARGO) test -p isochron-tests --test world trials_on -- --nocapture 2>&1 \
 	  | grep -E "^(world lab|trial )" | tee reports/eval/world.txt
-	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) WORLD_LAB_SCENARIO=$(CURDIR)/scenarios/reality.toml \
+	WORLD_LAB_TRIALS=$(EVAL_WORLD_N) WORLD_LAB_SCENARIO=$(CURDIR)/scenarios/reality.toml WORLD_LAB_STEPS=all \
 	  $(CARGO) test -p isochron-tests --test world trials_on -- --nocapture 2>&1 \
 	  | grep -E "^(world lab|trial )" | tee -a reports/eval/world.txt
 	WORLD_CALIB_DRAWS=$(EVAL_WORLD_DRAWS) WORLD_CALIB_LATENCY_MAX_MS=20 \
