@@ -172,8 +172,18 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     let (mut ids, mut on_done) = (Vec::new(), 0);
     // Trials posted while the state showed the one before done.
     let (mut posted_on_done, mut last_seen_done) = (Vec::new(), false);
+    // Posts answered 503 "the control loop did not answer in time" (a starved
+    // control thread, beside `stress-ng`): the record stays until the loop's
+    // late answer settles it (it runs and finishes, or it goes).
+    let mut unanswered = 0;
     for i in 0..n {
         let (code, body) = request(addr, "POST", "/api/trials", "").await;
+        if code == 503 && body["error"] == "the control loop did not answer in time" {
+            unanswered += 1;
+            ready(addr, Duration::from_secs(60)).await;
+            last_seen_done = false;
+            continue;
+        }
         if code != 202 {
             // Say which device or state refused it.
             let (_, h) = request(addr, "GET", "/api/health", "").await;
@@ -215,7 +225,13 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
             .map(|r| (r["id"].as_u64(), r["status"].as_str()))
             .collect::<Vec<_>>()
     );
-    assert_eq!(list.len(), n);
+    // Every posted trial has a record; beside them, at most the late-answered.
+    let listed: Vec<u64> = list.iter().filter_map(|r| r["id"].as_u64()).collect();
+    assert!(
+        ids.iter().all(|id| listed.contains(id)) && listed.len() <= ids.len() + unanswered,
+        "records {listed:?} for trials {ids:?} ({unanswered} answered late)"
+    );
+    ends.wait_all(&listed, Duration::from_secs(30)).await;
     for r in list {
         // Done; or, on a starved machine (the simulated lab's camera is a
         // thread of the service, four labs and `stress-ng` beside it), ended

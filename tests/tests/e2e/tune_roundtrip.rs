@@ -302,14 +302,17 @@ async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     // sqrt(2/n)). The report's own verdict uses 95% bounds, which a consistent
     // filter misses one run in twenty (this test's recordings come from a
     // real-time lab, so they differ from run to run: NIS 0.847 against a lower
-    // bound of 0.861 once). The detector's errors are correlated from frame to frame (lag-1
+    // bound of 0.861 once).
+    //
+    // The detector's errors are correlated from frame to frame (lag-1
     // autocorrelation of the innovations rho ~ 0.5): their squares are
     // correlated by rho^2, so the mean holds fewer independent samples,
     // n (1 - rho^2) / (1 + rho^2). And the filter follows part of such an
     // error, so its innovations are smaller than R says: the NIS sits under 1
-    // (0.75 over 480 measurements beside `stress-ng`, with R right to 0.1%).
-    // What would harm is a filter that trusts the camera more than it should
-    // (NIS above the interval), or far less (under 0.5: R's std 40% too large).
+    // (0.75 over 480 measurements beside `stress-ng`, with R right to 0.1%;
+    // 0.99 quiet). What would harm is a filter that trusts the camera more
+    // than it should (NIS above the interval), or far less (under 0.5: R's
+    // std 40% too large).
     let fused = f(&report["consistency"]["fused"]);
     let rho = f(&report["consistency"]["innovation_autocorr_lag1"]).clamp(0.0, 0.95);
     let n_eff = fused * (1.0 - rho * rho) / (1.0 + rho * rho);
