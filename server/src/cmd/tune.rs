@@ -101,7 +101,7 @@ pub fn run(args: TuneArgs) -> anyhow::Result<String> {
     }
     let c = &report.consistency;
     Ok(format!(
-        "{} measurements from {} recording(s), mean interval {:.1} ms\n\
+        "{} measurements from {} recording(s), mean interval {:.1} ms (the likelihood over every {}{} frame)\n\
          measurement noise: {:.3} mm (was {:.3} mm)\n\
          {}: {:.4e} (was {:.4e})\n\
          NIS mean {:.3} (95% bounds {:.3}..{:.3}: {}), innovation lag-1 autocorrelation {:.3}, {} rejected\n\
@@ -109,6 +109,16 @@ pub fn run(args: TuneArgs) -> anyhow::Result<String> {
         report.measurements,
         report.recordings,
         1e3 * report.mean_interval_s,
+        match report.stride {
+            1 => String::new(),
+            k => k.to_string(),
+        },
+        match report.stride {
+            1 => "",
+            2 => "nd",
+            3 => "rd",
+            _ => "th",
+        },
         1e3 * report.estimate.measurement_noise_m,
         1e3 * report.before.measurement_noise_m,
         report.estimate.process_noise_param,
