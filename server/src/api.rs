@@ -232,6 +232,7 @@ fn command_error(e: CommandError) -> AppError {
             field: None,
             reason: Some(r.as_str()),
         },
+        CommandError::NoAnswer => AppError::Unanswered { trial: None },
         other => AppError::Unavailable(other.to_string()),
     }
 }
@@ -976,10 +977,11 @@ pub(crate) async fn start_one(state: &AppState, setup: TrialSetup) -> Result<u64
         // Refused: the trial never ran, its record goes. Not answered in
         // time: the record stays, and the control loop's late answer settles
         // it (removed if refused; an accepted trial finishes as any other).
-        if e != CommandError::NoAnswer {
-            let r = Arc::clone(&records);
-            blocking(move || r.delete_trial(id)).await?;
+        if e == CommandError::NoAnswer {
+            return Err(AppError::Unanswered { trial: Some(id) });
         }
+        let r = Arc::clone(&records);
+        blocking(move || r.delete_trial(id)).await?;
         return Err(command_error(e));
     }
     Ok(id)

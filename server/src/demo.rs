@@ -493,7 +493,9 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
             }
         };
         match crate::api::start_one(&state, setup).await {
-            Ok(id) => {
+            // Answered late: it runs as any other, or its record goes (then
+            // the demo goes on to the next).
+            Ok(id) | Err(AppError::Unanswered { trial: Some(id) }) => {
                 counts.started += 1;
                 save(opts.state_file.as_ref(), &counts);
                 next_at = Instant::now() + interval;

@@ -45,9 +45,18 @@ pub enum AppError {
     /// The request body is not of a media type the endpoint accepts (415).
     #[error("{0}")]
     UnsupportedMediaType(String),
-    /// The lab is not running or did not answer (503).
+    /// The lab is not running (503).
     #[error("{0}")]
     Unavailable(String),
+    /// The control loop did not answer the command in time (503, reason
+    /// `no_answer`). For a trial's start, `trial` is its record: the
+    /// loop's late answer settles it (it runs and finishes as any other, or
+    /// the record goes when the loop refused it).
+    #[error("the control loop did not answer in time")]
+    Unanswered {
+        /// The trial whose start is unanswered.
+        trial: Option<u64>,
+    },
     /// Something went wrong inside the service (500); the details are logged only.
     #[error("internal error")]
     Internal(#[source] anyhow::Error),
@@ -72,7 +81,7 @@ impl AppError {
             Self::Conflict { .. } => StatusCode::CONFLICT,
             Self::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             Self::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            Self::Unavailable(_) | Self::Unanswered { .. } => StatusCode::SERVICE_UNAVAILABLE,
             Self::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -95,6 +104,12 @@ pub struct ErrorBody {
     /// A machine-readable reason for refusals (`busy`, `motion_running`, ...).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    /// With reason `no_answer` on `POST /api/trials`: the trial whose start
+    /// the control loop has not answered yet. Its record
+    /// (`GET /api/trials/{id}`) settles when the loop answers: the trial
+    /// runs and finishes, or the record goes (404) when the loop refused it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id: Option<u64>,
 }
 
 impl IntoResponse for AppError {
@@ -104,6 +119,7 @@ impl IntoResponse for AppError {
             error: self.to_string(),
             field: None,
             reason: None,
+            id: None,
         };
         match self {
             Self::BadRequest { field, .. } => body.field = field,
@@ -112,6 +128,10 @@ impl IntoResponse for AppError {
                 body.reason = reason.map(str::to_owned);
             }
             Self::Unauthorized(_) => body.field = Some("authorization".into()),
+            Self::Unanswered { trial } => {
+                body.reason = Some("no_answer".into());
+                body.id = trial;
+            }
             Self::Internal(e) => {
                 tracing::error!(error = ?e, "internal error");
                 body.error = "internal error (see the service log)".into();

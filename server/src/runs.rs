@@ -22,6 +22,9 @@ use crate::error::AppError;
 const READY_TIMEOUT_S: f64 = 120.0;
 /// Longest one trial of a run may take to finish its record, seconds.
 const TRIAL_TIMEOUT_S: f64 = 120.0;
+/// Trials the control loop may refuse after answering their start late
+/// (each never ran, and is started again) before a run gives up.
+const MAX_LATE_REFUSALS: u32 = 3;
 /// Runs kept (the oldest finished ones are forgotten first).
 const KEEP: usize = 64;
 /// Most trials one run may have.
@@ -357,16 +360,23 @@ async fn run(state: Arc<AppState>, id: u64, setups: Vec<TrialSetup>) {
             publish(&state, &r);
         }
     };
-    for setup in setups {
+    // Trials the loop refused after answering late (they never ran) are
+    // started again, a few times at most.
+    let mut late_refusals = 0u32;
+    let mut next = 0usize;
+    while let Some(&setup) = setups.get(next) {
         if state.runs.get(id).is_none_or(|r| r.stop) {
             return end("stopped", Some("stopped by DELETE /api/runs/{id}".into()));
         }
         // Wait until the lab would take a trial, then start it.
         let deadline = Instant::now() + Duration::from_secs_f64(READY_TIMEOUT_S);
-        let trial = loop {
+        // `late`: the control loop answered the start only after the
+        // service stopped waiting; the record settles when it does.
+        let (trial, late) = loop {
             if crate::not_ready(&state).is_none() {
                 match crate::api::start_one(&state, setup).await {
-                    Ok(t) => break t,
+                    Ok(t) => break (t, false),
+                    Err(AppError::Unanswered { trial: Some(t) }) => break (t, true),
                     // Taken in between (another operator's trial): wait again.
                     Err(AppError::Conflict { .. }) => {}
                     Err(e) => return end("failed", Some(e.to_string())),
@@ -400,7 +410,9 @@ async fn run(state: Arc<AppState>, id: u64, setups: Vec<TrialSetup>) {
                 .and_then(Result::ok)
                 .flatten();
             match rec {
-                Some(rec) if rec.status != "running" => break rec,
+                Some(rec) if rec.status != "running" => break Some(rec),
+                // A late answer that refused the trial: it never ran.
+                None if late => break None,
                 None => {
                     return end(
                         "failed",
@@ -419,6 +431,25 @@ async fn run(state: Arc<AppState>, id: u64, setups: Vec<TrialSetup>) {
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         };
+        let Some(record) = record else {
+            let r = state
+                .runs
+                .update(id, |r| r.trial_ids.retain(|&t| t != trial));
+            if let Some(r) = r {
+                publish(&state, &r);
+            }
+            late_refusals += 1;
+            if late_refusals > MAX_LATE_REFUSALS {
+                return end(
+                    "failed",
+                    Some(format!(
+                        "the control loop refused {late_refusals} trials after answering late"
+                    )),
+                );
+            }
+            continue;
+        };
+        next += 1;
         if let Some(r) = state.runs.update(id, |r| r.fold(&record)) {
             publish(&state, &r);
         }

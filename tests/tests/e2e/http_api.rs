@@ -810,3 +810,89 @@ async fn without_a_lab_state_and_commands_are_503_json() {
         assert!(r.json().unwrap()["error"].is_string());
     }
 }
+
+/// A trial's start the control loop answers only after the service stopped
+/// waiting (a starved machine; here no wait at all): 503 `no_answer` with the
+/// trial's id, whose record then finishes as any other; a run follows such
+/// trials to their end.
+#[tokio::test]
+async fn a_start_answered_late_names_its_trial_whose_record_finishes_and_runs_follow_it() {
+    let svc = start_service(
+        None,
+        LabOptions {
+            ack_timeout: Duration::ZERO,
+            ..opts()
+        },
+    )
+    .await;
+    let records = std::sync::Arc::clone(&svc.records);
+    let finished = |id: u64| {
+        let records = std::sync::Arc::clone(&records);
+        move || {
+            records
+                .get(id)
+                .unwrap()
+                .is_some_and(|t| t.status != "running")
+        }
+    };
+    // The loop may answer within the poll on rare occasions: then the trial
+    // is accepted (202), runs, and the next try is made.
+    let mut late = None;
+    for _ in 0..20 {
+        let r = http(svc.addr, "POST", "/api/trials", &[], b"")
+            .await
+            .unwrap();
+        let v = r.json().unwrap();
+        let id = v["id"]
+            .as_u64()
+            .unwrap_or_else(|| panic!("{} {v}", r.status));
+        if r.status == 503 {
+            assert_eq!(v["reason"], "no_answer", "{v}");
+            assert_eq!(v["error"], "the control loop did not answer in time");
+            late = Some(id);
+            break;
+        }
+        assert_eq!(r.status, 202, "{v}");
+        wait_for(Duration::from_secs(30), finished(id)).await;
+    }
+    let id = late.expect("every start was answered within no time at all");
+    wait_for(Duration::from_secs(30), finished(id)).await;
+    let rec = http(svc.addr, "GET", &format!("/api/trials/{id}"), &[], b"")
+        .await
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(rec["status"], "done", "{rec}");
+
+    // A run of two: each start answered late, each trial followed to its end.
+    let r = http(svc.addr, "POST", "/api/runs", &[], br#"{"n": 2}"#)
+        .await
+        .unwrap();
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let run = r.json().unwrap()["id"].as_u64().unwrap();
+    let mut last = Value::Null;
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while std::time::Instant::now() < deadline {
+        last = http(svc.addr, "GET", &format!("/api/runs/{run}"), &[], b"")
+            .await
+            .unwrap()
+            .json()
+            .unwrap();
+        if last["status"] != "running" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(last["status"], "done", "{last}");
+    let ids: Vec<u64> = last["trial_ids"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_u64)
+        .collect();
+    assert_eq!(ids.len(), 2, "{last}");
+    for t in ids {
+        let rec = records.get(t).unwrap().unwrap();
+        assert_eq!(rec.status, "done", "trial {t}");
+    }
+}
