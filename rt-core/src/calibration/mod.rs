@@ -82,6 +82,23 @@ pub enum CalibrationError {
         /// Switchings seen.
         seen: usize,
     },
+    /// The fitted free swing leaves residuals no free pendulum seen by a
+    /// camera has: the ball was touched, hidden, or mistaken.
+    #[error(
+        "{what}: the samples do not follow a free swing: residual {residual_m:.4} m RMS over an amplitude of \
+         {amplitude_m:.3} m, at most {limit_share:.0}% of it accepted (was the ball touched, held or hidden?)",
+        limit_share = 100.0 * .limit_share
+    )]
+    PoorFit {
+        /// What was being fitted.
+        what: &'static str,
+        /// Root mean square of the residuals, metres.
+        residual_m: f64,
+        /// The swing's half peak-to-peak amplitude, metres.
+        amplitude_m: f64,
+        /// The largest residual accepted, as a share of the amplitude.
+        limit_share: f64,
+    },
     /// The least-squares fit did not converge or gave a non-physical result.
     #[error("{what}: fit failed: {reason}")]
     FitFailed {

@@ -21,6 +21,35 @@ pub const MIN_AMPLITUDE_M: f64 = 0.05;
 pub const MIN_PERIODS: f64 = 3.0;
 /// Fewest samples the fit accepts.
 pub const MIN_SAMPLES: usize = 60;
+
+/// A ball within this of the recording's first sample has not left the
+/// magnet yet, metres: the step's hold check (`server::calibration`) calls
+/// a ball still when it moves less than 3 mm in a second.
+pub const HELD_BAND_M: f64 = 0.003;
+
+/// The largest residual RMS of a free swing's fit, as a share of its
+/// amplitude (a camera's noise is about a thousandth of it; a swing fitted
+/// with a second of the held ball before it leaves 17%).
+pub const MAX_RESIDUAL_SHARE: f64 = 0.05;
+
+/// The samples from where the ball leaves the magnet: a recording begins
+/// when the magnet is told to let go, and its board may answer late (a
+/// serial link, a busy machine), so the first samples may show the ball
+/// still held. Drops the leading samples within [`HELD_BAND_M`] of the
+/// first but the last of them (the ball starts from rest there). `s` is
+/// sorted by time.
+pub fn from_release(s: &[SwingSample]) -> &[SwingSample] {
+    let Some(first) = s.first() else {
+        return s;
+    };
+    match s
+        .iter()
+        .position(|x| (x.lateral_m - first.lateral_m).abs() > HELD_BAND_M)
+    {
+        Some(moved) => &s[moved.saturating_sub(1)..],
+        None => s,
+    }
+}
 /// Largest RK4 sub-step of the model inside the fit, seconds.
 const FIT_STEP_S: f64 = 2e-3;
 
@@ -144,16 +173,19 @@ pub fn pendulum_from_swing(
     })
 }
 
-/// Fits the damped pendulum to a free swing's samples (any order; sorted here).
+/// Fits the damped pendulum to a free swing's samples (any order; sorted here),
+/// from where the ball leaves the magnet ([`from_release`]).
 /// `gravity_mps2` is the local gravity; `length_guess_m` a starting length (the
-/// tape measure). Refuses too few samples, too short a recording and too small a swing.
+/// tape measure). Refuses too few samples, too short a recording, too small a
+/// swing, and samples a free swing does not explain.
 ///
 /// # Errors
 ///
 /// [`CalibrationError::NotFinite`], [`CalibrationError::TooFewSamples`],
 /// [`CalibrationError::TooShort`] or [`CalibrationError::SwingTooSmall`] for bad,
 /// too few, too short or too small samples; [`CalibrationError::FitFailed`] for a
-/// bad gravity or length guess, a fit that does not converge or a non-physical length.
+/// bad gravity or length guess, a fit that does not converge or a non-physical length;
+/// [`CalibrationError::PoorFit`] for residuals over [`MAX_RESIDUAL_SHARE`] of the amplitude.
 pub fn fit_swing(
     samples: &[SwingSample],
     gravity_mps2: f64,
@@ -180,6 +212,14 @@ pub fn fit_swing(
     }
     let mut s = samples.to_vec();
     s.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+    let s = from_release(&s).to_vec();
+    if s.len() < MIN_SAMPLES {
+        return Err(CalibrationError::TooFewSamples {
+            what: WHAT,
+            got: s.len(),
+            need: MIN_SAMPLES,
+        });
+    }
     let t0 = s[0].t_s;
     let duration_s = s[s.len() - 1].t_s - t0;
     let need_s = MIN_PERIODS * std::f64::consts::TAU * (length_guess_m / gravity_mps2).sqrt();
@@ -299,6 +339,14 @@ pub fn fit_swing(
         return Err(CalibrationError::FitFailed {
             what: WHAT,
             reason: format!("non-physical length {length_m:.4} m"),
+        });
+    }
+    if fit.rms.is_nan() || fit.rms > MAX_RESIDUAL_SHARE * amplitude_m {
+        return Err(CalibrationError::PoorFit {
+            what: WHAT,
+            residual_m: fit.rms,
+            amplitude_m,
+            limit_share: MAX_RESIDUAL_SHARE,
         });
     }
     let small = std::f64::consts::TAU * (length_m / gravity_mps2).sqrt();
