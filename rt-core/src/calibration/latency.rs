@@ -75,7 +75,7 @@ pub fn switch_window_s(e: &LedEdge) -> (f64, f64) {
     (early, late)
 }
 
-/// When to send `n` switches: the frame grid is fitted from `deliveries` (delivery
+/// When to send `n` switches: the frame grid ([`frame_grid`]) is fitted from `deliveries` (delivery
 /// times of frames seen before the first switch, host clock, in order), and switch
 /// `i` is sent at a phase `(p_i + u) / n` of a frame period after a grid point, the
 /// `p_i` a random permutation of `0..n` and `u` uniform: random phases that cover
@@ -88,27 +88,12 @@ pub fn plan_switches(
     n: usize,
     mut uniform: impl FnMut() -> f64,
 ) -> Vec<f64> {
-    let Some(&first) = deliveries.first() else {
+    let Some(&last) = deliveries.last() else {
         return Vec::new();
     };
-    let last = deliveries[deliveries.len() - 1];
-    // Least-squares grid through the deliveries.
-    let ks: Vec<f64> = deliveries
-        .iter()
-        .map(|t| ((t - first) / frame_period_s).round())
-        .collect();
-    let m = deliveries.len() as f64;
-    let (mk, mt) = (
-        ks.iter().sum::<f64>() / m,
-        deliveries.iter().sum::<f64>() / m,
-    );
-    let (mut sxy, mut sxx) = (0.0, 0.0);
-    for (k, t) in ks.iter().zip(deliveries) {
-        sxy += (k - mk) * (t - mt);
-        sxx += (k - mk) * (k - mk);
-    }
-    let period = if sxx > 0.0 { sxy / sxx } else { frame_period_s };
-    let a = mt - period * mk;
+    // The grid of the on-time frames (`frame_grid`).
+    let g = frame_grid(deliveries, frame_period_s);
+    let (a, period) = (g.a_s, g.period_s);
     let mut perm: Vec<usize> = (0..n).collect();
     for i in (1..n).rev() {
         let j = ((uniform() * (i + 1) as f64) as usize).min(i);
@@ -123,12 +108,125 @@ pub fn plan_switches(
         .collect()
 }
 
+/// The capture slots of frames delivered at `deliveries` (in order, host
+/// clock) by a camera with the nominal period `period_s`, on the clock of
+/// its on-time frames: frame `i` was captured in slot `slots[i]`, the
+/// on-time frames of slot `k` arrive at `a_s + period_s k`, and frame `i`
+/// came `lateness_s[i]` after that.
+///
+/// A frame leaves the camera after its exposure and readout, and a busy
+/// host or stream can only add to that: delivery is late by a one-sided,
+/// often heavy-tailed amount. Slots rounded from `(t - t_first) / T` go
+/// wrong when frames come more than half a period later than the first
+/// (and the whole grid slips): a starved webcam stream delivering 12 ms
+/// late plus an exponential tail of 20 ms put a latency 18 ms short, with
+/// a bound of 0.7 ms. Here the slots come from the densest phase of the
+/// deliveries (where the on-time frames gather), each frame in the latest
+/// slot that its delivery allows (from a quarter period before that phase)
+/// and before the next frame's slot (a frame over three quarters of a
+/// period late is followed by on-time ones), and the grid is the
+/// least-squares line through the on-time half.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameGrid {
+    /// Each frame's capture slot.
+    pub slots: Vec<f64>,
+    /// The on-time frames' delivery at slot 0, s.
+    pub a_s: f64,
+    /// The measured frame period, s.
+    pub period_s: f64,
+    /// How late each frame came after its slot's on-time delivery, s.
+    pub lateness_s: Vec<f64>,
+}
+
+/// [`FrameGrid`] of `deliveries` (at least one; `period_s` > 0).
+pub fn frame_grid(deliveries: &[f64], period_s: f64) -> FrameGrid {
+    let n = deliveries.len();
+    let Some(&t0) = deliveries.first() else {
+        return FrameGrid {
+            slots: Vec::new(),
+            a_s: 0.0,
+            period_s,
+            lateness_s: Vec::new(),
+        };
+    };
+    // The densest phase: the start of the window of an eighth of a period
+    // holding the most deliveries (modulo the period).
+    let phase: Vec<f64> = deliveries
+        .iter()
+        .map(|t| (t - t0).rem_euclid(period_s))
+        .collect();
+    let width = period_s / 8.0;
+    let mut best = (0usize, 0.0);
+    for &p in &phase {
+        let count = phase
+            .iter()
+            .filter(|&&q| (q - p).rem_euclid(period_s) < width)
+            .count();
+        if count > best.0 {
+            best = (count, p);
+        }
+    }
+    // Slots: the latest each delivery allows (up to a quarter period before
+    // the phase still counts: on-time frames scatter about it), each before
+    // the next frame's.
+    let origin = t0 + best.1 - 0.25 * period_s;
+    let mut slots: Vec<f64> = deliveries
+        .iter()
+        .map(|t| ((t - origin) / period_s).floor())
+        .collect();
+    for i in (0..n.saturating_sub(1)).rev() {
+        slots[i] = slots[i].min(slots[i + 1] - 1.0);
+    }
+    // The grid through the on-time half (twice: the first line is the phase's).
+    let (mut a, mut period) = (origin, period_s);
+    for _ in 0..2 {
+        let mut late: Vec<(f64, usize)> = deliveries
+            .iter()
+            .zip(&slots)
+            .enumerate()
+            .map(|(i, (t, k))| (t - (a + period * k), i))
+            .collect();
+        late.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let half: Vec<usize> = late[..n.div_ceil(2)].iter().map(|&(_, i)| i).collect();
+        let m = half.len() as f64;
+        let mk = half.iter().map(|&i| slots[i]).sum::<f64>() / m;
+        let mt = half.iter().map(|&i| deliveries[i]).sum::<f64>() / m;
+        let (mut sxy, mut sxx) = (0.0, 0.0);
+        for &i in &half {
+            sxy += (slots[i] - mk) * (deliveries[i] - mt);
+            sxx += (slots[i] - mk) * (slots[i] - mk);
+        }
+        if sxx > 0.0 {
+            period = sxy / sxx;
+        }
+        a = mt - period * mk;
+    }
+    let lateness_s = deliveries
+        .iter()
+        .zip(&slots)
+        .map(|(t, k)| t - (a + period * k))
+        .collect();
+    FrameGrid {
+        slots,
+        a_s: a,
+        period_s: period,
+        lateness_s,
+    }
+}
+
 /// Round trips within this of the fastest of a run are the board's usual ones
 /// (USB frames and the firmware's loop vary by about a millisecond): their
 /// switch is taken at the middle of its window ([`switch_delay_s`]). A slower
 /// one was read late or answered late, and its switch is only known to lie
 /// in its window ([`switch_window_s`]).
 pub const USUAL_ROUND_TRIP_SPREAD_S: f64 = 0.002;
+
+/// The largest spread of the frames' lateness ([`frame_grid`]) the
+/// estimate takes, in frame periods: beyond it frames late by more than
+/// three quarters of a period come in runs, their slots are guessed wrong
+/// and the latency comes out short (18.9 ms short at a spread of 1.1
+/// periods in a synthetic stream; within 0.9 ms up to 0.66).
+pub const MAX_SPREAD_PERIODS: f64 = 0.75;
 
 /// Smallest brightness difference between the LED's off and on levels, in the
 /// brightness unit (8-bit: 255).
@@ -193,32 +291,28 @@ pub fn estimate_led_latency(
     let threshold = 0.5 * (lo + hi);
     let lit: Vec<bool> = frames.iter().map(|f| f.brightness > threshold).collect();
 
-    // The frame grid: delivery time = a + k T, k counted from the first frame.
-    let t_first = frames[0].t_delivered_s;
-    let ks: Vec<f64> = frames
-        .iter()
-        .map(|f| ((f.t_delivered_s - t_first) / frame_period_s).round())
-        .collect();
-    let n = frames.len() as f64;
-    let (mk, mt) = (
-        ks.iter().sum::<f64>() / n,
-        frames.iter().map(|f| f.t_delivered_s).sum::<f64>() / n,
-    );
-    let (mut sxy, mut sxx) = (0.0, 0.0);
-    for (k, f) in ks.iter().zip(frames) {
-        sxy += (k - mk) * (f.t_delivered_s - mt);
-        sxx += (k - mk) * (k - mk);
-    }
-    let period = if sxx > 0.0 { sxy / sxx } else { frame_period_s };
-    let a = mt - period * mk;
+    // The frame grid (`frame_grid`): the capture slots on the on-time
+    // frames' delivery clock, and how late each frame came on top.
+    let deliveries: Vec<f64> = frames.iter().map(|f| f.t_delivered_s).collect();
+    let g = frame_grid(&deliveries, frame_period_s);
+    let (ks, period, a) = (&g.slots, g.period_s, g.a_s);
     let grid = |k: f64| a + period * k;
-    let spread = (frames
+    let n = frames.len() as f64;
+    let mean_late = g.lateness_s.iter().sum::<f64>() / n;
+    let spread = (g
+        .lateness_s
         .iter()
-        .zip(&ks)
-        .map(|(f, k)| (f.t_delivered_s - grid(*k)).powi(2))
+        .map(|l| (l - mean_late).powi(2))
         .sum::<f64>()
         / (n - 2.0).max(1.0))
     .sqrt();
+    if spread.is_nan() || spread > MAX_SPREAD_PERIODS * period {
+        return Err(CalibrationError::IrregularFrames {
+            spread_ms: spread * 1e3,
+            period_ms: period * 1e3,
+            limit_ms: MAX_SPREAD_PERIODS * period * 1e3,
+        });
+    }
 
     // Each switch seen: the last frame with the old state and the first with the new
     // one bound the latency L: grid(k_old) - L < t_switch <= grid(k_new) - L, with
@@ -276,10 +370,12 @@ pub fn estimate_led_latency(
             best_hi = events.get(i + 1).map_or(t, |e| e.0);
         }
     }
-    let latency = 0.5 * (best_lo + best_hi);
+    // The switches time the on-time frames; the frames came that much
+    // later on average.
+    let latency = 0.5 * (best_lo + best_hi) + mean_late;
     Ok(LedLatency {
         latency_ms: latency * 1e3,
-        bound_ms: 0.5 * (best_hi - best_lo) * 1e3,
+        bound_ms: (0.5 * (best_hi - best_lo) + spread / n.sqrt()) * 1e3,
         spread_ms: spread * 1e3,
         serial_one_way_ms: one_way_sum / edges.len().max(1) as f64 * 1e3,
         frame_period_ms: period * 1e3,

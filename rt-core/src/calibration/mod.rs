@@ -99,6 +99,21 @@ pub enum CalibrationError {
         /// The largest residual accepted, as a share of the amplitude.
         limit_share: f64,
     },
+    /// The camera's frames arrive too irregularly to give them their capture
+    /// slots by their delivery times.
+    #[error(
+        "the camera's frames arrive too irregularly to time the LED: they come {spread_ms:.1} ms \
+         apart from their grid (standard deviation) against a frame period of {period_ms:.1} ms, \
+         at most {limit_ms:.1} ms usable (a busy host or network: calibrate when it is quieter)"
+    )]
+    IrregularFrames {
+        /// Standard deviation of the frames' lateness, ms.
+        spread_ms: f64,
+        /// The measured frame period, ms.
+        period_ms: f64,
+        /// The largest spread accepted, ms.
+        limit_ms: f64,
+    },
     /// The least-squares fit did not converge or gave a non-physical result.
     #[error("{what}: fit failed: {reason}")]
     FitFailed {
