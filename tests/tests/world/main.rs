@@ -93,11 +93,14 @@ async fn wait_ready(addr: SocketAddr, timeout: Duration) {
     }
 }
 
-/// Starts a trial (202, its id). A robot that stops commanding for a
-/// moment (a silence of the controller on a loaded machine) refuses with 409
-/// `robot_not_commanding`, as a lab's script sees it: retried for up to 10 s.
+/// Starts a trial (202, its id), as a lab's script does: a device that
+/// falls silent for a moment on a loaded machine (the controller:
+/// `robot_not_commanding`; the webcam's stream over a second without a
+/// frame, beside `stress-ng`: `device_unavailable`) refuses with 409 and
+/// says so in `GET /api/health`; the script retries for up to 30 s, and on
+/// giving up says what health showed.
 async fn post_trial(addr: SocketAddr) -> u64 {
-    let deadline = Instant::now() + Duration::from_secs(10);
+    let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         let r = http(
             addr,
@@ -112,13 +115,12 @@ async fn post_trial(addr: SocketAddr) -> u64 {
             return r.json().unwrap()["id"].as_u64().unwrap();
         }
         let body = r.json().unwrap_or(Value::Null);
-        assert!(
-            r.status == 409
-                && body["reason"] == "robot_not_commanding"
-                && Instant::now() < deadline,
-            "POST /api/trials: {} {body}",
-            r.status
-        );
+        let transient = r.status == 409
+            && (body["reason"] == "robot_not_commanding" || body["reason"] == "device_unavailable");
+        if !transient || Instant::now() > deadline {
+            let health = get(addr, "/api/health").await;
+            panic!("POST /api/trials: {} {body}; health {health}", r.status);
+        }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
