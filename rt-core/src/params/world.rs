@@ -92,6 +92,11 @@ pub struct WorldCameraParams {
     pub rolling_shutter_ms: RangeParam,
     /// Exposure time (the ball is smeared over it), ms, per session.
     pub exposure_ms: RangeParam,
+    /// The least time from the end of a frame's readout (its last row's
+    /// exposure) to its delivery: the last USB packets and the driver, ms,
+    /// per session. A latency drawn shorter than exposure + readout + this
+    /// is not physical: such a frame is delivered at that floor.
+    pub transfer_ms: RangeParam,
     /// Radial distortion k1 (normalised image coordinates), per session.
     pub distortion_k1: RangeParam,
     /// Radial distortion k2, per session.
@@ -135,6 +140,7 @@ impl Default for WorldCameraParams {
             latency_jitter_ms: RangeParam::fixed(0.0),
             rolling_shutter_ms: RangeParam::fixed(0.0),
             exposure_ms: RangeParam::fixed(0.0),
+            transfer_ms: RangeParam::fixed(0.0),
             distortion_k1: RangeParam::fixed(0.0),
             distortion_k2: RangeParam::fixed(0.0),
             distortion_p1: RangeParam::fixed(0.0),
@@ -393,6 +399,7 @@ impl WorldParams {
             100.0,
         )?;
         range("world.camera.exposure_ms", &c.exposure_ms, 0.0, 100.0)?;
+        range("world.camera.transfer_ms", &c.transfer_ms, 0.0, 100.0)?;
         range("world.camera.distortion_k1", &c.distortion_k1, -1.0, 1.0)?;
         range("world.camera.distortion_k2", &c.distortion_k2, -1.0, 1.0)?;
         range("world.camera.distortion_p1", &c.distortion_p1, -0.1, 0.1)?;
@@ -564,6 +571,8 @@ pub struct SessionDraw {
     pub rolling_shutter_s: f64,
     /// Exposure, s.
     pub exposure_s: f64,
+    /// Readout end -> delivery at the least, s.
+    pub transfer_s: f64,
     /// Distortion `[k1, k2, p1, p2]`.
     pub distortion: [f64; 4],
     /// Camera rotation error about base x, y, z, rad.
@@ -730,6 +739,7 @@ impl WorldParams {
         let message_jitter_s = pick(&r.message_jitter_ms, &mut rng) * 1e-3;
         let torque_lag_periods = pick(&r.torque_lag_periods, &mut rng);
         let contact_pulse_s = pick(&p.contact_pulse_ms, &mut rng) * 1e-3;
+        let transfer_s = pick(&c.transfer_ms, &mut rng) * 1e-3;
         SessionDraw {
             session,
             length_error_m,
@@ -740,6 +750,7 @@ impl WorldParams {
             camera_jitter_s,
             rolling_shutter_s,
             exposure_s,
+            transfer_s,
             distortion,
             camera_rotation_error_rad,
             camera_position_error_m,

@@ -292,6 +292,7 @@ pub fn factors() -> Vec<Factor> {
         factor("camera latency jitter", &[range("camera.latency_jitter_ms", |w| &mut w.camera.latency_jitter_ms, 0.0, (0.0, 100.0))]),
         factor("rolling shutter", &[range("camera.rolling_shutter_ms", |w| &mut w.camera.rolling_shutter_ms, 0.0, (0.0, 100.0))]),
         factor("exposure", &[range("camera.exposure_ms", |w| &mut w.camera.exposure_ms, 0.0, (0.0, 100.0))]),
+        factor("transfer after the readout", &[range("camera.transfer_ms", |w| &mut w.camera.transfer_ms, 0.0, (0.0, 100.0))]),
         factor("lens", &[
             range("camera.distortion_k1", |w| &mut w.camera.distortion_k1, 0.0, (-1.0, 1.0)),
             range("camera.distortion_k2", |w| &mut w.camera.distortion_k2, 0.0, (-1.0, 1.0)),

@@ -7,6 +7,10 @@
 //!   world.camera.latency_ms`, `j` uniform in `[0, jitter]` per frame. The
 //!   source stamps it as the real webcam source does: delivery time minus the
 //!   *believed* latency, so a wrong belief or jitter shows up as a stamp error.
+//!   No frame is delivered before its last row is read and sent: the
+//!   delivery is at least `t_start + exposure + readout + transfer` (a latency
+//!   drawn shorter than that, as `[world.camera] latency_ms` may, takes the
+//!   floor).
 //! - **Rolling shutter.** Row `v` is read `v / H * readout` after `t0`; the
 //!   ball is seen where it was when its own row was exposed.
 //! - **Exposure.** The ball is smeared over the exposure; the detected centre
@@ -80,6 +84,8 @@ pub struct WorldCamera {
     pub rolling_shutter_s: f64,
     /// Exposure, s.
     pub exposure_s: f64,
+    /// Readout end -> delivery at the least (the last packets), s.
+    pub transfer_s: f64,
     /// The believed latency, s.
     pub believed_latency_s: f64,
     /// True latency minus the believed one, s.
@@ -125,6 +131,7 @@ impl WorldCamera {
             distortion: [0.0; 4],
             rolling_shutter_s: 0.0,
             exposure_s: 0.0,
+            transfer_s: 0.0,
             believed_latency_s,
             latency_offset_s: 0.0,
             jitter_s: 0.0,
@@ -152,6 +159,7 @@ impl WorldCamera {
         c.distortion = s.distortion;
         c.rolling_shutter_s = s.rolling_shutter_s;
         c.exposure_s = s.exposure_s;
+        c.transfer_s = s.transfer_s;
         c.latency_offset_s = s.camera_latency_offset_s;
         c.jitter_s = s.camera_jitter_s;
         c.clock_drift = s.camera_clock_drift;
@@ -172,8 +180,16 @@ impl WorldCamera {
         period_s / (1.0 + self.clock_drift)
     }
 
+    /// The earliest a frame whose exposure starts at `t_start_s` can reach
+    /// the host: its last row exposed and read, and sent, s.
+    pub fn earliest_delivery_s(&self, t_start_s: f64) -> f64 {
+        t_start_s + self.exposure_s + self.rolling_shutter_s + self.transfer_s
+    }
+
     /// Delivery and stamp of the frame of slot `t_slot_s` on the frame clock
-    /// (its exposure starts there, give or take the frame-time jitter).
+    /// (its exposure starts there, give or take the frame-time jitter): the
+    /// true latency after the slot, or [`Self::earliest_delivery_s`] when that
+    /// is later.
     pub fn timing(&self, t_slot_s: f64, rng: &mut impl rand::Rng) -> FrameTiming {
         let j = if self.jitter_s > 0.0 {
             rng.random_range(0.0..=self.jitter_s)
@@ -185,9 +201,11 @@ impl WorldCamera {
         } else {
             0.0
         };
-        let delivered = t_slot_s + (self.believed_latency_s + self.latency_offset_s).max(0.0) + j;
+        let t_start_s = t_slot_s + e;
+        let delivered = (t_slot_s + (self.believed_latency_s + self.latency_offset_s).max(0.0) + j)
+            .max(self.earliest_delivery_s(t_start_s));
         FrameTiming {
-            t_start_s: t_slot_s + e,
+            t_start_s,
             t_delivered_s: delivered,
             t_stamp_s: delivered - self.believed_latency_s,
         }

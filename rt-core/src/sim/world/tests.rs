@@ -285,6 +285,53 @@ fn frames_are_stamped_as_the_webcam_source_stamps_them() {
 }
 
 #[test]
+fn no_frame_reaches_the_host_before_its_last_row_is_read_and_sent() {
+    let mut c = camera();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    c.exposure_s = 0.004;
+    c.rolling_shutter_s = 0.025;
+    c.transfer_s = 0.002;
+    c.frame_jitter_s = 0.001;
+    c.jitter_s = 0.004;
+    // Drawn 29.7..33.7 ms after the slot: often before the last row is read
+    // and sent (31 ms after the exposure's start, 30..32 after the slot).
+    c.latency_offset_s = 0.0297 - 0.035;
+    let (mut floored, mut free) = (0, 0);
+    for k in 0..600 {
+        let slot = f64::from(k) / 30.0;
+        let f = c.timing(slot, &mut rng);
+        let after_start = f.t_delivered_s - f.t_start_s;
+        assert!(after_start >= 0.031 - 1e-12, "{after_start}");
+        assert!((f.t_delivered_s - f.t_stamp_s - 0.035).abs() < 1e-12);
+        if (after_start - 0.031).abs() < 1e-12 {
+            floored += 1;
+        } else {
+            // Not floored: the drawn latency and jitter, as before.
+            let after_slot = f.t_delivered_s - slot;
+            assert!(
+                (0.0297 - 1e-12..=0.0337 + 1e-12).contains(&after_slot),
+                "{after_slot}"
+            );
+            free += 1;
+        }
+    }
+    assert!(
+        floored > 100 && free > 100,
+        "floored {floored}, free {free}"
+    );
+    // A latency past the readout is untouched: delivery = slot + L + j.
+    c.latency_offset_s = 0.010;
+    for k in 0..200 {
+        let slot = f64::from(k) / 30.0;
+        let after_slot = c.timing(slot, &mut rng).t_delivered_s - slot;
+        assert!(
+            (0.045 - 1e-12..=0.049 + 1e-12).contains(&after_slot),
+            "{after_slot}"
+        );
+    }
+}
+
+#[test]
 fn rolling_shutter_shifts_a_moving_balls_row_time_and_place() {
     let mut c = camera();
     let rest = Vector3::new(0.6, 0.0, 0.3);

@@ -240,12 +240,27 @@ impl WorldWebcam {
     }
 
     /// The true latency of the LED's row: from the middle of its exposure
-    /// to the frame's delivery, on average over the delivery jitter, s
-    /// (what the latency step measures).
+    /// to the frame's delivery, on average over the delivery and frame-time
+    /// jitter, s (what the latency step measures). A frame is delivered
+    /// `max(L + j, F + e)` after its slot (`WorldCamera::timing`: latency `L`,
+    /// jitter `j` in `[0, J]`, exposure start `e` in `[-f, f]`, readout end
+    /// and transfer `F`) and its LED row is exposed around `e`; the mean of
+    /// `max(L + j - e, F)` is taken by the midpoint rule.
     pub fn led_latency_s(&self) -> f64 {
+        const N: u32 = 256;
         let c = &self.camera;
         let (from, to) = self.led_exposure_s(0.0);
-        (c.believed_latency_s + c.latency_offset_s).max(0.0) + 0.5 * c.jitter_s - 0.5 * (from + to)
+        let latency = (c.believed_latency_s + c.latency_offset_s).max(0.0);
+        let floor = c.earliest_delivery_s(0.0);
+        let mut sum = 0.0;
+        for a in 0..N {
+            let j = c.jitter_s * (f64::from(a) + 0.5) / f64::from(N);
+            for b in 0..N {
+                let e = c.frame_jitter_s * (2.0 * (f64::from(b) + 0.5) / f64::from(N) - 1.0);
+                sum += (latency + j - e).max(floor);
+            }
+        }
+        sum / f64::from(N * N) - 0.5 * (from + to)
     }
 
     /// The share of the LED row's exposure (`led_exposure_s`) during which
@@ -466,6 +481,42 @@ mod tests {
         }
         cam.hold_board(None);
         assert_eq!(corners(&mut cam), None, "the board lowered");
+    }
+
+    #[test]
+    fn the_led_rows_true_latency_is_the_mean_of_its_frames_even_where_the_readout_floors_them() {
+        let (_, mut cam) = webcam();
+        // Reality seed 1's webcam: 29.7 ms drawn, 4 ms of jitter, 8 ms of
+        // exposure, 25 ms of readout, 1 ms of frame-time jitter, 2 ms of
+        // transfer: every frame waits for its readout (34..36 ms after its
+        // slot, where 29.7..33.7 ms were drawn).
+        cam.camera.latency_offset_s = 0.0297 - cam.camera.believed_latency_s;
+        cam.camera.jitter_s = 0.004;
+        cam.camera.exposure_s = 0.008;
+        cam.camera.rolling_shutter_s = 0.025;
+        cam.camera.frame_jitter_s = 0.001;
+        cam.camera.transfer_s = 0.002;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let n = 40_000;
+        let mut sum = 0.0;
+        for k in 0..n {
+            let slot = f64::from(k) / 30.0;
+            let f = cam.camera.timing(slot, &mut rng);
+            let (a, b) = cam.led_exposure_s(f.t_start_s);
+            sum += f.t_delivered_s - 0.5 * (a + b);
+        }
+        let mean = sum / f64::from(n);
+        let truth = cam.led_latency_s();
+        assert!(
+            (mean - truth).abs() < 1e-4,
+            "frames {:.3} ms, truth {:.3} ms",
+            mean * 1e3,
+            truth * 1e3
+        );
+        // Without the floor the truth would be 29.7 + 2 ms less the LED
+        // row's middle: the floor moves it later.
+        let (a, b) = cam.led_exposure_s(0.0);
+        assert!(truth > 0.0317 - 0.5 * (a + b) + 1e-3, "{}", truth * 1e3);
     }
 
     #[test]
