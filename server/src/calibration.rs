@@ -920,10 +920,12 @@ pub async fn run_real_pendulum(
         })?;
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
-            match lab.latest().map(|(s, _)| s.trial_state) {
-                Some(rt_core::bridge::TrialState::Armed) => break,
-                Some(rt_core::bridge::TrialState::Aborted) => anyhow::bail!(
-                    "calibrate pendulum: moving the arm home was stopped (GET /api/state's abort says why)"
+            match lab.latest().map(|(s, _)| (s.trial_state, s.abort)) {
+                Some((rt_core::bridge::TrialState::Armed, _)) => break,
+                Some((rt_core::bridge::TrialState::Aborted, abort)) => anyhow::bail!(
+                    "calibrate pendulum: moving the arm home was stopped: {} (nothing written; \
+                     run the step again)",
+                    abort.message
                 ),
                 _ if Instant::now() > deadline => {
                     anyhow::bail!("calibrate pendulum: the arm did not reach home within 60 s")
@@ -1483,7 +1485,8 @@ pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
 /// their sum as `control.latency_prior_ms` (what the online estimate starts
 /// from). The joint moves: an operator's heartbeat must come meanwhile when
 /// the lab's dead-man is on. Refused, nothing written, when the robot does
-/// not command, a stop or the dead-man interrupts it, or the fit refuses
+/// not command, a stop or the dead-man interrupts it, the robot leaves
+/// commanding during it (the excitation ends there), or the fit refuses
 /// (the joint did not follow).
 pub async fn run_real_robot(
     lab: &crate::Lab,
@@ -1531,6 +1534,7 @@ async fn real_robot(
         anyhow::anyhow!("calibrate robot: the control loop did not start the excitation: {e}")
     })?;
     let start = Instant::now();
+    let lost = lab.latest().map_or(0, |(s, _)| s.fri.commanding_lost);
     // The excitation, then 0.5 s of rest (the last move's settling).
     let total_s = REAL_ROBOT_DURATION_S + 0.5;
     let mut shown = 0.0;
@@ -1543,6 +1547,16 @@ async fn real_robot(
                 "calibrate robot: the excitation was interrupted ({}: a stop, no operator's \
                  heartbeat while the lab's dead-man is on, or the robot left COMMANDING_ACTIVE)",
                 s.trial_state.as_str()
+            );
+        }
+        if let Some((s, _)) = lab.latest()
+            && s.fri.commanding_lost > lost
+        {
+            // The controller ends an excitation where it is when the robot
+            // leaves commanding: what was recorded is not the whole motion.
+            anyhow::bail!(
+                "calibrate robot: the robot left commanding during the excitation (its motion \
+                 ended there): nothing written; run the step again once it commands"
             );
         }
         let t = start.elapsed().as_secs_f64();
@@ -1655,18 +1669,35 @@ pub async fn run_real_camera_robot(
     desk.conclude(id, Step::CameraRobot, scenario, outcome, "the real lab")
 }
 
+/// How many times [`move_to_pose`] sends a move again after the robot left
+/// commanding during it.
+pub const MOVE_RESENDS: u32 = 3;
+
 /// Moves the arm to `target` through the control loop and waits until the
-/// commanded and the measured joints are there.
-async fn move_to_pose(
+/// commanded and the measured joints are there (at most
+/// [`REAL_TOUR_MOVE_WAIT_S`] from the last send). The robot leaving
+/// COMMANDING_ACTIVE ends a move where it is (the controller's rule); once it
+/// commands again the move is sent again from there, at most
+/// [`MOVE_RESENDS`] times, as an operator would restart it.
+///
+/// # Errors
+///
+/// When the control loop refuses the move, a stop or a trial state ends it,
+/// or the arm is not at the pose in time (the message says how often the
+/// robot left commanding meanwhile).
+pub async fn move_to_pose(
     lab: &crate::Lab,
     target: &[f64; rt_core::kinematics::iiwa7::JOINTS],
 ) -> anyhow::Result<()> {
-    use rt_core::bridge::{Command, TrialState};
+    use rt_core::bridge::{Command, FriSessionState, TrialState};
     use std::time::{Duration, Instant};
+    let lost_now = || lab.latest().map_or(0, |(s, _)| s.fri.commanding_lost);
+    let mut lost = lost_now();
     lab.command(Command::MoveTo(*target))
         .await
         .map_err(|e| anyhow::anyhow!("the control loop refused the move: {e}"))?;
-    let deadline = Instant::now() + Duration::from_secs_f64(REAL_TOUR_MOVE_WAIT_S);
+    let mut resends = 0;
+    let mut deadline = Instant::now() + Duration::from_secs_f64(REAL_TOUR_MOVE_WAIT_S);
     loop {
         tokio::time::sleep(Duration::from_millis(20)).await;
         if let Some((s, _)) = lab.latest() {
@@ -1682,11 +1713,26 @@ async fn move_to_pose(
             if near(&s.robot.q_cmd_rad, 1e-9) && near(&s.robot.q_rad, REAL_TOUR_AT_POSE_RAD) {
                 return Ok(());
             }
+            // The robot left commanding since the move was sent: the move
+            // ended where it was. Send it again once the robot commands (a
+            // refusal meanwhile, e.g. still settling, is tried again).
+            if s.fri.commanding_lost > lost
+                && s.fri.session == FriSessionState::CommandingActive
+                && resends < MOVE_RESENDS
+                && lab.command(Command::MoveTo(*target)).await.is_ok()
+            {
+                lost = s.fri.commanding_lost;
+                resends += 1;
+                deadline = Instant::now() + Duration::from_secs_f64(REAL_TOUR_MOVE_WAIT_S);
+            }
         }
         if Instant::now() > deadline {
+            let left = lost_now().saturating_sub(lost);
             anyhow::bail!(
-                "the arm did not reach the pose in {REAL_TOUR_MOVE_WAIT_S:.0} s (GET /api/health's \
-                 devices says why)"
+                "the arm did not reach the pose in {REAL_TOUR_MOVE_WAIT_S:.0} s (the move sent \
+                 {} times, the robot leaving commanding {left} times since the last; GET \
+                 /api/health's devices says why)",
+                resends + 1
             );
         }
     }

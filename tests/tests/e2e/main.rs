@@ -10,6 +10,7 @@
 //! two cores to itself. `make test` runs these one at a time
 //! (`TEST_THREADS`): side by side they starved each other's simulated boards.
 
+mod calibration_moves;
 mod closed_loop_trials;
 mod dead_man;
 mod demo_mode;

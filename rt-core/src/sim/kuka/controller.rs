@@ -301,12 +301,16 @@ pub enum CommandingAbort {
     /// A joint needed more torque than its limit (the reality lab's rigid-body
     /// dynamics, `sim::world`): the over-current trip.
     TorqueLimit(crate::sim::world::TorqueTrip),
+    /// The robot application ended commanding (its FRI motion ended, or an
+    /// operator stopped it): not the client's doing.
+    Application,
 }
 
 impl CommandingAbort {
-    /// True for a joint limit violation (not a quality drop).
+    /// True for a joint limit violation (not a quality drop or the
+    /// application's own end).
     pub const fn is_violation(&self) -> bool {
-        !matches!(self, Self::QualityDropped { .. })
+        !matches!(self, Self::QualityDropped { .. } | Self::Application)
     }
 }
 
@@ -336,6 +340,7 @@ impl fmt::Display for CommandingAbort {
                 write!(f, "connection quality fell to {}", quality.name())
             }
             Self::TorqueLimit(trip) => write!(f, "{trip}"),
+            Self::Application => write!(f, "the robot application ended commanding"),
         }
     }
 }
@@ -484,6 +489,7 @@ impl SimStats {
                     limit_nm: b,
                 },
             )),
+            6 => Some(CommandingAbort::Application),
             _ => None,
         }
     }
@@ -503,6 +509,7 @@ impl SimStats {
             CommandingAbort::NotFinite { joint } => (3, joint, f64::NAN, f64::NAN),
             CommandingAbort::QualityDropped { quality } => (4, 0, f64::from(quality as i32), 0.0),
             CommandingAbort::TorqueLimit(t) => (5, t.joint, t.torque_nm, t.limit_nm),
+            CommandingAbort::Application => (6, 0, 0.0, 0.0),
         };
         self.abort_joint.store(joint as u8, Relaxed);
         self.abort_a.store(a);
@@ -943,6 +950,17 @@ impl SimController {
         self.commanding_requested = true;
         if let Some(w) = self.world.as_mut() {
             w.joints.clear_trip();
+        }
+    }
+
+    /// Ends commanding as the robot application does
+    /// ([`CommandingAbort::Application`]); nothing while not commanding.
+    pub fn leave_commanding(&mut self) {
+        if matches!(
+            self.state,
+            SessionState::CommandingWait | SessionState::CommandingActive
+        ) {
+            self.abort(CommandingAbort::Application);
         }
     }
 

@@ -75,6 +75,7 @@ pub struct SimServer {
     command: Arc<AtomicBool>,
     close: Arc<AtomicBool>,
     pause: Arc<AtomicBool>,
+    leave: Arc<AtomicBool>,
     handle: Option<JoinHandle<()>>,
 }
 
@@ -122,6 +123,13 @@ impl SimServer {
         let command = Arc::new(AtomicBool::new(opts.auto_command));
         let close = Arc::new(AtomicBool::new(false));
         let pause = Arc::new(AtomicBool::new(false));
+        let leave = Arc::new(AtomicBool::new(false));
+        let hooked = Hooked {
+            opts,
+            epoch,
+            hook,
+            leave: Arc::clone(&leave),
+        };
         let flags = (Arc::clone(&command), Arc::clone(&close), Arc::clone(&pause));
         let handle = std::thread::Builder::new()
             .name("isochron-fri-sim".into())
@@ -132,15 +140,7 @@ impl SimServer {
                         crate::fri::priority::SIM_PRIORITY,
                     )
                 });
-                run(
-                    socket,
-                    client,
-                    sim,
-                    Hooked { opts, epoch, hook },
-                    &flags.0,
-                    &flags.1,
-                    &flags.2,
-                );
+                run(socket, client, sim, hooked, &flags.0, &flags.1, &flags.2);
             })?;
         Ok(Self {
             stats,
@@ -150,6 +150,7 @@ impl SimServer {
             command,
             close,
             pause,
+            leave,
             handle: Some(handle),
         })
     }
@@ -177,6 +178,15 @@ impl SimServer {
     /// Asks for commanding (taken up once MONITORING_READY).
     pub fn request_commanding(&self) {
         self.command.store(true, Relaxed);
+    }
+
+    /// Leaves commanding at the next cycle, as the robot application does
+    /// when it ends its FRI motion or an operator stops it
+    /// ([`CommandingAbort::Application`](super::CommandingAbort::Application)):
+    /// the drives stop where they are, the session goes back to monitoring,
+    /// and commands again only when asked ([`Self::request_commanding`]).
+    pub fn leave_commanding(&self) {
+        self.leave.store(true, Relaxed);
     }
 
     /// Falls silent (sends nothing) while `true`, as a crashed controller would.
@@ -240,6 +250,8 @@ struct Hooked {
     opts: SimRunOptions,
     epoch: Instant,
     hook: Option<TickHook>,
+    /// Set by [`SimServer::leave_commanding`].
+    leave: Arc<AtomicBool>,
 }
 
 fn run(
@@ -255,6 +267,7 @@ fn run(
         opts,
         epoch,
         mut hook,
+        leave,
     } = hooked;
     let period = Duration::from_millis(u64::from(sim.params().fri_period_ms));
     let stats = Arc::clone(sim.stats());
@@ -266,6 +279,9 @@ fn run(
             let closing = close.load(Relaxed) || opts.duration.is_some_and(|d| now >= d);
             if closing {
                 sim.request_close();
+            }
+            if leave.swap(false, Relaxed) {
+                sim.leave_commanding();
             }
             if (command.load(Relaxed) || opts.keep_commanding)
                 && sim.state() == SessionState::MonitoringReady
