@@ -82,7 +82,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         interval_s: args
             .demo_interval_s
             .unwrap_or(crate::demo::DEFAULT_INTERVAL_S),
-        operator_required: cfg.lab.mode == LabMode::Real,
+        // Held by an operator where the lab's dead-man is on (a real lab's
+        // default); a world's arm (`--scenario`) harms no one.
+        operator_required: cfg.lab.operator_timeout().is_some(),
         operator_timeout_s: cfg.lab.operator_timeout_s,
         state_file: None,
     });

@@ -711,7 +711,7 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
     };
     let dir = tempfile::tempdir().unwrap();
     let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/reality.toml");
-    let serve = |extra: &[&str]| {
+    let serve_in = |data: &Path, extra: &[&str]| {
         let (p, line) = start(
             "isochron serve --scenario",
             Process::new(&bin)
@@ -719,7 +719,7 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
                 .args(["--bind", "127.0.0.1:0", "--scenario"])
                 .arg(&scenario)
                 .arg("--data-dir")
-                .arg(dir.path())
+                .arg(data)
                 .args(extra),
             "listening on http://",
             Duration::from_secs(60),
@@ -727,6 +727,7 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
         let addr = listening_addr(&line);
         (p, addr)
     };
+    let serve = |extra: &[&str]| serve_in(dir.path(), extra);
 
     let (mut p, addr) = serve(&[]);
     let h = get(addr, "/api/health").await;
@@ -735,6 +736,32 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json().unwrap()["reason"], "uncalibrated");
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
+    p.kill();
+
+    // A demo for visitors on the world: its arm needs no operator's hand,
+    // so trials start unattended (its own data folder: its releases are
+    // not the posted trial's below).
+    let demo_dir = tempfile::tempdir().unwrap();
+    let (mut p, addr) = serve_in(
+        demo_dir.path(),
+        &["--allow-uncalibrated", "--demo", "--demo-interval-s", "1"],
+    );
+    let demo = get(addr, "/api/demo").await;
+    assert_eq!(demo["operator_required"], false, "{demo}");
+    let deadline = Instant::now() + Duration::from_secs(90);
+    loop {
+        let demo = get(addr, "/api/demo").await;
+        assert_ne!(demo["state"], "operator_needed", "{demo}");
+        if demo["trial_id"].is_u64() {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no demo trial started in 90 s: {demo}; health {}",
+            get(addr, "/api/health").await
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
     p.kill();
 
     let (_p, addr) = serve(&["--allow-uncalibrated"]);
