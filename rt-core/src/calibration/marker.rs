@@ -73,14 +73,28 @@ pub fn move_duration_s(a: &Joints, b: &Joints) -> f64 {
 }
 
 /// Marker positions of the tour (base frame, m): a grid over the pendulum's
-/// region, across the image and in depth.
+/// region, across the image and in depth, in the order the arm visits them:
+/// a serpentine (each row of the grid walked back from where the last ended),
+/// so that no move crosses the whole region.
 pub fn tour_points(scenario: &Scenario) -> Vec<Vector3<f64>> {
     let d = &scenario.task.distance_m;
     let h = scenario.task.intercept_height_m;
     let mut out = Vec::new();
+    let mut row = 0;
     for (ix, x) in [d.lo, 0.5 * (d.lo + d.hi), d.hi].into_iter().enumerate() {
-        for y in [-0.30, 0.0, 0.30] {
-            for dz in [-0.15, 0.15] {
+        let ys = if ix % 2 == 0 {
+            [-0.30, 0.0, 0.30]
+        } else {
+            [0.30, 0.0, -0.30]
+        };
+        for y in ys {
+            let dzs = if row % 2 == 0 {
+                [-0.15, 0.15]
+            } else {
+                [0.15, -0.15]
+            };
+            row += 1;
+            for dz in dzs {
                 // Stagger the rows per depth so the image is covered evenly.
                 let yy = y + 0.05 * ix as f64;
                 out.push(Vector3::new(x.min(0.75), yy, h + dz + 0.03 * ix as f64));
@@ -116,18 +130,47 @@ pub fn tour_rotation(i: usize, tilt: f64) -> Rotation3<f64> {
 }
 
 /// Joint targets (inside the limits by `TARGET_MARGIN_RAD`) putting the marker at
-/// each point; unreachable points are skipped.
+/// each point, in the points' order from `start`; unreachable points are
+/// skipped. At each point the first tilt of [`TILTS_RAD`] within reach, and
+/// of that pose's solutions (every arm angle and configuration) the one the
+/// controller's slow move reaches soonest from the previous target
+/// ([`move_to_duration_s`]): the tour's time is its moves'.
+///
+/// [`move_to_duration_s`]: crate::control::step::move_to_duration_s
 pub fn tour_targets(points: &[Vector3<f64>], start: &Joints) -> Vec<Joints> {
-    let mut seed = to_vec(start);
+    use crate::control::step::move_to_duration_s;
+    use kinematics::analytic::{ArmFlags, ArmGeometry};
+    const ARM_ANGLES: usize = 360;
+    let mut from = kinematics::Joints::from_column_slice(start);
     let mut out = Vec::new();
     for (i, p) in points.iter().enumerate() {
         for tilt in TILTS_RAD {
             let r = tour_rotation(i, tilt);
             let flange = p - r * Vector3::from(MARKER_OFFSET_M);
             let pose = kinematics::Pose::from_parts(nalgebra::Translation3::from(flange), r);
-            if let Ok(sol) = kinematics::analytic::solve(&pose, Some(&seed), TARGET_MARGIN_RAD) {
-                seed = sol.q;
-                out.push(std::array::from_fn(|j| sol.q[j]));
+            let Ok(geo) = ArmGeometry::new(&pose) else {
+                continue;
+            };
+            let mut q = kinematics::Joints::zeros();
+            let mut best: Option<(f64, kinematics::Joints)> = None;
+            for flags in ArmFlags::ALL {
+                for k in 0..ARM_ANGLES {
+                    let psi = -std::f64::consts::PI
+                        + std::f64::consts::TAU * (k as f64 + 0.5) / ARM_ANGLES as f64;
+                    if geo
+                        .solve_within(psi, flags, TARGET_MARGIN_RAD, &mut q)
+                        .is_ok()
+                    {
+                        let t = move_to_duration_s(&from, &q);
+                        if best.is_none_or(|(b, _)| t < b) {
+                            best = Some((t, q));
+                        }
+                    }
+                }
+            }
+            if let Some((_, q)) = best {
+                from = q;
+                out.push(std::array::from_fn(|j| q[j]));
                 break;
             }
         }

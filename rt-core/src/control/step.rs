@@ -603,6 +603,21 @@ pub const MOVE_TO_MARGIN_RAD: f64 = 0.0873;
 /// [`Controller::move_to`] move may use (a slow, calibration-tour move).
 pub const MOVE_TO_LIMIT_SHARE: f64 = 0.2;
 
+/// How long a [`Controller::move_to`] move from `q0` to `q1` (radians)
+/// takes, s: the minimum-jerk profile's peak speed (1.875 d / T) and peak
+/// acceleration (5.77 d / T^2) within [`MOVE_TO_LIMIT_SHARE`] of every
+/// joint's limits, at least 1 s.
+pub fn move_to_duration_s(q0: &Joints, q1: &Joints) -> f64 {
+    let mut dur: f64 = 1.0;
+    for j in 0..JOINTS {
+        let d = (q1[j] - q0[j]).abs();
+        dur = dur
+            .max(1.875 * d / (MOVE_TO_LIMIT_SHARE * VELOCITY_LIMIT_RADPS[j]))
+            .max((5.78 * d / (MOVE_TO_LIMIT_SHARE * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
+    }
+    dur
+}
+
 impl Excitation {
     /// Whether the joint, amplitude and duration are in range.
     pub fn is_valid(&self) -> bool {
@@ -1257,13 +1272,7 @@ impl Controller {
             self.q_meas
         };
         let q1 = Joints::from_column_slice(target);
-        let mut dur: f64 = 1.0;
-        for j in 0..JOINTS {
-            let d = (q1[j] - q0[j]).abs();
-            dur = dur
-                .max(1.875 * d / (MOVE_TO_LIMIT_SHARE * VELOCITY_LIMIT_RADPS[j]))
-                .max((5.78 * d / (MOVE_TO_LIMIT_SHARE * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
-        }
+        let dur = move_to_duration_s(&q0, &q1);
         self.jmove = Some(JointMove {
             q0,
             q1,
