@@ -94,7 +94,9 @@ async fn request(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16
         body.as_bytes(),
     )
     .await
-    .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e}"));
+    // `{e:#}`: the cause too (a timeout: the service stalled; refused: it
+    // is gone).
+    .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e:#}"));
     (r.status, r.json().unwrap_or(Value::Null))
 }
 
