@@ -537,29 +537,16 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
     // The latency step without the LED's region: refused, saying what to
     // set, and nothing written.
-    let r = http(addr, "POST", "/api/calibration/latency", &[], b"")
-        .await
-        .unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let c = job_end(addr, Duration::from_secs(60)).await;
-    assert_eq!(c["job"]["state"], "failed", "{c}");
-    assert!(
-        c["job"]["message"]
-            .as_str()
-            .is_some_and(|m| m.contains("led_px")),
-        "{c}"
-    );
-    assert!(
-        c["steps"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|s| s["name"] == "latency" && s["done"] == false),
-        "{c}"
-    );
+    step_refused(addr, "latency", "led_px").await;
     // The pendulum step without a camera: refused before the ball is hung,
     // saying it is the camera, and nothing written.
-    let r = http(addr, "POST", "/api/calibration/pendulum", &[], b"")
+    step_refused(addr, "pendulum", "camera").await;
+}
+
+/// Posts calibration `step` and asserts its job fails with a message
+/// naming `says`, the step still not done (nothing written).
+async fn step_refused(addr: SocketAddr, step: &str, says: &str) {
+    let r = http(addr, "POST", &format!("/api/calibration/{step}"), &[], b"")
         .await
         .unwrap();
     assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
@@ -568,7 +555,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
     assert!(
         c["job"]["message"]
             .as_str()
-            .is_some_and(|m| m.contains("camera")),
+            .is_some_and(|m| m.contains(says)),
         "{c}"
     );
     assert!(
@@ -576,7 +563,7 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
             .as_array()
             .unwrap()
             .iter()
-            .any(|s| s["name"] == "pendulum" && s["done"] == false),
+            .any(|s| s["name"] == step && s["done"] == false),
         "{c}"
     );
 }
