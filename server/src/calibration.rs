@@ -1780,7 +1780,7 @@ async fn real_camera_robot(
     // The camera step's lens, when the file has it; else k1 is fitted here.
     let k1_fixed = scenario.camera.intrinsics.map(|i| i.k1);
     // The tour starts where the arm is (each move the shortest to the next
-    // pose), or from the tour's seed posture before the robot's first message.
+    // pose), or from the tour's seed posture before the lab's first state.
     let seed: [f64; 7] = lab.latest().map_or_else(
         || std::array::from_fn(|j| TOUR_SEED_DEG[j].to_radians()),
         |(s, _)| s.robot.q_cmd_rad,

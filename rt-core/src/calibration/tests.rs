@@ -947,6 +947,50 @@ mod camera_robot {
         .expect("reality.toml")
     }
 
+    /// The tour's targets put the marker on its points, stay inside the
+    /// limits, and each move is no longer than the one to the solution
+    /// nearest in joint space (`analytic::solve` seeded with the previous
+    /// target: the tour's rule before), and all of them together shorter.
+    #[test]
+    fn the_tour_takes_at_each_pose_the_solution_reached_soonest() {
+        use crate::calibration::marker::{
+            TARGET_MARGIN_RAD, TOUR_SEED_DEG, marker_believed, tour_points, tour_targets,
+        };
+        use crate::control::step::move_to_duration_s;
+        use crate::kinematics::{self, Joints};
+        let s = reality();
+        let seed: [f64; 7] = std::array::from_fn(|j| TOUR_SEED_DEG[j].to_radians());
+        let points = tour_points(&s);
+        let targets = tour_targets(&points, &seed);
+        assert!(targets.len() >= 12, "{} poses", targets.len());
+        let (mut from, mut tour_s, mut nearest_s) = (Joints::from_column_slice(&seed), 0.0, 0.0);
+        let mut at = 0;
+        for q in &targets {
+            // The point this target is for: the next one the marker reaches.
+            let (m, _) = marker_believed(q);
+            while (m - points[at]).norm() > 1e-6 {
+                at += 1;
+                assert!(at < points.len(), "a target off every point: {m}");
+            }
+            let qv = Joints::from_column_slice(q);
+            assert!(kinematics::analytic::check_limits(&qv, TARGET_MARGIN_RAD).is_ok());
+            // The solution nearest in joint space for the same flange pose.
+            let flange = kinematics::flange_pose(&qv);
+            let nearest = kinematics::analytic::solve(&flange, Some(&from), TARGET_MARGIN_RAD)
+                .expect("the pose is reachable");
+            let (t, t_near) = (
+                move_to_duration_s(&from, &qv),
+                move_to_duration_s(&from, &nearest.q),
+            );
+            assert!(t <= t_near + 1e-3, "pose {at}: {t} s for {t_near} s");
+            tour_s += t;
+            nearest_s += t_near;
+            from = qv;
+            at += 1;
+        }
+        assert!(tour_s < nearest_s, "{tour_s} s for {nearest_s} s");
+    }
+
     /// On reality.toml's hidden draws: the camera within 0.3 deg and 5 mm of the
     /// true camera, the intercept point within 3 mm of the true rest point; every
     /// command the tour sent inside the joint limits (by at least 5 degrees).

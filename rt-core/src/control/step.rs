@@ -605,7 +605,7 @@ pub const MOVE_TO_LIMIT_SHARE: f64 = 0.2;
 
 /// How long a [`Controller::move_to`] move from `q0` to `q1` (radians)
 /// takes, s: the minimum-jerk profile's peak speed (1.875 d / T) and peak
-/// acceleration (5.77 d / T^2) within [`MOVE_TO_LIMIT_SHARE`] of every
+/// acceleration (5.77 d / T^2, taken as 5.78) within [`MOVE_TO_LIMIT_SHARE`] of every
 /// joint's limits, at least 1 s.
 pub fn move_to_duration_s(q0: &Joints, q1: &Joints) -> f64 {
     let mut dur: f64 = 1.0;
