@@ -6,6 +6,7 @@ use anyhow::Context;
 
 pub mod procs;
 mod served;
+pub mod service;
 mod table;
 pub use served::{ServedLab, TrialEnds};
 pub use table::CsvTable;

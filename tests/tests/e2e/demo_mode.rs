@@ -10,80 +10,37 @@
 //!   not commanding), runs only while an operator's heartbeat holds it, and
 //!   stops the arm when the heartbeats lapse.
 
-use std::io::{BufRead, BufReader};
+use std::ffi::OsStr;
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-use isochron_tests::{http, isochron_bin};
+use isochron_tests::isochron_bin;
+use isochron_tests::service::{Service, api};
 use serde_json::Value;
 
 const TOKEN: &str = "demo-token";
-
-struct Service {
-    child: Child,
-    addr: SocketAddr,
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 fn bin() -> Option<PathBuf> {
     isochron_bin(&[(&["serve", "--help"], "--demo-interval-s")])
 }
 
-/// `isochron serve --demo` on a free loopback port with a token.
+/// `isochron serve --demo` on a free loopback port with a token, its log
+/// beside the data directory.
 fn serve(bin: &Path, data: &Path, extra: &[&str]) -> Service {
-    let mut child = Command::new(bin)
-        .args(["serve", "--bind", "127.0.0.1:0", "--token", TOKEN, "--demo"])
-        .args(extra)
-        .arg("--data-dir")
-        .arg(data)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("isochron serve starts");
-    let out = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::sync_channel(1);
-    std::thread::Builder::new()
-        .name("isochron-test-demo-out".into())
-        .spawn(move || {
-            for line in BufReader::new(out).lines().map_while(Result::ok) {
-                if let Some(rest) = line.split("http://").nth(1) {
-                    let _ = tx.try_send(rest.trim_end_matches('/').to_owned());
-                }
-            }
-        })
-        .unwrap();
-    let addr = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("isochron serve prints its address")
-        .parse()
-        .unwrap();
-    Service { child, addr }
+    let mut args: Vec<&OsStr> = vec![OsStr::new("--demo")];
+    args.extend(extra.iter().map(OsStr::new));
+    args.extend([OsStr::new("--data-dir"), data.as_os_str()]);
+    let log = data.with_file_name("serve.log");
+    Service::start(bin, TOKEN, &log, &args)
 }
 
+/// One request; the test fails when the service does not answer.
 async fn request(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
-    let auth = format!("Bearer {TOKEN}");
-    let r = http(
-        addr,
-        method,
-        path,
-        &[
-            ("Content-Type", "application/json"),
-            ("Authorization", &auth),
-        ],
-        body.as_bytes(),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e}"));
-    (r.status, r.json().unwrap_or(Value::Null))
+    api(addr, TOKEN, method, path, body)
+        .await
+        .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e:#}"))
 }
 
 /// Polls `GET path` until `pred` holds (every 10 ms, at most `timeout`).
@@ -94,18 +51,7 @@ async fn wait_for(
     what: &str,
     pred: impl Fn(&Value) -> bool,
 ) -> Value {
-    let deadline = Instant::now() + timeout;
-    loop {
-        let (code, v) = request(addr, "GET", path, "").await;
-        if code == 200 && pred(&v) {
-            return v;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{what}: not within {timeout:?}; last {path}: {code} {v}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    isochron_tests::service::wait_for(addr, TOKEN, path, timeout, what, pred).await
 }
 
 /// The demo's trials' distances and movement times, in turn (server/src/demo.rs).
@@ -212,8 +158,7 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     // A restart: the demo goes on by itself, its counts kept.
     let (_, d) = request(addr, "GET", "/api/demo", "").await;
     let counted = d["trials"].as_u64().unwrap();
-    svc.child.kill().unwrap();
-    svc.child.wait().unwrap();
+    svc.kill();
     let svc = serve(&bin, &data, &["--demo-interval-s", "1"]);
     let (code, d) = request(svc.addr, "GET", "/api/demo", "").await;
     assert_eq!(code, 200, "{d}");

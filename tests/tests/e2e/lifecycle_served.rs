@@ -13,91 +13,49 @@
 //!   for a refused trial, no limit violation, the service still answers.
 //! - A service killed mid-trial closes that record at its next start as
 //!   `aborted`, `service_restarted`.
+//!
+//! A request the service does not answer within the client's 10 s (a stall
+//! on a starved machine) is what it is to any client: its effect unknown (a
+//! trial's post: at most one record the script has no id of), and the
+//! service must answer again. A failing test prints the tail of the
+//! service's log.
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use isochron_tests::{TrialEnds, http, isochron_bin};
+use isochron_tests::service::{Service, api, timed_out};
+use isochron_tests::{TrialEnds, isochron_bin};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 
 const TOKEN: &str = "lifecycle-token";
 
-struct Service {
-    child: Child,
-    addr: SocketAddr,
-}
-
-impl Drop for Service {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn bin() -> Option<PathBuf> {
     isochron_bin(&[(&["serve", "--help"], "--data-dir")])
 }
 
-/// `isochron serve` on a free loopback port with a token and `data`.
-fn serve(bin: &Path, data: &Path) -> Service {
-    let mut child = Command::new(bin)
-        .args([
-            "serve",
-            "--bind",
-            "127.0.0.1:0",
-            "--token",
-            TOKEN,
-            "--data-dir",
-        ])
-        .arg(data)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("isochron serve starts");
-    let out = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::sync_channel(1);
-    std::thread::Builder::new()
-        .name("isochron-test-serve-out".into())
-        .spawn(move || {
-            for line in BufReader::new(out).lines().map_while(Result::ok) {
-                if let Some(rest) = line.split("http://").nth(1) {
-                    let _ = tx.try_send(rest.trim_end_matches('/').to_owned());
-                }
-            }
-        })
-        .unwrap();
-    let addr = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("isochron serve prints its address")
-        .parse()
-        .unwrap();
-    Service { child, addr }
+/// `isochron serve` on a free loopback port with a token and the data
+/// directory `dir/data`, its log `dir/serve.log`.
+fn serve(bin: &Path, dir: &Path) -> Service {
+    let data = dir.join("data");
+    Service::start(
+        bin,
+        TOKEN,
+        &dir.join("serve.log"),
+        &[Path::new("--data-dir"), &data],
+    )
 }
 
+/// One request; the test fails when the service does not answer.
 async fn request(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
-    let auth = format!("Bearer {TOKEN}");
-    let r = http(
-        addr,
-        method,
-        path,
-        &[
-            ("Content-Type", "application/json"),
-            ("Authorization", &auth),
-        ],
-        body.as_bytes(),
-    )
-    .await
-    // `{e:#}`: the cause too (a timeout: the service stalled; refused: it
-    // is gone).
-    .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e:#}"));
-    (r.status, r.json().unwrap_or(Value::Null))
+    api(addr, TOKEN, method, path, body)
+        .await
+        // `{e:#}`: the cause too (a timeout: the service stalled; refused: it
+        // is gone).
+        .unwrap_or_else(|e| panic!("{method} {path}: the service does not answer: {e:#}"))
 }
 
 /// Polls `GET path` until `pred` holds (every 10 ms, at most `timeout`).
@@ -108,18 +66,7 @@ async fn wait_for(
     what: &str,
     pred: impl Fn(&Value) -> bool,
 ) -> Value {
-    let deadline = Instant::now() + timeout;
-    loop {
-        let (code, v) = request(addr, "GET", path, "").await;
-        if code == 200 && pred(&v) {
-            return v;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{what}: not within {timeout:?}; last {path}: {code} {v}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    isochron_tests::service::wait_for(addr, TOKEN, path, timeout, what, pred).await
 }
 
 fn finished(r: &Value) -> bool {
@@ -133,11 +80,11 @@ fn finished(r: &Value) -> bool {
 async fn wait_trial_end(addr: SocketAddr, id: u64, timeout: Duration) -> bool {
     let deadline = Instant::now() + timeout;
     loop {
-        let (_, s) = request(addr, "GET", "/api/state", "").await;
+        let s = poll(addr, "/api/state").await;
         if s["trial_id"] == id && s["trial_state"] == "done" {
             return true;
         }
-        let (_, r) = request(addr, "GET", &format!("/api/trials/{id}"), "").await;
+        let r = poll(addr, &format!("/api/trials/{id}")).await;
         if finished(&r) {
             return false;
         }
@@ -148,6 +95,17 @@ async fn wait_trial_end(addr: SocketAddr, id: u64, timeout: Duration) -> bool {
             s["trial_state"]
         );
         tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+/// One poll's `GET path`: its body, or `null` when the service did not
+/// answer within the client's timeout (a stalled service is polled again;
+/// one that is gone fails the test).
+async fn poll(addr: SocketAddr, path: &str) -> Value {
+    match api(addr, TOKEN, "GET", path, "").await {
+        Ok((_, v)) => v,
+        Err(e) if timed_out(&e) => Value::Null,
+        Err(e) => panic!("GET {path}: the service does not answer: {e:#}"),
     }
 }
 
@@ -162,7 +120,7 @@ async fn ready(addr: SocketAddr, timeout: Duration) -> Value {
 async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     let Some(bin) = bin() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let svc = serve(&bin, &tmp.path().join("data"));
+    let svc = serve(&bin, tmp.path());
     let addr = svc.addr;
     let h = ready(addr, Duration::from_secs(30)).await;
     assert_eq!(h["not_ready"], Value::Null, "{h}");
@@ -178,8 +136,21 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     // `stress-ng`), with the trial's id: its record stays until the loop's
     // late answer settles it (it runs and finishes, or it goes).
     let mut unanswered = Vec::new();
+    // Posts without an answer within the client's timeout (a stalled
+    // service): each may have made a record this script has no id of.
+    let mut posts_unanswered = 0usize;
     for i in 0..n {
-        let (code, body) = request(addr, "POST", "/api/trials", "").await;
+        let (code, body) = match api(addr, TOKEN, "POST", "/api/trials", "").await {
+            Ok(answer) => answer,
+            Err(e) if timed_out(&e) => {
+                eprintln!("trial {i}: no answer: {e:#}");
+                posts_unanswered += 1;
+                ready(addr, Duration::from_secs(60)).await;
+                last_seen_done = false;
+                continue;
+            }
+            Err(e) => panic!("POST /api/trials: the service does not answer: {e:#}"),
+        };
         if code == 503 && body["reason"] == "no_answer" {
             unanswered.push(body["id"].as_u64().expect("the unanswered trial's id"));
             ready(addr, Duration::from_secs(60)).await;
@@ -227,14 +198,17 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
             .map(|r| (r["id"].as_u64(), r["status"].as_str()))
             .collect::<Vec<_>>()
     );
-    // Every posted trial has a record; beside them, only late-answered ones.
+    // Every posted trial has a record; beside them, only late-answered ones
+    // and at most one a post without an answer.
     let listed: Vec<u64> = list.iter().filter_map(|r| r["id"].as_u64()).collect();
+    let unexplained = listed
+        .iter()
+        .filter(|id| !ids.contains(id) && !unanswered.contains(id))
+        .count();
     assert!(
-        ids.iter().all(|id| listed.contains(id))
-            && listed
-                .iter()
-                .all(|id| ids.contains(id) || unanswered.contains(id)),
-        "records {listed:?} for trials {ids:?} (answered late: {unanswered:?})"
+        ids.iter().all(|id| listed.contains(id)) && unexplained <= posts_unanswered,
+        "records {listed:?} for trials {ids:?} (answered late: {unanswered:?}, \
+         posts without an answer: {posts_unanswered})"
     );
     ends.wait_all(&listed, Duration::from_secs(30)).await;
     for r in list {
@@ -308,7 +282,7 @@ async fn random_rest_sequences_lose_no_trial_record() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(1);
     let tmp = tempfile::tempdir().unwrap();
-    let svc = serve(&bin, &tmp.path().join("data"));
+    let svc = serve(&bin, tmp.path());
     let addr = svc.addr;
     ready(addr, Duration::from_secs(30)).await;
     let mut ends = TrialEnds::connect(addr).await;
@@ -318,6 +292,9 @@ async fn random_rest_sequences_lose_no_trial_record() {
     // id: their record stays until the loop's late answer settles it (it
     // runs and finishes, or it goes).
     let mut unanswered = Vec::new();
+    // Trial posts the service did not answer at all within the client's
+    // timeout: each may have made a record the script has no id of.
+    let mut posts_unanswered = 0usize;
     let mut codes: BTreeMap<String, u32> = BTreeMap::new();
     let mut log = Vec::new();
     let t0 = Instant::now();
@@ -350,7 +327,32 @@ async fn random_rest_sequences_lose_no_trial_record() {
             Action::Health => ("GET", "/api/health".to_owned(), String::new()),
         };
         commands += 1;
-        let (code, v) = request(addr, method, &path, &body).await;
+        let (code, v) = match api(addr, TOKEN, method, &path, &body).await {
+            Ok(answer) => answer,
+            // No answer within the client's 10 s: a service stalled on a
+            // starved machine. What the request did is unknown here, as to
+            // any client whose request timed out (a trial's post may have
+            // made a record: counted); the service must answer again.
+            Err(e) if timed_out(&e) => {
+                log.push(format!("no answer: {e:#}"));
+                if path == "/api/trials" {
+                    posts_unanswered += 1;
+                }
+                wait_for(
+                    addr,
+                    "/api/health",
+                    Duration::from_secs(60),
+                    "an answer again",
+                    |_| true,
+                )
+                .await;
+                continue;
+            }
+            Err(e) => panic!(
+                "{method} {path}: the service does not answer: {e:#}\n{}",
+                log.join("; ")
+            ),
+        };
         // A 5xx only as the service's answer to a control loop that did not
         // answer within its 3 s (beside `stress-ng`: it waited for a done
         // trial's after-done trace, then planned), never a crash.
@@ -401,22 +403,25 @@ async fn random_rest_sequences_lose_no_trial_record() {
     );
     println!(
         "served lifecycle fuzz (seed {seed}, {seconds} s): {commands} commands, {} trials \
-         accepted ({done} done, {aborted} aborted), {refused} refused, {} answered late; \
-         health {h}; answers {codes:?}",
+         accepted ({done} done, {aborted} aborted), {refused} refused, {} answered late, \
+         {posts_unanswered} without an answer; health {h}; answers {codes:?}",
         accepted.len(),
         unanswered.len()
     );
     // Every accepted trial has a record; beside them, only trials the
-    // loop answered late (accepted then). Each finished, each with one end.
+    // loop answered late (accepted then), and at most one a post without an
+    // answer. Each finished, each with one end.
     ends.wait_all(&ids, Duration::from_secs(30)).await;
     let mut want = accepted.clone();
     want.sort_unstable();
+    let unexplained = ids
+        .iter()
+        .filter(|id| !want.contains(id) && !unanswered.contains(id))
+        .count();
     assert!(
-        want.iter().all(|id| ids.contains(id))
-            && ids
-                .iter()
-                .all(|id| want.contains(id) || unanswered.contains(id)),
-        "records {ids:?} vs accepted trials {want:?} (answered late: {unanswered:?})\n{}",
+        want.iter().all(|id| ids.contains(id)) && unexplained <= posts_unanswered,
+        "records {ids:?} vs accepted trials {want:?} (answered late: {unanswered:?}, \
+         posts without an answer: {posts_unanswered})\n{}",
         log.join("; ")
     );
     for r in list {
@@ -452,8 +457,7 @@ async fn random_rest_sequences_lose_no_trial_record() {
 async fn a_trial_running_when_the_service_dies_is_closed_at_the_next_start() {
     let Some(bin) = bin() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    let mut svc = serve(&bin, &data);
+    let mut svc = serve(&bin, tmp.path());
     ready(svc.addr, Duration::from_secs(30)).await;
     let (code, body) = request(svc.addr, "POST", "/api/trials", "").await;
     assert_eq!(code, 202, "{body}");
@@ -461,9 +465,8 @@ async fn a_trial_running_when_the_service_dies_is_closed_at_the_next_start() {
     let (_, r) = request(svc.addr, "GET", &format!("/api/trials/{id}"), "").await;
     assert_eq!(r["status"], "running", "{r}");
     // Killed (no shutdown of any kind) while the trial runs.
-    svc.child.kill().unwrap();
-    svc.child.wait().unwrap();
-    let svc = serve(&bin, &data);
+    svc.kill();
+    let svc = serve(&bin, tmp.path());
     let (code, r) = request(svc.addr, "GET", &format!("/api/trials/{id}"), "").await;
     assert_eq!(code, 200, "{r}");
     assert_eq!(r["status"], "aborted", "{r}");
