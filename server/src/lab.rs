@@ -715,9 +715,26 @@ impl Pump {
         if self.fox.recording() == Some(e.trial_id) {
             self.fox.finish_recording(Some(&end));
         }
+        // An abort is said in the service's log with its reason.
+        let aborted = match end {
+            TrialEnd::Aborted(kind, detail) => Some((kind.as_str(), detail)),
+            TrialEnd::Done(_) => None,
+        };
         if let Some(records) = &self.records {
             match records.finish_trial(e.trial_id, end, samples) {
-                Ok(true) => tracing::info!(trial = e.trial_id, samples, "trial recorded"),
+                Ok(true) => {
+                    if let Some((reason, detail)) = aborted {
+                        tracing::warn!(
+                            trial = e.trial_id,
+                            samples,
+                            reason,
+                            detail,
+                            "trial recorded: aborted"
+                        );
+                    } else {
+                        tracing::info!(trial = e.trial_id, samples, "trial recorded");
+                    }
+                }
                 Ok(false) => tracing::debug!(trial = e.trial_id, "trial end for no running trial"),
                 Err(err) => {
                     tracing::error!(trial = e.trial_id, error = ?err, "cannot record the trial");

@@ -84,17 +84,40 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     assert_eq!(d["interval_s"], 1.0, "{d}");
     let ci = d["success_ci95"].as_array().unwrap();
     assert!(ci[0].as_f64() <= ci[1].as_f64(), "{d}");
-    // Each with the distance and movement time the demo gave it.
-    let (_, list) = request(addr, "GET", "/api/trials?limit=100", "").await;
-    let mut done: Vec<&Value> = list
+    // Each with the distance and movement time the demo gave it (the k-th
+    // trial the k-th plan): two done, and any aborted among them ended by
+    // a starved machine (the simulated lab's camera and magnet board are
+    // threads of the service; beside `stress-ng` a board once stayed
+    // silent past its timeouts while it held the ball).
+    let list = wait_for(
+        addr,
+        "/api/trials?limit=100",
+        Duration::from_secs(180),
+        "two demo trials done",
+        |l| {
+            l.as_array()
+                .is_some_and(|a| a.iter().filter(|t| t["status"] == "done").count() >= 2)
+        },
+    )
+    .await;
+    let mut finished: Vec<&Value> = list
         .as_array()
         .unwrap()
         .iter()
         .filter(|t| t["status"] != "running")
         .collect();
-    done.sort_by_key(|t| t["id"].as_u64());
-    assert!(done.len() >= 2, "{list}");
-    for (k, t) in done.iter().take(2).enumerate() {
+    finished.sort_by_key(|t| t["id"].as_u64());
+    for (k, t) in finished.iter().enumerate() {
+        if t["status"] == "aborted" {
+            assert!(
+                matches!(
+                    t["abort_reason"].as_str(),
+                    Some("magnet_fault" | "camera_lost" | "timeout")
+                ),
+                "trial {k}: {t}"
+            );
+            continue;
+        }
         let (dist, mt) = planned(k);
         assert_eq!(t["status"], "done", "{t}");
         let got_d = t["distance_m"].as_f64().unwrap();

@@ -212,14 +212,20 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
     );
     ends.wait_all(&listed, Duration::from_secs(30)).await;
     for r in list {
-        // Done; or, on a starved machine (the simulated lab's camera is a
-        // thread of the service, four labs and `stress-ng` beside it), ended
-        // by the filter's own checks: no confident pass in time, or no
-        // frames. Never refused, lost or left open.
+        // Done; or, on a starved machine (the simulated lab's camera and
+        // magnet board are threads of the service, four labs and
+        // `stress-ng` beside it), ended by the lab's own checks: no
+        // confident pass in time, no frames, or a board silent past its
+        // timeouts while it held the ball (seen once in a streak: the
+        // first trial, 8 s after the service started). Never refused,
+        // lost or left open.
         assert!(
             r["status"] == "done"
                 || (r["status"] == "aborted"
-                    && matches!(r["abort_reason"].as_str(), Some("timeout" | "camera_lost"))),
+                    && matches!(
+                        r["abort_reason"].as_str(),
+                        Some("timeout" | "camera_lost" | "magnet_fault")
+                    )),
             "{r}"
         );
         let id = r["id"].as_u64().unwrap();

@@ -111,30 +111,35 @@ async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
     }
 }
 
-/// One whole trial through the service; returns its recording.
+/// Aborts of a starved machine, not of the tuning: the simulated lab's
+/// camera and magnet board are threads of the service, and beside
+/// `stress-ng` a board once stayed silent past its timeouts while it held
+/// the ball (`magnet_fault`), or the frames stopped (`camera_lost`) or no
+/// pass was confident in time (`timeout`).
+const STARVED_ABORTS: [&str; 3] = ["magnet_fault", "camera_lost", "timeout"];
+
+/// One whole trial through the service (another one, at most twice, when
+/// the first ended in one of [`STARVED_ABORTS`]); returns its recording.
 async fn record_trial(addr: SocketAddr) -> String {
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let id = r.json().unwrap()["id"].as_u64().unwrap();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    // Polled until the deadline: on a starved machine one poll may go
-    // unanswered within the client's 10 s (beside `stress-ng`), which is
-    // not the trial's end.
-    loop {
-        let last = match http(addr, "GET", &format!("/api/trials/{id}"), &[], b"").await {
-            Ok(r) => {
-                let t = r.json().unwrap();
-                if t["status"] != "running" {
-                    assert_eq!(t["status"], "done", "{t}");
-                    break;
-                }
-                t.to_string()
-            }
-            Err(e) => format!("{e:#}"),
-        };
-        assert!(Instant::now() < deadline, "trial {id} did not end: {last}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    let mut starved = Vec::new();
+    let id = loop {
+        let id = run_trial(addr).await;
+        let t = http(addr, "GET", &format!("/api/trials/{id}"), &[], b"")
+            .await
+            .unwrap()
+            .json()
+            .unwrap();
+        if t["status"] == "done" {
+            break id;
+        }
+        let reason = t["abort_reason"].as_str().unwrap_or_default();
+        assert!(
+            STARVED_ABORTS.contains(&reason) && starved.len() < 2,
+            "trial {id}: {t} (aborted before: {starved:?})"
+        );
+        eprintln!("trial {id} aborted ({reason}) on a starved machine: another one");
+        starved.push(t);
+    };
     let r = http(
         addr,
         "GET",
@@ -146,6 +151,40 @@ async fn record_trial(addr: SocketAddr) -> String {
     .unwrap();
     assert_eq!(r.status, 200);
     String::from_utf8(r.body).unwrap()
+}
+
+/// Posts a trial and waits (60 s at most) until its record is no longer
+/// running; returns its id.
+async fn run_trial(addr: SocketAddr) -> u64 {
+    // The lab may still be settling from an aborted trial (409: busy).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let r = loop {
+        let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+        if r.status != 409 || Instant::now() >= deadline {
+            break r;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+    let id = r.json().unwrap()["id"].as_u64().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    // Polled until the deadline: on a starved machine one poll may go
+    // unanswered within the client's 10 s (beside `stress-ng`), which is
+    // not the trial's end.
+    loop {
+        let last = match http(addr, "GET", &format!("/api/trials/{id}"), &[], b"").await {
+            Ok(r) => {
+                let t = r.json().unwrap();
+                if t["status"] != "running" {
+                    return id;
+                }
+                t.to_string()
+            }
+            Err(e) => format!("{e:#}"),
+        };
+        assert!(Instant::now() < deadline, "trial {id} did not end: {last}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// The camera's real error in a service recording, against the ground truth the
