@@ -181,7 +181,7 @@ release: deps
 
 run: deps web release
 	@echo "isochron: the simulated lab and dashboard at http://$(BIND)/ (Ctrl-C stops)"
-	./target/release/isochron serve --bind $(BIND)
+	"$${CARGO_TARGET_DIR:-target}/release/isochron" serve --bind $(BIND)
 
 ## demo: the simulated lab in demo mode (a trial every DEMO_INTERVAL_S seconds,
 ## unattended); the kiosk page for a screen in the hall at /demo.

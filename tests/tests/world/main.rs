@@ -568,6 +568,20 @@ async fn step_refused(addr: SocketAddr, step: &str, says: &str) {
     );
 }
 
+/// The world's truth line of the release during trial record `r` (the
+/// coil let go between its start and its end).
+fn release_during<'a>(lines: &'a [Value], r: &Value) -> Option<&'a Value> {
+    let (t0, t1) = (
+        r["started_unix_s"].as_f64()?,
+        r["finished_unix_s"].as_f64()?,
+    );
+    lines.iter().find(|l| {
+        l["coil_off_unix_s"]
+            .as_f64()
+            .is_some_and(|c| c >= t0 && c <= t1)
+    })
+}
+
 /// Runs `n` trials over REST on a served real lab (more, at most 12 in all,
 /// until one is judged: on a starved machine the measured judge may not see
 /// a trial, and says so), with an operator's heartbeat, and pairs each with
@@ -587,9 +601,6 @@ async fn trials_paired(
     ready: &Value,
 ) {
     let heart = Heartbeat::start(addr);
-    // A calibration step's own release is in the truth (concluded 8 s after
-    // its drop): the trials' releases come after it.
-    let releases_before = truth_lines(truth).len();
 
     let cpu0 = (serve.cpu_s(), world.cpu_s(), Instant::now());
     let mut records = Vec::new();
@@ -611,14 +622,22 @@ async fn trials_paired(
     heart.stop().await;
 
     // Each release is concluded by the world at the next hanging or 8 s
-    // after its drop: wait for the last trial's line.
+    // after its drop: wait for every done trial's line (an aborted trial
+    // may have released too: its line is no count of the others').
     let deadline = Instant::now() + Duration::from_secs(30);
-    let released = records.iter().filter(|r| r["status"] == "done").count();
     let mut lines = truth_lines(truth);
-    while lines.len() < releases_before + released {
+    loop {
+        let missing: Vec<&Value> = records
+            .iter()
+            .filter(|r| r["status"] == "done" && release_during(&lines, r).is_none())
+            .map(|r| &r["id"])
+            .collect();
+        if missing.is_empty() {
+            break;
+        }
         assert!(
             Instant::now() < deadline,
-            "{} truth lines for {released} finished trials",
+            "no release in the world's truth during trials {missing:?} ({} truth lines: {lines:?})",
             lines.len()
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
@@ -639,17 +658,7 @@ async fn trials_paired(
             ));
             continue;
         }
-        let (t0, t1) = (
-            r["started_unix_s"].as_f64().unwrap(),
-            r["finished_unix_s"].as_f64().unwrap(),
-        );
-        let t = lines
-            .iter()
-            .find(|l| {
-                l["coil_off_unix_s"]
-                    .as_f64()
-                    .is_some_and(|c| c >= t0 && c <= t1)
-            })
+        let t = release_during(&lines, r)
             .unwrap_or_else(|| panic!("no release in the world's truth during trial {r}"));
         if r["judged_by"].is_null() {
             // A trial the measured judge cannot see (the robot's messages
