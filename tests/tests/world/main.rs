@@ -531,7 +531,21 @@ async fn trials_on_the_world_are_judged_by_the_measured_judge_as_the_world_judge
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+    // Refused. A post the service does not answer within the client's 10 s
+    // (a streak beside `stress-ng` saw one; not measured why: the likeliest,
+    // the record's two synchronous commits waiting on the disk behind the
+    // other tests' writes) is posted again, twice at most.
+    let mut tries = 0;
+    let r = loop {
+        match http(addr, "POST", "/api/trials", &[], b"").await {
+            Ok(r) => break r,
+            Err(e) if isochron_tests::service::timed_out(&e) && tries < 2 => {
+                eprintln!("the refused trial's post: no answer ({e:#}); again");
+                tries += 1;
+            }
+            Err(e) => panic!("POST /api/trials: the service does not answer: {e:#}"),
+        }
+    };
     assert_eq!(r.status, 409, "{}", String::from_utf8_lossy(&r.body));
     assert_eq!(r.json().unwrap()["reason"], "device_unavailable");
     assert_eq!(get(addr, "/api/trials").await, serde_json::json!([]));
