@@ -25,7 +25,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use isochron_tests::service::{Service, api, timed_out};
+use isochron_tests::service::{STARVED_ABORTS, Service, api, timed_out};
 use isochron_tests::{TrialEnds, isochron_bin};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -222,10 +222,9 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
         assert!(
             r["status"] == "done"
                 || (r["status"] == "aborted"
-                    && matches!(
-                        r["abort_reason"].as_str(),
-                        Some("timeout" | "camera_lost" | "magnet_fault")
-                    )),
+                    && r["abort_reason"]
+                        .as_str()
+                        .is_some_and(|a| STARVED_ABORTS.contains(&a))),
             "{r}"
         );
         let id = r["id"].as_u64().unwrap();

@@ -14,6 +14,7 @@ use std::{
 };
 
 use isochron_tests::http;
+use isochron_tests::service::STARVED_ABORTS;
 use rt_core::{
     ekf::EkfParams,
     params::Scenario,
@@ -111,24 +112,13 @@ async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
     }
 }
 
-/// Aborts of a starved machine, not of the tuning: the simulated lab's
-/// camera and magnet board are threads of the service, and beside
-/// `stress-ng` a board once stayed silent past its timeouts while it held
-/// the ball (`magnet_fault`), or the frames stopped (`camera_lost`) or no
-/// pass was confident in time (`timeout`).
-const STARVED_ABORTS: [&str; 3] = ["magnet_fault", "camera_lost", "timeout"];
-
 /// One whole trial through the service (another one, at most twice, when
-/// the first ended in one of [`STARVED_ABORTS`]); returns its recording.
+/// the first ended in one of the starved machine's aborts,
+/// [`STARVED_ABORTS`]); returns its recording.
 async fn record_trial(addr: SocketAddr) -> String {
     let mut starved = Vec::new();
     let id = loop {
-        let id = run_trial(addr).await;
-        let t = http(addr, "GET", &format!("/api/trials/{id}"), &[], b"")
-            .await
-            .unwrap()
-            .json()
-            .unwrap();
+        let (id, t) = run_trial(addr).await;
         if t["status"] == "done" {
             break id;
         }
@@ -154,8 +144,8 @@ async fn record_trial(addr: SocketAddr) -> String {
 }
 
 /// Posts a trial and waits (60 s at most) until its record is no longer
-/// running; returns its id.
-async fn run_trial(addr: SocketAddr) -> u64 {
+/// running; returns its id and that record.
+async fn run_trial(addr: SocketAddr) -> (u64, Value) {
     // The lab may still be settling from an aborted trial (409: busy).
     let deadline = Instant::now() + Duration::from_secs(30);
     let r = loop {
@@ -176,7 +166,7 @@ async fn run_trial(addr: SocketAddr) -> u64 {
             Ok(r) => {
                 let t = r.json().unwrap();
                 if t["status"] != "running" {
-                    return id;
+                    return (id, t);
                 }
                 t.to_string()
             }
