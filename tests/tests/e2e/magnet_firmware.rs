@@ -739,10 +739,21 @@ fn the_cli_switches_the_simulated_magnet_and_prints_json() {
     let port = link.to_string_lossy().into_owned();
     for (action, level) in [("on", 1u8), ("status", 1), ("off", 0), ("status", 0)] {
         // simavr shares the machine with the other tests: 2 s for an answer
-        // (a real Uno's 300 ms default is the driver's, tested above).
+        // (a real Uno's 300 ms default is the driver's, tested above), and
+        // 10 s for the first at opening the port (a real Uno's 3 s boot
+        // budget: beside `stress-ng` the simulator once answered none of
+        // the pings in 3 s, and the switch was never asked).
         let (ok, stdout, stderr) = isochron_magnet(
             &bin,
-            &["--port", &port, "--command-timeout-ms", "2000", action],
+            &[
+                "--port",
+                &port,
+                "--boot-timeout-ms",
+                "10000",
+                "--command-timeout-ms",
+                "2000",
+                action,
+            ],
         );
         assert!(ok, "isochron magnet {action}: {stderr}");
         let j: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
