@@ -7,8 +7,10 @@ use std::{
     time::{Duration, Instant},
 };
 
+use isochron_tests::service::STARVED_ABORTS;
 use isochron_tests::{ServedLab, http};
 use rt_core::params::Scenario;
+use serde_json::Value;
 use server::Records;
 
 #[tokio::test]
@@ -36,31 +38,59 @@ async fn a_trial_in_the_simulated_lab_is_judged_recorded_and_survives_a_restart(
     assert_eq!(st["trial_state"], "idle");
     assert_eq!(st["fri"]["session"], "commanding_active");
 
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
-    assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
-    let id = r.json().unwrap()["id"].as_u64().unwrap();
-    // A second one while it runs is refused.
-    let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
-    assert_eq!(r.status, 409);
-    let deadline = Instant::now() + Duration::from_secs(60);
     // The timing system as the dashboard sees it: the oscillator's real state
     // and neurons, and the planned path speed, while the arm moves.
     let (mut max_planned, mut max_a, mut hopf_won) = (0.0f64, 0.0f64, false);
-    let rec = loop {
-        if let Some((s, _)) = lab.latest()
-            && s.trial_state == rt_core::bridge::TrialState::Intercepting
-        {
-            assert!(s.hopf.a.is_finite() && s.hopf.b.is_finite(), "{:?}", s.hopf);
-            max_planned = max_planned.max(s.path.speed_planned_mps);
-            max_a = max_a.max(s.hopf.a);
-            hopf_won |= s.hopf.u_hopf > s.hopf.u_init && s.hopf.u_hopf > s.hopf.u_final;
+    // A trial a starved machine's devices ended (its reason said: the
+    // simulated lab's magnet board is a thread of the service) is run
+    // again, twice at most.
+    let mut tries = 0;
+    let (id, rec) = loop {
+        tries += 1;
+        let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+        assert_eq!(r.status, 202, "{}", String::from_utf8_lossy(&r.body));
+        let id = r.json().unwrap()["id"].as_u64().unwrap();
+        // A second one while it runs is refused.
+        let r = http(addr, "POST", "/api/trials", &[], b"").await.unwrap();
+        assert_eq!(r.status, 409);
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let rec = loop {
+            if let Some((s, _)) = lab.latest()
+                && s.trial_state == rt_core::bridge::TrialState::Intercepting
+            {
+                assert!(s.hopf.a.is_finite() && s.hopf.b.is_finite(), "{:?}", s.hopf);
+                max_planned = max_planned.max(s.path.speed_planned_mps);
+                max_a = max_a.max(s.hopf.a);
+                hopf_won |= s.hopf.u_hopf > s.hopf.u_init && s.hopf.u_hopf > s.hopf.u_final;
+            }
+            let rec = records.get(id).unwrap().unwrap();
+            if rec.status != "running" {
+                break rec;
+            }
+            assert!(Instant::now() < deadline, "trial {id} did not end");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        };
+        let starved = rec.status == "aborted"
+            && rec
+                .abort_reason
+                .as_deref()
+                .is_some_and(|a| STARVED_ABORTS.contains(&a));
+        if tries < 3 && starved {
+            eprintln!("trial {id} ended by a starved machine: {rec:?}");
+            let deadline = Instant::now() + Duration::from_secs(30);
+            while lab
+                .latest()
+                .is_none_or(|(s, _)| !s.ready.trial || s.trial_state.busy())
+            {
+                assert!(
+                    Instant::now() < deadline,
+                    "the lab does not take a trial again"
+                );
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            continue;
         }
-        let rec = records.get(id).unwrap().unwrap();
-        if rec.status != "running" {
-            break rec;
-        }
-        assert!(Instant::now() < deadline, "trial {id} did not end");
-        tokio::time::sleep(Duration::from_millis(10)).await;
+        break (id, rec);
     };
     println!(
         "simulated trial: {rec:?}; peak planned speed {max_planned:.3} m/s, peak a {max_a:.3}"
@@ -130,6 +160,15 @@ async fn until(
     }
 }
 
+/// A trial record a starved machine's devices ended, with its reason
+/// ([`STARVED_ABORTS`]).
+fn starved(record: &Value) -> bool {
+    record["status"] == "aborted"
+        && record["abort_reason"]
+            .as_str()
+            .is_some_and(|a| STARVED_ABORTS.contains(&a))
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     let tmp = tempfile::tempdir().unwrap();
@@ -165,23 +204,40 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
         "a refused trial left a record"
     );
 
-    // This trial's own distance and movement time (the parameters in force unchanged).
-    let (code, v) = json(
-        addr,
-        "POST",
-        "/api/trials",
-        r#"{"distance_m": 0.7, "movement_time_s": 2.0}"#,
-    )
-    .await;
-    assert_eq!(code, 202, "{v}");
-    let id = v["id"].as_u64().unwrap();
-    let rec = until(
-        addr,
-        &format!("/api/trials/{id}"),
-        Duration::from_secs(60),
-        |r| r["status"] != "running",
-    )
-    .await;
+    // This trial's own distance and movement time (the parameters in force
+    // unchanged). A trial a starved machine's devices ended (the simulated
+    // lab's magnet board is a thread of the service: beside `stress-ng` it
+    // once stayed silent past its timeouts while it held the ball) finished
+    // with its reason and is run again, twice at most.
+    let mut tries = 0;
+    let rec = loop {
+        tries += 1;
+        let (code, v) = json(
+            addr,
+            "POST",
+            "/api/trials",
+            r#"{"distance_m": 0.7, "movement_time_s": 2.0}"#,
+        )
+        .await;
+        assert_eq!(code, 202, "{v}");
+        let id = v["id"].as_u64().unwrap();
+        let rec = until(
+            addr,
+            &format!("/api/trials/{id}"),
+            Duration::from_secs(60),
+            |r| r["status"] != "running",
+        )
+        .await;
+        if tries < 3 && starved(&rec) {
+            eprintln!("trial {id} ended by a starved machine: {}", rec["reason"]);
+            until(addr, "/api/health", Duration::from_secs(30), |h| {
+                h["ready"] == true
+            })
+            .await;
+            continue;
+        }
+        break rec;
+    };
     assert_eq!(rec["status"], "done", "{rec}");
     let d = rec["distance_m"].as_f64().unwrap();
     let mt = rec["movement_time_s"].as_f64().unwrap();
@@ -224,6 +280,11 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     let mut successes = 0;
     for (i, want) in ids.iter().zip([0.5, 0.7]) {
         let (_, t) = json(addr, "GET", &format!("/api/trials/{i}"), "").await;
+        if starved(&t) {
+            // Ended by a starved machine, with its reason (above): no distance to read.
+            continue;
+        }
+        assert_eq!(t["status"], "done", "{t}");
         assert!(
             (t["distance_m"].as_f64().unwrap() - want).abs() <= 0.005,
             "{t}"

@@ -738,11 +738,11 @@ fn the_cli_switches_the_simulated_magnet_and_prints_json() {
     let board = SimBoard::start(&elf, &host, &link);
     let port = link.to_string_lossy().into_owned();
     for (action, level) in [("on", 1u8), ("status", 1), ("off", 0), ("status", 0)] {
-        // simavr shares the machine with the other tests: 2 s for an answer
-        // (a real Uno's 300 ms default is the driver's, tested above), and
-        // 10 s for the first at opening the port (a real Uno's 3 s boot
-        // budget: beside `stress-ng` the simulator once answered none of
-        // the pings in 3 s, and the switch was never asked).
+        // simavr shares the machine with the other tests: 10 s for an
+        // answer, at opening the port and to each command (a real Uno's 3 s
+        // boot budget and 300 ms default are the driver's, tested above):
+        // beside `stress-ng` the simulator once answered none of the pings in
+        // 3 s, and once not `MAGNET ON` in 2 s.
         let (ok, stdout, stderr) = isochron_magnet(
             &bin,
             &[
@@ -751,7 +751,7 @@ fn the_cli_switches_the_simulated_magnet_and_prints_json() {
                 "--boot-timeout-ms",
                 "10000",
                 "--command-timeout-ms",
-                "2000",
+                "10000",
                 action,
             ],
         );
