@@ -19,6 +19,15 @@ use serde_json::Value;
 /// trial finished with its reason: no record is lost.
 pub const STARVED_ABORTS: [&str; 3] = ["magnet_fault", "camera_lost", "timeout"];
 
+/// Whether a trial record (`GET /api/trials/{id}`) was aborted for one of
+/// [`STARVED_ABORTS`].
+pub fn starved(record: &Value) -> bool {
+    record["status"] == "aborted"
+        && record["abort_reason"]
+            .as_str()
+            .is_some_and(|a| STARVED_ABORTS.contains(&a))
+}
+
 /// Lines of the service's log a failing test prints.
 const LOG_TAIL_LINES: usize = 60;
 

@@ -17,7 +17,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use isochron_tests::isochron_bin;
-use isochron_tests::service::{STARVED_ABORTS, Service, api};
+use isochron_tests::service::{Service, api, starved};
 use serde_json::Value;
 
 const TOKEN: &str = "demo-token";
@@ -109,12 +109,7 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     finished.sort_by_key(|t| t["id"].as_u64());
     for (k, t) in finished.iter().enumerate() {
         if t["status"] == "aborted" {
-            assert!(
-                t["abort_reason"]
-                    .as_str()
-                    .is_some_and(|a| STARVED_ABORTS.contains(&a)),
-                "trial {k}: {t}"
-            );
+            assert!(starved(t), "trial {k}: {t}");
             continue;
         }
         let (dist, mt) = planned(k);

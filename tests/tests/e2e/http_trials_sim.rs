@@ -7,10 +7,9 @@ use std::{
     time::{Duration, Instant},
 };
 
-use isochron_tests::service::STARVED_ABORTS;
+use isochron_tests::service::{STARVED_ABORTS, starved};
 use isochron_tests::{ServedLab, http};
 use rt_core::params::Scenario;
-use serde_json::Value;
 use server::Records;
 
 #[tokio::test]
@@ -158,15 +157,6 @@ async fn until(
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-}
-
-/// A trial record a starved machine's devices ended, with its reason
-/// ([`STARVED_ABORTS`]).
-fn starved(record: &Value) -> bool {
-    record["status"] == "aborted"
-        && record["abort_reason"]
-            .as_str()
-            .is_some_and(|a| STARVED_ABORTS.contains(&a))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -25,7 +25,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use isochron_tests::service::{STARVED_ABORTS, Service, api, timed_out};
+use isochron_tests::service::{Service, api, starved, timed_out};
 use isochron_tests::{TrialEnds, isochron_bin};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -227,14 +227,7 @@ async fn trials_posted_the_moment_the_last_shows_done_each_finish() {
         // timeouts while it held the ball (seen once in a streak: the
         // first trial, 8 s after the service started). Never refused,
         // lost or left open.
-        assert!(
-            r["status"] == "done"
-                || (r["status"] == "aborted"
-                    && r["abort_reason"]
-                        .as_str()
-                        .is_some_and(|a| STARVED_ABORTS.contains(&a))),
-            "{r}"
-        );
+        assert!(r["status"] == "done" || starved(r), "{r}");
         let id = r["id"].as_u64().unwrap();
         assert_eq!(ends.count(id), 1, "one end event for trial {id}");
     }
