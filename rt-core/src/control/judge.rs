@@ -255,6 +255,61 @@ pub fn judge(
     judge_into(trace, motion, intercept_m, &mut JudgeScratch::default())
 }
 
+/// The ideal profile that best fits the tool's progress along `motion`'s
+/// path (the samples from a quarter of the duration before the command to
+/// half of it after the planned end): `(start, duration, rms)`, as
+/// [`judge_into`] fits it (the arrival is start + duration). The measured
+/// judge fits the tool point of the measured joints the same way (the
+/// movement time a real lab reports).
+///
+/// # Errors
+///
+/// [`JudgeError::DegenerateMotion`] for a motion without length or
+/// duration; [`JudgeError::TooFewSamples`] for fewer than 3 samples in the
+/// window; [`JudgeError::NoMotion`] when the tool never moved half way.
+pub fn fit_movement(
+    samples: impl Iterator<Item = (f64, Vector3<f64>)>,
+    motion: &PlannedMotion,
+    scratch: &mut JudgeScratch,
+) -> Result<(f64, f64, f64), JudgeError> {
+    let path = motion.end_m - motion.start_m;
+    let distance_m = path.norm();
+    if distance_m < 1e-3 || motion.duration_s.is_nan() || motion.duration_s <= 0.0 {
+        return Err(JudgeError::DegenerateMotion);
+    }
+    let dir = path / distance_m;
+    // Progress along the path from motion start: samples from just before the
+    // command to a little after the planned end.
+    let lo = motion.commanded_start_s - 0.25 * motion.duration_s;
+    let hi = motion.commanded_start_s + 1.5 * motion.duration_s;
+    let JudgeScratch {
+        times, progress, ..
+    } = scratch;
+    times.clear();
+    progress.clear();
+    for (t, tool) in samples {
+        if t >= lo && t <= hi {
+            times.push(t);
+            progress.push((tool - motion.start_m).dot(&dir));
+        }
+    }
+    if times.len() < 3 {
+        return Err(JudgeError::TooFewSamples);
+    }
+    let moved = progress.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if moved < 0.5 * distance_m {
+        return Err(JudgeError::NoMotion);
+    }
+    Ok(fit_profile(
+        motion.profile,
+        distance_m,
+        times,
+        progress,
+        motion.commanded_start_s,
+        motion.duration_s,
+    ))
+}
+
 /// [`judge`] with its working memory in `scratch` (the trial driver judges on
 /// the control thread without allocating).
 ///
@@ -274,47 +329,14 @@ pub fn judge_into(
     if n < 3 || trace.tool_m.len() != n || trace.ball_m.len() != n {
         return Err(JudgeError::TooFewSamples);
     }
-    let path = motion.end_m - motion.start_m;
-    let distance_m = path.norm();
-    if distance_m < 1e-3 || motion.duration_s.is_nan() || motion.duration_s <= 0.0 {
-        return Err(JudgeError::DegenerateMotion);
-    }
-    let dir = path / distance_m;
-    // Progress along the path from motion start: samples from just before the
-    // command to a little after the planned end.
-    let lo = motion.commanded_start_s - 0.25 * motion.duration_s;
-    let hi = motion.commanded_start_s + 1.5 * motion.duration_s;
-    let JudgeScratch {
-        times,
-        progress,
-        passes,
-    } = scratch;
-    times.clear();
-    progress.clear();
-    passes.clear();
-    for i in 0..n {
-        let t = trace.t_s[i];
-        if t >= lo && t <= hi {
-            times.push(t);
-            progress.push((trace.tool_m[i] - motion.start_m).dot(&dir));
-        }
-    }
-    if times.len() < 3 {
-        return Err(JudgeError::TooFewSamples);
-    }
-    let moved = progress.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if moved < 0.5 * distance_m {
-        return Err(JudgeError::NoMotion);
-    }
-    let (start_s, dur_s, rms) = fit_profile(
-        motion.profile,
-        distance_m,
-        times,
-        progress,
-        motion.commanded_start_s,
-        motion.duration_s,
-    );
+    let (start_s, dur_s, rms) = fit_movement(
+        (0..n).map(|i| (trace.t_s[i], trace.tool_m[i])),
+        motion,
+        scratch,
+    )?;
     let arrival_s = start_s + dur_s;
+    let passes = &mut scratch.passes;
+    passes.clear();
     pass_times(trace, intercept_m.y, passes);
     let t_star_s = passes
         .iter()

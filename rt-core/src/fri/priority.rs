@@ -275,7 +275,9 @@ pub fn enable() -> RtStatus {
 
 /// Moves every thread of the process to `others` (threads started later
 /// inherit the mask of the thread that starts them); FRI threads pin
-/// themselves back when they start. Returns the threads moved.
+/// themselves back when they start, and one already pinned to the FRI CPU
+/// alone (started after an earlier [`enable`], such as the in-process
+/// world's cabinet) stays there. Returns the threads moved.
 fn keep_threads_off(others: &CpuSet) -> usize {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
         return 0;
@@ -290,6 +292,13 @@ fn keep_threads_off(others: &CpuSet) -> usize {
         else {
             continue;
         };
+        let on_fri_cpu_only = rustix::thread::sched_getaffinity(Some(tid)).is_ok_and(|m| {
+            let mut set = (0..CpuSet::MAX_CPU).filter(|&c| m.is_set(c));
+            matches!((set.next(), set.next()), (Some(c), None) if !others.is_set(c))
+        });
+        if on_fri_cpu_only {
+            continue;
+        }
         if rustix::thread::sched_setaffinity(Some(tid), others).is_ok() {
             moved += 1;
         }

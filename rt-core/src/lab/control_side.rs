@@ -113,6 +113,7 @@ impl ControlSide {
                 real_plane: None,
                 // Virtual time: a camera is never lost.
                 camera_lost_after_s: super::step::CAMERA_LOST_AFTER_S,
+                stand: None,
             },
         );
         Ok(Self {

@@ -84,6 +84,25 @@ impl MeasuredTrace {
         }
     }
 
+    /// The movement the measured tool point made along `motion`'s path:
+    /// `(start, duration)` of the ideal profile that best fits it
+    /// ([`crate::control::judge::fit_movement`]); `None` when it cannot be
+    /// fitted (too few samples, no motion).
+    pub fn movement(
+        &self,
+        motion: &crate::control::judge::PlannedMotion,
+        scratch: &mut crate::control::judge::JudgeScratch,
+    ) -> Option<(f64, f64)> {
+        let samples = self
+            .tool_t_s
+            .iter()
+            .zip(&self.tool_m)
+            .map(|(&t, p)| (t, nalgebra::Vector3::from(*p)));
+        crate::control::judge::fit_movement(samples, motion, scratch)
+            .ok()
+            .map(|(start_s, dur_s, _)| (start_s, dur_s))
+    }
+
     /// The measured tool point at `t_s`.
     pub fn tool(&mut self, t_s: f64, p: [f64; 3]) {
         if self.tool_t_s.len() < self.tool_t_s.capacity() {

@@ -7,6 +7,7 @@ mod measured;
 pub(crate) mod replay;
 #[cfg(all(feature = "opencv", feature = "serial"))]
 pub mod runtime;
+pub mod stand;
 pub mod step;
 pub mod trial;
 pub mod truth;
@@ -22,6 +23,7 @@ pub use runtime::{
     LoopReport, MagnetFactory, MagnetLink, RobotFactory, RobotLoopCounts, RuntimeError,
     SimulatedCamera, SimulatedRobot, SourceFactory,
 };
+pub use stand::Stand;
 pub use step::{
     AFTER_DONE_S, CameraBasis, CameraModel, LabClock, LabStep, TRIAL_TIMEOUT_S, TrialOutcome, Truth,
 };

@@ -338,6 +338,11 @@ pub struct LabSetup {
     /// column, centre row and radius, pixels (`None`: not read; the
     /// latency step needs it). Its readings: [`LabRuntime::led_feed`].
     pub led_roi_px: Option<[f64; 3]>,
+    /// The simulated lab's stand ([`super::Stand`]): with one, each trial's
+    /// distance is its own (drawn or asked, not `fixed_distance_m`) and the
+    /// stand is asked to put the pendulum there and hang the ball at the
+    /// trial's release angle. `None`: the pendulum stays put.
+    pub stand: Option<Arc<super::Stand>>,
 }
 
 impl LabSetup {
@@ -369,6 +374,7 @@ impl LabSetup {
             session,
             operator_timeout_s: None,
             led_roi_px: None,
+            stand: None,
         }
     }
 }
@@ -439,7 +445,14 @@ impl LabRuntime {
             session: client_params,
             operator_timeout_s,
             led_roi_px,
+            stand,
         } = setup;
+        // A stand moves the pendulum to each trial's own distance.
+        let fixed_distance_m = if stand.is_some() {
+            None
+        } else {
+            fixed_distance_m
+        };
         scenario.validate()?;
         video.validate()?;
         // The FRI threads started from here on run first when the machine is busy.
@@ -568,6 +581,7 @@ impl LabRuntime {
                 stamp_latency: Some(stamp_latency),
                 real_plane,
                 camera_lost_after_s,
+                stand,
             },
         );
         // On the FRI thread the reply is the only system call of a cycle: the

@@ -283,6 +283,10 @@ pub(crate) struct LabParts {
     /// [`CAMERA_LOST_AFTER_S`], or [`SIMULATED_CAMERA_LOST_AFTER_S`] for the
     /// simulated lab's rendering thread.
     pub camera_lost_after_s: f64,
+    /// The simulated lab's stand (`None`: a pendulum that stays put): each
+    /// trial's distance and release angle are asked of it before the
+    /// magnet switches on, and a real camera's plane moves with it.
+    pub stand: Option<std::sync::Arc<super::Stand>>,
 }
 
 /// What a real lab believes of its camera and pendulum without the
@@ -302,6 +306,23 @@ pub struct CameraBasis {
 }
 
 impl CameraBasis {
+    /// The basis with the pendulum moved to `distance_m` from the robot's
+    /// base along the same bearing (the simulated lab's stand,
+    /// [`super::Stand`]); the camera stays where it is.
+    pub fn at_distance(&self, distance_m: f64) -> Self {
+        let [px, py, pz] = self.pivot_m;
+        let r = px.hypot(py);
+        let (ux, uy) = if r > 1e-9 {
+            (px / r, py / r)
+        } else {
+            (1.0, 0.0)
+        };
+        Self {
+            pivot_m: [ux * distance_m, uy * distance_m, pz],
+            ..*self
+        }
+    }
+
     /// The camera and the ball's rest centre as `scenario`'s beliefs have
     /// them: the camera step's intrinsics and lens, else the basis's; the
     /// camera-robot step's pose, else the basis's; the rest centre the
@@ -797,6 +818,28 @@ impl LabStep {
         }
     }
 
+    /// Asks the simulated lab's stand for the pendulum at `distance_m` and
+    /// the ball hung at `release_deg`, and moves a real camera's swing plane
+    /// with the pivot (nothing without a stand).
+    fn place_stand(&mut self, distance_m: f64, release_deg: f64) {
+        let Some(stand) = self.p.stand.as_ref() else {
+            return;
+        };
+        stand.place(distance_m, release_deg);
+        if let Some(rp) = self.p.real_plane.as_mut() {
+            let moved = rp.basis.at_distance(distance_m);
+            if moved != rp.basis {
+                rp.basis = moved;
+                let cal = rp.basis.plane(&self.p.scenario);
+                let cam = &self.p.scenario.camera;
+                self.snap
+                    .camera
+                    .set_calibration(&cal, cam.width_px, cam.height_px);
+                let _ = rp.planes.push(cal);
+            }
+        }
+    }
+
     fn request_magnet(&mut self, on: bool) -> bool {
         let ok = self.p.io_requests.push(IoRequest::Magnet(on)).is_ok();
         if !ok {
@@ -1113,6 +1156,7 @@ impl LabStep {
             }
             None => false,
         };
+        self.place_stand(draw.distance_m, draw.release_angle_deg);
         if !self.request_magnet(true) {
             return Err(Refusal::DeviceUnavailable);
         }
@@ -1262,6 +1306,7 @@ impl LabStep {
         let Some(trial) = self.trial.take() else {
             return;
         };
+        let mut measured_movement = None;
         let c = self.inner.controller();
         let state = c.state();
         let (v0, m0, p0) = trial.counters_at_start;
@@ -1317,14 +1362,19 @@ impl LabStep {
             });
             o.latency_estimate_ms = commit.latency_s * 1e3;
             o.camera_offset_estimate_ms = Some(commit.camera_offset_s * 1e3);
+            let motion = PlannedMotion {
+                start_m: c.home_m(),
+                end_m: c.motion_target_m(),
+                profile: ProfileKind::Hopf,
+                duration_s: commit.duration_s,
+                commanded_start_s: commit.motion_start_s,
+            };
+            if !trial.truth {
+                // The movement as the measured joints show it (the real lab's
+                // movement time: fitted as the truth's judge fits the true tool).
+                measured_movement = self.measured.movement(&motion, &mut self.judge_scratch);
+            }
             if trial.truth {
-                let motion = PlannedMotion {
-                    start_m: c.home_m(),
-                    end_m: c.motion_target_m(),
-                    profile: ProfileKind::Hopf,
-                    duration_s: commit.duration_s,
-                    commanded_start_s: commit.motion_start_s,
-                };
                 let intercept = self
                     .p
                     .truth
@@ -1378,15 +1428,17 @@ impl LabStep {
             .measured
             .filter(super::super::control::measured::MeasuredJudgement::judged);
         let j = o.judgement.or_else(|| {
-            // The real lab: the measured judge's figures.
+            // The real lab: the measured judge's figures, and the movement
+            // fitted on the measured tool point.
             let m = mj.filter(|_| !trial.truth)?;
+            let (start_s, movement_time_s) = measured_movement.unwrap_or((f64::NAN, f64::NAN));
             Some(Judgement {
                 t_star_s: m.pass_t_s.unwrap_or(f64::NAN),
-                start_s: f64::NAN,
+                start_s,
                 arrival_s: m.arrival_t_s.unwrap_or(f64::NAN),
                 timing_error_ms: m.timing_error_ms.map_or(f64::NAN, f64::abs),
                 position_error_m: f64::NAN,
-                movement_time_s: f64::NAN,
+                movement_time_s,
                 fit_rms_m: f64::NAN,
             })
         });

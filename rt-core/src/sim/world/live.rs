@@ -7,7 +7,8 @@
 //! - **The coil** (`coil`): when the magnet's coil switches on, the
 //!   operator hangs the ball on it (a new release: its world drawn for the
 //!   release's index, the ball held at a release angle drawn from the
-//!   scenario's range, either side); when it switches off, the ball drops
+//!   scenario's range, either side, or at the angle the lab's stand asked);
+//!   when it switches off, the ball drops
 //!   after the world's release delay (residual magnetism).
 //! - **The arm** (`step`): every controller cycle the true tool's disc (the
 //!   world's kinematics at the robot's true joints) meets the true ball
@@ -98,6 +99,9 @@ pub struct LiveWorld {
     release: Option<Release>,
     done: Vec<ReleaseTruth>,
     last_t_s: Option<f64>,
+    /// The release angle the lab's stand asked for the next hang, degrees
+    /// (`lab::Stand`; `None`: drawn from the scenario's range).
+    asked_hang_deg: Option<f64>,
 }
 
 impl std::fmt::Debug for LiveWorld {
@@ -134,6 +138,7 @@ impl LiveWorld {
             release: None,
             done: Vec::new(),
             last_t_s: None,
+            asked_hang_deg: None,
         }
     }
 
@@ -151,6 +156,75 @@ impl LiveWorld {
     /// Releases the world has begun (hung the ball for).
     pub fn releases(&self) -> usize {
         self.next_index
+    }
+
+    /// The simulated lab's stand (`lab::Stand`) moves the pendulum at `t_s`
+    /// so that the ball hangs at rest `distance_m` from the robot's base
+    /// (along the same bearing, at the same height), and the hands hang the
+    /// ball at `hang_deg` (signed; `None`: drawn from the scenario's range).
+    /// A ball at rest moves now; a ball held on the magnet moves with the
+    /// magnet, and is hung again at a newly asked angle; a swinging release
+    /// keeps its place, and the next hang is at the new one.
+    pub fn place_stand(&mut self, t_s: f64, distance_m: f64, hang_deg: Option<f64>) {
+        let asked = hang_deg.filter(|a| a.is_finite() && a.abs() < 89.0);
+        let new_angle = asked.is_some() && asked != self.asked_hang_deg;
+        if asked.is_some() {
+            self.asked_hang_deg = asked;
+        }
+        let b = self.believed_intercept_m;
+        let r = b.x.hypot(b.y);
+        let moved = distance_m.is_finite() && distance_m > 0.0 && (r - distance_m).abs() >= 1e-9;
+        if moved {
+            let (ux, uy) = if r > 1e-9 {
+                (b.x / r, b.y / r)
+            } else {
+                (1.0, 0.0)
+            };
+            self.believed_intercept_m = Vector3::new(ux * distance_m, uy * distance_m, b.z);
+        }
+        if !moved && !new_angle {
+            return;
+        }
+        let held = self.on_tool.ball.is_held() && self.on_tool.drop_at.is_none();
+        let index = match self.release.as_mut() {
+            Some(r) if held => {
+                if new_angle && let Some(a) = asked {
+                    r.angle_deg = a;
+                }
+                r.index
+            }
+            // Swinging: it keeps its place.
+            Some(_) => return,
+            // At rest (or its last release recorded): the operator moves
+            // the stand and stills the ball there.
+            None if moved => self.next_index.saturating_sub(1),
+            None => return,
+        };
+        if let Some(w) = World::in_session(
+            &self.scenario,
+            self.seed,
+            0,
+            index,
+            &self.believed_intercept_m,
+        ) {
+            self.world = w;
+        }
+        let angle_deg = self.release.as_ref().filter(|_| held).map(|r| r.angle_deg);
+        let mut ball = TruePendulum::held_at(
+            self.world.pendulum,
+            angle_deg.unwrap_or(0.0).to_radians(),
+            if angle_deg.is_some() {
+                self.world.trial.out_of_plane_rad
+            } else {
+                0.0
+            },
+            t_s,
+            self.world.trial.seed,
+        );
+        if angle_deg.is_none() {
+            ball.release(t_s);
+        }
+        self.on_tool = BallOnTool::new(ball);
     }
 
     /// The coil switched on (`true`) or off at `t_s`.
@@ -173,7 +247,9 @@ impl LiveWorld {
             ) {
                 self.world = w;
             }
-            let angle_deg = self.release_angle_deg(index);
+            let angle_deg = self
+                .asked_hang_deg
+                .unwrap_or_else(|| self.release_angle_deg(index));
             let ball = TruePendulum::held_at(
                 self.world.pendulum,
                 angle_deg.to_radians(),
@@ -446,6 +522,54 @@ mod tests {
         assert_eq!(
             r.not_judged.as_deref(),
             Some("the arm did not move after the release")
+        );
+    }
+
+    #[test]
+    fn the_stand_moves_the_ball_at_rest_and_on_the_magnet_and_the_next_hang_takes_the_asked_angle()
+    {
+        let (s, intercept) = lab();
+        let mut w = LiveWorld::new(&s, 1, intercept, 0.0);
+        let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+        let horizontal = |w: &LiveWorld| w.world().intercept_m.x.hypot(w.world().intercept_m.y);
+        // At rest: the ball moves now, and rests over the new intercept point.
+        w.place_stand(0.1, intercept.x + 0.1, None);
+        assert!((horizontal(&w) - (intercept.x + 0.1)).abs() < 1e-9);
+        w.step(0.2, &home);
+        let rest = (w.ball().ball_position_m() - w.world().intercept_m).norm();
+        assert!(rest < 1e-6, "{rest}");
+        // The next hang at the asked angle (the lab's trial), at the stand's place.
+        w.place_stand(0.3, intercept.x + 0.1, Some(-20.0));
+        w.coil(true, 0.4);
+        assert!(w.ball().is_held());
+        let out = w.ball().ball_position_m() - w.world().intercept_m;
+        let angle = out.y.atan2(s.pendulum.length_m - out.z).to_degrees();
+        assert!((angle.abs() - 20.0).abs() < 0.5, "{angle}");
+        // Held on the magnet: the ball moves with the stand, at its angle.
+        let before = w.ball().ball_position_m() - w.world().intercept_m;
+        w.place_stand(0.5, intercept.x - 0.05, None);
+        assert!((horizontal(&w) - (intercept.x - 0.05)).abs() < 1e-9);
+        let after = w.ball().ball_position_m() - w.world().intercept_m;
+        assert!((after - before).norm() < 1e-9, "{before} {after}");
+        // Another angle asked while it is held (the pendulum step's prompt):
+        // hung again there.
+        w.place_stand(0.55, intercept.x - 0.05, Some(1.0));
+        let out = w.ball().ball_position_m() - w.world().intercept_m;
+        let angle = out.y.atan2(s.pendulum.length_m - out.z).to_degrees();
+        assert!((angle.abs() - 1.0).abs() < 0.1, "{angle}");
+        assert!(w.ball().is_held());
+        // Swinging: the release keeps its place; the next hang is at the new one.
+        w.coil(false, 0.6);
+        w.step(1.0, &home);
+        let swinging = w.world().intercept_m;
+        w.place_stand(1.1, intercept.x, None);
+        assert_eq!(w.world().intercept_m, swinging);
+        w.coil(true, 1.2);
+        assert!((horizontal(&w) - intercept.x).abs() < 1e-9);
+        assert_eq!(
+            w.take_truth().len(),
+            1,
+            "the swinging release was concluded"
         );
     }
 
