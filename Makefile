@@ -179,14 +179,14 @@ build: deps
 release: deps
 	$(CARGO) build --release --bin isochron
 
-run: deps web release
+run: deps firmware web release
 	@echo "isochron: the simulated lab and dashboard at http://$(BIND)/ (Ctrl-C stops)"
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" serve --bind $(BIND)
 
 ## demo: the simulated lab in demo mode (a trial every DEMO_INTERVAL_S seconds,
 ## unattended); the kiosk page for a screen in the hall at /demo.
 DEMO_INTERVAL_S ?= 10
-demo: deps web release
+demo: deps firmware web release
 	@echo "isochron demo: the kiosk page at http://$(BIND)/demo, the dashboard at http://$(BIND)/ (Ctrl-C stops)"
 	"$${CARGO_TARGET_DIR:-target}/release/isochron" serve --bind $(BIND) --demo --demo-interval-s $(DEMO_INTERVAL_S)
 
@@ -256,7 +256,7 @@ test-browser: web test-build
 # the heap, no console error, fps; it saves docs/demo.png.
 SOAK_S ?= 300
 DEMO_SOAK_S ?= 600
-soak: web
+soak: firmware web
 	$(CARGO) build --bin isochron
 	ISOCHRON_SOAK_S=$(SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 web/e2e/run.sh "$${CARGO_TARGET_DIR:-target}/debug/isochron"
 	ISOCHRON_DEMO_SOAK_S=$(DEMO_SOAK_S) ISOCHRON_SOAK_FPS_MIN=30 ISOCHRON_DEMO_SCREENSHOT=docs/demo.png \

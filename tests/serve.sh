@@ -41,7 +41,7 @@ serve_start() {
   serve_pid=$!
   serve_url=""
   local _
-  for _ in $(seq 1 300); do   # up to 30 s for the service to print its address
+  for _ in $(seq 1 600); do   # up to 60 s for the service (its world first) to print its address
     serve_url=$(grep -o 'http://[0-9.:]*/' "$serve_data/serve.out" | head -n1 || true)
     [ -n "$serve_url" ] && return 0
     serve_alive || { cat "$serve_data/serve.err" >&2; echo "isochron serve exited" >&2; exit 1; }

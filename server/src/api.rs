@@ -729,6 +729,8 @@ pub async fn start_calibration(
         }
         opts.release_deg = d;
     }
+    // On a real lab, the angle is asked of the person who hangs the ball.
+    let asked_release_deg = req.release_deg;
     let lab = Arc::clone(lab(&state)?);
     let desk = Arc::clone(desk(&state)?);
     // A trial's start checks for a running step under the same gate.
@@ -781,6 +783,7 @@ pub async fn start_calibration(
                     id,
                     &scenario,
                     crate::calibration::REAL_SWING_RECORD_S,
+                    asked_release_deg,
                 )
                 .await
             }

@@ -600,6 +600,9 @@ pub struct CalibrationDesk {
     /// A real lab's `[calibration]` (what it believes of its camera and
     /// pendulum before the steps: the camera-robot step starts from it).
     geometry: std::sync::OnceLock<crate::config::Calibration>,
+    /// What the steps run on, as a record says it (a real lab's default:
+    /// "the real lab"; [`Self::named`]).
+    source: Option<String>,
 }
 
 impl std::fmt::Debug for CalibrationDesk {
@@ -633,6 +636,25 @@ impl CalibrationDesk {
             refused: std::sync::Mutex::new(refused),
             taking: std::sync::atomic::AtomicBool::new(false),
             geometry: std::sync::OnceLock::new(),
+            source: None,
+        }
+    }
+
+    /// The desk of a lab whose steps run on `source` (a record's `source`
+    /// and the status's): the simulated lab's world behind a real lab's
+    /// interfaces says which world it is.
+    #[must_use]
+    pub fn named(mut self, source: impl Into<String>) -> Self {
+        self.source = Some(source.into());
+        self
+    }
+
+    /// What the steps run on, as records say it.
+    pub fn source(&self) -> &str {
+        match &self.source {
+            Some(s) => s,
+            None if self.real_lab => "the real lab",
+            None => "simulated world (truthful: the lab's own simulators)",
         }
     }
 
@@ -703,11 +725,7 @@ impl CalibrationDesk {
             .collect();
         Ok(CalibrationStatus {
             file: self.path.display().to_string(),
-            source: if self.real_lab {
-                "the real lab".into()
-            } else {
-                "simulated world (truthful: the lab's own simulators)".into()
-            },
+            source: self.source().into(),
             steps,
             job: lock(&self.job).clone(),
             trials_refused: self.trials_refused(),
@@ -871,8 +889,10 @@ pub const HELD_UNSEEN_S: f64 = 3.0;
 /// dead-man is on), the camera must deliver [`CAMERA_WAIT_FRAMES`] frames
 /// within [`CAMERA_WAIT_S`], the magnet is switched on and the step waits (at most
 /// [`REAL_HOLD_WAIT_S`]) until the camera sees the ball held still at least
-/// 5 cm from the rest point (an operator hangs it there: the job's message
-/// says so), or, after [`HANG_TIME_S`], sees no ball for [`HELD_UNSEEN_S`]
+/// 5 cm from the rest point, at least [`HANG_TIME_S`] after the magnet went
+/// on (an operator hangs it there: the job's message says so, with the
+/// angle when the step was given one; held still nearer is refused then as
+/// a swing too small), or, after [`HANG_TIME_S`], sees no ball for [`HELD_UNSEEN_S`]
 /// (held out of its view); then the magnet lets go and the free swing is recorded for
 /// `record_s` (the lab's detections: capture time, lateral on the believed
 /// plane, image centre) and fitted ([`real_pendulum_outcome`]). Refused,
@@ -884,6 +904,7 @@ pub async fn run_real_pendulum(
     id: u64,
     scenario: &Scenario,
     record_s: f64,
+    release_deg: Option<f64>,
 ) -> Option<Scenario> {
     use rt_core::bridge::Command;
     use rt_core::calibration::{StepView, ViewKind, swing::TrackedSwingSample};
@@ -969,13 +990,21 @@ pub async fn run_real_pendulum(
             tokio::time::sleep(Duration::from_millis(4)).await;
         }
         // 1. The ball held on the magnet, away from the rest point.
+        let min_cm = rt_core::calibration::swing::MIN_AMPLITUDE_M * 100.0;
         desk.progress(
             id,
             view(
                 0.02,
-                "magnet on: hang the ball on the magnet (at least 5 cm from where it hangs at rest); \
-                 the swing is recorded when it lets go"
-                    .into(),
+                match release_deg {
+                    Some(d) => format!(
+                        "magnet on: {}; the swing is recorded when it lets go",
+                        hang_prompt(d)
+                    ),
+                    None => format!(
+                        "magnet on: hang the ball on the magnet (at least {min_cm:.0} cm from where \
+                         it hangs at rest); the swing is recorded when it lets go"
+                    ),
+                },
                 &[],
             ),
         );
@@ -1007,12 +1036,27 @@ pub async fn run_real_pendulum(
                     (a.min(r.lateral_m), b.max(r.lateral_m))
                 });
                 let span_s = recent.back().map_or(0.0, |b| b.t_s) - recent.front().map_or(0.0, |f| f.t_s);
-                if recent.len() >= 8
+                // Held still, given the person HANG_TIME_S to hang it
+                // (a ball still held from the arm's move home is not yet
+                // where this prompt asks).
+                let still = recent.len() >= 8
                     && span_s >= 0.8
                     && hi - lo < 0.003
-                    && lo.abs().min(hi.abs()) >= rt_core::calibration::swing::MIN_AMPLITUDE_M
-                {
+                    && now.duration_since(on_at).as_secs_f64() >= HANG_TIME_S;
+                let out_m = lo.abs().min(hi.abs());
+                if still && out_m >= rt_core::calibration::swing::MIN_AMPLITUDE_M {
                     break;
+                }
+                if still {
+                    // Hung, and held too near the rest point: its swing
+                    // would be too small to fit. Refused now, not after
+                    // the whole wait.
+                    let _ = lab.command(Command::Magnet { on: false }).await;
+                    return Err(rt_core::calibration::CalibrationError::SwingTooSmall {
+                        amplitude_m: out_m,
+                        min_m: rt_core::calibration::swing::MIN_AMPLITUDE_M,
+                    }
+                    .into());
                 }
             }
             if Instant::now() > deadline {
@@ -1065,7 +1109,15 @@ pub async fn run_real_pendulum(
         })
     }
     .await;
-    desk.conclude(id, Step::Pendulum, scenario, outcome, "the real lab")
+    desk.conclude(id, Step::Pendulum, scenario, outcome, desk.source())
+}
+
+/// What the pendulum step asks of the person who hangs the ball when the
+/// release angle is given (`POST /api/calibration/pendulum
+/// {"release_deg": D}`); the simulated lab's hands read it back
+/// ([`crate::world::asked_hang_deg`]).
+pub fn hang_prompt(release_deg: f64) -> String {
+    format!("hang the ball on the magnet {release_deg:.1} deg out")
 }
 
 /// Board views the real-lab camera step asks for.
@@ -1097,7 +1149,7 @@ pub async fn run_real_camera(
     scenario: &Scenario,
 ) -> Option<Scenario> {
     let outcome = real_camera(lab, desk, id).await;
-    desk.conclude(id, Step::Camera, scenario, outcome, "the real lab")
+    desk.conclude(id, Step::Camera, scenario, outcome, desk.source())
 }
 
 /// Asks the vision thread for its next full-resolution frame and waits for it.
@@ -1276,7 +1328,7 @@ pub async fn run_real_latency(
     scenario: &Scenario,
 ) -> Option<Scenario> {
     let outcome = real_latency(lab, desk, id, scenario).await;
-    desk.conclude(id, Step::Latency, scenario, outcome, "the real lab")
+    desk.conclude(id, Step::Latency, scenario, outcome, desk.source())
 }
 
 async fn real_latency(
@@ -1497,7 +1549,7 @@ pub async fn run_real_robot(
     let outcome = real_robot(lab, desk, id).await;
     // A tap left by a step that failed half-way is let go.
     let _ = lab.take_tap();
-    desk.conclude(id, Step::Robot, scenario, outcome, "the real lab")
+    desk.conclude(id, Step::Robot, scenario, outcome, desk.source())
 }
 
 async fn real_robot(
@@ -1666,7 +1718,7 @@ pub async fn run_real_camera_robot(
     {
         let _ = move_to_pose(lab, &q).await;
     }
-    desk.conclude(id, Step::CameraRobot, scenario, outcome, "the real lab")
+    desk.conclude(id, Step::CameraRobot, scenario, outcome, desk.source())
 }
 
 /// How many times [`move_to_pose`] sends a move again after the robot left

@@ -22,7 +22,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Run the lab service (the simulated lab unless a config says otherwise).
+    /// Run the lab service (the simulated lab unless a config says otherwise: a
+    /// truthful world in this process behind a real lab's interfaces, its stand
+    /// following each trial's distance; `make firmware` builds its magnet board).
     Serve {
         /// Service and hardware configuration (TOML, e.g. config/lab.toml).
         #[arg(long)]
@@ -61,7 +63,7 @@ enum Command {
         /// webcam stream, magnet firmware in simavr). Not with --config.
         #[arg(long)]
         scenario: Option<PathBuf>,
-        /// Seed of the --scenario world's draws.
+        /// Seed of the served world's draws (--scenario's, or the simulated lab's).
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Let a real lab (or a --scenario world with [world]) run trials before it is calibrated.

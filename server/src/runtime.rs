@@ -44,7 +44,9 @@ pub fn start_lab(
     Ok((lab, runtime))
 }
 
-/// Starts the simulated lab: what `isochron serve` runs without a config.
+/// Starts the simulated lab whose truth the trial driver follows
+/// (`sim::wall_lab`: its recordings carry the ground truth; `isochron serve`
+/// without a config serves a world behind a real lab's interfaces instead).
 ///
 /// # Errors
 ///

@@ -62,37 +62,60 @@ pub struct ServeArgs {
 /// file is refused, the bind address needs a token, the records, lab or Foxglove
 /// server cannot start, the address cannot be listened on, or the server fails.
 pub fn run(args: ServeArgs) -> anyhow::Result<()> {
-    let cfg = match (&args.config, &args.world) {
-        (Some(_), Some(_)) => anyhow::bail!(
+    if args.config.is_some() && args.world.is_some() {
+        anyhow::bail!(
             "give --config (a lab's own hardware) or --scenario (a simulated world's), not both"
-        ),
-        (None, Some(path)) => serve_world(path, &args)?,
-        (Some(path), None) => ServeConfig::from_file(path)?,
-        (None, None) => ServeConfig::default(),
+        );
+    }
+    let file_cfg = match &args.config {
+        Some(path) => ServeConfig::from_file(path)?,
+        None => ServeConfig::default(),
     };
-    let mut cfg = cfg;
-    cfg.lab.allow_uncalibrated |= args.allow_uncalibrated;
-    let bind = args.bind.unwrap_or(cfg.server.bind);
+    // The world this process runs as the lab's hardware: `--scenario`'s, or
+    // the simulated lab's (no config, or `lab.mode = "simulated"`): a
+    // truthful world of the scenario and the parameter files laid over it.
+    let world = match (&args.world, file_cfg.lab.mode) {
+        (Some(path), _) => Some((Scenario::from_file(path)?, false)),
+        (None, LabMode::Simulated) => {
+            let mut s = match &file_cfg.lab.scenario {
+                Some(path) => Scenario::from_file(path)?,
+                None => Scenario::default(),
+            };
+            for path in &args.params {
+                s = rt_core::tuning::overlay_params_file(&s, path)?;
+            }
+            if s.world.is_some() {
+                anyhow::bail!("{WORLD_IN_SERVE}");
+            }
+            Some((s, true))
+        }
+        (None, LabMode::Real) => None,
+    };
+    // Everything the arguments can get wrong is said before a world starts.
+    let bind = args.bind.unwrap_or(file_cfg.server.bind);
     let token = args
         .token
-        .or_else(|| cfg.server.token.clone())
+        .clone()
+        .or_else(|| file_cfg.server.token.clone())
         .filter(|t| !t.is_empty());
     check_bind(bind, token.as_deref())?;
-    let demo = args.demo.then(|| crate::demo::DemoOptions {
-        interval_s: args
-            .demo_interval_s
-            .unwrap_or(crate::demo::DEFAULT_INTERVAL_S),
-        // Held by an operator where the lab's dead-man is on (a real lab's
-        // default); a world's arm (`--scenario`) harms no one.
-        operator_required: cfg.lab.operator_timeout().is_some(),
-        operator_timeout_s: cfg.lab.operator_timeout_s,
-        state_file: None,
-    });
     if args.demo_interval_s.is_some() && !args.demo {
         anyhow::bail!("--demo-interval-s needs --demo");
     }
-    if let Some(d) = &demo {
-        d.check()?;
+    let demo_interval_s = args
+        .demo_interval_s
+        .unwrap_or(crate::demo::DEFAULT_INTERVAL_S);
+    if args.demo {
+        crate::demo::DemoOptions {
+            interval_s: demo_interval_s,
+            operator_required: false,
+            operator_timeout_s: file_cfg.lab.operator_timeout_s,
+            state_file: None,
+        }
+        .check()?;
+    }
+    if let Some(addr) = args.foxglove {
+        crate::viz::check_addr(addr)?;
     }
     // The lab's FRI threads: SCHED_FIFO and memory locked; with cores to spare
     // also pinned to their own CPU with the other threads kept off it (each
@@ -101,9 +124,25 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         args.rt_tuning
             .unwrap_or_else(rt_core::fri::priority::RtTuning::auto),
     );
-    if let Some(addr) = args.foxglove {
-        crate::viz::check_addr(addr)?;
-    }
+    let (cfg, served) = match world {
+        Some((scenario, simulated_lab)) => {
+            // The world's cabinet is an FRI thread too (its priority and CPU).
+            rt_core::fri::priority::enable();
+            let served = serve_world(scenario, simulated_lab, &args, &file_cfg)?;
+            (served.cfg.clone(), Some(served))
+        }
+        None => (file_cfg, None),
+    };
+    let mut cfg = cfg;
+    cfg.lab.allow_uncalibrated |= args.allow_uncalibrated;
+    let demo = args.demo.then(|| crate::demo::DemoOptions {
+        interval_s: demo_interval_s,
+        // Held by an operator where the lab's dead-man is on (a real lab's
+        // default); a world's arm harms no one.
+        operator_required: cfg.lab.operator_timeout().is_some(),
+        operator_timeout_s: cfg.lab.operator_timeout_s,
+        state_file: None,
+    });
     let web_dir = args
         .web_dir
         .or_else(|| cfg.server.web_dir.clone())
@@ -150,11 +189,15 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     }
     let records = Arc::new(Records::open(&data_dir)?);
     let rule_cfg = cfg.clone();
-    let desk = Arc::new(crate::calibration::CalibrationDesk::new(
+    let mut desk = crate::calibration::CalibrationDesk::new(
         calibration_path,
         cfg.lab.mode == LabMode::Real,
         Box::new(move |file| uncalibrated_refusal(&rule_cfg, file)),
-    ));
+    );
+    if let Some(w) = &served {
+        desk = desk.named(w.source.clone());
+    }
+    let desk = Arc::new(desk);
     if cfg.lab.mode == LabMode::Real {
         desk.set_lab_geometry(cfg.calibration.clone());
     }
@@ -162,20 +205,24 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let options = crate::LabOptions {
         state_hz: cfg.server.state_hz,
         ws_send_timeout: std::time::Duration::from_millis(cfg.server.ws_send_timeout_ms),
-        lab_mode: match cfg.lab.mode {
-            LabMode::Simulated => "simulated",
-            LabMode::Real => "real",
+        lab_mode: if served.is_some() || cfg.lab.mode == LabMode::Simulated {
+            "simulated"
+        } else {
+            "real"
         },
         ..crate::LabOptions::default()
     };
     let seed = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(1, |d| d.as_secs());
-    let mut setup = match cfg.lab.mode {
-        LabMode::Simulated => rt_core::sim::wall_lab::simulated(scenario, seed),
-        LabMode::Real => real_lab(&cfg, scenario, seed)?,
-    };
+    // Every lab served is a real lab's runtime: on its own hardware, or on
+    // the world this process runs behind the same interfaces.
+    let mut setup = real_lab(&cfg, scenario, seed)?;
     setup.operator_timeout_s = cfg.lab.operator_timeout();
+    if let Some(w) = &served {
+        // The simulated lab's pendulum goes where each trial asks.
+        setup.stand.clone_from(&w.stand);
+    }
     let (lab, sim) = crate::runtime::start_lab(setup, Some(Arc::clone(&records)), options)?;
     tracing::info!(
         mode = ?cfg.lab.mode,
@@ -274,34 +321,58 @@ pub fn uncalibrated_refusal(
 /// reads the calibration job there).
 static SERVICE_ADDR: std::sync::OnceLock<SocketAddr> = std::sync::OnceLock::new();
 
-/// `serve --scenario`: starts the scenario's world in this process (its
-/// cabinet, webcam stream and magnet board, `crate::world`), and returns the
-/// real-lab configuration for it (the beliefs in the data folder's
-/// `world-beliefs.scenario.toml`; the world's truth, one line per release, in
-/// its `world-truth.jsonl`). The lab knows nothing of the world: it is served
-/// as a real lab, judged by what it measures. Its dead-man is off (the arm is
-/// the world's), and a truthful world's lab needs no calibration.
-fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<ServeConfig> {
+/// A world this process serves as the lab's hardware.
+struct ServedWorld {
+    /// The real-lab configuration for it.
+    cfg: ServeConfig,
+    /// The simulated lab's stand (`None` for `--scenario`'s world, whose
+    /// pendulum stays where its configuration puts it, as a real lab's).
+    stand: Option<Arc<rt_core::lab::Stand>>,
+    /// What the calibration steps run on, as their records say it.
+    source: String,
+}
+
+/// Starts `scenario`'s world in this process (its cabinet, webcam stream
+/// and magnet board, `crate::world`) and returns the real-lab
+/// configuration for it, the file's `[server]` kept (the beliefs in the
+/// data folder's `world-beliefs.scenario.toml`; the world's truth, one line
+/// per release, in its `world-truth.jsonl`). The lab knows nothing of the
+/// world: it is served as a real lab, judged by what it measures. Its
+/// dead-man is off (the arm is the world's), and a truthful world's lab
+/// needs no calibration.
+///
+/// `simulated_lab`: the dashboard's lab (`serve` without `--scenario`),
+/// whose stand moves the pendulum to each trial's distance and hangs the
+/// ball at its release angle ([`rt_core::lab::Stand`]).
+fn serve_world(
+    scenario: Scenario,
+    simulated_lab: bool,
+    args: &ServeArgs,
+    file_cfg: &ServeConfig,
+) -> anyhow::Result<ServedWorld> {
     use anyhow::Context;
-    let scenario = Scenario::from_file(path)?;
     let data_dir = args
         .data_dir
         .clone()
-        .unwrap_or_else(|| ServeConfig::default().server.data_dir);
+        .unwrap_or_else(|| file_cfg.server.data_dir.clone());
     std::fs::create_dir_all(&data_dir)
         .with_context(|| format!("cannot create {}", data_dir.display()))?;
+    let distance_m = scenario.task.distance_m.lerp(0.5);
+    let stand = simulated_lab.then(|| Arc::new(rt_core::lab::Stand::at(distance_m)));
     let mut world = crate::world::LabWorld::start(&crate::world::WorldSpec {
         scenario,
         seed: args.world_seed,
         fri_version: rt_core::fri::FriVersion::default(),
-        distance_m: None,
+        distance_m: Some(distance_m),
         firmware_dir: crate::world::default_firmware_dir(),
         serial_port: data_dir.join("world-magnet.tty"),
+        stand: stand.clone(),
     })?;
     let beliefs = data_dir.join("world-beliefs.scenario.toml");
     std::fs::write(&beliefs, world.beliefs().to_toml_string())
         .with_context(|| format!("cannot write {}", beliefs.display()))?;
     let mut cfg = world.lab_config(&beliefs);
+    cfg.server = file_cfg.server.clone();
     cfg.server.data_dir.clone_from(&data_dir);
     cfg.lab.allow_uncalibrated = args.allow_uncalibrated || world.ready.world == "truthful";
     cfg.lab.dead_man = Some(false);
@@ -311,6 +382,14 @@ fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<Serve
         .append(true)
         .open(&truth_path)
         .with_context(|| format!("cannot write {}", truth_path.display()))?;
+    let source = if simulated_lab {
+        format!(
+            "the simulated lab: a {} world (seed {}) behind a real lab's interfaces",
+            world.ready.world, args.world_seed
+        )
+    } else {
+        "the real lab".to_owned()
+    };
     tracing::info!(
         world = world.ready.world,
         seed = args.world_seed,
@@ -318,7 +397,7 @@ fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<Serve
         truth = %truth_path.display(),
         "serving a real lab on a simulated world"
     );
-    // The world's operator watches this service (its camera step's board).
+    // The world's operator watches this service (its calibration steps' hands).
     world.start_operator_with(|| SERVICE_ADDR.get().copied())?;
     std::thread::Builder::new()
         .name("isochron-world".into())
@@ -330,7 +409,7 @@ fn serve_world(path: &std::path::Path, args: &ServeArgs) -> anyhow::Result<Serve
                 }
             }
         })?;
-    Ok(cfg)
+    Ok(ServedWorld { cfg, stand, source })
 }
 
 /// Why `serve` refuses a scenario with `[world]`: its labs never simulate

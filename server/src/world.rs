@@ -207,6 +207,10 @@ pub struct WorldSpec {
     pub firmware_dir: PathBuf,
     /// Where the Arduino's serial port appears (a symlink to its pty).
     pub serial_port: PathBuf,
+    /// The simulated lab's stand (`isochron serve`'s in-process world):
+    /// where the lab asks the pendulum to stand and the ball to hang; read
+    /// every controller cycle (`None`: the pendulum stays at `distance_m`).
+    pub stand: Option<Arc<rt_core::lab::Stand>>,
 }
 
 /// This source tree's magnet firmware build (`make firmware`).
@@ -233,6 +237,8 @@ pub struct LabWorld {
     releases: usize,
     held_board: HeldBoard,
     marker_on: MarkerOn,
+    /// The stand and the hands that hang the ball (the operator asks angles of it).
+    hands: Arc<rt_core::lab::Stand>,
 }
 
 impl std::fmt::Debug for LabWorld {
@@ -313,8 +319,22 @@ impl LabWorld {
         let occludes = wp.camera.arm_occludes;
         let marker_on: MarkerOn = Arc::default();
         let marker_seen = Arc::clone(&marker_on);
+        // Where the pendulum stands and the next hang's angle: the simulated
+        // lab's stand, or the operator's hands alone (a pendulum that stays).
+        let stand = spec
+            .stand
+            .clone()
+            .unwrap_or_else(|| Arc::new(rt_core::lab::Stand::at(distance_m)));
+        let hands = Arc::clone(&stand);
+        let mut stand_seen = (distance_m, None);
         let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
             let t = t_ns as f64 * 1e-9;
+            // The stand first: a hang asked for comes after it.
+            let asked = stand.asked();
+            if asked != stand_seen {
+                stand_seen = asked;
+                world.place_stand(t, asked.0, asked.1);
+            }
             while let Ok((on, at)) = coil_rx.pop() {
                 world.coil(on, at);
             }
@@ -507,15 +527,18 @@ impl LabWorld {
             releases: 0,
             held_board,
             marker_on,
+            hands,
         })
     }
 
-    /// Starts the operator: the hands the camera step needs. It reads the
-    /// service's calibration job (`GET {service}/api/calibration`, as a person
-    /// reads the dashboard) every [`OPERATOR_POLL_MS`] and, while the camera
-    /// step asks for the chessboard at pose K of N, holds it there in front of
-    /// the webcam (its own plan of N holds over the true camera's image);
-    /// otherwise the board is lowered.
+    /// Starts the operator: the hands the calibration steps need. It reads
+    /// the service's calibration job (`GET {service}/api/calibration`, as a
+    /// person reads the dashboard) every [`OPERATOR_POLL_MS`] and, while the
+    /// camera step asks for the chessboard at pose K of N, holds it there in
+    /// front of the webcam (its own plan of N holds over the true camera's
+    /// image), otherwise the board is lowered; fits the marker disc for the
+    /// camera-robot step; and hangs the ball at the angle the pendulum step
+    /// asks ([`asked_hang_deg`]).
     ///
     /// # Errors
     ///
@@ -546,6 +569,7 @@ impl LabWorld {
     ) -> anyhow::Result<()> {
         let held = Arc::clone(&self.held_board);
         let marker = Arc::clone(&self.marker_on);
+        let hands = Arc::clone(&self.hands);
         std::thread::Builder::new()
             .name("isochron-world-operator".into())
             .spawn(move || {
@@ -558,6 +582,9 @@ impl LabWorld {
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner) = asked;
                     marker.store(job.as_ref().is_some_and(asked_marker), Relaxed);
+                    if let Some(d) = job.as_ref().and_then(asked_hang_deg) {
+                        hands.place(f64::NAN, d);
+                    }
                 }
             })?;
         Ok(())
@@ -661,6 +688,22 @@ pub fn asked_pose(calibration: &serde_json::Value) -> Option<(usize, usize)> {
     let k: usize = numbers.next()?.parse().ok()?;
     let n: usize = numbers.next()?.parse().ok()?;
     (1..=n).contains(&k).then(|| (k - 1, n))
+}
+
+/// The release angle the service's running pendulum step asks the ball
+/// hung at, degrees (its message says
+/// [`crate::calibration::hang_prompt`]); `None` when it asks none.
+pub fn asked_hang_deg(calibration: &serde_json::Value) -> Option<f64> {
+    let job = &calibration["job"];
+    if job["state"] != "running" || job["step"] != "pendulum" {
+        return None;
+    }
+    let m = job["message"].as_str()?;
+    let head = crate::calibration::hang_prompt(0.0);
+    let head = head.split("0.0").next()?;
+    let rest = &m[m.find(head)? + head.len()..];
+    let d: f64 = rest.split_whitespace().next()?.parse().ok()?;
+    (d.is_finite() && d > 0.0 && d <= 60.0).then_some(d)
 }
 
 /// Whether the service's running job is the camera-robot step, which asks
@@ -890,6 +933,33 @@ impl Drop for Board {
 mod tests {
     use super::asked_pose;
     use serde_json::json;
+
+    #[test]
+    fn the_operator_hangs_the_ball_where_a_running_pendulum_step_asks() {
+        use super::asked_hang_deg;
+        let job = |step: &str, state: &str, message: &str| json!({"job": {"step": step, "state": state, "message": message}});
+        let asking = format!(
+            "magnet on: {}; the swing is recorded when it lets go",
+            crate::calibration::hang_prompt(12.5)
+        );
+        assert_eq!(
+            asked_hang_deg(&job("pendulum", "running", &asking)),
+            Some(12.5)
+        );
+        assert_eq!(asked_hang_deg(&job("pendulum", "done", &asking)), None);
+        assert_eq!(asked_hang_deg(&job("camera", "running", &asking)), None);
+        let plain =
+            "magnet on: hang the ball on the magnet (at least 5 cm from where it hangs at rest)";
+        assert_eq!(asked_hang_deg(&job("pendulum", "running", plain)), None);
+        for bad in ["NaN", "-3", "0", "61", "x"] {
+            let m = format!("hang the ball on the magnet {bad} deg out");
+            assert_eq!(
+                asked_hang_deg(&job("pendulum", "running", &m)),
+                None,
+                "{bad}"
+            );
+        }
+    }
 
     #[test]
     fn the_operator_holds_the_board_only_where_a_running_camera_step_asks() {

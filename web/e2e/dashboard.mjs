@@ -2,6 +2,7 @@
 // against a running `isochron serve`. Usage: node e2e/dashboard.mjs URL TOKEN
 // Prints one line per check, a JSON line of measurements, and
 // "browser: N passed, M failed"; exits non-zero on any failure.
+import { existsSync, readFileSync } from "node:fs";
 import { chromium } from "playwright-core";
 
 const [base, token] = process.argv.slice(2);
@@ -373,45 +374,69 @@ try {
     assert(samples.some((x) => x.cam.drawn.predicted > 0), "no predicted positions drawn");
   });
   await check("operator: Run trial completes a trial and the history shows it", async () => {
+    // Finished, whatever the verdict: hit, miss, or done but not judged (the
+    // measured judge says so when it could not see the pass).
     await page.waitForFunction(
-      (n) => document.querySelectorAll("#trials tbody tr.hit, #trials tbody tr.miss").length > n,
+      (n) => {
+        const rows = document.querySelectorAll("#trials tbody tr");
+        const result = rows[0]?.querySelector("td[data-col=result]")?.textContent;
+        return rows.length > n && ["hit", "miss", "done", "aborted"].includes(result);
+      },
       rowsBefore,
       { timeout: 90_000 },
     );
     measured.history_summary = await page.textContent("#trials .summary");
   });
-  await check("operator: the finished trial's row shows the measured judge beside the true one", async () => {
+  await check("operator: the finished trial's row shows the measured judge's verdict, and the world's truth agrees", async () => {
     const row = await page.evaluate(() => {
-      const tr = document.querySelector("#trials tbody tr.hit, #trials tbody tr.miss");
+      const tr = document.querySelector("#trials tbody tr");
       const cell = (c) => tr?.querySelector(`td[data-col="${c}"]`)?.textContent ?? null;
-      return { id: cell("id"), judge: cell("judge"), timing: cell("timing"), measured: cell("measured-timing"), contact: cell("contact") };
+      return { id: cell("id"), result: cell("result"), judge: cell("judge"), timing: cell("timing"), measured: cell("measured-timing"), contact: cell("contact") };
     });
     measured.trial_row = row;
     const rec = (await api("GET", `/api/trials/${row.id}`, undefined, false)).json;
+    // The simulated lab of `serve` is a truthful world behind a real lab's
+    // interfaces: the lab judges by what it measures (camera, joint torques).
+    if (rec.judged_by == null) {
+      // Not judged (the pass not seen on a starved machine): the record says why.
+      assert(rec.status === "aborted" || /^not judged \(measured\)/.test(rec.reason ?? ""), `unjudged record: ${JSON.stringify(rec)}`);
+      measured.trial_unjudged = rec.reason;
+      return;
+    }
     const m = rec.measured;
     assert(m && typeof m.timing_error_ms === "number" && typeof m.timing_std_ms === "number", `no measured timing in the record: ${JSON.stringify(rec)}`);
-    // The simulated lab of `serve` is a truthful world: the truth judges; the
-    // measured judge's signed timing ± std stands beside it, and its simulated
-    // robot reports no external torques (no contact can be seen).
-    assert(rec.judged_by === "truth" && row.judge === "truth", `judge: row ${row.judge}, record ${rec.judged_by}`);
-    assert(row.timing === rec.timing_error_ms.toFixed(1), `true timing ${row.timing} vs ${rec.timing_error_ms}`);
+    assert(rec.judged_by === "measured" && row.judge === "measured", `judge: row ${row.judge}, record ${rec.judged_by}`);
+    assert(row.result === (rec.success ? "hit" : "miss"), `result ${row.result}, record success ${rec.success}`);
+    assert(row.timing === rec.timing_error_ms.toFixed(1), `timing ${row.timing} vs ${rec.timing_error_ms}`);
     const parts = /^([+-]?\d+\.\d) ± (\d+\.\d)$/.exec(row.measured ?? "");
     assert(parts, `measured timing cell reads ${JSON.stringify(row.measured)}`);
     assert(Math.abs(Number(parts[1]) - m.timing_error_ms) <= 0.05 + 1e-9 && Math.abs(Number(parts[2]) - m.timing_std_ms) <= 0.05 + 1e-9,
       `measured cell ${row.measured} vs ${m.timing_error_ms} ± ${m.timing_std_ms} ms`);
     const contact = m.torque_signal === false ? "no torques" : m.contact ? "yes" : "no";
     assert(row.contact === contact, `contact cell ${row.contact}, record ${JSON.stringify(m)}`);
-    // Both judges time the arrival the lab timed its motion for: on a truthful
-    // world they agree (they read 130-160 ms apart when the measured judge
-    // took the 2 mm settling for the fitted arrival).
-    assert(Math.abs(m.timing_error_ms - rec.timing_error_ms) <= 10, `measured ${m.timing_error_ms} ms vs true ${rec.timing_error_ms} ms`);
-    measured.trial_measured = { timing_error_ms: m.timing_error_ms, timing_std_ms: m.timing_std_ms, contact: m.contact, torque_signal: m.torque_signal, true_timing_error_ms: rec.timing_error_ms };
-    // A truthful world: the measured judge's columns are named and explained as such.
+    // The world's own truth of that release (its truth file, one line per
+    // release, paired by the coil's release within the trial).
+    const dir = process.env.ISOCHRON_DATA_DIR;
+    assert(dir, "ISOCHRON_DATA_DIR (the service's data folder) not given");
+    const file = `${dir}/world-truth.jsonl`;
+    let truth = null;
+    for (const t0 = Date.now(); truth === null; ) {
+      const lines = existsSync(file) ? readFileSync(file, "utf8").split("\n").filter((l) => l.trim()).map((l) => JSON.parse(l)) : [];
+      truth = lines.find((l) => l.coil_off_unix_s >= rec.started_unix_s && l.coil_off_unix_s <= rec.finished_unix_s) ?? null;
+      if (truth === null) {
+        assert(Date.now() - t0 < 30_000, `no truth line in ${file} for trial ${rec.id} (${lines.length} lines)`);
+        await page.waitForTimeout(250);
+      }
+    }
+    measured.trial_measured = { timing_error_ms: m.timing_error_ms, timing_std_ms: m.timing_std_ms, contact: m.contact, torque_signal: m.torque_signal, world_timing_error_ms: truth.timing_error_ms, world_contact: truth.contact };
+    assert(truth.world === "truthful", `the served world: ${truth.world}`);
+    assert(m.contact === truth.contact, `contact: measured ${m.contact}, the world's ${truth.contact}`);
+    if (typeof truth.timing_error_ms === "number") {
+      assert(Math.abs(m.timing_error_ms - truth.timing_error_ms) <= 10, `measured ${m.timing_error_ms} ms vs the world's ${truth.timing_error_ms} ms`);
+    }
+    // The measured judge's columns are named as such.
     const heads = await page.$$eval("#trials thead th", (th) => th.map((x) => x.textContent));
     assert(heads.includes("measured judge: timing (ms)") && heads.includes("measured judge: contact"), heads.join(" | "));
-    await page.waitForSelector("#trials .judge-note:not([hidden])", { timeout: 60_000 });
-    const note = await page.textContent("#trials .judge-note");
-    assert(/^Truthful simulated world/.test(note) && /for comparison/.test(note), note);
   });
   await check("operator: when the trial ended the speed axis fit the planned peak and the pendulum axis read distinct labels in a unit that fits (mm below 1 m)", async () => {
     await page.waitForFunction(() => window.__isochron.trialEndAxes() !== null, null, { timeout: 60_000 });
@@ -508,7 +533,9 @@ try {
     // The tool of an iiwa 7 does not reach 3 m/s; a spike from timing jitter did (~100 m/s).
     assert(a.peaks.executed < 3, `executed path speed peaked at ${a.peaks.executed} m/s (planned ${a.peaks.planned})`);
   });
-  // The Calibration panel walks through every step on the simulated lab.
+  // The Calibration panel walks through every step on the simulated lab (its
+  // world's webcam, cabinet and board; the world's operator holds the board,
+  // fits the marker and hangs the ball where the prompts say).
   const STEPS = ["camera", "latency", "pendulum", "camera-robot", "robot"];
   const calState = (step) => page.locator(`#calibration li[data-step="${step}"] .cal-state`).textContent();
   const calFile = async () => (await api("GET", "/api/calibration")).json;
@@ -519,11 +546,13 @@ try {
     const before = await calFile();
     assert(before.steps.every((s) => !s.done), "a fresh lab has a calibration");
     assert(before.trials_refused === null, "the simulated lab refuses trials");
-    // Pendulum needs the camera: the button is disabled and says so; the API refuses.
-    const btn = page.locator('#calibration li[data-step="pendulum"] button');
-    assert(await btn.isDisabled(), "pendulum's button is enabled before the camera step");
-    assert(/needs camera/.test(await calState("pendulum")), await calState("pendulum"));
-    const r = await api("POST", "/api/calibration/pendulum");
+    assert(/^the simulated lab: a truthful world/.test(before.source), `source: ${before.source}`);
+    // Camera-robot needs the camera and the pendulum: the button is disabled
+    // and says so; the API refuses.
+    const btn = page.locator('#calibration li[data-step="camera-robot"] button');
+    assert(await btn.isDisabled(), "camera-robot's button is enabled before the camera step");
+    assert(/needs camera/.test(await calState("camera-robot")), await calState("camera-robot"));
+    const r = await api("POST", "/api/calibration/camera-robot");
     assert(r.status === 409 && r.json.reason === "prerequisites" && /camera/.test(r.json.error), JSON.stringify(r));
     const after = await calFile();
     assert(JSON.stringify(after.steps) === JSON.stringify(before.steps), "the refused step changed the file");

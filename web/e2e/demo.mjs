@@ -161,7 +161,7 @@ try {
   if (SOAK_S === 0) {
     await check("demo: a calibration step pauses the demo and the page says why; it resumes by itself", async () => {
       for (const end = Date.now() + 120_000; ; ) {
-        const r = await api("POST", "/api/calibration/camera");
+        const r = await api("POST", "/api/calibration/robot");
         if (r.status === 202) break;
         assert(r.status === 409 && Date.now() < end, `calibration: ${JSON.stringify(r)}`);
         await new Promise((res) => setTimeout(res, 10));

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Starts `isochron serve` (the simulated lab) on a free loopback port with a
+# Starts `isochron serve` (the simulated lab: a truthful world behind a real
+# lab's interfaces; its truth file in the data folder) on a free loopback port with a
 # token, runs the browser checks against it, and stops it.
 # Usage: web/e2e/run.sh PATH/TO/isochron
 set -euo pipefail
@@ -18,4 +19,4 @@ data=$serve_data
 serve_start "$bin" --web-dir "$here/dist"
 url=$serve_url token=$serve_token
 cd "$here"
-node e2e/dashboard.mjs "$url" "$token"
+ISOCHRON_DATA_DIR="$data/db" node e2e/dashboard.mjs "$url" "$token"

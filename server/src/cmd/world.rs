@@ -106,6 +106,7 @@ pub fn run(args: &WorldArgs) -> anyhow::Result<String> {
             .clone()
             .unwrap_or_else(default_firmware_dir),
         serial_port: args.lab_config.with_extension("tty"),
+        stand: None,
     })?;
     if let Some(service) = &args.operator {
         world.start_operator(service)?;

@@ -1,7 +1,8 @@
 //! Demo mode (`isochron serve --demo`, #37) over real sockets, the service as
 //! its own process:
 //!
-//! - the simulated lab runs trials unattended, each with the distance and
+//! - the simulated lab (a truthful world behind a real lab's interfaces)
+//!   runs trials unattended, each with the distance and
 //!   movement time the demo gives it; it pauses saying why while the lab
 //!   cannot take a trial (a calibration step runs) and resumes by itself; a
 //!   restarted service's demo goes on, its counts kept;
@@ -130,7 +131,7 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
     // why (the step is refused while a trial runs: posted between two).
     let deadline = Instant::now() + Duration::from_secs(120);
     loop {
-        let (code, r) = request(addr, "POST", "/api/calibration/camera", "").await;
+        let (code, r) = request(addr, "POST", "/api/calibration/robot", "").await;
         if code == 202 {
             break;
         }
@@ -159,7 +160,7 @@ async fn the_demo_runs_trials_unattended_pauses_saying_why_and_goes_on_after_a_r
         addr,
         "/api/calibration",
         Duration::from_secs(240),
-        "the camera step finishes",
+        "the robot step finishes",
         |v| v["job"]["state"] != "running",
     )
     .await;

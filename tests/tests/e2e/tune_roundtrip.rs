@@ -1,6 +1,7 @@
 //! The tuning round trip a lab does, end to end with the `isochron` binary:
-//! trials recorded by the service (`isochron serve`, POST /api/trials, the
-//! recording.csv of each), `isochron tune` on those recordings, and the written
+//! trials recorded by the service (POST /api/trials and the recording.csv of
+//! each, from the simulated lab served in the test's process, whose
+//! recordings carry the ground truth), `isochron tune` on those recordings, and the written
 //! parameter file loaded back by `isochron trials --params` and
 //! `isochron serve --params` on the same scenario and seeds. The tuned file must
 //! do at least as well as the lab's parameters before tuning, and a deliberately
@@ -91,8 +92,9 @@ async fn serve(bin: &Path, dir: &Path, params: &[&Path]) -> Serve {
         child: cmd.spawn().unwrap(),
         addr,
     };
-    // Ready: the service answers and the robot's FRI session is commanding.
-    let deadline = Instant::now() + Duration::from_secs(30);
+    // Ready: the service answers and the robot's FRI session is commanding
+    // (its world, the cabinet, board and webcam, started first).
+    let deadline = Instant::now() + Duration::from_secs(60);
     loop {
         if let Ok(r) = http(addr, "GET", "/api/state", &[], b"").await {
             let ready = r.status == 200
@@ -252,23 +254,29 @@ fn f(v: &Value) -> f64 {
     v.as_f64().unwrap_or(f64::NAN)
 }
 
-#[tokio::test]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tuned_parameters_loaded_back_do_at_least_as_well_and_are_in_effect() {
     let Some(bin) = isochron() else { return };
     let dir = temp_dir("lab");
     let lab = Scenario::from_file(&scenario_path()).unwrap();
     assert_eq!(lab.ekf.gate_nis, 20.0);
 
-    // 1. Three trials recorded by the service.
+    // 1. Three trials recorded by the service, its lab the simulated lab in
+    // this process (`isochron serve`'s world records no truth beside the
+    // lab's measurements; this lab's recordings carry its ground truth, the
+    // detector's real error below).
     let mut recordings = Vec::new();
     {
-        let s = serve(&bin, &dir, &[]).await;
+        let setup = rt_core::sim::wall_lab::simulated(lab.clone(), 3);
+        let s = isochron_tests::ServedLab::start(setup, &dir.join("recorded")).await;
+        s.until_ready().await;
         for i in 0..3 {
             let csv = record_trial(s.addr).await;
             let path = dir.join(format!("trial{i}.csv"));
             std::fs::write(&path, csv).unwrap();
             recordings.push(path);
         }
+        s.stop();
     }
 
     // 2. `isochron tune` on them, from the lab's own [ekf].

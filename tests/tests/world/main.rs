@@ -857,6 +857,122 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
     );
 }
 
+/// `isochron serve` without a config (`make run`'s lab, the dashboard's):
+/// a truthful world in the service's process behind a real lab's
+/// interfaces, judged by what the lab measures, its calibration records
+/// naming that world. Its stand follows each trial's distance and release
+/// angle (a REST script's `distance_m`, `release_deg`): the world's ball
+/// hangs where the trial's arm goes, so the world's own truth sees the arm
+/// meet it at both ends of the range (without the stand, a trial at 0.40 m
+/// meets no ball hanging at the range's middle, 0.575 m).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_without_a_config_is_a_truthful_world_whose_stand_follows_each_trials_distance() {
+    let _one = ONE_LAB.lock().await;
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--allow-uncalibrated")])
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (_p, line) = start(
+        "isochron serve",
+        Process::new(&bin)
+            .arg("serve")
+            .args(["--bind", "127.0.0.1:0", "--data-dir"])
+            .arg(dir.path()),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr = listening_addr(&line);
+    wait_ready(addr, Duration::from_secs(60)).await;
+    let c = get(addr, "/api/calibration").await;
+    assert_eq!(
+        c["source"], "the simulated lab: a truthful world (seed 1) behind a real lab's interfaces",
+        "{c}"
+    );
+    assert_eq!(c["trials_refused"], Value::Null, "{c}");
+    let truth = dir.path().join("world-truth.jsonl");
+    for (distance_m, release_deg) in [(0.40, 15.0), (0.70, 25.0)] {
+        let mut starved = 0;
+        let rec = loop {
+            let body = format!("{{\"distance_m\": {distance_m}, \"release_deg\": {release_deg}}}");
+            let deadline = Instant::now() + Duration::from_secs(30);
+            let id = loop {
+                let r = http(
+                    addr,
+                    "POST",
+                    "/api/trials",
+                    &[("Content-Type", "application/json")],
+                    body.as_bytes(),
+                )
+                .await
+                .unwrap();
+                if r.status == 202 {
+                    break r.json().unwrap()["id"].as_u64().unwrap();
+                }
+                assert!(
+                    r.status == 409 && Instant::now() < deadline,
+                    "POST /api/trials {body}: {} {}",
+                    r.status,
+                    String::from_utf8_lossy(&r.body)
+                );
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            };
+            let rec = wait_record(addr, id, Duration::from_secs(60)).await;
+            if isochron_tests::service::starved(&rec) && starved < 2 {
+                // A starved machine's devices ended it: another one.
+                starved += 1;
+                eprintln!("serve: trial {id} aborted on a starved machine: {rec}");
+                continue;
+            }
+            break rec;
+        };
+        assert_eq!(rec["status"], "done", "{rec}");
+        assert!(
+            (rec["distance_m"].as_f64().unwrap() - distance_m).abs() < 1e-9,
+            "{rec}"
+        );
+        // The world's truth of that release: the ball hung where the trial
+        // asked (its angle) and the arm met it there.
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let t = loop {
+            let lines = truth_lines(&truth);
+            if let Some(t) = release_during(&lines, &rec) {
+                break t.clone();
+            }
+            assert!(
+                Instant::now() < deadline,
+                "no truth line for {rec} in {}: {lines:?}",
+                truth.display()
+            );
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        };
+        println!("serve at {distance_m} m: record {rec}\n truth {t}");
+        assert_eq!(t["world"], "truthful", "{t}");
+        assert!(
+            (t["release_angle_deg"].as_f64().unwrap().abs() - release_deg).abs() < 1e-9,
+            "{t}"
+        );
+        assert_eq!(
+            t["contact"], true,
+            "the arm at {distance_m} m met no ball: {t}"
+        );
+        if rec["judged_by"] == "measured" {
+            assert_eq!(rec["measured"]["contact"], true, "{rec}");
+        } else {
+            // Not judged on a starved machine (the robot's messages paused): it says so.
+            assert!(
+                rec["reason"]
+                    .as_str()
+                    .is_some_and(|r| r.starts_with("not judged (measured)")),
+                "{rec}"
+            );
+        }
+    }
+}
+
 /// Bad hardware descriptions get a clear error and change nothing: a world
 /// file with an unknown key is refused naming it, no lab configuration
 /// written.
