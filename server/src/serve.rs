@@ -285,6 +285,9 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     });
     lab.shutdown();
     drop(sim);
+    // The world's threads end before the process does (its webcam renders
+    // with OpenCV, which must not run while the process exits).
+    drop(served);
     result?;
     tracing::info!("shut down cleanly");
     Ok(())
@@ -330,6 +333,21 @@ struct ServedWorld {
     stand: Option<Arc<rt_core::lab::Stand>>,
     /// What the calibration steps run on, as their records say it.
     source: String,
+    /// Ends the world (its thread drops it: the webcam's thread joined, the
+    /// cabinet and the board stopped) before the process exits.
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for ServedWorld {
+    /// Stops the world and waits for it (its thread polls every 200 ms),
+    /// on every way out of `run`.
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(h) = self.thread.take() {
+            let _ = h.join();
+        }
+    }
 }
 
 /// Starts `scenario`'s world in this process (its cabinet, webcam stream
@@ -399,17 +417,26 @@ fn serve_world(
     );
     // The world's operator watches this service (its calibration steps' hands).
     world.start_operator_with(|| SERVICE_ADDR.get().copied())?;
-    std::thread::Builder::new()
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stopped = Arc::clone(&stop);
+    let thread = std::thread::Builder::new()
         .name("isochron-world".into())
         .spawn(move || {
-            loop {
+            while !stopped.load(std::sync::atomic::Ordering::Relaxed) {
                 if let Err(e) = world.poll(&mut truth, std::time::Duration::from_millis(200)) {
                     tracing::error!("the world stopped: {e:#}");
                     return;
                 }
             }
+            drop(world);
         })?;
-    Ok(ServedWorld { cfg, stand, source })
+    Ok(ServedWorld {
+        cfg,
+        stand,
+        source,
+        stop,
+        thread: Some(thread),
+    })
 }
 
 /// Why `serve` refuses a scenario with `[world]`: its labs never simulate

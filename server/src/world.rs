@@ -239,6 +239,22 @@ pub struct LabWorld {
     marker_on: MarkerOn,
     /// The stand and the hands that hang the ball (the operator asks angles of it).
     hands: Arc<rt_core::lab::Stand>,
+    /// The webcam's rendering thread and its stop (ended and joined when
+    /// the world is dropped: it renders with OpenCV, which must not run
+    /// while the process exits).
+    camera: Option<std::thread::JoinHandle<()>>,
+    camera_stop: Arc<AtomicBool>,
+}
+
+impl Drop for LabWorld {
+    fn drop(&mut self) {
+        // The webcam first (it reads what the cabinet steps); the cabinet
+        // and the board stop as their own fields drop.
+        self.camera_stop.store(true, Relaxed);
+        if let Some(h) = self.camera.take() {
+            let _ = h.join();
+        }
+    }
 }
 
 impl std::fmt::Debug for LabWorld {
@@ -411,6 +427,8 @@ impl LabWorld {
         }
 
         // The webcam.
+        let camera_stop = Arc::new(AtomicBool::new(false));
+        let camera;
         let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
         let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
         let clients: Clients = Arc::default();
@@ -436,55 +454,58 @@ impl LabWorld {
                 Arc::clone(&lateness),
                 Arc::clone(&held_board),
             );
-            std::thread::Builder::new()
-                .name("isochron-world-camera".into())
-                .spawn(move || {
-                    let now = || epoch.elapsed().as_secs_f64();
-                    let period = webcam.period_s();
-                    let mut k: u64 = 0;
-                    loop {
-                        let t_start = k as f64 * period;
-                        sleep_until(epoch, t_start + webcam.truth_after_s() + TRUTH_MARGIN_S);
-                        while let Ok(s) = ball_rx.pop() {
-                            webcam.push(s);
-                        }
-                        let timing = webcam.timing(t_start);
-                        let share = {
-                            // Off at the board's start; the switches kept
-                            // reach back seconds before any frame rendered.
-                            let l = led
-                                .lock()
-                                .unwrap_or_else(std::sync::PoisonError::into_inner);
-                            webcam.led_lit_share(timing.t_start_s, false, l.iter().copied())
-                        };
-                        webcam.hold_board(
-                            *held_board
-                                .lock()
-                                .unwrap_or_else(std::sync::PoisonError::into_inner),
-                        );
-                        let jpeg = match webcam.frame_jpeg(timing.t_start_s, share) {
-                            Ok(j) => Arc::new(j.to_vec()),
-                            Err(e) => {
-                                eprintln!("isochron world: the webcam failed: {e}");
-                                return;
+            let stop = Arc::clone(&camera_stop);
+            camera = Some(
+                std::thread::Builder::new()
+                    .name("isochron-world-camera".into())
+                    .spawn(move || {
+                        let now = || epoch.elapsed().as_secs_f64();
+                        let period = webcam.period_s();
+                        let mut k: u64 = 0;
+                        while !stop.load(Relaxed) {
+                            let t_start = k as f64 * period;
+                            sleep_until(epoch, t_start + webcam.truth_after_s() + TRUTH_MARGIN_S);
+                            while let Ok(s) = ball_rx.pop() {
+                                webcam.push(s);
                             }
-                        };
-                        sleep_until(epoch, timing.t_delivered_s);
-                        publish(&clients, &jpeg);
-                        frames.fetch_add(1, Relaxed);
-                        if let Ok(mut l) = lateness.lock() {
-                            l.add(now() - timing.t_delivered_s);
+                            let timing = webcam.timing(t_start);
+                            let share = {
+                                // Off at the board's start; the switches kept
+                                // reach back seconds before any frame rendered.
+                                let l = led
+                                    .lock()
+                                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                                webcam.led_lit_share(timing.t_start_s, false, l.iter().copied())
+                            };
+                            webcam.hold_board(
+                                *held_board
+                                    .lock()
+                                    .unwrap_or_else(std::sync::PoisonError::into_inner),
+                            );
+                            let jpeg = match webcam.frame_jpeg(timing.t_start_s, share) {
+                                Ok(j) => Arc::new(j.to_vec()),
+                                Err(e) => {
+                                    eprintln!("isochron world: the webcam failed: {e}");
+                                    return;
+                                }
+                            };
+                            sleep_until(epoch, timing.t_delivered_s);
+                            publish(&clients, &jpeg);
+                            frames.fetch_add(1, Relaxed);
+                            if let Ok(mut l) = lateness.lock() {
+                                l.add(now() - timing.t_delivered_s);
+                            }
+                            k += 1;
+                            // Fallen behind by more than a few frames (a stalled
+                            // machine): the camera goes on from now, as a webcam
+                            // that dropped frames.
+                            let behind = now() - (k as f64 * period);
+                            if behind > 4.0 * period {
+                                k += (behind / period) as u64;
+                            }
                         }
-                        k += 1;
-                        // Fallen behind by more than a few frames (a stalled
-                        // machine): the camera goes on from now, as a webcam
-                        // that dropped frames.
-                        let behind = now() - (k as f64 * period);
-                        if behind > 4.0 * period {
-                            k += (behind / period) as u64;
-                        }
-                    }
-                })?;
+                    })?,
+            );
         }
 
         let ready = WorldReady {
@@ -528,6 +549,8 @@ impl LabWorld {
             held_board,
             marker_on,
             hands,
+            camera,
+            camera_stop,
         })
     }
 

@@ -830,13 +830,22 @@ impl LabStep {
             let moved = rp.basis.at_distance(distance_m);
             if moved != rp.basis {
                 rp.basis = moved;
-                let cal = rp.basis.plane(&self.p.scenario);
-                let cam = &self.p.scenario.camera;
-                self.snap
-                    .camera
-                    .set_calibration(&cal, cam.width_px, cam.height_px);
-                let _ = rp.planes.push(cal);
+                self.push_real_plane();
             }
+        }
+    }
+
+    /// Hands the vision thread (a fresh detector) and the dashboard's
+    /// overlays the swing plane a real camera's basis and the beliefs in
+    /// force put the ball in (nothing for the simulated labs).
+    fn push_real_plane(&mut self) {
+        if let Some(rp) = self.p.real_plane.as_mut() {
+            let cal = rp.basis.plane(&self.p.scenario);
+            let cam = &self.p.scenario.camera;
+            self.snap
+                .camera
+                .set_calibration(&cal, cam.width_px, cam.height_px);
+            let _ = rp.planes.push(cal);
         }
     }
 
@@ -1092,17 +1101,10 @@ impl LabStep {
                             std::sync::atomic::Ordering::Relaxed,
                         );
                     }
-                    if let Some(rp) = self.p.real_plane.as_mut() {
-                        // The detector measures on the plane the new
-                        // beliefs put the camera and the ball at (a
-                        // calibration step's lens, pose, length, offset).
-                        let cal = rp.basis.plane(&self.p.scenario);
-                        let cam = &self.p.scenario.camera;
-                        self.snap
-                            .camera
-                            .set_calibration(&cal, cam.width_px, cam.height_px);
-                        let _ = rp.planes.push(cal);
-                    }
+                    // The detector measures on the plane the new beliefs
+                    // put the camera and the ball at (a calibration step's
+                    // lens, pose, length, offset).
+                    self.push_real_plane();
                     // The old controller is freed off this thread.
                     let _ = self.p.io_requests.push(IoRequest::Free(controller));
                     let _ = self.p.bridge.ack(ack, Ok(()), Some(scenario));
