@@ -1525,6 +1525,15 @@ pub const REAL_ROBOT_JOINT: usize = 6;
 pub const REAL_ROBOT_AMPLITUDE_RAD: f64 = 0.02;
 /// How long the real-lab robot step excites the joint, seconds.
 pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
+/// The least excitation the robot step fits when the robot left commanding
+/// during it, seconds (8 of its moves: four out and back).
+pub const REAL_ROBOT_MIN_S: f64 = 3.2;
+/// How many excitations the robot step starts at most, each cut short by
+/// the robot leaving commanding.
+pub const REAL_ROBOT_EXCITATIONS: usize = 3;
+/// How long the robot step waits for the robot to command again after it
+/// left commanding, seconds.
+pub const REAL_ROBOT_RECOMMAND_WAIT_S: f64 = 30.0;
 
 /// The robot step on the real lab, through its own FRI session (job `id`,
 /// claimed): the control loop moves A7 by [`REAL_ROBOT_AMPLITUDE_RAD`] and
@@ -1536,10 +1545,13 @@ pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
 /// command-to-measurement delay and the servo lag. The lab's beliefs take
 /// their sum as `control.latency_prior_ms` (what the online estimate starts
 /// from). The joint moves: an operator's heartbeat must come meanwhile when
-/// the lab's dead-man is on. Refused, nothing written, when the robot does
-/// not command, a stop or the dead-man interrupts it, the robot leaves
-/// commanding during it (the excitation ends there), or the fit refuses
-/// (the joint did not follow).
+/// the lab's dead-man is on. When the robot leaves commanding during it
+/// (the excitation ends there), what was recorded until then is fitted if
+/// it holds [`REAL_ROBOT_MIN_S`]; otherwise the step waits for commanding
+/// again and excites anew, [`REAL_ROBOT_EXCITATIONS`] times at most.
+/// Refused, nothing written, when the robot does not command, a stop or the
+/// dead-man interrupts it, every excitation was cut short, or the fit
+/// refuses (the joint did not follow).
 pub async fn run_real_robot(
     lab: &crate::Lab,
     desk: &CalibrationDesk,
@@ -1557,7 +1569,6 @@ async fn real_robot(
     desk: &CalibrationDesk,
     id: u64,
 ) -> anyhow::Result<StepOutcome> {
-    use rt_core::bridge::{Command, Excitation};
     use rt_core::calibration::robot::JointSample;
     use rt_core::calibration::{StepView, ViewKind, fit_robot_latency};
     use std::time::{Duration, Instant};
@@ -1575,6 +1586,125 @@ async fn real_robot(
     {
         anyhow::bail!("calibrate robot: the robot does not command: {}", p.message);
     }
+    // Excitations cut short by the robot leaving commanding (its seconds).
+    let mut cut_short: Vec<f64> = Vec::new();
+    let tap = loop {
+        if !cut_short.is_empty() {
+            // A real session's quality dips now and then: the step waits
+            // for commanding again and excites anew, as a person would.
+            let since = Instant::now();
+            while let Some(p) = lab
+                .device_problems()
+                .into_iter()
+                .find(|p| p.device == "robot")
+            {
+                if since.elapsed().as_secs_f64() > REAL_ROBOT_RECOMMAND_WAIT_S {
+                    anyhow::bail!(
+                        "calibrate robot: the robot left commanding during the excitation and \
+                         did not command again within {REAL_ROBOT_RECOMMAND_WAIT_S:.0} s ({}): \
+                         nothing written; run the step again once it commands",
+                        p.message
+                    );
+                }
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        let tap = excite_and_tap(lab, desk, id, joint).await?;
+        if !tap.idle {
+            anyhow::bail!("calibrate robot: a trial ran during the excitation: not used");
+        }
+        let Some(cut) = tap.cut_s else {
+            break tap;
+        };
+        let excited_s = cut - tap.commands.first().map_or(cut, |c| c.t_s);
+        if excited_s >= REAL_ROBOT_MIN_S {
+            // What was recorded before the robot left commanding is the
+            // excitation's response: the fit takes that much.
+            break tap;
+        }
+        cut_short.push(excited_s);
+        if cut_short.len() >= REAL_ROBOT_EXCITATIONS {
+            anyhow::bail!(
+                "calibrate robot: the robot left commanding during each of {} excitations \
+                 (after {} s; the fit needs {REAL_ROBOT_MIN_S:.1} s): nothing written; run the \
+                 step again once it commands steadily",
+                cut_short.len(),
+                cut_short
+                    .iter()
+                    .map(|s| format!("{s:.1}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+        desk.progress(
+            id,
+            StepView {
+                progress: 0.02,
+                message: format!(
+                    "the robot left commanding {excited_s:.1} s into the excitation (the fit \
+                     needs {REAL_ROBOT_MIN_S:.1} s): exciting A{} again once it commands \
+                     ({} of {REAL_ROBOT_EXCITATIONS})",
+                    joint + 1,
+                    cut_short.len() + 1
+                ),
+                kind: ViewKind::Series,
+                points: Vec::new(),
+                fit: Vec::new(),
+            },
+        );
+    };
+    let result = fit_robot_latency(&tap.commands, &tap.measured).context("calibrate robot")?;
+    let t0 = tap.commands.first().map_or(0.0, |c| c.t_s);
+    desk.progress(
+        id,
+        StepView {
+            progress: 0.98,
+            message: format!(
+                "A{} excited: latency {:.2} ms, servo lag {:.2} ms ({:.1} Hz), from {} states{}",
+                joint + 1,
+                result.latency_ms,
+                result.servo_time_constant_ms,
+                result.bandwidth_hz,
+                tap.measured.len(),
+                tap.cut_s.map_or(String::new(), |cut| format!(
+                    " (the first {:.1} s: the robot left commanding then)",
+                    cut - t0
+                ))
+            ),
+            kind: ViewKind::Series,
+            points: series(&tap.measured, t0),
+            fit: series(&tap.commands, t0),
+        },
+    );
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: (
+            "robot_latency_ms",
+            result.latency_ms,
+            f64::NAN,
+            TARGET_ROBOT_LATENCY_MS,
+        ),
+        write: Box::new(move |file, stamp| {
+            file.robot = Some(step_record(stamp, result));
+        }),
+    })
+}
+
+/// One excitation of `joint` ([`REAL_ROBOT_DURATION_S`], then 0.5 s of rest)
+/// with its tap: the whole of it, or what was recorded until the robot left
+/// commanding ([`crate::lab::JointTap::cut_s`]: the controller ends the
+/// excitation where it is then).
+async fn excite_and_tap(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    joint: usize,
+) -> anyhow::Result<crate::lab::JointTap> {
+    use rt_core::bridge::{Command, Excitation};
+    use rt_core::calibration::{StepView, ViewKind};
+    use std::time::{Duration, Instant};
     lab.tap_joint(joint);
     lab.command(Command::Excite(Excitation {
         joint,
@@ -1592,23 +1722,23 @@ async fn real_robot(
     let mut shown = 0.0;
     while start.elapsed().as_secs_f64() < total_s {
         tokio::time::sleep(Duration::from_millis(50)).await;
-        if let Some((s, _)) = lab.latest()
-            && s.trial_state != rt_core::bridge::TrialState::Idle
-        {
+        let Some((s, _)) = lab.latest() else {
+            continue;
+        };
+        if s.fri.commanding_lost > lost {
+            // The tap stopped at the first state after the loss (the lab's
+            // thread records the states it publishes: wait for it).
+            let seen = Instant::now();
+            while lab.tap_cut().is_none() && seen.elapsed() < Duration::from_secs(2) {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            break;
+        }
+        if s.trial_state != rt_core::bridge::TrialState::Idle {
             anyhow::bail!(
                 "calibrate robot: the excitation was interrupted ({}: a stop, no operator's \
                  heartbeat while the lab's dead-man is on, or the robot left COMMANDING_ACTIVE)",
                 s.trial_state.as_str()
-            );
-        }
-        if let Some((s, _)) = lab.latest()
-            && s.fri.commanding_lost > lost
-        {
-            // The controller ends an excitation where it is when the robot
-            // leaves commanding: what was recorded is not the whole motion.
-            anyhow::bail!(
-                "calibrate robot: the robot left commanding during the excitation (its motion \
-                 ended there): nothing written; run the step again once it commands"
             );
         }
         let t = start.elapsed().as_secs_f64();
@@ -1633,42 +1763,14 @@ async fn real_robot(
     let tap = lab
         .take_tap()
         .context("calibrate robot: the recording of the joint went missing")?;
-    if !tap.idle {
-        anyhow::bail!("calibrate robot: a trial ran during the excitation: not used");
+    let lost_now = lab.latest().map_or(0, |(s, _)| s.fri.commanding_lost);
+    if tap.cut_s.is_none() && lost_now > lost {
+        anyhow::bail!(
+            "calibrate robot: the robot left commanding during the excitation and its recording \
+             did not show where: nothing written; run the step again once it commands"
+        );
     }
-    let result = fit_robot_latency(&tap.commands, &tap.measured).context("calibrate robot")?;
-    let t0 = tap.commands.first().map_or(0.0, |c| c.t_s);
-    desk.progress(
-        id,
-        StepView {
-            progress: 0.98,
-            message: format!(
-                "A{} excited: latency {:.2} ms, servo lag {:.2} ms ({:.1} Hz), from {} states",
-                joint + 1,
-                result.latency_ms,
-                result.servo_time_constant_ms,
-                result.bandwidth_hz,
-                tap.measured.len()
-            ),
-            kind: ViewKind::Series,
-            points: series(&tap.measured, t0),
-            fit: series(&tap.commands, t0),
-        },
-    );
-    Ok(StepOutcome {
-        result: serde_json::to_value(&result)?,
-        truth: serde_json::Value::Null,
-        error: serde_json::Value::Null,
-        figure: (
-            "robot_latency_ms",
-            result.latency_ms,
-            f64::NAN,
-            TARGET_ROBOT_LATENCY_MS,
-        ),
-        write: Box::new(move |file, stamp| {
-            file.robot = Some(step_record(stamp, result));
-        }),
-    })
+    Ok(tap)
 }
 
 /// How long the real-lab camera-robot step waits for the arm to reach a

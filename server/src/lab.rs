@@ -215,6 +215,12 @@ pub struct JointTap {
     pub measured: Vec<rt_core::calibration::robot::JointSample>,
     /// The steps' trial states were all `idle` (no trial ran meanwhile).
     pub idle: bool,
+    /// The control clock's time of the first state after the robot left
+    /// commanding (`fri.commanding_lost` grew): the tap keeps nothing from
+    /// then on (the drives stopped where they were; the commands did not).
+    pub cut_s: Option<f64>,
+    /// `fri.commanding_lost` at the tap's first state.
+    lost_before: Option<u64>,
     /// The control step count of the latest sample (states published
     /// between the robot's messages repeat the last step: left out).
     last_step: u64,
@@ -434,6 +440,8 @@ impl Lab {
                 commands: Vec::with_capacity(16_384),
                 measured: Vec::with_capacity(16_384),
                 idle: true,
+                cut_s: None,
+                lost_before: None,
                 last_step: 0,
             });
         }
@@ -442,6 +450,15 @@ impl Lab {
     /// Ends the recording [`Self::tap_joint`] began and takes what it holds.
     pub fn take_tap(&self) -> Option<JointTap> {
         self.joint_tap.lock().ok().and_then(|mut t| t.take())
+    }
+
+    /// Where the running tap stopped because the robot left commanding
+    /// ([`JointTap::cut_s`]; `None` while it records, or none runs).
+    pub fn tap_cut(&self) -> Option<f64> {
+        self.joint_tap
+            .lock()
+            .ok()
+            .and_then(|t| t.as_ref().and_then(|t| t.cut_s))
     }
 
     /// How many states the running tap holds (0: none runs).
@@ -653,6 +670,13 @@ impl Pump {
         let mut tap = self.lab.joint_tap.lock().ok();
         while let Some(s) = self.end_telemetry.pop() {
             if let Some(t) = tap.as_mut().and_then(|t| t.as_mut())
+                && t.cut_s.is_none()
+                && s.fri.commanding_lost > *t.lost_before.get_or_insert(s.fri.commanding_lost)
+            {
+                t.cut_s = Some(s.t_s);
+            }
+            if let Some(t) = tap.as_mut().and_then(|t| t.as_mut())
+                && t.cut_s.is_none()
                 && t.measured.len() < JOINT_TAP_MAX
                 && s.counters.steps > t.last_step
                 && let (Some(&c), Some(&m)) =

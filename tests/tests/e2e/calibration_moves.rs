@@ -90,3 +90,115 @@ async fn a_move_cut_by_the_robot_leaving_commanding_is_sent_again_and_reaches_it
     lab.shutdown();
     drop(runtime);
 }
+
+/// The robot step's job once it ended: its status.
+async fn job_end(desk: &server::calibration::CalibrationDesk) -> serde_json::Value {
+    let deadline = Instant::now() + Duration::from_secs(180);
+    loop {
+        let s = serde_json::to_value(desk.status().unwrap()).unwrap();
+        if s["job"]["state"] != "running" {
+            return s;
+        }
+        assert!(Instant::now() < deadline, "the robot step did not end: {s}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// The robot step (`run_real_robot`) when the robot leaves commanding during
+/// its excitation: cut after 1 s (too little to fit) it waits for commanding
+/// and excites again; cut after 4 s it fits what was recorded until then.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_cut_early() {
+    use server::calibration::{CalibrationDesk, REAL_ROBOT_MIN_S, Step, run_real_robot};
+    let (lab, runtime) =
+        server::runtime::start_simulated(Scenario::default(), None, LabOptions::default(), 1)
+            .unwrap();
+    runtime.wait_commanding(Duration::from_secs(30)).unwrap();
+    let robot = rt_core::sim::wall_lab::sim_server(&runtime).expect("the simulated controller");
+    wait_for(&lab, "commanding", Duration::from_secs(30), |s| {
+        s.fri.session == FriSessionState::CommandingActive && s.counters.steps > 100
+    })
+    .await;
+    let tmp = tempfile::tempdir().unwrap();
+    let desk = Arc::new(CalibrationDesk::new(
+        tmp.path().join("calibration.toml"),
+        true,
+        Box::new(|_| None),
+    ));
+    let mut latencies = Vec::new();
+    for (cut_after_s, lost) in [(1.0, 1), (REAL_ROBOT_MIN_S + 0.8, 2)] {
+        let id = desk.claim(Step::Robot).unwrap();
+        let step = {
+            let (lab, desk) = (Arc::clone(&lab), Arc::clone(&desk));
+            let scenario = Scenario::default();
+            tokio::spawn(async move { run_real_robot(&lab, &desk, id, &scenario).await })
+        };
+        // The excitation's first state in the tap, then `cut_after_s` of it.
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while lab.tap_len() == 0 {
+            assert!(Instant::now() < deadline, "the excitation did not start");
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        let t0 = lab.latest().unwrap().0.t_s;
+        wait_for(
+            &lab,
+            "the excitation under way",
+            Duration::from_secs(30),
+            |s| s.t_s >= t0 + cut_after_s,
+        )
+        .await;
+        robot.leave_commanding();
+        if cut_after_s < REAL_ROBOT_MIN_S {
+            // The step says it excites again, and does once the lab
+            // commands again.
+            let deadline = Instant::now() + Duration::from_secs(60);
+            loop {
+                let s = serde_json::to_value(desk.status().unwrap()).unwrap();
+                let m = s["job"]["message"].as_str().unwrap_or_default().to_string();
+                if m.contains("again once it commands") {
+                    break;
+                }
+                assert!(
+                    s["job"]["state"] == "running" && Instant::now() < deadline,
+                    "the step did not say it excites again: {s}"
+                );
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+        let s = job_end(&desk).await;
+        step.await.unwrap();
+        assert_eq!(s["job"]["state"], "done", "{s}");
+        let message = s["job"]["message"].as_str().unwrap();
+        let fitted_on_part = message.contains("the robot left commanding then");
+        assert_eq!(
+            fitted_on_part,
+            cut_after_s >= REAL_ROBOT_MIN_S,
+            "cut after {cut_after_s} s: {message}"
+        );
+        // What the lab believes from it: the delay and the servo lag together.
+        let r = &s["job"]["result"];
+        let latency =
+            r["latency_ms"].as_f64().unwrap() + r["servo_time_constant_ms"].as_f64().unwrap();
+        assert!(latency.is_finite() && latency > 0.0, "{s}");
+        println!("robot step cut after {cut_after_s:.1} s: {message}");
+        latencies.push(latency);
+        assert_eq!(lab.latest().unwrap().0.fri.commanding_lost, lost);
+        assert!(
+            s["steps"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|x| x["name"] == "robot" && x["done"] == true),
+            "the record is not written: {s}"
+        );
+    }
+    // The part of an excitation measures the same robot as a whole one.
+    assert!(
+        (latencies[0] - latencies[1]).abs() < 1.5,
+        "whole excitation {:.2} ms, its first part {:.2} ms",
+        latencies[0],
+        latencies[1]
+    );
+    lab.shutdown();
+    drop(runtime);
+}

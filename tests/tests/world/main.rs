@@ -281,21 +281,34 @@ async fn camera_truth(ready: &Value) -> Value {
 
 async fn calibrate(addr: SocketAddr, step: &str) -> Value {
     for attempt in 1..=3 {
+        // Ready, and the robot commanding steadily for 2 s (a starved
+        // machine's FRI leaves commanding now and then; a step started right
+        // after it came back is likely cut again).
         let deadline = Instant::now() + Duration::from_secs(60);
-        while http(addr, "GET", "/api/state", &[], b"")
-            .await
-            .ok()
-            .and_then(|r| r.json().ok())
-            .is_none_or(|s| {
-                s["fri"]["session"] != "commanding_active"
-                    || !(s["magnet"] == "on" || s["magnet"] == "off")
-                    || s["camera"]["lost"] != false
-                    || s["camera"]["frame"].as_u64().is_none_or(|f| f == 0)
-            })
-        {
+        let mut steady: Option<(Instant, u64)> = None;
+        loop {
+            let ready = http(addr, "GET", "/api/state", &[], b"")
+                .await
+                .ok()
+                .and_then(|r| r.json().ok())
+                .filter(|s| {
+                    s["fri"]["session"] == "commanding_active"
+                        && (s["magnet"] == "on" || s["magnet"] == "off")
+                        && s["camera"]["lost"] == false
+                        && s["camera"]["frame"].as_u64().is_some_and(|f| f > 0)
+                })
+                .and_then(|s| s["fri"]["commanding_lost"].as_u64());
+            steady = match (steady, ready) {
+                (Some((since, lost)), Some(now)) if now == lost => Some((since, lost)),
+                (_, Some(now)) => Some((Instant::now(), now)),
+                (_, None) => None,
+            };
+            if steady.is_some_and(|(since, _)| since.elapsed() >= Duration::from_secs(2)) {
+                break;
+            }
             assert!(
                 Instant::now() < deadline,
-                "the robot does not command, the board does not answer, or the camera does not deliver"
+                "the robot does not command steadily, the board does not answer, or the camera does not deliver"
             );
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -336,6 +349,11 @@ async fn calibrate(addr: SocketAddr, step: &str) -> Value {
                 state["camera"], state["fri"], health["devices"]
             );
         }
+        let fri = get(addr, "/api/state").await["fri"].clone();
+        println!(
+            "world lab: {step} step done: {message} (FRI: commanding lost {} times so far)",
+            fri["commanding_lost"]
+        );
         return status["job"]["result"].clone();
     }
     unreachable!("the third attempt returns or fails above")
