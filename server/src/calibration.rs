@@ -936,22 +936,75 @@ pub async fn run_real_pendulum(
                 &[],
             ),
         );
-        lab.command(Command::Arm).await.map_err(|e| {
-            anyhow::anyhow!("calibrate pendulum: the arm must move home first, out of the swing: {e}")
-        })?;
-        let deadline = Instant::now() + Duration::from_secs(60);
-        loop {
-            match lab.latest().map(|(s, _)| (s.trial_state, s.abort)) {
-                Some((rt_core::bridge::TrialState::Armed, _)) => break,
-                Some((rt_core::bridge::TrialState::Aborted, abort)) => anyhow::bail!(
-                    "calibrate pendulum: moving the arm home was stopped: {} (nothing written; \
-                     run the step again)",
-                    abort.message
-                ),
-                _ if Instant::now() > deadline => {
-                    anyhow::bail!("calibrate pendulum: the arm did not reach home within 60 s")
+        // A robot that leaves commanding on the way (the move ends where it
+        // is; the lab asks it to command again) is sent home again once it
+        // commands, [`REAL_HOME_TRIES`] times at most.
+        let mut tries = 0;
+        'home: loop {
+            tries += 1;
+            if tries > 1 {
+                let since = Instant::now();
+                while let Some(p) = lab
+                    .device_problems()
+                    .into_iter()
+                    .find(|p| p.device == "robot")
+                {
+                    if since.elapsed() > Duration::from_secs(30) {
+                        anyhow::bail!(
+                            "calibrate pendulum: moving the arm home was stopped and the robot did \
+                             not command again within 30 s ({}): nothing written; run the step \
+                             again",
+                            p.message
+                        );
+                    }
+                    tokio::time::sleep(Duration::from_millis(100)).await;
                 }
-                _ => tokio::time::sleep(Duration::from_millis(20)).await,
+            }
+            lab.command(Command::Arm).await.map_err(|e| {
+                anyhow::anyhow!(
+                    "calibrate pendulum: the arm must move home first, out of the swing: {e}"
+                )
+            })?;
+            // The acknowledgement comes before the next state: what the lab
+            // published until then is from before the command.
+            let acked = lab.latest().map_or(0, |(s, _)| s.counters.steps);
+            let deadline = Instant::now() + Duration::from_secs(60);
+            loop {
+                match lab
+                    .latest()
+                    .filter(|(s, _)| s.counters.steps > acked)
+                    .map(|(s, _)| (s.trial_state, s.abort))
+                {
+                    Some((rt_core::bridge::TrialState::Armed, _)) => break 'home,
+                    Some((rt_core::bridge::TrialState::Aborted, abort))
+                        if abort.reason == Some(rt_core::bridge::AbortKind::FriLost)
+                            && tries < REAL_HOME_TRIES =>
+                    {
+                        desk.progress(
+                            id,
+                            view(
+                                0.01,
+                                format!(
+                                    "moving the arm home was stopped ({}): sending it home again \
+                                     once the robot commands ({} of {REAL_HOME_TRIES})",
+                                    abort.message,
+                                    tries + 1
+                                ),
+                                &[],
+                            ),
+                        );
+                        continue 'home;
+                    }
+                    Some((rt_core::bridge::TrialState::Aborted, abort)) => anyhow::bail!(
+                        "calibrate pendulum: moving the arm home was stopped: {} (nothing \
+                         written; run the step again)",
+                        abort.message
+                    ),
+                    _ if Instant::now() > deadline => {
+                        anyhow::bail!("calibrate pendulum: the arm did not reach home within 60 s")
+                    }
+                    _ => tokio::time::sleep(Duration::from_millis(20)).await,
+                }
             }
         }
         lab.command(Command::Disarm)
@@ -1525,6 +1578,9 @@ pub const REAL_ROBOT_JOINT: usize = 6;
 pub const REAL_ROBOT_AMPLITUDE_RAD: f64 = 0.02;
 /// How long the real-lab robot step excites the joint, seconds.
 pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
+/// How many times the pendulum step sends the arm home when the robot
+/// leaves commanding on the way.
+pub const REAL_HOME_TRIES: usize = 3;
 /// The least excitation the robot step fits when the robot left commanding
 /// during it, seconds (8 of its moves: four out and back).
 pub const REAL_ROBOT_MIN_S: f64 = 3.2;

@@ -122,9 +122,16 @@ fn full_session(period_ms: u32) {
     });
     // Half a second of commanding.
     let n = u64::from(500 / period_ms);
-    wait_for("commands applied", Duration::from_secs(15), || {
-        sim.commands_applied.load(Relaxed) >= n
-    });
+    let start = Instant::now();
+    while sim.commands_applied.load(Relaxed) < n {
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "{n} commands not applied within 15 s: controller {:?}; client {:?}",
+            sim.report(),
+            cl.snapshot()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
     let moved = sim.joint_rad.load()[0] - a1_0;
     let report = server.close(Duration::from_secs(2)).unwrap();
     wait_for("IDLE at the client", Duration::from_secs(10), || {
