@@ -266,6 +266,8 @@ struct Pump {
     recorder: Recorder,
     /// Trials whose end was recorded: their later snapshots are not recorded.
     ended: Option<u64>,
+    /// `fri.commanding_lost` as the log last said it.
+    commanding_lost: u64,
     /// The Foxglove channels (live server and MCAP recordings).
     fox: Foxglove,
 }
@@ -330,6 +332,7 @@ impl Lab {
             records,
             recorder: Recorder::default(),
             ended: None,
+            commanding_lost: 0,
             fox,
         };
         let handle = std::thread::Builder::new()
@@ -669,6 +672,17 @@ impl Pump {
     fn record_telemetry(&mut self) {
         let mut tap = self.lab.joint_tap.lock().ok();
         while let Some(s) = self.end_telemetry.pop() {
+            if s.fri.commanding_lost > self.commanding_lost {
+                self.commanding_lost = s.fri.commanding_lost;
+                tracing::warn!(
+                    times = s.fri.commanding_lost,
+                    session = ?s.fri.session,
+                    quality = ?s.fri.quality,
+                    late_replies = s.fri.late_replies,
+                    silences = s.fri.silences,
+                    "the robot's FRI session left commanding"
+                );
+            }
             if let Some(t) = tap.as_mut().and_then(|t| t.as_mut())
                 && t.cut_s.is_none()
                 && s.fri.commanding_lost > *t.lost_before.get_or_insert(s.fri.commanding_lost)

@@ -235,6 +235,8 @@ pub struct LabWorld {
     epoch_unix_s: f64,
     frames: Arc<AtomicU64>,
     releases: usize,
+    /// The cabinet's commanding aborts said so far ([`Self::poll`]).
+    aborts_said: u64,
     held_board: HeldBoard,
     marker_on: MarkerOn,
     /// The stand and the hands that hang the ball (the operator asks angles of it).
@@ -546,6 +548,7 @@ impl LabWorld {
             epoch_unix_s,
             frames,
             releases: 0,
+            aborts_said: 0,
             held_board,
             marker_on,
             hands,
@@ -680,6 +683,24 @@ impl LabWorld {
             }
         }
         self.releases += n;
+        // As a real cabinet's pendant shows it: why it left commanding, and
+        // whose lateness it counted (the lab's replies, or its own cycles).
+        let stats = self.cabinet.stats();
+        let aborts = stats.aborts.load(Relaxed);
+        if aborts > self.aborts_said {
+            self.aborts_said = aborts;
+            eprintln!(
+                "isochron world: the cabinet left commanding ({}); so far {} late and {} missing \
+                 of {} replies, {} cycles the cabinet itself was not scheduled for",
+                stats
+                    .last_abort()
+                    .map_or_else(|| "no reason kept".to_string(), |r| r.to_string()),
+                stats.late_replies.load(Relaxed),
+                stats.missing_replies.load(Relaxed),
+                stats.replies.load(Relaxed),
+                stats.overruns.load(Relaxed),
+            );
+        }
         if self.board_gone.load(Relaxed) || self.board.exited() {
             bail!("the magnet board's simulator ended");
         }

@@ -36,17 +36,43 @@ async fn wait_for(
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_move_cut_by_the_robot_leaving_commanding_is_sent_again_and_reaches_its_pose() {
+/// The wall-clock simulated lab once its robot commands, with its latest
+/// state then.
+async fn commanding_lab() -> (Arc<server::Lab>, rt_core::lab::LabRuntime, Snapshot) {
     let (lab, runtime) =
         server::runtime::start_simulated(Scenario::default(), None, LabOptions::default(), 1)
             .unwrap();
     runtime.wait_commanding(Duration::from_secs(30)).unwrap();
-    let robot = rt_core::sim::wall_lab::sim_server(&runtime).expect("the simulated controller");
     let s = wait_for(&lab, "commanding", Duration::from_secs(30), |s| {
         s.fri.session == FriSessionState::CommandingActive && s.counters.steps > 100
     })
     .await;
+    (lab, runtime, s)
+}
+
+/// Waits until the running step's message says `needle`.
+async fn job_says(desk: &server::calibration::CalibrationDesk, needle: &str) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let s = serde_json::to_value(desk.status().unwrap()).unwrap();
+        if s["job"]["message"]
+            .as_str()
+            .is_some_and(|m| m.contains(needle))
+        {
+            return;
+        }
+        assert!(
+            s["job"]["state"] == "running" && Instant::now() < deadline,
+            "the step did not say `{needle}`: {s}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_move_cut_by_the_robot_leaving_commanding_is_sent_again_and_reaches_its_pose() {
+    let (lab, runtime, s) = commanding_lab().await;
+    let robot = rt_core::sim::wall_lab::sim_server(&runtime).expect("the simulated controller");
     let start = s.robot.q_rad;
     // A1 turned by 1 rad: a slow move of several seconds.
     let mut target = start;
@@ -111,15 +137,8 @@ async fn job_end(desk: &server::calibration::CalibrationDesk) -> serde_json::Val
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_cut_early() {
     use server::calibration::{CalibrationDesk, REAL_ROBOT_MIN_S, Step, run_real_robot};
-    let (lab, runtime) =
-        server::runtime::start_simulated(Scenario::default(), None, LabOptions::default(), 1)
-            .unwrap();
-    runtime.wait_commanding(Duration::from_secs(30)).unwrap();
+    let (lab, runtime, _) = commanding_lab().await;
     let robot = rt_core::sim::wall_lab::sim_server(&runtime).expect("the simulated controller");
-    wait_for(&lab, "commanding", Duration::from_secs(30), |s| {
-        s.fri.session == FriSessionState::CommandingActive && s.counters.steps > 100
-    })
-    .await;
     let tmp = tempfile::tempdir().unwrap();
     let desk = Arc::new(CalibrationDesk::new(
         tmp.path().join("calibration.toml"),
@@ -152,19 +171,7 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
         if cut_after_s < REAL_ROBOT_MIN_S {
             // The step says it excites again, and does once the lab
             // commands again.
-            let deadline = Instant::now() + Duration::from_secs(60);
-            loop {
-                let s = serde_json::to_value(desk.status().unwrap()).unwrap();
-                let m = s["job"]["message"].as_str().unwrap_or_default().to_string();
-                if m.contains("again once it commands") {
-                    break;
-                }
-                assert!(
-                    s["job"]["state"] == "running" && Instant::now() < deadline,
-                    "the step did not say it excites again: {s}"
-                );
-                tokio::time::sleep(Duration::from_millis(10)).await;
-            }
+            job_says(&desk, "again once it commands").await;
         }
         let s = job_end(&desk).await;
         step.await.unwrap();
@@ -210,15 +217,8 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
 async fn the_pendulum_steps_move_home_cut_by_the_robot_leaving_commanding_is_sent_again() {
     use rt_core::bridge::TrialState;
     use server::calibration::{CalibrationDesk, Step, run_real_pendulum};
-    let (lab, runtime) =
-        server::runtime::start_simulated(Scenario::default(), None, LabOptions::default(), 1)
-            .unwrap();
-    runtime.wait_commanding(Duration::from_secs(30)).unwrap();
+    let (lab, runtime, s) = commanding_lab().await;
     let robot = rt_core::sim::wall_lab::sim_server(&runtime).expect("the simulated controller");
-    let s = wait_for(&lab, "commanding", Duration::from_secs(30), |s| {
-        s.fri.session == FriSessionState::CommandingActive && s.counters.steps > 100
-    })
-    .await;
     // The arm away from home first: the way back takes seconds.
     let mut away = s.robot.q_rad;
     away[0] += 0.8;
@@ -258,19 +258,7 @@ async fn the_pendulum_steps_move_home_cut_by_the_robot_leaving_commanding_is_sen
     )
     .await;
     // The step says so and sends the arm home again; it gets there.
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let s = serde_json::to_value(desk.status().unwrap()).unwrap();
-        let m = s["job"]["message"].as_str().unwrap_or_default().to_string();
-        if m.contains("sending it home again") {
-            break;
-        }
-        assert!(
-            s["job"]["state"] == "running" && Instant::now() < deadline,
-            "the step did not send the arm home again: {s}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    job_says(&desk, "sending it home again").await;
     let home = wait_for(&lab, "the arm home", Duration::from_secs(60), |s| {
         s.trial_state == TrialState::Armed
     })
