@@ -938,27 +938,18 @@ pub async fn run_real_pendulum(
         );
         // A robot that leaves commanding on the way (the move ends where it
         // is; the lab asks it to command again) is sent home again once it
-        // commands, [`REAL_HOME_TRIES`] times at most.
+        // commands, [`MOVE_RESENDS`] times at most (as the tour's moves).
         let mut tries = 0;
         'home: loop {
             tries += 1;
             if tries > 1 {
-                let since = Instant::now();
-                while let Some(p) = lab
-                    .device_problems()
-                    .into_iter()
-                    .find(|p| p.device == "robot")
-                {
-                    if since.elapsed() > Duration::from_secs(30) {
-                        anyhow::bail!(
-                            "calibrate pendulum: moving the arm home was stopped and the robot did \
-                             not command again within 30 s ({}): nothing written; run the step \
-                             again",
-                            p.message
-                        );
-                    }
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
+                robot_commands_again(lab).await.map_err(|why| {
+                    anyhow::anyhow!(
+                        "calibrate pendulum: moving the arm home was stopped and the robot did \
+                         not command again within {RECOMMAND_WAIT_S:.0} s ({why}): nothing \
+                         written; run the step again"
+                    )
+                })?;
             }
             lab.command(Command::Arm).await.map_err(|e| {
                 anyhow::anyhow!(
@@ -978,7 +969,7 @@ pub async fn run_real_pendulum(
                     Some((rt_core::bridge::TrialState::Armed, _)) => break 'home,
                     Some((rt_core::bridge::TrialState::Aborted, abort))
                         if abort.reason == Some(rt_core::bridge::AbortKind::FriLost)
-                            && tries < REAL_HOME_TRIES =>
+                            && tries <= MOVE_RESENDS as usize =>
                     {
                         desk.progress(
                             id,
@@ -986,9 +977,9 @@ pub async fn run_real_pendulum(
                                 0.01,
                                 format!(
                                     "moving the arm home was stopped ({}): sending it home again \
-                                     once the robot commands ({} of {REAL_HOME_TRIES})",
+                                     once the robot commands ({} of {MOVE_RESENDS})",
                                     abort.message,
-                                    tries + 1
+                                    tries
                                 ),
                                 &[],
                             ),
@@ -1578,18 +1569,15 @@ pub const REAL_ROBOT_JOINT: usize = 6;
 pub const REAL_ROBOT_AMPLITUDE_RAD: f64 = 0.02;
 /// How long the real-lab robot step excites the joint, seconds.
 pub const REAL_ROBOT_DURATION_S: f64 = 8.0;
-/// How many times the pendulum step sends the arm home when the robot
-/// leaves commanding on the way.
-pub const REAL_HOME_TRIES: usize = 3;
 /// The least excitation the robot step fits when the robot left commanding
 /// during it, seconds (8 of its moves: four out and back).
 pub const REAL_ROBOT_MIN_S: f64 = 3.2;
 /// How many excitations the robot step starts at most, each cut short by
 /// the robot leaving commanding.
 pub const REAL_ROBOT_EXCITATIONS: usize = 3;
-/// How long the robot step waits for the robot to command again after it
-/// left commanding, seconds.
-pub const REAL_ROBOT_RECOMMAND_WAIT_S: f64 = 30.0;
+/// How long a step waits for the robot to command again after it left
+/// commanding during the step's motion, seconds.
+pub const RECOMMAND_WAIT_S: f64 = 30.0;
 
 /// The robot step on the real lab, through its own FRI session (job `id`,
 /// claimed): the control loop moves A7 by [`REAL_ROBOT_AMPLITUDE_RAD`] and
@@ -1627,7 +1615,6 @@ async fn real_robot(
 ) -> anyhow::Result<StepOutcome> {
     use rt_core::calibration::robot::JointSample;
     use rt_core::calibration::{StepView, ViewKind, fit_robot_latency};
-    use std::time::{Duration, Instant};
     let joint = REAL_ROBOT_JOINT;
     let series = |s: &[JointSample], t0: f64| -> Vec<[f64; 2]> {
         rt_core::calibration::view::thin(
@@ -1648,22 +1635,13 @@ async fn real_robot(
         if !cut_short.is_empty() {
             // A real session's quality dips now and then: the step waits
             // for commanding again and excites anew, as a person would.
-            let since = Instant::now();
-            while let Some(p) = lab
-                .device_problems()
-                .into_iter()
-                .find(|p| p.device == "robot")
-            {
-                if since.elapsed().as_secs_f64() > REAL_ROBOT_RECOMMAND_WAIT_S {
-                    anyhow::bail!(
-                        "calibrate robot: the robot left commanding during the excitation and \
-                         did not command again within {REAL_ROBOT_RECOMMAND_WAIT_S:.0} s ({}): \
-                         nothing written; run the step again once it commands",
-                        p.message
-                    );
-                }
-                tokio::time::sleep(Duration::from_millis(100)).await;
-            }
+            robot_commands_again(lab).await.map_err(|why| {
+                anyhow::anyhow!(
+                    "calibrate robot: the robot left commanding during the excitation and did \
+                     not command again within {RECOMMAND_WAIT_S:.0} s ({why}): nothing written; \
+                     run the step again once it commands"
+                )
+            })?;
         }
         let tap = excite_and_tap(lab, desk, id, joint).await?;
         if !tap.idle {
@@ -1877,6 +1855,24 @@ pub async fn run_real_camera_robot(
         let _ = move_to_pose(lab, &q).await;
     }
     desk.conclude(id, Step::CameraRobot, scenario, outcome, desk.source())
+}
+
+/// Waits until the robot commands again (no device problem of the robot's),
+/// at most [`RECOMMAND_WAIT_S`]; otherwise the problem's message.
+async fn robot_commands_again(lab: &crate::Lab) -> Result<(), String> {
+    use std::time::{Duration, Instant};
+    let since = Instant::now();
+    while let Some(p) = lab
+        .device_problems()
+        .into_iter()
+        .find(|p| p.device == "robot")
+    {
+        if since.elapsed().as_secs_f64() > RECOMMAND_WAIT_S {
+            return Err(p.message);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    Ok(())
 }
 
 /// How many times [`move_to_pose`] sends a move again after the robot left
