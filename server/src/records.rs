@@ -56,7 +56,8 @@ pub struct TrialRecord {
     pub timing_error_ms: Option<f64>,
     /// Tool point to ball centre at t*, metres.
     pub position_error_m: Option<f64>,
-    /// Fitted movement time, seconds.
+    /// Fitted movement time, seconds (a real lab's: fitted on the measured
+    /// tool point, also for a trial that was not judged).
     pub movement_time_s: Option<f64>,
     /// Distance of the intercept point, metres.
     pub distance_m: Option<f64>,

@@ -28,6 +28,26 @@ pub fn starved(record: &Value) -> bool {
             .is_some_and(|a| STARVED_ABORTS.contains(&a))
 }
 
+/// Why a done trial of a real lab on a simulated world (`isochron serve`
+/// without a configuration) may not be judged on a starved machine: the
+/// robot's FRI messages paused around the pass or the arrival, or the
+/// camera's frames missed the pass. Such a trial says so in its reason.
+pub const STARVED_NOT_JUDGED: [&str; 2] = [
+    rt_core::lab::step::NOT_JUDGED_ROBOT_GAP,
+    rt_core::lab::step::NOT_JUDGED_MEASURED,
+];
+
+/// Whether a done trial record was not judged for one of
+/// [`STARVED_NOT_JUDGED`] (then `success` and `judged_by` are null).
+pub fn not_judged_starved(record: &Value) -> bool {
+    record["status"] == "done"
+        && record["success"].is_null()
+        && record["judged_by"].is_null()
+        && record["reason"]
+            .as_str()
+            .is_some_and(|r| STARVED_NOT_JUDGED.contains(&r))
+}
+
 /// Lines of the service's log a failing test prints.
 const LOG_TAIL_LINES: usize = 60;
 

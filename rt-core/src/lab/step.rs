@@ -1465,7 +1465,12 @@ impl LabStep {
             success: o.succeeded(&self.p.scenario.success),
             timing_error_ms: j.map_or(f64::NAN, |j| j.timing_error_ms),
             position_error_m: j.map_or(f64::NAN, |j| j.position_error_m),
-            movement_time_s: j.map_or(f64::NAN, |j| j.movement_time_s),
+            // A real lab's trial not judged still says how long its motion
+            // took, as its measured joints show it.
+            movement_time_s: j.map_or_else(
+                || measured_movement.map_or(f64::NAN, |(_, mt)| mt),
+                |j| j.movement_time_s,
+            ),
             distance_m: trial.draw.distance_m,
             t_star_s: j.map_or(f64::NAN, |j| j.t_star_s),
             arrival_t_s: j.map_or(f64::NAN, |j| j.arrival_s),

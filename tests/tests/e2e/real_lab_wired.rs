@@ -261,6 +261,10 @@ fn assert_finished(r: &Value) {
                 assert_eq!(r["measured"]["torque_signal"], false, "{r}");
                 assert_eq!(r["measured"]["contact"], false, "{r}");
                 assert_eq!(r["measured"]["success"], false, "{r}");
+                // Not judged, yet the record says how long the motion took
+                // (fitted on the measured joints): the plan's 1.5 s.
+                let mt = r["movement_time_s"].as_f64();
+                assert!(mt.is_some_and(|t| (t - 1.5).abs() < 0.05), "{r}");
             }
         }
         "aborted" => {

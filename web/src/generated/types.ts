@@ -803,7 +803,8 @@ timing_error_ms: number | null,
  */
 position_error_m: number | null, 
 /**
- * Fitted movement time, seconds.
+ * Fitted movement time, seconds (a real lab's: fitted on the measured
+ * tool point, also for a trial that was not judged).
  */
 movement_time_s: number | null, 
 /**
