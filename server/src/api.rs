@@ -835,6 +835,8 @@ pub struct TrialStarted {
 pub struct TrialRequest {
     /// Robot base axis to the intercept point, horizontal, metres (else
     /// drawn from `task.distance_m`); must be reachable in the movement time.
+    /// A real lab's pendulum hangs where its `calibration.pivot_m` puts it:
+    /// there (within 5 mm) or left out, else 400.
     #[schema(minimum = 0.1, maximum = 1.2)]
     pub distance_m: Option<f64>,
     /// The motion's planned duration, seconds (else `task.movement_time_s`);
@@ -853,8 +855,18 @@ const MAX_MOVEMENT_TIME_S: f64 = 10.0;
 /// Checks a trial's own fields against the parameters in force: each in
 /// range, and the motion feasible within the joint limits (planned as the
 /// lab plans it, without stretching to the shortest feasible duration), or a
-/// 400 naming the field.
-pub(crate) fn trial_setup(req: &TrialRequest, params: &Scenario) -> Result<TrialSetup, AppError> {
+/// 400 naming the field. `fixed_distance_m`: where the pendulum hangs in a
+/// lab that cannot move it ([`crate::LabOptions::fixed_distance_m`]); a
+/// distance more than [`FIXED_DISTANCE_TOLERANCE_M`] from it is refused.
+/// How far a trial's `distance_m` may be from a fixed pendulum's, m (the
+/// request's rounding; the tool's contact disc is 30 mm across).
+pub const FIXED_DISTANCE_TOLERANCE_M: f64 = 0.005;
+
+pub(crate) fn trial_setup(
+    req: &TrialRequest,
+    params: &Scenario,
+    fixed_distance_m: Option<f64>,
+) -> Result<TrialSetup, AppError> {
     let bad = |field: &str, message: String| AppError::BadRequest {
         message,
         field: Some(field.to_owned()),
@@ -875,9 +887,24 @@ pub(crate) fn trial_setup(req: &TrialRequest, params: &Scenario) -> Result<Trial
         "s",
     )?;
     range("release_deg", req.release_deg, 1.0, 60.0, "deg")?;
+    if let (Some(d), Some(f)) = (req.distance_m, fixed_distance_m)
+        && (d - f).abs() > FIXED_DISTANCE_TOLERANCE_M
+    {
+        // A real lab's pendulum hangs where it hangs: an intercept elsewhere
+        // is a motion to where no ball passes.
+        return Err(bad(
+            "distance_m",
+            format!(
+                "distance_m = {d} m: this lab's pendulum hangs {f:.3} m from the robot's base \
+                 (calibration.pivot_m) and the lab cannot move it; leave distance_m out (its \
+                 trials are planned there), or move the pendulum and set calibration.pivot_m"
+            ),
+        ));
+    }
     if req.distance_m.is_some() || req.movement_time_s.is_some() {
         let d = req
             .distance_m
+            .or(fixed_distance_m)
             .unwrap_or_else(|| params.task.distance_m.lerp(0.5));
         let mut b = rt_core::lab::step::trial_beliefs(params, req.movement_time_s);
         b.control.allow_shortest_feasible = false;
@@ -942,7 +969,8 @@ pub async fn start_trial(
     } else {
         parse_json(&bytes)?
     };
-    let setup = trial_setup(&req, &lab(&state)?.params())?;
+    let lab = lab(&state)?;
+    let setup = trial_setup(&req, &lab.params(), lab.options().fixed_distance_m)?;
     let id = start_one(&state, setup).await?;
     Ok((StatusCode::ACCEPTED, Json(TrialStarted { id })))
 }
@@ -1512,7 +1540,7 @@ mod tests {
 
     /// The 400 body of a trial refused by `trial_setup`: status, `error`, `field`.
     async fn refused(req: &TrialRequest) -> (StatusCode, serde_json::Value) {
-        let Err(e) = trial_setup(req, &Scenario::default()) else {
+        let Err(e) = trial_setup(req, &Scenario::default(), None) else {
             panic!("{req:?} was accepted")
         };
         let resp = e.into_response();
@@ -1521,6 +1549,53 @@ mod tests {
             .await
             .unwrap();
         (status, serde_json::from_slice(&body).unwrap())
+    }
+
+    /// A lab that cannot move its pendulum (0.6 m): a trial elsewhere is
+    /// refused naming the distance, one there (within 5 mm) or without a
+    /// distance is taken, its movement time checked where the pendulum hangs.
+    #[tokio::test]
+    async fn a_fixed_pendulum_refuses_a_trial_at_another_distance() {
+        let params = Scenario::default();
+        let at = |d: Option<f64>, mt: Option<f64>| {
+            let req = TrialRequest {
+                distance_m: d,
+                movement_time_s: mt,
+                release_deg: None,
+            };
+            trial_setup(&req, &params, Some(0.6))
+        };
+        let Err(e) = at(Some(0.4), None) else {
+            panic!("0.4 m was taken by a pendulum at 0.6 m")
+        };
+        let resp = e.into_response();
+        assert_eq!(resp.status(), StatusCode::BAD_REQUEST);
+        let body = axum::body::to_bytes(resp.into_body(), 1 << 16)
+            .await
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["field"], "distance_m", "{v}");
+        let msg = v["error"].as_str().unwrap();
+        assert!(
+            msg.starts_with("distance_m = 0.4 m: this lab's pendulum hangs 0.600 m"),
+            "{msg}"
+        );
+        let s = at(Some(0.603), Some(2.0)).unwrap();
+        assert_eq!(s.distance_m, Some(0.603));
+        assert!(at(None, Some(1.5)).is_ok());
+        // Without a fixed pendulum, any distance the arm reaches.
+        assert!(
+            trial_setup(
+                &TrialRequest {
+                    distance_m: Some(0.4),
+                    movement_time_s: None,
+                    release_deg: None,
+                },
+                &params,
+                None
+            )
+            .is_ok()
+        );
     }
 
     #[tokio::test]

@@ -1,7 +1,9 @@
 //! Demo mode (`isochron serve --demo`): trials run unattended, one every
 //! `interval_s` seconds (start to start; right after the previous one when it
 //! took longer), each with its own distance and movement time taken in turn
-//! from [`DISTANCES_M`] and [`MOVEMENT_TIMES_S`] (each trial checked as
+//! from [`DISTANCES_M`] and [`MOVEMENT_TIMES_S`] (a lab that cannot move its
+//! pendulum, `crate::LabOptions::fixed_distance_m`: every trial where it
+//! hangs, the movement times in turn; each trial checked as
 //! `POST /api/trials` checks one: a combination the parameters in force make
 //! infeasible is skipped). A trial starts only when the lab would take it
 //! (`GET /api/health`'s readiness); otherwise the demo is `paused` and says
@@ -438,6 +440,13 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         }
         let not_ready = crate::not_ready(&state);
         let (d, t) = plan(counts.started);
+        // A lab that cannot move its pendulum: every trial where it hangs,
+        // the movement times in turn.
+        let d = state
+            .lab
+            .as_ref()
+            .and_then(|lab| lab.options().fixed_distance_m)
+            .unwrap_or(d);
         let lab_hold = hold(not_ready.as_ref(), opts.operator_required, operator_present);
         if let Some(h) = pause.shown(lab_hold, Instant::now()) {
             state.demo.set(|s| {
@@ -471,7 +480,9 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
             release_deg: None,
         };
         let setup = match state.lab.as_ref() {
-            Some(lab) => crate::api::trial_setup(&req, &lab.params()),
+            Some(lab) => {
+                crate::api::trial_setup(&req, &lab.params(), lab.options().fixed_distance_m)
+            }
             None => continue,
         };
         let setup = match setup {

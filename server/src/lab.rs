@@ -40,6 +40,12 @@ pub struct LabOptions {
     pub ws_buffer: usize,
     /// `simulated` or `real` (written into the recordings' metadata).
     pub lab_mode: &'static str,
+    /// Where the pendulum hangs when the lab cannot move it (a real lab:
+    /// its configuration's `calibration.pivot_m`), m from the robot's base
+    /// axis: every trial is planned there, and one asking for another
+    /// distance is refused. `None`: each trial's own (the simulated lab's
+    /// stand moves the pendulum).
+    pub fixed_distance_m: Option<f64>,
 }
 
 impl Default for LabOptions {
@@ -50,6 +56,7 @@ impl Default for LabOptions {
             ws_send_timeout: Duration::from_secs(2),
             ws_buffer: 32,
             lab_mode: "simulated",
+            fixed_distance_m: None,
         }
     }
 }

@@ -159,6 +159,7 @@ fn bad(field: &str, message: String) -> AppError {
 pub fn setups(
     req: &RunRequest,
     params: &rt_core::params::Scenario,
+    fixed_distance_m: Option<f64>,
 ) -> Result<Vec<TrialSetup>, AppError> {
     if !(1..=MAX_TRIALS).contains(&req.n) {
         return Err(bad(
@@ -211,16 +212,18 @@ pub fn setups(
                 movement_time_s: req.movement_time_s,
                 release_deg: req.release_deg,
             };
-            let s = crate::api::trial_setup(&one, params).map_err(|e| match e {
-                // A listed or spread distance is the run's `distance_m` /
-                // `distance_range_m`.
-                AppError::BadRequest { message, field }
-                    if field.as_deref() == Some("distance_m") && req.distance_range_m.is_some() =>
-                {
-                    bad("distance_range_m", message)
-                }
-                e => e,
-            })?;
+            let s =
+                crate::api::trial_setup(&one, params, fixed_distance_m).map_err(|e| match e {
+                    // A listed or spread distance is the run's `distance_m` /
+                    // `distance_range_m`.
+                    AppError::BadRequest { message, field }
+                        if field.as_deref() == Some("distance_m")
+                            && req.distance_range_m.is_some() =>
+                    {
+                        bad("distance_range_m", message)
+                    }
+                    e => e,
+                })?;
             checked.push((key, s));
             Ok(s)
         })
@@ -325,7 +328,7 @@ pub fn start(state: Arc<AppState>, req: &RunRequest) -> Result<u64, AppError> {
     if state.records.is_none() {
         return Err(AppError::Unavailable("no trial records are kept".into()));
     }
-    let setups = setups(req, &lab.params())?;
+    let setups = setups(req, &lab.params(), lab.options().fixed_distance_m)?;
     let id = state.runs.begin(req.n)?;
     tokio::spawn(run(state, id, setups));
     Ok(id)

@@ -202,7 +202,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         desk.set_lab_geometry(cfg.calibration.clone());
     }
     tracing::info!(data_dir = %data_dir.display(), scenario = %scenario.name, "trial records ready");
-    let options = crate::LabOptions {
+    let mut options = crate::LabOptions {
         state_hz: cfg.server.state_hz,
         ws_send_timeout: std::time::Duration::from_millis(cfg.server.ws_send_timeout_ms),
         lab_mode: if served.is_some() || cfg.lab.mode == LabMode::Simulated {
@@ -223,6 +223,11 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         // The simulated lab's pendulum goes where each trial asks.
         setup.stand.clone_from(&w.stand);
     }
+    options.fixed_distance_m = setup
+        .stand
+        .is_none()
+        .then_some(setup.fixed_distance_m)
+        .flatten();
     let (lab, sim) = crate::runtime::start_lab(setup, Some(Arc::clone(&records)), options)?;
     tracing::info!(
         mode = ?cfg.lab.mode,
