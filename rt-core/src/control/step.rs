@@ -693,6 +693,10 @@ pub struct Controller {
     held_n: u32,
     /// Post-release detections skipped as still held, this trial.
     held_skipped: u32,
+    /// Why the filter's newest plan of a motion was not confident enough to
+    /// commit, this trial (`None`: no plan yet): what a trial that times out
+    /// without a motion says.
+    last_doubt: Option<crate::ekf::Doubt>,
 }
 
 impl Controller {
@@ -740,6 +744,7 @@ impl Controller {
             t_last_measurement: f64::NEG_INFINITY,
             commit: None,
             prediction: None,
+            last_doubt: None,
             counters: ControlCounters::default(),
             abort_reason: None,
             session: SessionMemory::default(),
@@ -1394,7 +1399,14 @@ impl Controller {
         self.t_state = t_s;
         self.t_release = t_s;
         self.t_last_measurement = t_s;
+        self.last_doubt = None;
         Ok(())
+    }
+
+    /// Why the newest plan of this trial's motion was not confident enough
+    /// to commit (`Doubt::None`: it was; `None`: no plan since the release).
+    pub fn last_doubt(&self) -> Option<crate::ekf::Doubt> {
+        self.last_doubt
     }
 
     /// Back to `Idle` from `Done`, `Abort` or `Armed` (holding where it is).
@@ -1662,6 +1674,7 @@ impl Controller {
                 return;
             }
         };
+        self.last_doubt = Some(mp.doubt);
         self.prediction = posterior.map(|(pt, px, _)| PredictionCache {
             filter,
             posterior_t_s: pt,
@@ -2031,6 +2044,26 @@ mod tests {
             q = out.q_command_rad;
         }
         t
+    }
+
+    /// A camera whose frames all come later than the filter may plan on
+    /// (`max_measurement_age_s` below the camera's 35 ms): no commit, and the
+    /// controller says why (what a trial that times out reports); a camera
+    /// on time commits, and its last plan was confident.
+    #[test]
+    fn the_last_doubt_says_why_no_motion_was_committed() {
+        let mut s = Beliefs::default();
+        s.ekf.max_measurement_age_s = 0.01;
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        assert_eq!(c.last_doubt(), None);
+        release_and_track(&mut c, &s, 0.0, 0.0);
+        assert!(c.commit.is_none(), "committed on stale measurements");
+        assert_eq!(c.last_doubt(), Some(crate::ekf::Doubt::StaleMeasurement));
+        let s = Beliefs::default();
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        release_and_track(&mut c, &s, 0.0, 0.0);
+        assert!(c.commit.is_some(), "no commit on a camera on time");
+        assert_eq!(c.last_doubt(), Some(crate::ekf::Doubt::None));
     }
 
     #[test]

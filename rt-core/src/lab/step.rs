@@ -612,6 +612,7 @@ impl LabStep {
             let detail = match reason {
                 _ if !self.abort_detail.is_empty() => self.abort_detail,
                 BridgeAbort::FriLost => session_detail(self.session),
+                BridgeAbort::Timeout => doubt_detail(self.inner.controller().last_doubt()),
                 _ => "",
             };
             self.p.bridge.emit(EventRecord {
@@ -1807,6 +1808,26 @@ const fn stop_detail(reason: StopReason) -> &'static str {
             SessionState::MonitoringReady => "the FRI session left commanding for MONITORING_READY",
             _ => "the FRI session left commanding",
         },
+    }
+}
+
+/// Why a trial that timed out had not committed to a motion: the filter's
+/// doubt about its newest plan (empty without a plan, or when it was
+/// confident: its start then came and went).
+const fn doubt_detail(doubt: Option<crate::ekf::Doubt>) -> &'static str {
+    use crate::ekf::Doubt;
+    match doubt {
+        None | Some(Doubt::None) => "",
+        Some(Doubt::ShortObservation) => {
+            "the filter had not followed the ball long enough to commit"
+        }
+        Some(Doubt::StaleMeasurement) => {
+            "the camera's newest measurement was too old to commit on (frames late or missing)"
+        }
+        Some(Doubt::Rejecting) => "the camera's newest measurements were rejected as outliers",
+        Some(Doubt::Uncertain) => {
+            "the predicted pass time stayed too uncertain to commit (ekf.commit_max_time_std_ms)"
+        }
     }
 }
 
