@@ -695,7 +695,7 @@ pub async fn start_calibration(
     Path(name): Path<String>,
     JsonBody(bytes): JsonBody,
 ) -> Result<(StatusCode, Json<CalibrationStarted>), AppError> {
-    use crate::calibration::{StartRefused, Step, StepOptions};
+    use crate::calibration::{StartRefused, Step};
     let step = Step::from_name(&name).ok_or_else(|| {
         AppError::NotFound(format!(
             "no calibration step {name:?}; the steps: camera, latency, pendulum, camera-robot, robot"
@@ -713,7 +713,6 @@ pub async fn start_calibration(
         }
         parse_json(&bytes)?
     };
-    let mut opts = StepOptions::default();
     if let Some(d) = req.release_deg {
         if step != Step::Pendulum {
             return Err(AppError::BadRequest {
@@ -727,9 +726,8 @@ pub async fn start_calibration(
                 field: Some("release_deg".into()),
             });
         }
-        opts.release_deg = d;
     }
-    // On a real lab, the angle is asked of the person who hangs the ball.
+    // The angle is asked of the person who hangs the ball.
     let asked_release_deg = req.release_deg;
     let lab = Arc::clone(lab(&state)?);
     let desk = Arc::clone(desk(&state)?);
@@ -765,18 +763,15 @@ pub async fn start_calibration(
     drop(gate);
     tokio::spawn(async move {
         let scenario = lab.params();
-        let beliefs = if desk.real_lab() {
-            // Through the lab's own camera and magnet (`claim` let only the
-            // steps whose real-lab procedure is built through).
-            if step == Step::Camera {
-                crate::calibration::run_real_camera(&lab, &desk, id, &scenario).await
-            } else if step == Step::Latency {
-                crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await
-            } else if step == Step::Robot {
-                crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await
-            } else if step == Step::CameraRobot {
+        // Through the lab's own camera, robot and magnet.
+        let beliefs = match step {
+            Step::Camera => crate::calibration::run_real_camera(&lab, &desk, id, &scenario).await,
+            Step::Latency => crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await,
+            Step::Robot => crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await,
+            Step::CameraRobot => {
                 crate::calibration::run_real_camera_robot(&lab, &desk, id, &scenario).await
-            } else {
+            }
+            Step::Pendulum => {
                 crate::calibration::run_real_pendulum(
                     &lab,
                     &desk,
@@ -787,13 +782,6 @@ pub async fn start_calibration(
                 )
                 .await
             }
-        } else {
-            let world = rt_core::calibration::simworld::HiddenWorld::truthful(&scenario);
-            let worker = Arc::clone(&desk);
-            tokio::task::spawn_blocking(move || worker.run(id, step, &scenario, &world, opts))
-                .await
-                .ok()
-                .flatten()
         };
         if let Some(beliefs) = beliefs {
             let _guard = lab.params_update.lock().await;

@@ -1,19 +1,13 @@
-//! The calibration steps as the CLI (`isochron calibrate`) and the dashboard's
-//! Calibration panel (`/api/calibration`) run them: one procedure per step on the
-//! simulated world (`rt_core::calibration::simworld`), its result stamped and
-//! recorded into the calibration file, the hidden truth beside it for the report.
+//! The calibration steps as the service runs them (`/api/calibration`, the
+//! dashboard's Calibration panel, and `isochron calibrate` through a service
+//! on a world): one procedure per step through the lab's own camera, robot
+//! and magnet, its result stamped and recorded into the calibration file.
 
 use anyhow::Context;
 use rt_core::{
-    calibration::{
-        CalibrationFile, Chessboard, StepRecord, Watch,
-        sim_extrinsics::{self, CameraRobotOptions, CameraRobotRun},
-        sim_intrinsics,
-        simworld::{self, HiddenWorld},
-    },
+    calibration::{CalibrationFile, Chessboard, StepRecord},
     params::Scenario,
 };
-use serde_json::json;
 
 /// The steps, in the order a lab runs them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
@@ -46,27 +40,16 @@ impl Step {
         Self::ALL.into_iter().find(|s| s.name() == name)
     }
 
-    /// The steps whose results this one builds on: the LED and the swing are
-    /// found in undistorted frames (camera); the intercept point is the rest
-    /// point the pendulum step found, seen by the calibrated camera.
+    /// The steps whose results this one builds on: the camera-robot step's
+    /// marker is found through the calibrated lens, and its intercept point
+    /// is the rest point the pendulum step found. The pendulum and latency
+    /// steps need no camera step: the configuration's focal length and
+    /// principal point stand in for it (the swing in the believed plane, the
+    /// LED's brightness in its region).
     pub fn prerequisites(self) -> &'static [Self] {
         match self {
-            Self::Camera | Self::Robot => &[],
-            Self::Latency | Self::Pendulum => &[Self::Camera],
+            Self::Camera | Self::Robot | Self::Latency | Self::Pendulum => &[],
             Self::CameraRobot => &[Self::Camera, Self::Pendulum],
-        }
-    }
-
-    /// The prerequisites where the steps run: on a real lab the pendulum and
-    /// latency steps need no camera step: the configuration's focal length
-    /// and principal point stand in for it.
-    pub fn prerequisites_on(self, real_lab: bool) -> &'static [Self] {
-        if real_lab && matches!(self, Self::Pendulum | Self::Latency) {
-            // Through the lab's own camera: the swing in the believed
-            // plane, the LED's brightness in its region.
-            &[]
-        } else {
-            self.prerequisites()
         }
     }
 
@@ -131,53 +114,6 @@ pub const TARGET_CAMERA_POSITION_MM: f64 = 5.0;
 /// The target for the intercept point, mm.
 pub const TARGET_INTERCEPT_MM: f64 = 3.0;
 
-/// Options of a step's procedure.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StepOptions {
-    /// Pendulum step: the release angle, degrees (0..=60).
-    pub release_deg: f64,
-    /// Camera-robot step: touch the hanging ball with the tool for the intercept
-    /// point's depth (else the believed swing plane).
-    pub touch: bool,
-    /// Camera-robot step: the marker is on the tool and in view (`false`: covered,
-    /// a check that the step refuses).
-    pub marker_visible: bool,
-    /// Camera step: board views the operator holds up (1..=200).
-    pub views: usize,
-    /// Camera step: the board is held in the camera's view (`false`: outside
-    /// it, a check that the step refuses, "no board visible").
-    pub board_visible: bool,
-}
-
-impl Default for StepOptions {
-    fn default() -> Self {
-        Self {
-            release_deg: 25.0,
-            touch: true,
-            marker_visible: true,
-            views: 20,
-            board_visible: true,
-        }
-    }
-}
-
-/// The camera-robot step's errors against the hidden truth (and the beliefs'
-/// before the step).
-pub fn camera_robot_errors(r: &CameraRobotRun) -> serde_json::Value {
-    let c = &r.calibration;
-    json!({"camera_rotation_deg": r.camera_rotation_error_deg,
-           "camera_position_mm": r.camera_position_error_mm,
-           "intercept_mm": r.intercept_error_mm,
-           "intercept_m": [
-               c.intercept_m[0] - r.true_intercept_m[0],
-               c.intercept_m[1] - r.true_intercept_m[1],
-               c.intercept_m[2] - r.true_intercept_m[2]],
-           "touch_kinematic_error_m": r.touch_kinematic_error_m,
-           "before": {"camera_rotation_deg": r.believed_rotation_error_deg,
-                      "camera_position_mm": r.believed_position_error_mm,
-                      "intercept_mm": r.believed_intercept_error_mm}})
-}
-
 /// Where a step's result was measured, when, by which software.
 pub type Stamp = (String, String, String);
 
@@ -229,164 +165,6 @@ pub fn real_pendulum_outcome(
             file.pendulum = Some(step_record(stamp, c));
         }),
     })
-}
-
-/// Runs one step's procedure on the simulated world `world` (session `seed`);
-/// `watch` sees what the step sees. The CLI, `--accuracy` and the dashboard's
-/// Calibration panel (`POST /api/calibration/{step}`) all run steps through this.
-///
-/// # Errors
-///
-/// For a `release_deg` outside 0..=60 on the pendulum step; when the step's
-/// procedure refuses (context `calibrate <step>`); when a result cannot be
-/// serialised.
-pub fn run_step(
-    step: Step,
-    scenario: &Scenario,
-    world: &HiddenWorld,
-    seed: u64,
-    opts: StepOptions,
-    watch: &mut dyn Watch,
-) -> anyhow::Result<StepOutcome> {
-    Ok(match step {
-        Step::Pendulum => {
-            if !(opts.release_deg.is_finite() && (0.0..=60.0).contains(&opts.release_deg)) {
-                anyhow::bail!(
-                    "release_deg = {} is out of range: must be 0..=60",
-                    opts.release_deg
-                );
-            }
-            let run = simworld::run_pendulum(scenario, world, seed, opts.release_deg, 20.0, watch)
-                .context("calibrate pendulum")?;
-            let c = run.calibration.clone();
-            StepOutcome {
-                result: serde_json::to_value(&c)?,
-                truth: json!({"length_m": run.true_length_m, "damping_per_s": run.true_damping_per_s,
-                       "rest_m": run.true_rest_m}),
-                error: json!({"length_m": c.swing.length_m - run.true_length_m,
-                       "damping_per_s": c.swing.damping_per_s - run.true_damping_per_s,
-                       "rest_height_m": run.rest_m[2] - run.true_rest_m[2]}),
-                figure: (
-                    "length_m",
-                    c.swing.length_m,
-                    run.true_length_m,
-                    TARGET_LENGTH_M,
-                ),
-                write: Box::new(move |file, stamp| {
-                    file.pendulum = Some(step_record(stamp, run.calibration));
-                }),
-            }
-        }
-        Step::Latency => {
-            let run = simworld::run_led_latency(scenario, world, seed, 40, true, watch)
-                .context("calibrate latency")?;
-            StepOutcome {
-                result: serde_json::to_value(&run.result)?,
-                truth: json!({"camera_latency_ms": run.true_latency_ms}),
-                error: json!({"camera_latency_ms": run.result.latency_ms - run.true_latency_ms}),
-                figure: (
-                    "camera_latency_ms",
-                    run.result.latency_ms,
-                    run.true_latency_ms,
-                    TARGET_CAMERA_LATENCY_MS,
-                ),
-                write: Box::new(move |file, stamp| {
-                    file.latency = Some(step_record(stamp, run.result));
-                }),
-            }
-        }
-        Step::Robot => {
-            let run = simworld::run_robot(scenario, world, seed, 0.02, 4.0, watch)
-                .context("calibrate robot")?;
-            StepOutcome {
-                result: serde_json::to_value(&run.result)?,
-                truth: json!({"robot_latency_ms": run.true_latency_ms,
-                       "servo_time_constant_ms": run.true_servo_time_constant_ms}),
-                error: json!({"robot_latency_ms": run.result.latency_ms - run.true_latency_ms,
-                       "servo_time_constant_ms": run.result.servo_time_constant_ms
-                           - run.true_servo_time_constant_ms}),
-                figure: (
-                    "robot_latency_ms",
-                    run.result.latency_ms,
-                    run.true_latency_ms,
-                    TARGET_ROBOT_LATENCY_MS,
-                ),
-                write: Box::new(move |file, stamp| {
-                    file.robot = Some(step_record(stamp, run.result));
-                }),
-            }
-        }
-        Step::CameraRobot => {
-            let options = CameraRobotOptions {
-                marker_visible: opts.marker_visible,
-                touch: opts.touch,
-                // The camera step's lens when the lab believes one.
-                intrinsics: scenario.camera.intrinsics,
-            };
-            let run = sim_extrinsics::run_camera_robot(scenario, world, seed, &options, watch)
-                .context("calibrate camera-robot")?;
-            StepOutcome {
-                result: serde_json::to_value(&run.calibration)?,
-                truth: json!({"camera_pose": run.true_camera_pose,
-                              "intercept_m": run.true_intercept_m}),
-                error: camera_robot_errors(&run),
-                figure: (
-                    "camera_rotation_error_deg",
-                    run.camera_rotation_error_deg,
-                    0.0,
-                    TARGET_CAMERA_ROTATION_DEG,
-                ),
-                write: Box::new(move |file, stamp| {
-                    file.camera_robot = Some(step_record(stamp, run.calibration));
-                }),
-            }
-        }
-        Step::Camera => {
-            let run = sim_intrinsics::run_camera(
-                scenario,
-                world,
-                seed,
-                &Chessboard::default(),
-                opts.views,
-                opts.board_visible,
-                watch,
-            )
-            .context("calibrate camera")?;
-            let (k, t) = (run.result.intrinsics, run.truth);
-            let corners = |inset: f64| corner_error_px(scenario, &t, &k, inset);
-            StepOutcome {
-                result: serde_json::to_value(&run.result)?,
-                truth: serde_json::to_value(t)?,
-                error: json!({"fx_px": k.fx_px - t.fx_px, "fy_px": k.fy_px - t.fy_px,
-                       "cx_px": k.cx_px - t.cx_px, "cy_px": k.cy_px - t.cy_px,
-                       "k1": k.k1 - t.k1, "k2": k.k2 - t.k2, "p1": k.p1 - t.p1, "p2": k.p2 - t.p2,
-                       "corner_px": corners(40.0), "corner_inner_px": corners(100.0)}),
-                figure: ("k1", k.k1, t.k1, TARGET_K1),
-                write: Box::new(move |file, stamp| {
-                    file.camera = Some(step_record(stamp, run.result));
-                }),
-            }
-        }
-    })
-}
-
-/// The calibrated lens's undistortion error near the image's corners (`inset`
-/// px in from both edges; the worst of the four), pixels: how far from its true
-/// pinhole projection the lab puts a point seen there.
-pub fn corner_error_px(
-    scenario: &Scenario,
-    truth: &rt_core::vision::CameraIntrinsics,
-    believed: &rt_core::vision::CameraIntrinsics,
-    inset: f64,
-) -> f64 {
-    let (w, h) = (
-        f64::from(scenario.camera.width_px) - 1.0 - inset,
-        f64::from(scenario.camera.height_px) - 1.0 - inset,
-    );
-    [(inset, inset), (w, inset), (inset, h), (w, h)]
-        .iter()
-        .map(|&(u, v)| sim_intrinsics::undistortion_error_px(truth, believed, u, v))
-        .fold(0.0, f64::max)
 }
 
 /// The camera step's result is in the file.
@@ -590,7 +368,6 @@ pub type RefusalRule = Box<dyn Fn(&CalibrationFile) -> Option<String> + Send + S
 /// The service's calibration desk: the file, the job, the refusal of trials.
 pub struct CalibrationDesk {
     path: std::path::PathBuf,
-    real_lab: bool,
     rule: RefusalRule,
     job: std::sync::Mutex<CalibrationJob>,
     refused: std::sync::Mutex<Option<String>>,
@@ -609,7 +386,6 @@ impl std::fmt::Debug for CalibrationDesk {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("CalibrationDesk")
             .field("path", &self.path)
-            .field("real_lab", &self.real_lab)
             .finish_non_exhaustive()
     }
 }
@@ -620,14 +396,13 @@ fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl CalibrationDesk {
     /// A desk over the calibration file at `path` (it need not exist yet); `rule`
-    /// says when trials are refused, `real_lab` whether the steps would run on
-    /// hardware, through the lab's own robot, camera and magnet.
-    pub fn new(path: std::path::PathBuf, real_lab: bool, rule: RefusalRule) -> Self {
+    /// says when trials are refused. The steps run through the lab's own
+    /// robot, camera and magnet.
+    pub fn new(path: std::path::PathBuf, rule: RefusalRule) -> Self {
         let file = CalibrationFile::load_or_empty(&path).unwrap_or_default();
         let refused = rule(&file);
         Self {
             path,
-            real_lab,
             rule,
             job: std::sync::Mutex::new(CalibrationJob {
                 state: "idle".into(),
@@ -653,8 +428,7 @@ impl CalibrationDesk {
     pub fn source(&self) -> &str {
         match &self.source {
             Some(s) => s,
-            None if self.real_lab => "the real lab",
-            None => "simulated world (truthful: the lab's own simulators)",
+            None => "the real lab",
         }
     }
 
@@ -666,11 +440,6 @@ impl CalibrationDesk {
     /// A real lab's `[calibration]`, when given.
     pub fn lab_geometry(&self) -> Option<&crate::config::Calibration> {
         self.geometry.get()
-    }
-
-    /// Whether the steps run on a real lab (else on the simulated world).
-    pub fn real_lab(&self) -> bool {
-        self.real_lab
     }
 
     /// The calibration file.
@@ -708,13 +477,9 @@ impl CalibrationDesk {
             .map(|&s| StepStatus {
                 name: s.name().into(),
                 title: s.title().into(),
-                prerequisites: s
-                    .prerequisites_on(self.real_lab)
-                    .iter()
-                    .map(|p| p.name().into())
-                    .collect(),
+                prerequisites: s.prerequisites().iter().map(|p| p.name().into()).collect(),
                 missing: s
-                    .prerequisites_on(self.real_lab)
+                    .prerequisites()
                     .iter()
                     .filter(|p| !p.done_in(&file))
                     .map(|p| p.name().into())
@@ -743,7 +508,7 @@ impl CalibrationDesk {
         let file = CalibrationFile::load_or_empty(&self.path)
             .map_err(|e| StartRefused::NotAvailable(format!("the calibration file: {e}")))?;
         let missing: Vec<&str> = step
-            .prerequisites_on(self.real_lab)
+            .prerequisites()
             .iter()
             .filter(|p| !p.done_in(&file))
             .map(|p| p.name())
@@ -768,30 +533,6 @@ impl CalibrationDesk {
             ..CalibrationJob::default()
         };
         Ok(id)
-    }
-
-    /// Runs the claimed job `id` for `step` on the simulated world `world` of the
-    /// lab's `scenario` (blocking: call it off the async runtime). On success the
-    /// result is written into the file (atomically, validated against the
-    /// scenario) and the lab's beliefs with it are returned; on failure the
-    /// file is unchanged and the job says why.
-    pub fn run(
-        &self,
-        id: u64,
-        step: Step,
-        scenario: &Scenario,
-        world: &HiddenWorld,
-        opts: StepOptions,
-    ) -> Option<Scenario> {
-        let mut watch = |view: rt_core::calibration::StepView| self.progress(id, view);
-        let out = run_step(step, scenario, world, id, opts, &mut watch);
-        self.conclude(
-            id,
-            step,
-            scenario,
-            out,
-            "simulated world (the lab's own simulators)",
-        )
     }
 
     /// Shows what the running job `id` sees.

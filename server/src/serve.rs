@@ -191,7 +191,6 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     let rule_cfg = cfg.clone();
     let mut desk = crate::calibration::CalibrationDesk::new(
         calibration_path,
-        cfg.lab.mode == LabMode::Real,
         Box::new(move |file| uncalibrated_refusal(&rule_cfg, file)),
     );
     if let Some(w) = &served {

@@ -438,8 +438,7 @@ impl LabWorld {
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
         let led_latency_ms = webcam.led_latency_s() * 1e3;
         let webcam_camera = *webcam.camera();
-        let camera_intrinsics =
-            rt_core::calibration::sim_intrinsics::true_intrinsics(webcam.camera());
+        let camera_intrinsics = webcam.camera().true_intrinsics();
         let held_board: HeldBoard = Arc::default();
         let lateness = Arc::new(Mutex::new(Lateness::default()));
         {
@@ -761,29 +760,64 @@ pub fn asked_marker(calibration: &serde_json::Value) -> bool {
 /// `GET path` of the service at `addr`, its JSON body (HTTP/1.1, the
 /// connection closed after it).
 fn http_get_json(addr: SocketAddr, path: &str) -> anyhow::Result<serde_json::Value> {
+    let (status, body) = http_json(addr, "GET", path, "")?;
+    if status != 200 {
+        bail!("GET {path}: {status} {body}");
+    }
+    Ok(body)
+}
+
+/// `method path` with the JSON `body` (empty: none) to the service at
+/// `addr`: the status and the JSON answer (`null` when it is not JSON).
+/// HTTP/1.1, the connection closed after it; an answer waited for at most
+/// 10 s (a starved machine's service answers late, not never).
+///
+/// # Errors
+///
+/// When the service cannot be reached, does not answer in time, or answers
+/// something other than an HTTP/1.x response with a length.
+pub fn http_json(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    body: &str,
+) -> anyhow::Result<(u16, serde_json::Value)> {
     let mut s = TcpStream::connect_timeout(&addr, Duration::from_secs(2))?;
-    s.set_read_timeout(Some(Duration::from_secs(5)))?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
     s.set_write_timeout(Some(Duration::from_secs(5)))?;
     write!(
         s,
-        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\
+         content-type: application/json\r\ncontent-length: {}\r\n\r\n{body}",
+        body.len()
     )?;
     let mut buf = Vec::new();
     s.take(1 << 22).read_to_end(&mut buf)?;
     let text = String::from_utf8_lossy(&buf);
-    let (head, body) = text
+    let (head, answer) = text
         .split_once("\r\n\r\n")
         .context("no end of the HTTP header")?;
-    if !head.starts_with("HTTP/1.1 200") {
-        bail!("GET {path}: {}", head.lines().next().unwrap_or_default());
-    }
+    let status: u16 = head
+        .strip_prefix("HTTP/1.1 ")
+        .or_else(|| head.strip_prefix("HTTP/1.0 "))
+        .and_then(|r| r.get(..3))
+        .and_then(|c| c.parse().ok())
+        .with_context(|| {
+            format!(
+                "{method} {path}: not an HTTP answer: {}",
+                head.lines().next().unwrap_or_default()
+            )
+        })?;
     if head
         .to_ascii_lowercase()
         .contains("transfer-encoding: chunked")
     {
-        bail!("GET {path}: a chunked answer");
+        bail!("{method} {path}: a chunked answer");
     }
-    Ok(serde_json::from_str(body)?)
+    Ok((
+        status,
+        serde_json::from_str(answer).unwrap_or(serde_json::Value::Null),
+    ))
 }
 
 fn absolute(p: &Path) -> PathBuf {

@@ -562,16 +562,24 @@ try {
     const after = await calFile();
     assert(JSON.stringify(after.steps) === JSON.stringify(before.steps), "the refused step changed the file");
   });
+  // What a person clicks again: a step refused for a passing reason (a
+  // starved machine's frames too irregular to time the LED, a board that
+  // answered late, a robot that left commanding for a moment).
+  const PASSING = /arrive too irregularly|magnet device|left commanding|moving the arm home was stopped/;
   const runStep = async (step) => {
     const t0 = Date.now();
-    const idBefore = (await calFile()).job.id;
-    await page.click(`#calibration li[data-step="${step}"] button`);
     let job;
-    for (;;) {
-      job = (await calFile()).job;
-      if (job.id > idBefore && job.state !== "running") break;
-      assert(Date.now() - t0 < 240_000, `calibrate ${step}: still running after 240 s`);
-      await page.waitForTimeout(200);
+    for (let attempt = 1; ; attempt++) {
+      const idBefore = (await calFile()).job.id;
+      await page.click(`#calibration li[data-step="${step}"] button`);
+      for (;;) {
+        job = (await calFile()).job;
+        if (job.id > idBefore && job.state !== "running") break;
+        assert(Date.now() - t0 < 240_000 * attempt, `calibrate ${step}: still running after ${(Date.now() - t0) / 1000} s`);
+        await page.waitForTimeout(200);
+      }
+      if (job.state === "done" || attempt >= 3 || !PASSING.test(job.message || "")) break;
+      console.log(`calibrate ${step}: refused for a passing reason (attempt ${attempt}), clicked again: ${job.message}`);
     }
     assert(job.state === "done", `calibrate ${step}: ${job.state}: ${job.message}`);
     assert(job.step === step && job.progress === 1, JSON.stringify(job).slice(0, 300));

@@ -13,7 +13,7 @@ use opencv::{
 };
 
 use super::extrinsics::{PnpFit, refine_pose};
-use super::simworld::ProcedureError;
+use super::procedure::ProcedureError;
 use crate::fri::Joints;
 use crate::kinematics;
 use crate::params::Scenario;

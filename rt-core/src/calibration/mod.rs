@@ -7,13 +7,19 @@ pub mod latency;
 pub mod lsq;
 #[cfg(feature = "opencv")]
 pub mod marker;
+#[cfg(feature = "opencv")]
+pub mod procedure;
 pub mod robot;
-#[cfg(feature = "opencv")]
-pub mod sim_extrinsics;
-#[cfg(feature = "opencv")]
-pub mod sim_intrinsics;
-#[cfg(feature = "opencv")]
-pub mod simworld;
+// The fits' synthetic data for their unit tests: a hidden draw around the
+// beliefs, simple simulators. No step of a lab runs on it: `isochron
+// calibrate` and the service run every step on `sim::world` behind a real
+// lab's interfaces.
+#[cfg(all(test, feature = "opencv"))]
+mod sim_extrinsics;
+#[cfg(all(test, feature = "opencv"))]
+mod sim_intrinsics;
+#[cfg(all(test, feature = "opencv"))]
+mod simworld;
 pub mod swing;
 pub mod view;
 

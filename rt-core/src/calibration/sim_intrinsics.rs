@@ -6,7 +6,6 @@
 //! never reads a true corner pixel: it hands the detections to
 //! [`fit_intrinsics`](super::fit_intrinsics).
 
-use nalgebra::Vector2;
 use opencv::core::MatTraitConst;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -18,7 +17,6 @@ use super::view::{StepView, ViewKind, Watch};
 use crate::params::Scenario;
 use crate::sim::camera::{SimCamera, SimCameraParams};
 use crate::sim::world::board::{draw_board, plan_holds, render_view};
-use crate::sim::world::camera::WorldCamera;
 use crate::vision::CameraIntrinsics;
 
 /// The camera step on the simulated world, with the truth beside the result.
@@ -28,18 +26,6 @@ pub struct CameraRun {
     pub result: CameraCalibration,
     /// The true camera's intrinsics and lens.
     pub truth: CameraIntrinsics,
-}
-
-/// The true camera's intrinsics and lens (the simulators' side).
-pub fn true_intrinsics(cam: &WorldCamera) -> CameraIntrinsics {
-    let [k1, k2, p1, p2] = cam.distortion;
-    CameraIntrinsics {
-        k1,
-        k2,
-        p1,
-        p2,
-        ..cam.intrinsics
-    }
 }
 
 /// The camera step: `views` holds of `board` in front of the true camera of
@@ -114,24 +100,6 @@ pub fn run_camera(
     }
     Ok(CameraRun {
         result: fit.calibration,
-        truth: true_intrinsics(&cam),
+        truth: cam.true_intrinsics(),
     })
-}
-
-/// How far `believed`'s undistortion puts the point the true camera shows at
-/// pixel `(u, v)` from its true pinhole projection, pixels: each camera maps its
-/// own undistorted ray back through its own pinhole (`K (x, y, 1)`), so a
-/// focal length traded against `k1` by the fit does not count, only what is
-/// left of the lens.
-pub fn undistortion_error_px(
-    truth: &CameraIntrinsics,
-    believed: &CameraIntrinsics,
-    u: f64,
-    v: f64,
-) -> f64 {
-    let pinhole = |k: &CameraIntrinsics| {
-        let r = k.ray(u, v);
-        Vector2::new(k.fx_px * r.x + k.cx_px, k.fy_px * r.y + k.cy_px)
-    };
-    (pinhole(believed) - pinhole(truth)).norm()
 }

@@ -832,9 +832,9 @@ mod on_the_simulated_world {
     /// 10 draws; the nominal lens: ~55 px).
     #[test]
     fn a_strong_lens_is_measured_and_undone() {
-        use super::super::sim_intrinsics::undistortion_error_px;
         use crate::sim::camera::SimCameraParams;
         use crate::vision::SwingPlaneCalibration;
+        use crate::vision::undistortion_error_px;
         let s = strong_lens();
         let (run, _) = calibrate(&s, 3);
         let (k, t) = (run.result.intrinsics, run.truth);

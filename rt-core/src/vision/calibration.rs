@@ -375,3 +375,21 @@ impl SwingPlaneCalibration {
         self.ball_radius_m / sin
     }
 }
+
+/// How far `believed`'s undistortion puts the point the true camera shows at
+/// pixel `(u, v)` from its true pinhole projection, pixels: each camera maps its
+/// own undistorted ray back through its own pinhole (`K (x, y, 1)`), so a
+/// focal length traded against `k1` by the fit does not count, only what is
+/// left of the lens.
+pub fn undistortion_error_px(
+    truth: &CameraIntrinsics,
+    believed: &CameraIntrinsics,
+    u: f64,
+    v: f64,
+) -> f64 {
+    let pinhole = |k: &CameraIntrinsics| {
+        let r = k.ray(u, v);
+        nalgebra::Vector2::new(k.fx_px * r.x + k.cx_px, k.fy_px * r.y + k.cy_px)
+    };
+    (pinhole(believed) - pinhole(truth)).norm()
+}

@@ -11,7 +11,9 @@ pub mod source;
 #[cfg(feature = "opencv")]
 pub mod thread;
 
-pub use calibration::{CalibrationReport, CameraIntrinsics, CameraPose, SwingPlaneCalibration};
+pub use calibration::{
+    CalibrationReport, CameraIntrinsics, CameraPose, SwingPlaneCalibration, undistortion_error_px,
+};
 #[cfg(feature = "opencv")]
 pub use detector::{Detection, Detector, DetectorParams};
 #[cfg(feature = "opencv")]

@@ -142,7 +142,6 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
     let tmp = tempfile::tempdir().unwrap();
     let desk = Arc::new(CalibrationDesk::new(
         tmp.path().join("calibration.toml"),
-        true,
         Box::new(|_| None),
     ));
     let mut latencies = Vec::new();
@@ -228,7 +227,6 @@ async fn the_pendulum_steps_move_home_cut_by_the_robot_leaving_commanding_is_sen
     let tmp = tempfile::tempdir().unwrap();
     let desk = Arc::new(CalibrationDesk::new(
         tmp.path().join("calibration.toml"),
-        true,
         Box::new(|_| None),
     ));
     let id = desk.claim(Step::Pendulum).unwrap();

@@ -1249,9 +1249,7 @@ async fn the_calibration_steps_accuracy_over_hidden_draws_of_the_reality_world()
                 (w - inset, h - inset),
             ]
             .iter()
-            .map(|&(u, v)| {
-                rt_core::calibration::sim_intrinsics::undistortion_error_px(&t, &k, u, v)
-            })
+            .map(|&(u, v)| rt_core::vision::undistortion_error_px(&t, &k, u, v))
             .fold(0.0, f64::max)
         };
         let (corner_40, corner_100) = (corner_err_px(40.0), corner_err_px(100.0));

@@ -115,6 +115,18 @@ pub const LINK_RADIUS_M: f64 = 0.065;
 pub const TOOL_RADIUS_M: f64 = 0.02;
 
 impl WorldCamera {
+    /// The true camera's intrinsics and lens (what the camera step measures).
+    pub fn true_intrinsics(&self) -> crate::vision::CameraIntrinsics {
+        let [k1, k2, p1, p2] = self.distortion;
+        crate::vision::CameraIntrinsics {
+            k1,
+            k2,
+            p1,
+            p2,
+            ..self.intrinsics
+        }
+    }
+
     /// A camera that is what the lab believes (no effect).
     pub fn truthful(
         believed_pose: CameraPose,
