@@ -221,6 +221,21 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     if let Some(w) = &served {
         // The simulated lab's pendulum goes where each trial asks.
         setup.stand.clone_from(&w.stand);
+        // The world's webcam runs in this process: its frames are taken as
+        // they are delivered, without the stream's transport (the HTTP
+        // stream, the JPEG round trip, FFmpeg's demuxing: several ms the
+        // camera latency belief does not hold, more on a loaded machine).
+        // The stream still serves anyone else who looks.
+        if let CameraLink::Source { open, .. } = &mut setup.camera {
+            let (taps, camera) = (w.taps.clone(), setup.scenario.camera.clone());
+            *open = Box::new(move |clock| {
+                Ok(Box::new(rt_core::vision::ChannelSource::new(
+                    taps.subscribe(),
+                    &camera,
+                    clock,
+                )?) as Box<dyn FrameSource>)
+            });
+        }
     }
     options.fixed_distance_m = setup
         .stand
@@ -337,6 +352,8 @@ struct ServedWorld {
     stand: Option<Arc<rt_core::lab::Stand>>,
     /// What the calibration steps run on, as their records say it.
     source: String,
+    /// The world's webcam, in this process: the lab takes its frames here.
+    taps: crate::world::FrameTaps,
     /// Ends the world (its thread drops it: the webcam's thread joined, the
     /// cabinet and the board stopped) before the process exits.
     stop: Arc<std::sync::atomic::AtomicBool>,
@@ -421,6 +438,7 @@ fn serve_world(
     );
     // The world's operator watches this service (its calibration steps' hands).
     world.start_operator_with(|| SERVICE_ADDR.get().copied())?;
+    let taps = world.frame_taps();
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let stopped = Arc::clone(&stop);
     let thread = std::thread::Builder::new()
@@ -438,6 +456,7 @@ fn serve_world(
         cfg,
         stand,
         source,
+        taps,
         stop,
         thread: Some(thread),
     })

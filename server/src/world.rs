@@ -182,6 +182,58 @@ impl Lateness {
     }
 }
 
+/// The webcam's in-process receivers (the lab of the service this world runs
+/// in): each one's queue of raw frames. What they skip is only transport:
+/// the HTTP stream, the JPEG round trip and FFmpeg's demuxing; the frames
+/// are the same renders, delivered at the same moments.
+#[derive(Debug, Clone, Default)]
+pub struct FrameTaps {
+    senders: Arc<Mutex<Vec<SyncSender<rt_core::vision::RawFrame>>>>,
+    /// Frames a full queue did not take (a receiver that fell behind).
+    dropped: Arc<AtomicU64>,
+}
+
+impl FrameTaps {
+    /// A new receiver of the frames from the next one on (a bounded queue
+    /// of [`CLIENT_QUEUE`]; the webcam never waits for it).
+    pub fn subscribe(&self) -> Receiver<rt_core::vision::RawFrame> {
+        let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
+        self.senders
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .push(tx);
+        rx
+    }
+
+    /// Frames a receiver's full queue did not take, so far.
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Relaxed)
+    }
+
+    fn active(&self) -> bool {
+        !self
+            .senders
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .is_empty()
+    }
+
+    fn publish(&self, frame: &rt_core::vision::RawFrame) {
+        let mut list = self
+            .senders
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        list.retain(|tx| match tx.try_send(frame.clone()) {
+            Ok(()) => true,
+            Err(TrySendError::Full(_)) => {
+                self.dropped.fetch_add(1, Relaxed);
+                true
+            }
+            Err(TrySendError::Disconnected(_)) => false,
+        });
+    }
+}
+
 /// The webcam stream's clients: each one's queue of JPEG frames.
 type Clients = Arc<Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>>;
 
@@ -246,6 +298,7 @@ pub struct LabWorld {
     /// while the process exits).
     camera: Option<std::thread::JoinHandle<()>>,
     camera_stop: Arc<AtomicBool>,
+    taps: FrameTaps,
 }
 
 impl Drop for LabWorld {
@@ -434,6 +487,7 @@ impl LabWorld {
         let listener = TcpListener::bind("127.0.0.1:0").context("the webcam's stream socket")?;
         let camera_url = format!("http://{}/video.mjpg", listener.local_addr()?);
         let clients: Clients = Arc::default();
+        let taps = FrameTaps::default();
         let frames = Arc::new(AtomicU64::new(0));
         let mut webcam = WorldWebcam::new(scenario, &session, spec.seed)?;
         let led_latency_ms = webcam.led_latency_s() * 1e3;
@@ -448,6 +502,7 @@ impl LabWorld {
                 .spawn(move || serve_stream(&listener, &clients, &lateness, led_latency_ms))?;
         }
         {
+            let taps = taps.clone();
             let (clients, frames, led, lateness, held_board) = (
                 Arc::clone(&clients),
                 Arc::clone(&frames),
@@ -483,15 +538,29 @@ impl LabWorld {
                                     .lock()
                                     .unwrap_or_else(std::sync::PoisonError::into_inner),
                             );
-                            let jpeg = match webcam.frame_jpeg(timing.t_start_s, share) {
-                                Ok(j) => Arc::new(j.to_vec()),
+                            // The JPEG only for the stream's clients, the
+                            // raw frame only for the in-process ones.
+                            let streamed = clients.lock().is_ok_and(|c| !c.is_empty());
+                            let frame = match rendered(
+                                &mut webcam,
+                                timing.t_start_s,
+                                share,
+                                streamed,
+                                taps.active(),
+                            ) {
+                                Ok(f) => f,
                                 Err(e) => {
                                     eprintln!("isochron world: the webcam failed: {e}");
                                     return;
                                 }
                             };
                             sleep_until(epoch, timing.t_delivered_s);
-                            publish(&clients, &jpeg);
+                            if let Some(jpeg) = &frame.0 {
+                                publish(&clients, jpeg);
+                            }
+                            if let Some(raw) = &frame.1 {
+                                taps.publish(raw);
+                            }
                             frames.fetch_add(1, Relaxed);
                             if let Ok(mut l) = lateness.lock() {
                                 l.add(now() - timing.t_delivered_s);
@@ -553,7 +622,14 @@ impl LabWorld {
             hands,
             camera,
             camera_stop,
+            taps,
         })
+    }
+
+    /// The webcam's in-process receivers: a lab served in this process
+    /// takes its frames here rather than through the stream.
+    pub fn frame_taps(&self) -> FrameTaps {
+        self.taps.clone()
     }
 
     /// Starts the operator: the hands the calibration steps need. It reads
@@ -865,6 +941,33 @@ fn free_udp_port() -> anyhow::Result<SocketAddr> {
 
 /// Hands a frame to every stream client (a client whose queue is full
 /// misses it; a gone one is dropped).
+/// One frame as the stream's JPEG and as the in-process receivers' raw frame.
+type Rendered = (Option<Arc<Vec<u8>>>, Option<rt_core::vision::RawFrame>);
+
+/// The webcam's frame at `t_start_s` as the stream's JPEG (`jpeg`) and as
+/// the in-process receivers' raw frame (`raw`), each only when asked for
+/// (neither: not rendered, as no one looks).
+fn rendered(
+    webcam: &mut WorldWebcam,
+    t_start_s: f64,
+    led: f64,
+    jpeg: bool,
+    raw: bool,
+) -> Result<Rendered, rt_core::vision::VisionError> {
+    let jpeg = if jpeg {
+        Some(Arc::new(webcam.frame_jpeg(t_start_s, led)?.to_vec()))
+    } else {
+        None
+    };
+    if !raw {
+        return Ok((jpeg, None));
+    }
+    if jpeg.is_none() {
+        webcam.frame(t_start_s, led)?;
+    }
+    Ok((jpeg, Some(webcam.latest_raw()?)))
+}
+
 fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) {
     let Ok(mut list) = clients.lock() else {
         return;

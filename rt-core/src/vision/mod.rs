@@ -18,8 +18,8 @@ pub use calibration::{
 pub use detector::{Detection, Detector, DetectorParams};
 #[cfg(feature = "opencv")]
 pub use source::{
-    Frame, FrameSource, Recorder, StreamSource, VideoFileSource, WebcamParams, WebcamSource,
-    is_stream_url,
+    ChannelSource, Frame, FrameSource, RawFrame, Recorder, StreamSource, VideoFileSource,
+    WebcamParams, WebcamSource, is_stream_url,
 };
 #[cfg(feature = "opencv")]
 pub use thread::{VisionPipeline, VisionStats};

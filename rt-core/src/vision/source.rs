@@ -9,7 +9,7 @@ use std::{
 };
 
 use opencv::{
-    core::{Mat, MatTraitConst, Size},
+    core::{Mat, MatTraitConst, MatTraitManual, Size},
     prelude::{VideoCaptureTrait, VideoCaptureTraitConst, VideoWriterTrait, VideoWriterTraitConst},
     videoio::{self, VideoCapture, VideoWriter},
 };
@@ -350,6 +350,125 @@ impl FrameSource for StreamSource {
             }
             .into());
         }
+        let index = self.index;
+        self.index += 1;
+        Ok(Some(Frame {
+            index,
+            t_capture_s,
+            image: &self.image,
+        }))
+    }
+
+    fn fps(&self) -> f64 {
+        self.fps
+    }
+
+    fn stamp_latency_s(&self) -> f64 {
+        self.latency_s
+    }
+
+    fn set_stamp_latency_s(&mut self, latency_s: f64) {
+        if latency_s.is_finite() && latency_s >= 0.0 {
+            self.latency_s = latency_s;
+        }
+    }
+}
+
+/// One frame handed over in the service's own process: 8-bit BGR rows, as
+/// the camera rendered them (a simulated world's webcam run beside the lab:
+/// no network, no JPEG round trip).
+#[derive(Debug, Clone)]
+pub struct RawFrame {
+    /// Image width, pixels.
+    pub width: i32,
+    /// Image height, pixels.
+    pub height: i32,
+    /// `width * height * 3` bytes, row by row.
+    pub bgr: std::sync::Arc<Vec<u8>>,
+}
+
+/// Frames handed over in-process ([`RawFrame`], through a bounded channel
+/// whose sender never waits): stamped at their arrival minus the believed
+/// latency, as a stream's frames are; what it skips is only the transport
+/// (the HTTP stream, FFmpeg's demuxing, the JPEG decoding).
+pub struct ChannelSource {
+    rx: std::sync::mpsc::Receiver<RawFrame>,
+    image: Mat,
+    clock: Clock,
+    latency_s: f64,
+    fps: f64,
+    index: u64,
+}
+
+impl std::fmt::Debug for ChannelSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ChannelSource")
+            .field("index", &self.index)
+            .finish_non_exhaustive()
+    }
+}
+
+impl ChannelSource {
+    /// Frames from `rx`; `camera` gives the believed frame rate and latency.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::Param`] for invalid camera parameters.
+    pub fn new(
+        rx: std::sync::mpsc::Receiver<RawFrame>,
+        camera: &CameraParams,
+        clock: Clock,
+    ) -> Result<Self, VisionError> {
+        camera.validate()?;
+        Ok(Self {
+            rx,
+            image: Mat::default(),
+            clock,
+            latency_s: camera.latency_ms * 1e-3,
+            fps: camera.fps,
+            index: 0,
+        })
+    }
+}
+
+impl FrameSource for ChannelSource {
+    fn next_frame(&mut self) -> Result<Option<Frame<'_>>, VisionError> {
+        let stopped = |reason: &str| VisionError::Open {
+            what: "the in-process camera".into(),
+            reason: reason.into(),
+        };
+        let frame = match self.rx.recv_timeout(Duration::from_millis(
+            STREAM_TIMEOUT_MS.unsigned_abs().into(),
+        )) {
+            Ok(f) => f,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                return Err(stopped("no frame within the stream timeout"));
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                return Err(stopped("the camera stopped delivering frames"));
+            }
+        };
+        let t_capture_s = self.clock.now_s() - self.latency_s;
+        let (w, h) = (frame.width, frame.height);
+        let bytes = usize::try_from(w).unwrap_or(0) * usize::try_from(h).unwrap_or(0) * 3;
+        if w <= 0 || h <= 0 || frame.bgr.len() != bytes {
+            return Err(FrameProblem::EmptyFrom {
+                camera: "in-process camera",
+            }
+            .into());
+        }
+        if self.image.rows() != h
+            || self.image.cols() != w
+            || self.image.typ() != opencv::core::CV_8UC3
+        {
+            self.image = Mat::new_rows_cols_with_default(
+                h,
+                w,
+                opencv::core::CV_8UC3,
+                opencv::core::Scalar::all(0.0),
+            )?;
+        }
+        self.image.data_bytes_mut()?.copy_from_slice(&frame.bgr);
         let index = self.index;
         self.index += 1;
         Ok(Some(Frame {

@@ -788,3 +788,57 @@ fn a_camera_that_stops_is_lost_until_it_opens_again_and_then_measures_on() {
     assert!(!thread.is_finished());
     thread.stop().unwrap();
 }
+
+/// Frames handed over in-process: each stamped at its arrival minus the
+/// believed latency (a changed belief takes the next frame), its bytes
+/// the image's; a frame of the wrong size is an error, not a panic; a
+/// camera that stopped is a lost source, said so.
+#[test]
+fn the_in_process_camera_stamps_at_arrival_minus_the_latency_and_refuses_a_bad_frame() {
+    use opencv::core::{MatTraitConst, MatTraitConstManual};
+    let camera = CameraParams {
+        latency_ms: 30.0,
+        ..CameraParams::default()
+    };
+    let clock = Clock::start();
+    let (tx, rx) = std::sync::mpsc::sync_channel(2);
+    let mut source = ChannelSource::new(rx, &camera, clock).unwrap();
+    let (w, h) = (8, 4);
+    let bgr: Vec<u8> = (0..w * h * 3).map(|i| (i % 251) as u8).collect();
+    let raw = RawFrame {
+        width: w,
+        height: h,
+        bgr: std::sync::Arc::new(bgr.clone()),
+    };
+    tx.send(raw.clone()).unwrap();
+    let before = clock.now_s();
+    let f = source.next_frame().unwrap().unwrap();
+    let after = clock.now_s();
+    assert_eq!(f.index, 0);
+    assert!(
+        f.t_capture_s >= before - 0.030 - 1e-9 && f.t_capture_s <= after - 0.030 + 1e-9,
+        "stamped {} between {before} and {after} less 30 ms",
+        f.t_capture_s
+    );
+    assert_eq!((f.image.cols(), f.image.rows()), (w, h));
+    assert_eq!(f.image.data_bytes().unwrap(), bgr.as_slice());
+    source.set_stamp_latency_s(0.010);
+    source.set_stamp_latency_s(f64::NAN);
+    assert!((source.stamp_latency_s() - 0.010).abs() < 1e-12);
+    tx.send(raw).unwrap();
+    let before = clock.now_s();
+    let f = source.next_frame().unwrap().unwrap();
+    assert_eq!(f.index, 1);
+    assert!(f.t_capture_s >= before - 0.010 - 1e-9);
+    // Three bytes short: refused.
+    tx.send(RawFrame {
+        width: w,
+        height: h,
+        bgr: std::sync::Arc::new(vec![0; (w * h * 3 - 3) as usize]),
+    })
+    .unwrap();
+    assert!(source.next_frame().is_err());
+    drop(tx);
+    let e = source.next_frame().unwrap_err();
+    assert!(matches!(e, VisionError::Open { .. }), "{e}");
+}

@@ -16,7 +16,7 @@
 use std::collections::VecDeque;
 
 use nalgebra::Vector3;
-use opencv::core::{Mat, MatTraitConst, Point, Scalar, Vector};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point, Scalar, Vector};
 use opencv::imgcodecs;
 use opencv::imgproc;
 use rand::SeedableRng;
@@ -68,6 +68,8 @@ pub struct WorldWebcam {
     board: Option<(BoardOperator, usize)>,
     with_board: Mat,
     with_marker: Mat,
+    /// The latest frame ([`Self::frame`]).
+    out: Mat,
     noise: f64,
     size: (f64, f64),
     seed: u64,
@@ -114,6 +116,7 @@ impl WorldWebcam {
             board: None,
             with_board: Mat::default(),
             with_marker: Mat::default(),
+            out: Mat::default(),
             noise: scenario.camera.image_noise,
             size: (
                 f64::from(scenario.camera.width_px),
@@ -300,15 +303,46 @@ impl WorldWebcam {
         (lit / (b - a)).clamp(0.0, 1.0)
     }
 
-    /// The JPEG of the frame whose exposure starts at `t_start_s` (the ball
-    /// where the true camera sees it; out of view: no ball), with the LED
-    /// lit for the share `led` (0..1) of its row's exposure.
+    /// The JPEG of the frame whose exposure starts at `t_start_s`
+    /// ([`Self::frame`]).
     ///
     /// # Errors
     ///
     /// [`VisionError::OpenCv`] when rendering, drawing the LED or encoding fails;
     /// [`VisionError::BadFrame`] when the JPEG encoder refuses the image.
     pub fn frame_jpeg(&mut self, t_start_s: f64, led: f64) -> Result<&[u8], VisionError> {
+        self.frame(t_start_s, led)?;
+        let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
+        self.jpeg.clear();
+        if !imgcodecs::imencode(".jpg", &self.out, &mut self.jpeg, &params)? {
+            return Err(crate::vision::FrameProblem::JpegEncoding.into());
+        }
+        Ok(self.jpeg.as_slice())
+    }
+
+    /// The latest frame [`Self::frame`] (or [`Self::frame_jpeg`]) rendered,
+    /// as a raw frame to hand over in-process.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when the image's bytes cannot be read.
+    pub fn latest_raw(&self) -> Result<crate::vision::RawFrame, VisionError> {
+        Ok(crate::vision::RawFrame {
+            width: self.out.cols(),
+            height: self.out.rows(),
+            bgr: std::sync::Arc::new(self.out.data_bytes()?.to_vec()),
+        })
+    }
+
+    /// The frame whose exposure starts at `t_start_s` (the ball where the
+    /// true camera sees it; out of view: no ball), with the LED lit for the
+    /// share `led` (0..1) of its row's exposure: 8-bit BGR, valid until the
+    /// next frame.
+    ///
+    /// # Errors
+    ///
+    /// [`VisionError::OpenCv`] when rendering or drawing fails.
+    pub fn frame(&mut self, t_start_s: f64, led: f64) -> Result<&Mat, VisionError> {
         // The tool's marker disc (on while the operator has fitted it),
         // where the true camera sees the true arm's tool.
         let rim = self
@@ -378,12 +412,8 @@ impl WorldWebcam {
             }
             None => image,
         };
-        let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, JPEG_QUALITY]);
-        self.jpeg.clear();
-        if !imgcodecs::imencode(".jpg", image, &mut self.jpeg, &params)? {
-            return Err(crate::vision::FrameProblem::JpegEncoding.into());
-        }
-        Ok(self.jpeg.as_slice())
+        image.copy_to(&mut self.out)?;
+        Ok(&self.out)
     }
 }
 
