@@ -129,6 +129,14 @@ fn every_rule_names_its_field() {
             "world.pendulum.contact_pulse_ms",
         ),
         (
+            "[world.pendulum]\ncontact_restitution = 1.5",
+            "world.pendulum.contact_restitution",
+        ),
+        (
+            "[world.pendulum]\ncontact_restitution = nan",
+            "world.pendulum.contact_restitution",
+        ),
+        (
             "[world.robot]\ntorque_lag_periods = [1.0, 11.0]",
             "world.robot.torque_lag_periods",
         ),

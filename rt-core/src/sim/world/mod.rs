@@ -101,6 +101,7 @@ impl World {
             friction_mps2: session.pivot_friction_mps2,
             disturbance_mps2: trial.disturbance_mps2,
             ball_radius_m: scenario.pendulum.ball_radius_m,
+            restitution: pw.contact_restitution,
         };
         let arm = TrueArm::from_session(
             scenario.task.tool_length_m,

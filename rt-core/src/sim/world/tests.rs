@@ -21,6 +21,7 @@ fn pend(length_m: f64) -> TruePendulumParams {
         friction_mps2: 0.0,
         disturbance_mps2: 0.0,
         ball_radius_m: 0.0335,
+        restitution: 0.0,
     }
 }
 
