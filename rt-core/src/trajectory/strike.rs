@@ -50,6 +50,20 @@ use crate::kinematics::{Joints, Tool};
 /// peak speed (1/2) to near the end (a short brake).
 pub const CONTACT_PHASES: [f64; 5] = [0.5, 0.6, 0.7, 0.8, 0.9];
 
+/// The sign of `y` a struck ball returns along, as the controller strikes
+/// (`control::Controller::plan`): the ball is released on the `+y` side
+/// (release angles are positive), so the passes it meets run towards `+y`
+/// (the second pass, the first a 1.5 s stroke can be timed for) and return
+/// towards `-y`. The stroke's start `S` then lies on the release side, below
+/// the swing when the strike direction rises (`task.strike_direction_deg >
+/// 0`): the ball swings over the waiting tool on its way to the first pass.
+pub const STRIKE_RETURN_SIGN: f64 = -1.0;
+
+/// The tool's mass the controller's torque check assumes, kg (a 10 cm
+/// aluminium rod with a 6 cm disc and its mount; `isochron kin plan
+/// --strike`'s default).
+pub const STRIKE_TOOL_MASS_KG: f64 = 0.2;
+
 /// Why a stroke cannot be built or checked.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
