@@ -17,7 +17,9 @@ use rtrb::{Consumer, Producer};
 use super::fri_step::FriLoopStep;
 use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
-use super::truth::{MAX_PASSES, PhysicalJudgeError, PhysicalJudgement, TrialStart, TruthObserver};
+use super::truth::{
+    MAX_PASSES, PhysicalJudgeError, PhysicalJudgement, StrikeAim, TrialStart, TruthObserver,
+};
 use crate::bridge::{
     self, AbortKind as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord, FriQuality,
     FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult, TrialSetup,
@@ -1397,7 +1399,15 @@ impl LabStep {
                 }
             }
             if trial.truth {
-                self.judge_world(commit.predicted_pass_s, &mut o);
+                let aim = trial.plan.strike.map(|k| StrikeAim {
+                    planned_tool_speed_mps: k.speed_mps,
+                    // Restitution 0 (the controller's belief): the ball
+                    // leaves with the tool's speed along the contact
+                    // normal, the swing's horizontal at the pass.
+                    target_ball_speed_mps: k.speed_mps * k.direction.y.hypot(k.direction.x),
+                    return_sign: k.direction.y.signum(),
+                });
+                self.judge_world(commit.predicted_pass_s, aim.as_ref(), &mut o);
             }
         }
         // A contact shows what the camera offset missed (whatever the
@@ -1498,12 +1508,17 @@ impl LabStep {
     /// The physical judge on the true world: fills `o.physical` and puts its
     /// figures (t*, arrival, |timing error|, tool-ball distance at t*) into
     /// the reported judgement; the fitted movement time stays.
-    fn judge_world(&mut self, committed_pass_s: f64, o: &mut TrialOutcome) {
+    fn judge_world(
+        &mut self,
+        committed_pass_s: f64,
+        strike: Option<&StrikeAim>,
+        o: &mut TrialOutcome,
+    ) {
         let tolerance_ms = self.p.scenario.success.timing_tolerance_ms;
         let Some(verdict) = self.p.truth.as_mut().and_then(|truth| {
             truth
                 .observer
-                .judge_physical(&self.passes, committed_pass_s, tolerance_ms)
+                .judge_physical(&self.passes, committed_pass_s, tolerance_ms, strike)
         }) else {
             return;
         };
@@ -1782,7 +1797,8 @@ impl TrialOutcome {
             return self.final_state == TrialState::Done
                 && self.limit_violations == 0
                 && p.contact_s.is_some()
-                && p.timing_error_ms.abs() <= tol.timing_tolerance_ms;
+                && p.timing_error_ms.abs() <= tol.timing_tolerance_ms
+                && p.strike.is_none_or(|s| s.speed_ok);
         }
         self.final_state == TrialState::Done
             && self.limit_violations == 0

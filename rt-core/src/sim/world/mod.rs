@@ -21,7 +21,7 @@ pub use camera::{FrameTiming, Sighting, WorldCamera};
 pub use contact::Contact;
 pub use dynamics::{ArmDynamics, TorqueTrip, check_torques};
 pub use geometry::{TrueArm, true_intercept_m};
-pub use judge::{PhysicalJudgement, WorldSample, judge_physical};
+pub use judge::{PhysicalJudgement, StrikeAim, WorldSample, judge_physical, judge_strike};
 pub use params::{SessionDraw, TrialWorldDraw, WorldParams};
 pub use pendulum::{Disc, TruePendulum, TruePendulumParams};
 pub use robot::{LatencyModel, WorldJoints};
