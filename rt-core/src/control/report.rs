@@ -228,16 +228,29 @@ pub struct StrikeSummary {
     /// Trials that ended in an abort (a torque trip leaves commanding: an
     /// abort `fri_lost`).
     pub aborted: usize,
+    /// Trials refused before anything moved as an infeasible strike (their
+    /// failure `infeasible strike at ...`: the drawn distance out of the
+    /// stroke's reach, speed, acceleration or torque); counted in `trials`.
+    pub refused: usize,
 }
 
 impl StrikeSummary {
-    /// Over `records`; `None` when none carries a strike verdict.
+    /// Over `records`; `None` when none carries a strike verdict or was
+    /// refused as an infeasible strike.
     pub fn of(records: &[TrialRecord]) -> Option<Self> {
         let strikes: Vec<StrikeJudgement> = records
             .iter()
             .filter_map(|r| r.physical.as_ref()?.strike)
             .collect();
-        if strikes.is_empty() {
+        let refused = records
+            .iter()
+            .filter(|r| {
+                r.failure
+                    .as_deref()
+                    .is_some_and(|f| f.starts_with("infeasible strike"))
+            })
+            .count();
+        if strikes.is_empty() && refused == 0 {
             return None;
         }
         let n = records.len();
@@ -280,6 +293,7 @@ impl StrikeSummary {
                 p95: v.p95,
             },
             aborted: records.iter().filter(|r| r.abort_reason.is_some()).count(),
+            refused,
         })
     }
 }
@@ -450,6 +464,57 @@ mod tests {
             deadline_misses: 0,
             preempted_steps: 0,
         }
+    }
+
+    #[test]
+    fn a_strike_needs_its_outgoing_speed_and_the_summary_counts_strikes() {
+        let tol = SuccessParams::default();
+        let strike = |ball_mps: f64| StrikeJudgement {
+            planned_tool_speed_mps: 0.5,
+            tool_speed_mps: 0.5,
+            target_ball_speed_mps: 0.5,
+            ball_speed_mps: ball_mps,
+            speed_error: (ball_mps - 0.5) / 0.5,
+            direction_error_deg: 2.0,
+            speed_ok: ((ball_mps - 0.5) / 0.5).abs() <= STRIKE_SPEED_TOLERANCE,
+        };
+        let struck = |ball_mps: f64| {
+            let mut r = record(3.0, 0.004);
+            r.physical = Some(PhysicalJudgement {
+                t_star_s: 3.0,
+                arrival_s: 3.003,
+                timing_error_ms: 3.0,
+                contact_s: Some(2.98),
+                min_gap_m: -0.01,
+                hit_in_time: true,
+                strike: Some(strike(ball_mps)),
+            });
+            r.decide(&tol);
+            r
+        };
+        let good = struck(0.55);
+        assert!(good.success, "{good:?}");
+        let slow = struck(0.3);
+        assert!(!slow.success);
+        assert!(
+            slow.failure
+                .as_deref()
+                .is_some_and(|f| f.starts_with("strike: ball out at 0.300 m/s")),
+            "{slow:?}"
+        );
+        let mut refused = record(0.0, 0.0);
+        refused.judgement = None;
+        refused.final_state = "idle".to_owned();
+        refused.failure = Some("infeasible strike at 1 m/s: torque".to_owned());
+        refused.decide(&tol);
+        assert!(!refused.success);
+        let k = StrikeSummary::of(&[good, slow, refused]).unwrap();
+        assert_eq!(
+            (k.trials, k.contact_in_time, k.speed_within_tolerance),
+            (3, 2, 1)
+        );
+        assert_eq!((k.refused, k.aborted), (1, 0));
+        assert!(StrikeSummary::of(&[record(3.0, 0.004)]).is_none());
     }
 
     #[test]

@@ -224,7 +224,7 @@ pub enum ControlError {
     Motion(#[from] TimingError),
     /// A strike's stroke may not run (issue #38): out of reach, a joint's
     /// speed, acceleration or margin, or its torque, at every contact phase
-    /// tried (the last phase's reason).
+    /// tried (the first phase's reason: contact at the peak speed).
     #[error("infeasible strike at {speed_mps} m/s: {why}")]
     Strike {
         /// The tool speed at contact asked, m/s.
@@ -918,7 +918,9 @@ impl Controller {
             )?;
             let sp = plan_strike(stroke, &traj, STRIKE_TOOL_MASS_KG)?;
             let Some(mp) = sp.plan.filter(|_| sp.feasible) else {
-                why = sp.reason.or(why);
+                // The first phase's reason (contact at the peak speed:
+                // the shortest approach) says what binds.
+                why = why.or(sp.reason);
                 continue;
             };
             let s = &sp.stroke;

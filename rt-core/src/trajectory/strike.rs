@@ -51,12 +51,13 @@ use crate::kinematics::{Joints, Tool};
 pub const CONTACT_PHASES: [f64; 5] = [0.5, 0.6, 0.7, 0.8, 0.9];
 
 /// The sign of `y` a struck ball returns along, as the controller strikes
-/// (`control::Controller::plan`): the ball is released on the `+y` side
-/// (release angles are positive), so the passes it meets run towards `+y`
-/// (the second pass, the first a 1.5 s stroke can be timed for) and return
-/// towards `-y`. The stroke's start `S` then lies on the release side, below
-/// the swing when the strike direction rises (`task.strike_direction_deg >
-/// 0`): the ball swings over the waiting tool on its way to the first pass.
+/// (`control::Controller::plan`): it meets only passes towards `+y` and
+/// returns them towards `-y` (the stroke's start `S`, where the arm waits
+/// from arming on, must be known before the release; the ball may be
+/// released on either side). `S` lies on the `+y` side of the intercept
+/// point, in the swing's way unless the strike rises
+/// (`task.strike_direction_deg > 0` puts `S` below the swing, and the ball
+/// swings over the waiting tool: `scenarios/strike.toml` rises 20 degrees).
 pub const STRIKE_RETURN_SIGN: f64 = -1.0;
 
 /// The tool's mass the controller's torque check assumes, kg (a 10 cm

@@ -261,7 +261,8 @@ fn human(s: &Summary) -> String {
     let strike = s.strike.map_or_else(String::new, |k| {
         format!(
             "\nstrike         contact in time {}/{} ({:.1}%), outgoing speed within 20% {}/{} ({:.1}%), \
-             |speed error| p50 {:.1}%, p95 {:.1}%, tool speed at contact p50 {:.3} m/s",
+             |speed error| p50 {:.1}%, p95 {:.1}%, tool speed at contact p50 {:.3} m/s, \
+             refused as infeasible {}",
             k.contact_in_time,
             k.trials,
             100.0 * k.contact_in_time_rate,
@@ -271,6 +272,7 @@ fn human(s: &Summary) -> String {
             100.0 * k.speed_error.p50,
             100.0 * k.speed_error.p95,
             k.tool_speed_mps.p50,
+            k.refused,
         )
     });
     let summary = format!(
