@@ -1411,8 +1411,11 @@ impl LabStep {
             }
         }
         // A contact shows what the camera offset missed (whatever the
-        // magnet's release delay): the controller learns from it.
-        if let (Some(m), Some(used_ms)) = (o.measured, o.camera_offset_estimate_ms)
+        // magnet's release delay): the controller learns from it. Not from
+        // a strike: the measured judge reads a contact against a resting
+        // tool, and a striking tool meets the ball earlier.
+        let measured = o.measured.filter(|_| trial.plan.strike.is_none());
+        if let (Some(m), Some(used_ms)) = (measured, o.camera_offset_estimate_ms)
             && let (Some(e_ms), Some(sd_ms)) =
                 (m.camera_clock_error_ms, m.camera_clock_error_std_ms)
         {
@@ -1421,7 +1424,7 @@ impl LabStep {
         }
         // The arrival against the camera's pass: what the robot added to
         // the plan (the measured timing error less the camera's clock error).
-        if let Some(m) = o.measured
+        if let Some(m) = measured
             && let (Some(t_ms), Some(e_ms), Some(sd_ms)) = (
                 m.timing_error_ms,
                 m.camera_clock_error_ms,
