@@ -13,7 +13,9 @@ pub mod success;
 
 pub use beliefs::Beliefs;
 pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
-pub use judge::{JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into};
+pub use judge::{
+    JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into, judge_strike_crossing,
+};
 pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};

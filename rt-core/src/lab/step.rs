@@ -27,7 +27,7 @@ use crate::bridge::{
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
     AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, PlannedMotion,
-    Sighting, TrialState, TrialTrace, judge_into,
+    Sighting, TrialState, TrialTrace, judge_into, judge_strike_crossing,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
@@ -1387,7 +1387,21 @@ impl LabStep {
                     .and_then(|truth| truth.observer.intercept_m())
                     .unwrap_or(trial.plan.intercept_m);
                 match judge_into(&self.trace, &motion, &intercept, &mut self.judge_scratch) {
-                    Ok(j) => o.judgement = Some(j),
+                    // A strike meets the ball on its way (issue #38): its
+                    // arrival is the tool's crossing of the intercept point.
+                    Ok(j) => {
+                        o.judgement = Some(trial.plan.strike.map_or(j, |k| {
+                            judge_strike_crossing(
+                                &j,
+                                &self.trace,
+                                &intercept,
+                                k.direction.y.signum(),
+                                commit.predicted_pass_s,
+                                &mut self.judge_scratch,
+                            )
+                            .unwrap_or(j)
+                        }));
+                    }
                     Err(e) => o.judge_error = Some(e),
                 }
                 if let Some((tp, _)) = nearest_pass(&self.passes, commit.predicted_pass_s) {
