@@ -299,6 +299,10 @@ pub struct ArmPlan {
     pub strike: Option<StrikeArm>,
 }
 
+/// The margin between the swing and the tool waiting at a strike's start,
+/// beyond the ball's radius and the tool's contact disc, metres.
+pub const STRIKE_SWING_CLEARANCE_M: f64 = 0.01;
+
 /// A strike trial's stroke as the controller runs it (issue #38,
 /// `trajectory::strike`): one Hopf cycle along a straight line from `S`
 /// through the intercept point `P` to the brake point `B`, contact at the
@@ -924,6 +928,25 @@ impl Controller {
                 continue;
             };
             let s = &sp.stroke;
+            // The arm waits at S from arming on: out of the swing's way
+            // (the believed arc through the intercept point, in the swing
+            // plane), or the ball meets the waiting tool.
+            let l = beliefs.pendulum.length_m;
+            let dy = s.request.start_m.y - intercept.y;
+            let need_m = beliefs.pendulum.ball_radius_m
+                + task.tool_contact_radius_m
+                + STRIKE_SWING_CLEARANCE_M;
+            if dy.abs() < l {
+                let arc_z = intercept.z + l - (l * l - dy * dy).sqrt();
+                let clearance_m = arc_z - s.request.start_m.z;
+                if clearance_m.abs() < need_m {
+                    why = why.or(Some(StrikeRefusal::InTheSwing {
+                        clearance_m,
+                        need_m,
+                    }));
+                    continue;
+                }
+            }
             let posture = mp.posture();
             let period_s = f64::from(beliefs.fri_period_ms) * 1e-3;
             let (arrival_offset_s, generator_speed_mps) =
@@ -2298,6 +2321,20 @@ mod tests {
             (k.generator_speed_mps - 0.5).abs() < 0.05,
             "{}",
             k.generator_speed_mps
+        );
+        // Horizontal: the arm would wait at S in the swing's way.
+        let mut flat = strike_beliefs(0.5);
+        flat.task.strike_direction_deg = 0.0;
+        let e = Controller::plan(&flat, 0.6).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ControlError::Strike {
+                    why: StrikeRefusal::InTheSwing { .. },
+                    ..
+                }
+            ),
+            "{e:?}"
         );
         // Too fast for the arm: refused as infeasible, naming why.
         let e = Controller::plan(&strike_beliefs(3.0), 0.6).unwrap_err();

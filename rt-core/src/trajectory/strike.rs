@@ -113,6 +113,19 @@ pub enum StrikeRefusal {
         /// The share of the limit allowed.
         allowed: f64,
     },
+    /// The stroke's start, where the arm waits armed, lies in the ball's
+    /// swing: the ball would meet the waiting tool before the pass.
+    #[error(
+        "the stroke's start, where the arm waits, is {clearance_m:.3} m from the swing's arc \
+         (needs {need_m:.3} m: ball radius, tool disc, margin): let the strike rise \
+         (task.strike_direction_deg > 0) or shorten its approach"
+    )]
+    InTheSwing {
+        /// The arc's height above the start (negative: below it), metres.
+        clearance_m: f64,
+        /// The clearance needed, metres.
+        need_m: f64,
+    },
 }
 
 /// One stroke: where it starts, meets the ball and ends, and when.
