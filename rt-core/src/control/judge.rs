@@ -356,9 +356,93 @@ pub fn judge_into(
     })
 }
 
+/// Re-judges a strike's motion (issue #38) on the truthful world: its
+/// arrival is when the tool point crosses `intercept_m`'s `y` along
+/// `return_sign` (the stroke meets the ball there and brakes beyond it),
+/// the crossing nearest `near_s` (the committed pass); `t*` the ball's pass
+/// nearest it; the timing error `|crossing - t*|`, the position error the
+/// tool-ball distance at `t*`, the movement time `crossing - start`.
+/// `None` (the stop mode's figures stay) when the tool never crossed or the
+/// ball never passed.
+pub fn judge_strike_crossing(
+    j: &Judgement,
+    trace: &TrialTrace,
+    intercept_m: &Vector3<f64>,
+    return_sign: f64,
+    near_s: f64,
+    scratch: &mut JudgeScratch,
+) -> Option<Judgement> {
+    let s = return_sign.signum();
+    let ahead = |i: usize| (trace.tool_m[i].y - intercept_m.y) * s;
+    let crossing = (1..trace.len())
+        .filter(|&i| ahead(i - 1) < 0.0 && ahead(i) >= 0.0)
+        .map(|i| {
+            let (a, b) = (ahead(i - 1), ahead(i));
+            let u = -a / (b - a).max(1e-12);
+            trace.t_s[i - 1] + u * (trace.t_s[i] - trace.t_s[i - 1])
+        })
+        .min_by(|a, b| (a - near_s).abs().total_cmp(&(b - near_s).abs()))?;
+    let passes = &mut scratch.passes;
+    pass_times(trace, intercept_m.y, passes);
+    let t_star_s = passes
+        .iter()
+        .copied()
+        .min_by(|a, b| (a - crossing).abs().total_cmp(&(b - crossing).abs()))?;
+    let tool = interp(&trace.t_s, &trace.tool_m, t_star_s);
+    let ball = interp(&trace.t_s, &trace.ball_m, t_star_s);
+    Some(Judgement {
+        t_star_s,
+        arrival_s: crossing,
+        timing_error_ms: (crossing - t_star_s).abs() * 1e3,
+        position_error_m: (tool - ball).norm(),
+        movement_time_s: crossing - j.start_s,
+        ..*j
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_strike_arrives_when_the_tool_crosses_the_intercept_point() {
+        // The tool moves towards -y at 0.5 m/s, crossing y = 0 at 1.002 s;
+        // the ball passes it towards +y at 1.0 s and again at 2.4 s.
+        let mut trace = TrialTrace::with_capacity(600);
+        for k in 0..600 {
+            let t = f64::from(k) * 5e-3;
+            let ball_y = if t < 1.7 {
+                1.5 * (t - 1.0)
+            } else {
+                -1.5 * (t - 2.4)
+            };
+            trace.push(
+                t,
+                Vector3::new(0.6, -0.5 * (t - 1.002), 0.3),
+                Vector3::new(0.6, ball_y, 0.3),
+            );
+        }
+        let stop = Judgement {
+            t_star_s: 2.4,
+            start_s: -0.5,
+            arrival_s: 2.5,
+            timing_error_ms: 100.0,
+            position_error_m: 0.5,
+            movement_time_s: 3.0,
+            fit_rms_m: 1e-4,
+        };
+        let p = Vector3::new(0.6, 0.0, 0.3);
+        let mut scratch = JudgeScratch::default();
+        let j = judge_strike_crossing(&stop, &trace, &p, -1.0, 1.01, &mut scratch).unwrap();
+        assert!((j.arrival_s - 1.002).abs() < 1e-9, "{j:?}");
+        assert!((j.t_star_s - 1.0).abs() < 1e-9, "{j:?}");
+        assert!((j.timing_error_ms - 2.0).abs() < 1e-6, "{j:?}");
+        assert!((j.position_error_m - 0.001).abs() < 1e-6, "{j:?}");
+        assert!((j.movement_time_s - 1.502).abs() < 1e-9, "{j:?}");
+        assert_eq!((j.start_s, j.fit_rms_m), (stop.start_s, stop.fit_rms_m));
+        // A tool moving the other way never crosses along the return.
+        assert!(judge_strike_crossing(&stop, &trace, &p, 1.0, 1.0, &mut scratch).is_none());
+    }
 
     /// A synthetic trial: the ball swings `y = A sin(w (t - t_pass))` through the
     /// intercept point; the tool follows an ideal profile from `start` lasting `dur`.

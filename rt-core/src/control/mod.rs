@@ -13,12 +13,14 @@ pub mod success;
 
 pub use beliefs::Beliefs;
 pub use cost::{Lateness, StepClock, StepCost, StepRecord, StepTimings};
-pub use judge::{JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into};
+pub use judge::{
+    JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into, judge_strike_crossing,
+};
 pub use latency::{LatencyEstimator, LatencyReport};
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
 pub use step::{
     ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Excitation,
-    MOVE_TO_LIMIT_SHARE, MOVE_TO_MARGIN_RAD, Sighting, StepInput, StepOutput,
+    MOVE_TO_LIMIT_SHARE, MOVE_TO_MARGIN_RAD, Sighting, StepInput, StepOutput, StrikeArm,
 };
 pub use success::SuccessParams;

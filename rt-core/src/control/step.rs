@@ -21,8 +21,12 @@ use crate::pendulum::{PendulumGeometry, PendulumModel};
 use crate::timing::TimingError;
 use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;
+use crate::trajectory::strike::{
+    CONTACT_PHASES, STRIKE_RETURN_SIGN, STRIKE_TOOL_MASS_KG, StrikeError, StrikeRefusal, Stroke,
+    plan_strike, strike_direction,
+};
 use crate::trajectory::{
-    Infeasibility, MotionRequest as PathRequest, PlanError, Posture, TrajectoryParams,
+    Infeasibility, MotionRequest as PathRequest, PlanError, Posture, TaskMode, TrajectoryParams,
 };
 
 /// The closed loop's settings: `[control]` in a scenario.
@@ -218,6 +222,19 @@ pub enum ControlError {
     /// The timed motion refused its set-up.
     #[error(transparent)]
     Motion(#[from] TimingError),
+    /// A strike's stroke may not run (issue #38): out of reach, a joint's
+    /// speed, acceleration or margin, or its torque, at every contact phase
+    /// tried (the first phase's reason: contact at the peak speed).
+    #[error("infeasible strike at {speed_mps} m/s: {why}")]
+    Strike {
+        /// The tool speed at contact asked, m/s.
+        speed_mps: f64,
+        /// Why the stroke was refused.
+        why: StrikeRefusal,
+    },
+    /// A strike's stroke could not be built (a bad number) or checked.
+    #[error(transparent)]
+    StrikePlan(#[from] StrikeError),
     /// An excitation out of range (`Excitation::is_valid`).
     #[error(
         "excitation out of range: joint {} (A1-A7 are 0-6), amplitude {} rad (0 < a <= 0.05), \
@@ -246,7 +263,8 @@ impl ControlError {
     /// Whether the motion is refused as not feasible (out of reach, or too
     /// close to a limit), rather than for a bad request or state.
     pub const fn is_infeasible(&self) -> bool {
-        matches!(self, Self::Infeasible(_)) || matches!(self, Self::Plan(e) if e.is_unreachable())
+        matches!(self, Self::Infeasible(_) | Self::Strike { .. })
+            || matches!(self, Self::Plan(e) if e.is_unreachable())
     }
 }
 
@@ -273,6 +291,41 @@ pub struct ArmPlan {
     /// that settling, about 0.14 s at 1.5 s when timed for the fitted
     /// arrival. The measured judge adds it to the settling it sees.
     pub settle_lead_s: f64,
+    /// Strike mode (`task.mode = "strike"`): the stroke; `None`: stop mode.
+    /// Then `duration_s` is the stroke's time from its start to the
+    /// contact, `arrival_offset_s` the generator's contact offset (its
+    /// progress reaches the contact point that much after `duration_s`),
+    /// and `posture` is planned for the whole cycle `S -> B`.
+    pub strike: Option<StrikeArm>,
+}
+
+/// The margin between the swing and the tool waiting at a strike's start,
+/// beyond the ball's radius and the tool's contact disc, metres.
+pub const STRIKE_SWING_CLEARANCE_M: f64 = 0.01;
+
+/// A strike trial's stroke as the controller runs it (issue #38,
+/// `trajectory::strike`): one Hopf cycle along a straight line from `S`
+/// through the intercept point `P` to the brake point `B`, contact at the
+/// phase `contact_fraction` of the cycle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StrikeArm {
+    /// The stroke's start `S`, where the arm waits armed, base frame, metres.
+    pub start_m: Vector3<f64>,
+    /// The brake point `B`, where the cycle ends at rest, metres.
+    pub end_m: Vector3<f64>,
+    /// The whole cycle's duration `2 pi / w`, seconds.
+    pub cycle_s: f64,
+    /// The contact phase as a fraction of the cycle (`phi_a / 2 pi`).
+    pub contact_fraction: f64,
+    /// `|P - S|`, metres.
+    pub approach_m: f64,
+    /// The planned tool speed at contact (`task.strike_speed_mps`), m/s.
+    pub speed_mps: f64,
+    /// The motion generator's path speed at its contact (the planned one
+    /// as the Hopf dynamics run it, offline at the FRI period), m/s.
+    pub generator_speed_mps: f64,
+    /// The strike direction (unit, in the swing plane).
+    pub direction: Vector3<f64>,
 }
 
 /// A sighting of the ball, as the filter fuses it: its lateral position at
@@ -665,6 +718,9 @@ pub struct Controller {
     sample: MotionSample,
     latency: LatencyEstimator,
     plan: Option<ArmPlan>,
+    /// `task.home_m`.
+    task_home_m: Vector3<f64>,
+    /// Where the trial's motion starts: `task_home_m`, or a strike's `S`.
     home_m: Vector3<f64>,
     jmove: Option<JointMove>,
     /// A running excitation, its start (s) and the joints it rests at.
@@ -730,6 +786,7 @@ impl Controller {
                 params.latency_memory_s,
             ),
             plan: None,
+            task_home_m: Vector3::new(hx, hy, hz),
             home_m: Vector3::new(hx, hy, hz),
             jmove: None,
             excite: None,
@@ -770,6 +827,9 @@ impl Controller {
         let params = &beliefs.control;
         let timing = &beliefs.timing;
         check::within("task.distance_m", distance_m, 0.1, 1.2)?;
+        if beliefs.task.mode == TaskMode::Strike {
+            return Self::plan_strike(beliefs, distance_m);
+        }
         let task = &beliefs.task;
         let home = Vector3::from(task.home_m);
         // The believed rest point: `task.intercept_offset_m` (calibrated) included.
@@ -826,7 +886,100 @@ impl Controller {
             duration_s: duration,
             arrival_offset_s,
             settle_lead_s,
+            strike: None,
         })
+    }
+
+    /// Strike mode's plan (issue #38): the stroke through the believed
+    /// intercept point along `task.strike_direction_deg` (returning the ball
+    /// towards [`STRIKE_RETURN_SIGN`]), meeting it at
+    /// `task.strike_speed_mps` after `task.movement_time_s`, at the first
+    /// contact phase of [`CONTACT_PHASES`] whose whole cycle is feasible
+    /// (reach, joint speeds, accelerations and margins of the same planner
+    /// as the stop mode's, joint torques by `trajectory::strike::plan_strike`).
+    /// Never the shortest feasible duration: a strike's speed and timing are
+    /// the task.
+    fn plan_strike(beliefs: &Beliefs, distance_m: f64) -> Result<ArmPlan, ControlError> {
+        let params = &beliefs.control;
+        let task = &beliefs.task;
+        let intercept = task.intercept_m(distance_m);
+        let traj = TrajectoryParams {
+            velocity_fraction: params.max_speed_ratio,
+            position_margin_deg: params.posture_margin_deg,
+            ..TrajectoryParams::default()
+        };
+        let direction = strike_direction(STRIKE_RETURN_SIGN, task.strike_direction_deg);
+        let tool = Tool::along_z(task.tool_length_m);
+        let mut why = None;
+        for f in CONTACT_PHASES {
+            let stroke = Stroke::new(
+                intercept,
+                direction,
+                task.strike_speed_mps,
+                task.movement_time_s,
+                f,
+                tool,
+            )?;
+            let sp = plan_strike(stroke, &traj, STRIKE_TOOL_MASS_KG)?;
+            let Some(mp) = sp.plan.filter(|_| sp.feasible) else {
+                // The first phase's reason (contact at the peak speed:
+                // the shortest approach) says what binds.
+                why = why.or(sp.reason);
+                continue;
+            };
+            let s = &sp.stroke;
+            // The arm waits at S from arming on: out of the swing's way
+            // (the believed arc through the intercept point, in the swing
+            // plane), or the ball meets the waiting tool.
+            let l = beliefs.pendulum.length_m;
+            let dy = s.request.start_m.y - intercept.y;
+            let need_m = beliefs.pendulum.ball_radius_m
+                + task.tool_contact_radius_m
+                + STRIKE_SWING_CLEARANCE_M;
+            if dy.abs() < l {
+                let arc_z = intercept.z + l - (l * l - dy * dy).sqrt();
+                let clearance_m = arc_z - s.request.start_m.z;
+                if clearance_m.abs() < need_m {
+                    why = why.or(Some(StrikeRefusal::InTheSwing {
+                        clearance_m,
+                        need_m,
+                    }));
+                    continue;
+                }
+            }
+            let posture = mp.posture();
+            let period_s = f64::from(beliefs.fri_period_ms) * 1e-3;
+            let (arrival_offset_s, generator_speed_mps) =
+                generator_contact(&beliefs.timing, s, &posture, period_s)?;
+            return Ok(ArmPlan {
+                distance_m,
+                intercept_m: intercept,
+                posture,
+                duration_s: s.contact_s,
+                arrival_offset_s,
+                settle_lead_s: 0.0,
+                strike: Some(StrikeArm {
+                    start_m: s.request.start_m,
+                    end_m: s.request.end_m,
+                    cycle_s: s.request.movement_time_s,
+                    contact_fraction: s.contact_fraction,
+                    approach_m: s.approach_m,
+                    speed_mps: s.speed_mps,
+                    generator_speed_mps,
+                    direction: s.direction,
+                }),
+            });
+        }
+        Err(why.map_or(
+            ControlError::State {
+                what: "plan a strike (no contact phase was tried)",
+                state: "planning",
+            },
+            |why| ControlError::Strike {
+                speed_mps: task.strike_speed_mps,
+                why,
+            },
+        ))
     }
 
     /// The current trial state.
@@ -877,9 +1030,20 @@ impl Controller {
         &self.q_cmd
     }
 
-    /// The home point of the motions (tool point), metres.
+    /// Where the trial's motion starts (tool point), metres: the task's
+    /// home, or in strike mode the armed trial's stroke start `S`.
     pub fn home_m(&self) -> Vector3<f64> {
         self.home_m
+    }
+
+    /// When the committed strike's contact is planned (its start plus the
+    /// contact phase of its possibly re-timed cycle), seconds; `None` before
+    /// a commit or in stop mode.
+    pub fn planned_contact_s(&self) -> Option<f64> {
+        let s = self.plan.as_ref()?.strike?;
+        self.commit
+            .as_ref()
+            .map(|c| c.motion_start_s + self.motion.arrival_time_s() * s.contact_fraction)
     }
 
     /// The end point of the running (or last) motion: its last target, metres.
@@ -1371,6 +1535,7 @@ impl Controller {
         self.held_n = 0;
         self.held_skipped = 0;
         self.plan = Some(*plan);
+        self.home_m = plan.strike.map_or(self.task_home_m, |s| s.start_m);
         self.commit = None;
         self.prediction = None;
         self.abort_reason = None;
@@ -1659,7 +1824,16 @@ impl Controller {
             duration_s,
             latency_s,
             pass_index: 0,
-            direction: PassDirection::Any,
+            // A strike meets the passes that run against its stroke.
+            direction: if plan.strike.is_some() {
+                if STRIKE_RETURN_SIGN < 0.0 {
+                    PassDirection::TowardsPositiveY
+                } else {
+                    PassDirection::TowardsNegativeY
+                }
+            } else {
+                PassDirection::Any
+            },
         };
         let offset = plan.arrival_offset_s;
         let mp = match ekf.plan_motion(t, &req) {
@@ -1689,11 +1863,18 @@ impl Controller {
         // Commit: the motion's t = 0 is mp.start_s (within this cycle).
         let orientation = UnitQuaternion::from_rotation_matrix(&plan.posture.orientation);
         let target = mp.pass.ball_m;
-        if self
-            .motion
-            .begin(&self.home_m, &target, &orientation, plan.duration_s)
-            .is_err()
-        {
+        // A strike runs its whole cycle S -> B (through the believed
+        // intercept point, where the arm was armed for it); the contact
+        // comes at its phase, `duration_s` after the start.
+        let begun = match plan.strike {
+            Some(s) => self
+                .motion
+                .begin(&s.start_m, &s.end_m, &orientation, s.cycle_s),
+            None => self
+                .motion
+                .begin(&self.home_m, &target, &orientation, plan.duration_s),
+        };
+        if begun.is_err() {
             self.counters.motion_errors += 1;
             self.abort(t, AbortReason::Infeasible);
             return;
@@ -1735,6 +1916,12 @@ impl Controller {
                     - (self.latency.latency_s() + c.camera_offset_s + c.trim_s).max(0.0)
                     - c.motion_start_s
                     - c.arrival_offset_s;
+                // A strike's contact is its cycle's phase `contact_fraction`:
+                // the cycle re-timed so that its contact comes at the pass.
+                let arrival = self
+                    .plan
+                    .and_then(|p| p.strike)
+                    .map_or(arrival, |s| arrival / s.contact_fraction);
                 if (arrival - self.motion.arrival_time_s()).abs() > 1e-5
                     && self.motion.retime(arrival).is_ok()
                 {
@@ -1835,6 +2022,39 @@ impl Controller {
             .column(2)
             .into_owned()
     }
+}
+
+/// Runs the motion generator once, offline, over a strike's whole cycle at
+/// the FRI period: returns when its progress reaches the contact point
+/// (the approach length) minus the stroke's contact time, seconds, and its
+/// path speed there, m/s.
+fn generator_contact(
+    timing: &TimingParams,
+    stroke: &Stroke,
+    posture: &Posture,
+    period_s: f64,
+) -> Result<(f64, f64), ControlError> {
+    let mut m = TimedMotion::new(timing.clone())?;
+    let q = UnitQuaternion::from_rotation_matrix(&posture.orientation);
+    let (start, end) = (stroke.request.start_m, stroke.request.end_m);
+    m.begin(&start, &end, &q, stroke.request.movement_time_s)?;
+    let dir = (end - start).normalize();
+    let n = ((stroke.request.movement_time_s * 1.3) / period_s).ceil() as usize;
+    let mut s = MotionSample::default();
+    let (mut t0, mut p0, mut v0) = (0.0, 0.0, 0.0);
+    for k in 1..=n {
+        m.step(period_s, None, &mut s)?;
+        let t1 = k as f64 * period_s;
+        let p1 = (s.position_m - start).dot(&dir);
+        if p1 >= stroke.approach_m {
+            let f = ((stroke.approach_m - p0) / (p1 - p0).max(1e-12)).clamp(0.0, 1.0);
+            let speed = v0 + f * (s.path_speed_mps - v0);
+            return Ok((t0 + f * (t1 - t0) - stroke.contact_s, speed));
+        }
+        (t0, p0, v0) = (t1, p1, s.path_speed_mps);
+    }
+    // The generator never reached the contact point: time it as planned.
+    Ok((0.0, stroke.speed_mps))
 }
 
 /// Runs the motion generator once, offline, over the planned motion at the FRI
@@ -1983,6 +2203,18 @@ mod tests {
         offset_s: f64,
         t0: f64,
     ) -> f64 {
+        release_and_track_for(c, s, delay_s, offset_s, t0, 2.4)
+    }
+
+    /// [`release_and_track_at`] for `track_s` after the release.
+    fn release_and_track_for(
+        c: &mut Controller,
+        s: &Beliefs,
+        delay_s: f64,
+        offset_s: f64,
+        t0: f64,
+        track_s: f64,
+    ) -> f64 {
         let (mut t, mut q) = arm_perfectly_at(c, &Controller::plan(s, 0.6).unwrap(), t0);
         let model = PendulumModel::from_params(&s.pendulum).unwrap();
         let geometry =
@@ -2011,7 +2243,7 @@ mod tests {
         truth.release(t_pin + delay_s).unwrap();
         let mut next_frame = t_pin + 0.01;
         let mut frames: Vec<(f64, Sighting)> = Vec::new();
-        while t < t_pin + 2.4 {
+        while t < t_pin + track_s {
             t += 0.005;
             while next_frame <= t {
                 let lateral_m = if next_frame < t_pin + delay_s {
@@ -2044,6 +2276,127 @@ mod tests {
             q = out.q_command_rad;
         }
         t
+    }
+
+    fn strike_beliefs(speed_mps: f64) -> Beliefs {
+        let mut s = Beliefs::default();
+        s.task.mode = TaskMode::Strike;
+        s.task.strike_speed_mps = speed_mps;
+        s.task.strike_direction_deg = 20.0;
+        s
+    }
+
+    /// Strike mode plans the stroke through the intercept point (the arm
+    /// armed at its start `S`, the contact `movement_time_s` after the
+    /// stroke's start, the generator timed for it) and refuses, before
+    /// anything moves, a stroke the arm cannot run.
+    #[test]
+    fn a_strike_is_planned_through_the_intercept_point_or_refused_with_its_reason() {
+        let s = strike_beliefs(0.5);
+        let plan = Controller::plan(&s, 0.6).unwrap();
+        let k = plan.strike.expect("a strike plan");
+        let p = s.task.intercept_m(0.6);
+        assert_eq!(plan.duration_s, s.task.movement_time_s);
+        assert!((k.start_m + k.direction * k.approach_m - p).norm() < 1e-9);
+        // The direction: in the swing plane, rising 20 degrees, returning
+        // the ball towards -y.
+        assert!(k.direction.x.abs() < 1e-12 && k.direction.y < 0.0);
+        assert!((k.direction.z.asin().to_degrees() - 20.0).abs() < 1e-9);
+        // The posture starts at S: the arm waits there, armed.
+        let c = Controller::new(&s, 0.005).unwrap();
+        let at_home = c.tool_point(&plan.posture.q_home.into());
+        assert!(
+            (at_home - k.start_m).norm() < 1e-6,
+            "{at_home} vs {}",
+            k.start_m
+        );
+        // The Hopf dynamics reach the contact point within a few ms of the
+        // plan, at about the planned speed.
+        assert!(
+            plan.arrival_offset_s.abs() < 0.02,
+            "{}",
+            plan.arrival_offset_s
+        );
+        assert!(
+            (k.generator_speed_mps - 0.5).abs() < 0.05,
+            "{}",
+            k.generator_speed_mps
+        );
+        // Horizontal: the arm would wait at S in the swing's way.
+        let mut flat = strike_beliefs(0.5);
+        flat.task.strike_direction_deg = 0.0;
+        let e = Controller::plan(&flat, 0.6).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                ControlError::Strike {
+                    why: StrikeRefusal::InTheSwing { .. },
+                    ..
+                }
+            ),
+            "{e:?}"
+        );
+        // Too fast for the arm: refused as infeasible, naming why.
+        let e = Controller::plan(&strike_beliefs(3.0), 0.6).unwrap_err();
+        assert!(e.is_infeasible(), "{e}");
+        assert!(matches!(e, ControlError::Strike { .. }), "{e:?}");
+        assert!(e.to_string().contains("infeasible strike at 3 m/s"), "{e}");
+    }
+
+    /// A strike trial commits the stroke so that the contact (not the end
+    /// of the cycle) comes at the predicted pass, on a pass against the
+    /// stroke; the tool is at the intercept point then, moving at the
+    /// strike speed along the strike direction, and every command stays
+    /// inside the limits.
+    #[test]
+    fn a_strike_meets_the_predicted_pass_at_its_contact_with_the_planned_speed() {
+        let s = strike_beliefs(0.5);
+        let plan = Controller::plan(&s, 0.6).unwrap();
+        let k = plan.strike.unwrap();
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        // Tracked up to 1 s after the release: committed (the stroke's
+        // start), the contact still ahead.
+        let mut t = release_and_track_for(&mut c, &s, 0.0, 0.0, 0.0, 1.0);
+        let commit = *c.commit().expect("committed");
+        assert!(commit.direction_positive, "a pass towards +y");
+        let contact = c.planned_contact_s().unwrap();
+        assert!(contact > t + 0.5, "contact at {contact}, now {t}");
+        let latency = commit.latency_s + commit.camera_offset_s + commit.trim_s;
+        assert!(
+            (contact - (commit.predicted_pass_s - latency)).abs() < 0.01,
+            "contact {contact} vs pass {} less {latency}",
+            commit.predicted_pass_s
+        );
+        // Run on (no more frames) through the contact to the end.
+        let mut q: [f64; JOINTS] = (*c.q_command()).into();
+        let mut out = StepOutput::default();
+        let mut near: Option<(f64, Vector3<f64>, Vector3<f64>)> = None;
+        let mut prev = c.tool_point(&q);
+        while c.state() != TrialState::Done && t < contact + 3.0 {
+            t += 0.005;
+            let input = StepInput {
+                t_s: t,
+                q_measured_rad: q,
+                commanding: true,
+            };
+            c.step(&input, std::iter::empty(), &mut out);
+            q = out.q_command_rad;
+            let at = c.tool_point(&q);
+            let v = (at - prev) / 0.005;
+            prev = at;
+            if near.is_none_or(|(tn, _, _)| (t - contact).abs() < (tn - contact).abs()) {
+                near = Some((t, at, v));
+            }
+        }
+        assert_eq!(c.state(), TrialState::Done);
+        assert_eq!(c.counters().limit_violations(), 0);
+        let (_, at, v) = near.unwrap();
+        let p = plan.intercept_m;
+        assert!((at - p).norm() < 0.01, "{at} vs {p}");
+        assert!((v.norm() - 0.5).abs() < 0.05, "{v}");
+        assert!(v.normalize().dot(&k.direction) > 0.99, "{v}");
+        // The cycle ended at rest at B.
+        assert!((c.tool_point(&q) - k.end_m).norm() < 0.005);
     }
 
     /// A camera whose frames all come later than the filter may plan on

@@ -17,7 +17,9 @@ use rtrb::{Consumer, Producer};
 use super::fri_step::FriLoopStep;
 use super::measured::{MeasuredBeliefs, MeasuredTrace};
 use super::trial::{TrialDraw, draw_trial};
-use super::truth::{MAX_PASSES, PhysicalJudgeError, PhysicalJudgement, TrialStart, TruthObserver};
+use super::truth::{
+    MAX_PASSES, PhysicalJudgeError, PhysicalJudgement, StrikeAim, TrialStart, TruthObserver,
+};
 use crate::bridge::{
     self, AbortKind as BridgeAbort, AbortView, Command, ControlEnd, Event, EventRecord, FriQuality,
     FriSessionState, HorizonPoint, JudgedBy, Refusal, Snapshot, TrialResult, TrialSetup,
@@ -25,7 +27,7 @@ use crate::bridge::{
 use crate::control::measured::{ARRIVAL_SETTLE_M, MeasuredJudgement};
 use crate::control::{
     AbortReason, ArmPlan, ControlError, Controller, JudgeScratch, Judgement, PlannedMotion,
-    Sighting, TrialState, TrialTrace, judge_into,
+    Sighting, TrialState, TrialTrace, judge_into, judge_strike_crossing,
 };
 use crate::ekf::Prediction;
 use crate::fri::client::{ControlStep, SessionStats, StepInput, StopReason};
@@ -1385,7 +1387,21 @@ impl LabStep {
                     .and_then(|truth| truth.observer.intercept_m())
                     .unwrap_or(trial.plan.intercept_m);
                 match judge_into(&self.trace, &motion, &intercept, &mut self.judge_scratch) {
-                    Ok(j) => o.judgement = Some(j),
+                    // A strike meets the ball on its way (issue #38): its
+                    // arrival is the tool's crossing of the intercept point.
+                    Ok(j) => {
+                        o.judgement = Some(trial.plan.strike.map_or(j, |k| {
+                            judge_strike_crossing(
+                                &j,
+                                &self.trace,
+                                &intercept,
+                                k.direction.y.signum(),
+                                commit.predicted_pass_s,
+                                &mut self.judge_scratch,
+                            )
+                            .unwrap_or(j)
+                        }));
+                    }
                     Err(e) => o.judge_error = Some(e),
                 }
                 if let Some((tp, _)) = nearest_pass(&self.passes, commit.predicted_pass_s) {
@@ -1397,12 +1413,23 @@ impl LabStep {
                 }
             }
             if trial.truth {
-                self.judge_world(commit.predicted_pass_s, &mut o);
+                let aim = trial.plan.strike.map(|k| StrikeAim {
+                    planned_tool_speed_mps: k.speed_mps,
+                    // Restitution 0 (the controller's belief): the ball
+                    // leaves with the tool's speed along the contact
+                    // normal, the swing's horizontal at the pass.
+                    target_ball_speed_mps: k.speed_mps * k.direction.y.hypot(k.direction.x),
+                    return_sign: k.direction.y.signum(),
+                });
+                self.judge_world(commit.predicted_pass_s, aim.as_ref(), &mut o);
             }
         }
         // A contact shows what the camera offset missed (whatever the
-        // magnet's release delay): the controller learns from it.
-        if let (Some(m), Some(used_ms)) = (o.measured, o.camera_offset_estimate_ms)
+        // magnet's release delay): the controller learns from it. Not from
+        // a strike: the measured judge reads a contact against a resting
+        // tool, and a striking tool meets the ball earlier.
+        let measured = o.measured.filter(|_| trial.plan.strike.is_none());
+        if let (Some(m), Some(used_ms)) = (measured, o.camera_offset_estimate_ms)
             && let (Some(e_ms), Some(sd_ms)) =
                 (m.camera_clock_error_ms, m.camera_clock_error_std_ms)
         {
@@ -1411,7 +1438,7 @@ impl LabStep {
         }
         // The arrival against the camera's pass: what the robot added to
         // the plan (the measured timing error less the camera's clock error).
-        if let Some(m) = o.measured
+        if let Some(m) = measured
             && let (Some(t_ms), Some(e_ms), Some(sd_ms)) = (
                 m.timing_error_ms,
                 m.camera_clock_error_ms,
@@ -1498,12 +1525,17 @@ impl LabStep {
     /// The physical judge on the true world: fills `o.physical` and puts its
     /// figures (t*, arrival, |timing error|, tool-ball distance at t*) into
     /// the reported judgement; the fitted movement time stays.
-    fn judge_world(&mut self, committed_pass_s: f64, o: &mut TrialOutcome) {
+    fn judge_world(
+        &mut self,
+        committed_pass_s: f64,
+        strike: Option<&StrikeAim>,
+        o: &mut TrialOutcome,
+    ) {
         let tolerance_ms = self.p.scenario.success.timing_tolerance_ms;
         let Some(verdict) = self.p.truth.as_mut().and_then(|truth| {
             truth
                 .observer
-                .judge_physical(&self.passes, committed_pass_s, tolerance_ms)
+                .judge_physical(&self.passes, committed_pass_s, tolerance_ms, strike)
         }) else {
             return;
         };
@@ -1782,7 +1814,8 @@ impl TrialOutcome {
             return self.final_state == TrialState::Done
                 && self.limit_violations == 0
                 && p.contact_s.is_some()
-                && p.timing_error_ms.abs() <= tol.timing_tolerance_ms;
+                && p.timing_error_ms.abs() <= tol.timing_tolerance_ms
+                && p.strike.is_none_or(|s| s.speed_ok);
         }
         self.final_state == TrialState::Done
             && self.limit_violations == 0

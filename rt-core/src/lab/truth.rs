@@ -52,6 +52,18 @@ pub enum PhysicalJudgeError {
     NoPass,
 }
 
+/// What a strike trial is judged against (issue #38): from the controller's
+/// plan, never the world.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StrikeAim {
+    /// The planned tool speed at contact, m/s.
+    pub planned_tool_speed_mps: f64,
+    /// The target outgoing ball speed, m/s (`control::report::StrikeJudgement`).
+    pub target_ball_speed_mps: f64,
+    /// The sign of `y` the ball should return along.
+    pub return_sign: f64,
+}
+
 /// The physical judge's verdict on a trial with the tool-ball distance at
 /// its `t*` (the reported position error).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -112,11 +124,13 @@ pub trait TruthObserver: Send {
     /// The physical judge of the trial on the true world (`None`: a truthful
     /// world, judged by `control::judge` alone): `passes` as
     /// [`Self::step`] collected them, `committed_pass_s` the controller's
-    /// predicted pass, `tolerance_ms` the timing tolerance.
+    /// predicted pass, `tolerance_ms` the timing tolerance, `strike` a
+    /// strike trial's aim (`None`: stop mode).
     fn judge_physical(
         &mut self,
         passes: &[(f64, Vector3<f64>)],
         committed_pass_s: f64,
         tolerance_ms: f64,
+        strike: Option<&StrikeAim>,
     ) -> Option<Result<PhysicalVerdict, PhysicalJudgeError>>;
 }

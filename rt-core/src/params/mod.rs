@@ -7,7 +7,7 @@ pub use crate::check::{ParamError, RangeParam};
 // The sections owned by their parts (no back-imports into `params`).
 pub use crate::control::SuccessParams;
 pub use crate::pendulum::PendulumParams;
-pub use crate::trajectory::TaskParams;
+pub use crate::trajectory::{TaskMode, TaskParams};
 
 pub mod world;
 

@@ -72,6 +72,23 @@ fn every_rule_names_its_field() {
         ),
         ("[task]\nmovement_time_s = 0.0", "task.movement_time_s"),
         ("[task]\nmovement_time_s = -1.5", "task.movement_time_s"),
+        ("[task]\nstrike_speed_mps = 0.0", "task.strike_speed_mps"),
+        ("[task]\nstrike_speed_mps = -1.0", "task.strike_speed_mps"),
+        ("[task]\nstrike_speed_mps = nan", "task.strike_speed_mps"),
+        ("[task]\nstrike_speed_mps = inf", "task.strike_speed_mps"),
+        ("[task]\nstrike_speed_mps = 50.0", "task.strike_speed_mps"),
+        (
+            "[task]\nstrike_direction_deg = nan",
+            "task.strike_direction_deg",
+        ),
+        (
+            "[task]\nstrike_direction_deg = 90.0",
+            "task.strike_direction_deg",
+        ),
+        (
+            "[task]\nstrike_direction_deg = -61.0",
+            "task.strike_direction_deg",
+        ),
         ("[camera]\nfps = 0.0", "camera.fps"),
         ("[camera]\nwidth_px = 0", "camera.width_px"),
         ("[camera]\nheight_px = 1", "camera.height_px"),
@@ -110,6 +127,14 @@ fn every_rule_names_its_field() {
         (
             "[world.pendulum]\ncontact_pulse_ms = [0.1, 4.0]",
             "world.pendulum.contact_pulse_ms",
+        ),
+        (
+            "[world.pendulum]\ncontact_restitution = 1.5",
+            "world.pendulum.contact_restitution",
+        ),
+        (
+            "[world.pendulum]\ncontact_restitution = nan",
+            "world.pendulum.contact_restitution",
         ),
         (
             "[world.robot]\ntorque_lag_periods = [1.0, 11.0]",
@@ -155,6 +180,8 @@ fn unknown_key_is_refused_with_its_name_and_line() {
 fn wrong_types_are_refused() {
     refused("[pendulum]\nlength_m = \"long\"", "pendulum.length_m");
     refused("[camera]\nvision = \"magic\"", "camera.vision");
+    refused("[task]\nmode = \"smash\"", "task.mode");
+    refused("[task]\nmode = 1", "task.mode");
     refused("[task]\nhome_m = [0.3, 0.0]", "home_m");
     refused("[camera]\nwidth_px = -1280", "width_px");
 }
@@ -176,6 +203,26 @@ fn the_papers_scenario_file_round_trips() {
     );
     let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
     assert_eq!(again, s);
+}
+
+#[test]
+fn the_task_mode_is_stop_unless_asked_and_strike_round_trips() {
+    assert_eq!(Scenario::default().task.mode, TaskMode::Stop);
+    let s = Scenario::from_toml_str(
+        "[task]\nmode = \"strike\"\nstrike_speed_mps = 0.8\nstrike_direction_deg = -10.0\n",
+    )
+    .unwrap();
+    assert_eq!(s.task.mode, TaskMode::Strike);
+    assert_eq!(s.task.strike_speed_mps, 0.8);
+    assert_eq!(s.task.strike_direction_deg, -10.0);
+    assert!(s.to_toml_string().contains("mode = \"strike\""));
+    let again = Scenario::from_toml_str(&s.to_toml_string()).unwrap();
+    assert_eq!(again, s);
+    // JSON (`GET`/`PUT /api/params`) says the same.
+    let json = serde_json::to_value(&s).unwrap();
+    assert_eq!(json["task"]["mode"], "strike");
+    let back: Scenario = serde_json::from_value(json).unwrap();
+    assert_eq!(back, s);
 }
 
 #[test]

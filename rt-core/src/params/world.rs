@@ -61,6 +61,11 @@ pub struct WorldPendulumParams {
     /// compliance), ms, per session. The measured judge's belief of it is
     /// `success.contact_pulse_ms`.
     pub contact_pulse_ms: RangeParam,
+    /// Coefficient of restitution of ball and tool (0..1): the share of
+    /// their approach speed along the contact normal that they separate
+    /// with (0, the default: the ball stops against the tool, the stop
+    /// mode's catch; a tennis ball on a rigid plate: about 0.75).
+    pub contact_restitution: f64,
 }
 
 impl Default for WorldPendulumParams {
@@ -76,6 +81,7 @@ impl Default for WorldPendulumParams {
             release_delay_ms: None,
             disturbance_mps2: RangeParam::fixed(0.0),
             contact_pulse_ms: RangeParam::fixed(4.0),
+            contact_restitution: 0.0,
         }
     }
 }
@@ -384,6 +390,7 @@ impl WorldParams {
             0.5,
             50.0,
         )?;
+        check::probability("world.pendulum.contact_restitution", p.contact_restitution)?;
         let c = &self.camera;
         range("world.camera.latency_ms", &c.latency_ms, -500.0, 500.0)?;
         range(

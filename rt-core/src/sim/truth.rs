@@ -17,6 +17,7 @@ use rtrb::{Consumer, Producer};
 
 use super::camera::BallState;
 use super::world::contact::BallOnTool;
+use super::world::judge::judge_strike;
 use super::world::{Contact, TruePendulum, World, WorldSample, judge_physical};
 use crate::bridge::Refusal;
 use crate::control::Commit;
@@ -24,7 +25,7 @@ use crate::fri::codec::Joints;
 use crate::fri::stats::AtomicJoints;
 use crate::lab::TRIAL_TIMEOUT_S;
 use crate::lab::truth::{
-    MAX_PASSES, PhysicalJudgeError, PhysicalVerdict, TrialStart, TruthObserver,
+    MAX_PASSES, PhysicalJudgeError, PhysicalVerdict, StrikeAim, TrialStart, TruthObserver,
 };
 use crate::pendulum::{PendulumGeometry, PendulumModel, PendulumSim};
 
@@ -144,6 +145,9 @@ pub struct SimTruth {
     world_trace: Vec<WorldSample>,
     /// The passes' times, for the physical judge.
     pass_times: Vec<f64>,
+    /// The reality lab's true contacts this trial: their times and the true
+    /// ball's velocity after each (a strike's outgoing velocity).
+    hits: Vec<(f64, Vector3<f64>)>,
 }
 
 impl std::fmt::Debug for SimTruth {
@@ -175,9 +179,14 @@ impl SimTruth {
             ball: None,
             world_trace: Vec::with_capacity(trace_len),
             pass_times: Vec::with_capacity(MAX_PASSES),
+            hits: Vec::with_capacity(MAX_HITS),
         }
     }
 }
+
+/// True contacts kept per trial (a ball pressed against the disc counts one
+/// per step).
+const MAX_HITS: usize = 1024;
 
 impl TruthObserver for SimTruth {
     fn hang(&mut self, s: &TrialStart<'_>) -> Result<(), Refusal> {
@@ -233,6 +242,7 @@ impl TruthObserver for SimTruth {
         };
         self.ball = Some(ball);
         self.world_trace.clear();
+        self.hits.clear();
         Ok(())
     }
 
@@ -347,6 +357,10 @@ impl TruthObserver for SimTruth {
                     w.mass_kg,
                     w.world.session.contact_pulse_s,
                 ) {
+                    if self.hits.len() < MAX_HITS {
+                        self.hits
+                            .push((contact.t_s, w.on_tool.ball.ball_velocity_mps()));
+                    }
                     // The camera sees the ball where the tool stopped it.
                     let _ = self
                         .to_camera
@@ -390,20 +404,34 @@ impl TruthObserver for SimTruth {
         passes: &[(f64, Vector3<f64>)],
         committed_pass_s: f64,
         tolerance_ms: f64,
+        strike: Option<&StrikeAim>,
     ) -> Option<Result<PhysicalVerdict, PhysicalJudgeError>> {
         let Some(TrueBall::World(w)) = self.ball.as_ref() else {
             return None;
         };
         self.pass_times.clear();
         self.pass_times.extend(passes.iter().map(|p| p.0));
+        let radius_m = w.world.pendulum.ball_radius_m;
         Some(
-            judge_physical(
-                &self.world_trace,
-                &self.pass_times,
-                committed_pass_s,
-                w.world.pendulum.ball_radius_m,
-                tolerance_ms,
-            )
+            match strike {
+                Some(aim) => judge_strike(
+                    &self.world_trace,
+                    &self.hits,
+                    &self.pass_times,
+                    committed_pass_s,
+                    radius_m,
+                    tolerance_ms,
+                    w.world.intercept_m.y,
+                    aim,
+                ),
+                None => judge_physical(
+                    &self.world_trace,
+                    &self.pass_times,
+                    committed_pass_s,
+                    radius_m,
+                    tolerance_ms,
+                ),
+            }
             .map(|p| {
                 let at = self
                     .world_trace

@@ -1589,6 +1589,42 @@ mod tests {
         );
     }
 
+    /// Strike mode in the reality lab (`scenarios/strike.toml`: 0.70 m,
+    /// 1.5 s, 0.5 m/s rising 20 degrees; the noisy-projection camera for
+    /// speed): every trial meets the ball within the timing tolerance of
+    /// its pass, sends it back within 20% of the target speed, and keeps
+    /// every command inside the limits, with no abort (a torque trip
+    /// would be one).
+    #[test]
+    fn strike_trials_meet_the_pass_in_time_and_send_the_ball_off_at_the_target_speed() {
+        let mut s =
+            Scenario::from_toml_str(include_str!("../../../scenarios/strike.toml")).unwrap();
+        s.camera.vision = VisionMode::Model;
+        let mut lab = VirtualLab::new(&s, 1).unwrap();
+        for i in 0..4 {
+            let r = lab.run_trial(i);
+            assert!(r.abort_reason.is_none(), "{r:?}");
+            assert_eq!(r.limit_violations, 0, "{r:?}");
+            let p = r.physical.unwrap_or_else(|| panic!("not judged: {r:?}"));
+            let k = p
+                .strike
+                .unwrap_or_else(|| panic!("no strike verdict: {r:?}"));
+            assert!(
+                p.hit_in_time,
+                "contact {:?}, crossing {:+.1} ms from t*: {r:?}",
+                p.contact_s, p.timing_error_ms
+            );
+            assert!(
+                k.speed_ok && k.speed_error.abs() <= 0.2,
+                "ball out at {:.3} m/s for {:.3}: {k:?}",
+                k.ball_speed_mps,
+                k.target_ball_speed_mps
+            );
+            assert!((k.target_ball_speed_mps - 0.5 * 20f64.to_radians().cos()).abs() < 1e-9);
+            assert!(r.success, "{r:?}");
+        }
+    }
+
     #[test]
     fn the_measured_judge_agrees_with_the_physical_one_in_the_reality_lab() {
         // Twenty trials as the lab runs them (rendered frames, the detector:

@@ -14,4 +14,4 @@ pub use plan::{
     Binding, ElbowPolicy, Infeasibility, LimitKind, MotionPlan, PlanError, PlanSummary, Posture,
     TrajectoryParams, evaluate, plan,
 };
-pub use task::TaskParams;
+pub use task::{TaskMode, TaskParams};

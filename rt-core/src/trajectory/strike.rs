@@ -50,6 +50,21 @@ use crate::kinematics::{Joints, Tool};
 /// peak speed (1/2) to near the end (a short brake).
 pub const CONTACT_PHASES: [f64; 5] = [0.5, 0.6, 0.7, 0.8, 0.9];
 
+/// The sign of `y` a struck ball returns along, as the controller strikes
+/// (`control::Controller::plan`): it meets only passes towards `+y` and
+/// returns them towards `-y` (the stroke's start `S`, where the arm waits
+/// from arming on, must be known before the release; the ball may be
+/// released on either side). `S` lies on the `+y` side of the intercept
+/// point, in the swing's way unless the strike rises
+/// (`task.strike_direction_deg > 0` puts `S` below the swing, and the ball
+/// swings over the waiting tool: `scenarios/strike.toml` rises 20 degrees).
+pub const STRIKE_RETURN_SIGN: f64 = -1.0;
+
+/// The tool's mass the controller's torque check assumes, kg (a 10 cm
+/// aluminium rod with a 6 cm disc and its mount; `isochron kin plan
+/// --strike`'s default).
+pub const STRIKE_TOOL_MASS_KG: f64 = 0.2;
+
 /// Why a stroke cannot be built or checked.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[non_exhaustive]
@@ -97,6 +112,19 @@ pub enum StrikeRefusal {
         ratio: f64,
         /// The share of the limit allowed.
         allowed: f64,
+    },
+    /// The stroke's start, where the arm waits armed, lies in the ball's
+    /// swing: the ball would meet the waiting tool before the pass.
+    #[error(
+        "the stroke's start, where the arm waits, is {clearance_m:.3} m from the swing's arc \
+         (needs {need_m:.3} m: ball radius, tool disc, margin): let the strike rise \
+         (task.strike_direction_deg > 0) or shorten its approach"
+    )]
+    InTheSwing {
+        /// The arc's height above the start (negative: below it), metres.
+        clearance_m: f64,
+        /// The clearance needed, metres.
+        need_m: f64,
     },
 }
 

@@ -5,6 +5,39 @@ use serde::{Deserialize, Serialize};
 
 use crate::check::{self, ParamError, RangeParam};
 
+/// What a trial's motion does to the ball: `task.mode`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TaskMode {
+    /// The paper's task: the tool arrives at the intercept point at the
+    /// ball's pass and stops there, at rest (the ball is stopped).
+    #[default]
+    Stop,
+    /// Issue #38: the tool meets the ball at the intercept point at the
+    /// ball's pass with `task.strike_speed_mps` along
+    /// `task.strike_direction_deg`, then brakes to rest
+    /// (`trajectory::strike`).
+    Strike,
+}
+
+impl TaskMode {
+    /// The mode's name as the scenario writes it.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Self::Stop => "stop",
+            Self::Strike => "strike",
+        }
+    }
+}
+
+/// The largest `task.strike_speed_mps` a scenario may ask for, m/s (the
+/// planner refuses most strokes far below it: `isochron kin strike-map`).
+pub const STRIKE_SPEED_MAX_MPS: f64 = 5.0;
+
+/// The steepest `task.strike_direction_deg` a scenario may ask for, degrees
+/// either side of the horizontal.
+pub const STRIKE_DIRECTION_MAX_DEG: f64 = 60.0;
+
 /// The interception task: `[task]` in a scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -25,8 +58,21 @@ pub struct TaskParams {
     /// along the tool axis), metres: where the ball first touches the tool,
     /// for the measured judge.
     pub tool_contact_radius_m: f64,
-    /// Duration of the interception motion, seconds.
+    /// Duration of the interception motion, seconds (in strike mode: from
+    /// the stroke's start to the contact).
     pub movement_time_s: f64,
+    /// `"stop"` (default: the tool arrives at rest and stops the ball) or
+    /// `"strike"` (the tool meets the ball with `strike_speed_mps`, then
+    /// brakes to rest; issue #38).
+    pub mode: TaskMode,
+    /// Strike mode: the tool's speed at contact along the strike direction,
+    /// m/s (> 0). With restitution 0 the ball leaves with the tool's speed
+    /// along the contact normal: `strike_speed_mps * cos(strike_direction_deg)`.
+    pub strike_speed_mps: f64,
+    /// Strike mode: the strike direction's elevation above the horizontal in
+    /// the swing plane, degrees (-60..60); the direction's horizontal part
+    /// is the ball's return (against its pass).
+    pub strike_direction_deg: f64,
 }
 
 impl Default for TaskParams {
@@ -39,6 +85,9 @@ impl Default for TaskParams {
             tool_length_m: 0.10,
             tool_contact_radius_m: 0.03,
             movement_time_s: 1.5,
+            mode: TaskMode::Stop,
+            strike_speed_mps: 0.5,
+            strike_direction_deg: 0.0,
         }
     }
 }
@@ -82,6 +131,21 @@ impl TaskParams {
             0.0,
             0.2,
         )?;
-        check::within("task.movement_time_s", self.movement_time_s, 0.3, 10.0)
+        check::within("task.movement_time_s", self.movement_time_s, 0.3, 10.0)?;
+        // Checked in stop mode too: a scenario switched to strike later
+        // (`PUT /api/params`) must be valid already.
+        check::positive("task.strike_speed_mps", self.strike_speed_mps)?;
+        check::within(
+            "task.strike_speed_mps",
+            self.strike_speed_mps,
+            0.0,
+            STRIKE_SPEED_MAX_MPS,
+        )?;
+        check::within(
+            "task.strike_direction_deg",
+            self.strike_direction_deg,
+            -STRIKE_DIRECTION_MAX_DEG,
+            STRIKE_DIRECTION_MAX_DEG,
+        )
     }
 }

@@ -372,6 +372,11 @@ pub const NOT_FACTORS: &[(&str, &str)] = &[
         "geometry.contact_disc_radius_m",
         "the judge's tool disc (what counts as a hit), not an error of the world",
     ),
+    (
+        "pendulum.contact_restitution",
+        "a property of ball and tool that sets a strike's rebound (issue #38), not an \
+         error of the world against a belief; a stop trial is judged at its contact, before any rebound",
+    ),
 ];
 
 impl Key {

@@ -258,7 +258,24 @@ pub fn summary_json(
 }
 
 fn human(s: &Summary) -> String {
-    format!(
+    let strike = s.strike.map_or_else(String::new, |k| {
+        format!(
+            "\nstrike         contact in time {}/{} ({:.1}%), outgoing speed within 20% {}/{} ({:.1}%), \
+             |speed error| p50 {:.1}%, p95 {:.1}%, tool speed at contact p50 {:.3} m/s, \
+             refused as infeasible {}",
+            k.contact_in_time,
+            k.trials,
+            100.0 * k.contact_in_time_rate,
+            k.speed_within_tolerance,
+            k.trials,
+            100.0 * k.speed_within_tolerance_rate,
+            100.0 * k.speed_error.p50,
+            100.0 * k.speed_error.p95,
+            k.tool_speed_mps.p50,
+            k.refused,
+        )
+    });
+    let summary = format!(
         "{}: {}/{} successes ({:.1}%, 95% CI {:.1}..{:.1}%)\n\
          timing error   p50 {:.2} ms, p95 {:.2} ms, max {:.2} ms\n\
          position error p50 {:.4} m, p95 {:.4} m, max {:.4} m\n\
@@ -288,7 +305,8 @@ fn human(s: &Summary) -> String {
         s.deadline_misses,
         s.wall_s,
         s.vision.as_deref().unwrap_or("?"),
-    )
+    );
+    summary + &strike
 }
 
 #[cfg(test)]

@@ -128,6 +128,29 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             400,
             Some("task.movement_time_s"),
         ),
+        // Strike mode's keys (issue #38): an unknown mode, a speed that is
+        // not > 0, an elevation beyond 60 degrees.
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"mode": "smash"}}"#.to_vec(),
+            400,
+            Some("task.mode"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"mode": "strike", "strike_speed_mps": 0.0}}"#.to_vec(),
+            400,
+            Some("task.strike_speed_mps"),
+        ),
+        (
+            "PUT",
+            "/api/params",
+            br#"{"task": {"strike_direction_deg": 90.0}}"#.to_vec(),
+            400,
+            Some("task.strike_direction_deg"),
+        ),
         ("PUT", "/api/params", big.clone(), 413, None),
         ("POST", "/api/magnet", b"{".to_vec(), 400, None),
         ("POST", "/api/magnet", b"{}".to_vec(), 400, Some("on")),

@@ -109,8 +109,12 @@ pub fn external_torques<R: Rng>(
 /// and the world process on the wall clock: the ball is released at
 /// `drop_at` (the coil's switch plus the residual magnetism's delay), every
 /// step it meets the disc at the contact's exact time (bisected to 1 us on
-/// copies of the ball, the disc's centre interpolated) and stops against it
-/// (restitution 0), and the contact is handed on as the robot's force pulse.
+/// copies of the ball, the disc's centre interpolated) and leaves it with the
+/// impulse of the contact (the relative velocity along the contact normal
+/// reversed and scaled by the world's restitution,
+/// `world.pendulum.contact_restitution`: 0, the default, stops the ball
+/// against the disc; the disc's own velocity included, so a moving tool
+/// strikes the ball), and the contact is handed on as the robot's force pulse.
 #[derive(Debug, Clone)]
 pub struct BallOnTool {
     /// The true ball.
@@ -173,14 +177,16 @@ impl BallOnTool {
             contact_at = tc;
         }
         let contact_disc = disc_at(&last, &disc, t_s - contact_at, period_s);
+        let restitution = self.ball.params().restitution;
         let v_before = self.ball.ball_velocity_mps();
-        let hit = self.ball.collide(&contact_disc, &v_disc, 0.0);
+        let hit = self.ball.collide(&contact_disc, &v_disc, restitution);
         let dv = self.ball.ball_velocity_mps() - v_before;
         let contact_ball_m = self.ball.ball_position_m();
         if contact_at < t_s {
             advance_true_ball(&mut self.ball, self.drop_at, t_s);
-            // Still pressed against the disc at the step.
-            let _ = self.ball.collide(&disc, &v_disc, 0.0);
+            // Still pressed against the disc at the step (a ball that
+            // bounced off moves away from it: no second hit).
+            let _ = self.ball.collide(&disc, &v_disc, restitution);
         }
         hit.then(|| {
             let (_, n) = contact_disc.distance(&contact_ball_m);
@@ -264,6 +270,98 @@ mod tests {
 
     use super::*;
     use crate::kinematics::{Jacobian, Tool, jacobian};
+    use crate::sim::world::pendulum::TruePendulumParams;
+
+    /// A 1.93 m pendulum hanging at (0.6, 0, 0.3) with restitution `e`,
+    /// released from 10 degrees at t = 0.
+    fn swinging(e: f64) -> TruePendulum {
+        let length_m = 1.93;
+        let p = TruePendulumParams {
+            pivot_m: Vector3::new(0.6, 0.0, 0.3 + length_m),
+            length_m,
+            gravity_mps2: 9.81,
+            damping_per_s: 0.0,
+            drag_per_m: 0.0,
+            friction_mps2: 0.0,
+            disturbance_mps2: 0.0,
+            ball_radius_m: 0.0335,
+            restitution: e,
+        };
+        let mut b = TruePendulum::held_at(p, 10f64.to_radians(), 0.0, 0.0, 1);
+        b.release(0.0);
+        b
+    }
+
+    /// A vertical disc (normal along y) moving at `tool_mps` along y meets
+    /// the ball at the bottom of its swing (its centre at y = 0 at the
+    /// pass): returns the ball's y velocity before (at the pass) and right
+    /// after the contact, m/s.
+    fn strike(e: f64, tool_mps: f64) -> (f64, f64) {
+        let ghost = swinging(e);
+        let t_pass = ghost.next_crossing_s(0.0, 2.0).unwrap();
+        let mut at = ghost.clone();
+        at.advance_to(t_pass);
+        let v_in = at.ball_velocity_mps().y;
+        // The disc's face touches the ball at the pass, on the side the
+        // ball moves to, and moves against it at `tool_mps`.
+        let side = v_in.signum();
+        let r = ghost.params().ball_radius_m;
+        let u = -side * tool_mps;
+        let disc = |t: f64| Disc {
+            centre_m: Vector3::new(0.6, side * r + u * (t - t_pass), 0.3),
+            normal: Vector3::y(),
+            radius_m: 0.05,
+        };
+        let mut on = BallOnTool::new(ghost);
+        on.drop_at = Some(0.0);
+        let dt = 0.001;
+        let mut t = t_pass - 0.1;
+        on.advance(t);
+        let _ = on.meet(t, disc(t), dt, 0.057, 0.004);
+        while t < t_pass + 0.1 {
+            t += dt;
+            on.advance(t);
+            if let Some(c) = on.meet(t, disc(t), dt, 0.057, 0.004) {
+                assert!((c.t_s - t_pass).abs() < 2e-4, "{} vs {t_pass}", c.t_s);
+                // The impulse on the tool is the ball's change of momentum, reversed.
+                let v_out = on.ball.ball_velocity_mps().y;
+                assert!(
+                    (-c.impulse_ns.y / 0.057 - (v_out - v_in)).abs() < 0.02,
+                    "{c:?}"
+                );
+                return (v_in, v_out);
+            }
+        }
+        panic!("no contact");
+    }
+
+    #[test]
+    fn a_striking_tool_sends_the_ball_off_with_the_restitution_of_their_approach() {
+        for e in [0.0, 0.3, 0.5, 0.8] {
+            let (v_in, v_out) = strike(e, 1.0);
+            let side = v_in.signum();
+            // Along the normal: the relative velocity reversed, times e:
+            // v_out - v_tool = -e (v_in - v_tool), v_tool = -side * 1 m/s.
+            let v_tool = -side;
+            let expect = v_tool - e * (v_in - v_tool);
+            assert!(
+                (v_out - expect).abs() < 0.01,
+                "e = {e}: {v_out} vs {expect} (in {v_in})"
+            );
+            // The ball returns, faster than the tool when e > 0.
+            assert!(v_out * side < 0.0 && v_out.abs() >= 1.0 - 1e-3, "{v_out}");
+        }
+    }
+
+    #[test]
+    fn restitution_zero_stops_the_ball_against_a_resting_tool_as_before() {
+        let (v_in, v_out) = strike(0.0, 0.0);
+        assert!(v_in.abs() > 0.5, "{v_in}");
+        assert!(v_out.abs() < 1e-3, "{v_out}");
+        // A resting tool and restitution e: the ball bounces back at e v_in.
+        let (v_in, v_out) = strike(0.5, 0.0);
+        assert!((v_out + 0.5 * v_in).abs() < 0.01, "{v_out} vs {v_in}");
+    }
 
     fn q() -> Joints {
         [0.3, 0.6, -0.2, -1.2, 0.1, 0.9, 0.0]

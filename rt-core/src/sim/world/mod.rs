@@ -21,7 +21,7 @@ pub use camera::{FrameTiming, Sighting, WorldCamera};
 pub use contact::Contact;
 pub use dynamics::{ArmDynamics, TorqueTrip, check_torques};
 pub use geometry::{TrueArm, true_intercept_m};
-pub use judge::{PhysicalJudgement, WorldSample, judge_physical};
+pub use judge::{PhysicalJudgement, StrikeAim, WorldSample, judge_physical, judge_strike};
 pub use params::{SessionDraw, TrialWorldDraw, WorldParams};
 pub use pendulum::{Disc, TruePendulum, TruePendulumParams};
 pub use robot::{LatencyModel, WorldJoints};
@@ -101,6 +101,7 @@ impl World {
             friction_mps2: session.pivot_friction_mps2,
             disturbance_mps2: trial.disturbance_mps2,
             ball_radius_m: scenario.pendulum.ball_radius_m,
+            restitution: pw.contact_restitution,
         };
         let arm = TrueArm::from_session(
             scenario.task.tool_length_m,

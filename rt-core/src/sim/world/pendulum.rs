@@ -48,6 +48,9 @@ pub struct TruePendulumParams {
     pub disturbance_mps2: f64,
     /// Ball radius, m.
     pub ball_radius_m: f64,
+    /// Coefficient of restitution of ball and tool (0: the ball stops
+    /// against the tool), `world.pendulum.contact_restitution`.
+    pub restitution: f64,
 }
 
 impl TruePendulumParams {

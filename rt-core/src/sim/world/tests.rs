@@ -21,6 +21,7 @@ fn pend(length_m: f64) -> TruePendulumParams {
         friction_mps2: 0.0,
         disturbance_mps2: 0.0,
         ball_radius_m: 0.0335,
+        restitution: 0.0,
     }
 }
 
@@ -986,4 +987,60 @@ fn a_contact_pushes_the_arm_and_the_servo_pulls_it_back() {
         j.integrate(&q0, 1e-3);
     }
     assert!((arm.tool_point(j.q()) - point).norm() < 1e-6, "pulled back");
+}
+
+#[test]
+fn the_strike_judge_times_the_tools_crossing_and_the_balls_outgoing_speed() {
+    // A tool striking towards -y at 0.5 m/s crosses the intercept point's
+    // y = 0 at t = 1.004 s; the ball (the ghost) passes it towards +y at
+    // t* = 1.000 s, so they meet; the true ball left the tool at 0.45 m/s
+    // towards -y after a first touch at 0.97 s and one more push.
+    let disc_at = |y: f64| Disc {
+        centre_m: Vector3::new(0.6, y, 0.3),
+        normal: Vector3::new(0.0, 0.0, 1.0),
+        radius_m: 0.03,
+    };
+    let trace: Vec<WorldSample> = (0..400)
+        .map(|k| {
+            let t = f64::from(k) * 5e-3;
+            WorldSample {
+                t_s: t,
+                ball_m: Vector3::new(0.6, 1.5 * (t - 1.0), 0.3),
+                disc: disc_at(-0.5 * (t - 1.004)),
+            }
+        })
+        .collect();
+    let hits = [
+        (0.97, Vector3::new(0.0, -0.40, 0.0)),
+        (0.975, Vector3::new(0.0, -0.45, 0.001)),
+        // A touch on a later swing: not this strike's.
+        (1.9, Vector3::new(0.0, 2.0, 0.0)),
+    ];
+    let aim = StrikeAim {
+        planned_tool_speed_mps: 0.5,
+        target_ball_speed_mps: 0.5,
+        return_sign: -1.0,
+    };
+    let j = judge_strike(&trace, &hits, &[1.0, 2.4], 1.0, 0.0335, 20.0, 0.0, &aim).unwrap();
+    assert_eq!(j.t_star_s, 1.0);
+    assert!((j.arrival_s - 1.004).abs() < 1e-6, "{j:?}");
+    assert!((j.timing_error_ms - 4.0).abs() < 1e-3, "{j:?}");
+    assert!(j.contact_s.is_some() && j.hit_in_time, "{j:?}");
+    let s = j.strike.unwrap();
+    assert!((s.tool_speed_mps - 0.5).abs() < 1e-9, "{s:?}");
+    assert!((s.ball_speed_mps - 0.45).abs() < 1e-5, "{s:?}");
+    assert!((s.speed_error + 0.1).abs() < 1e-4, "{s:?}");
+    assert!(s.direction_error_deg < 0.2 && s.speed_ok, "{s:?}");
+    // Too slow by more than 20%, or the ball not returned: not in speed.
+    let slow = [(0.97, Vector3::new(0.0, -0.35, 0.0))];
+    let j = judge_strike(&trace, &slow, &[1.0, 2.4], 1.0, 0.0335, 20.0, 0.0, &aim).unwrap();
+    assert!(!j.strike.unwrap().speed_ok);
+    let on = [(0.97, Vector3::new(0.0, 0.5, 0.0))];
+    let j = judge_strike(&trace, &on, &[1.0, 2.4], 1.0, 0.0335, 20.0, 0.0, &aim).unwrap();
+    let s = j.strike.unwrap();
+    assert!(!s.speed_ok && s.direction_error_deg > 179.0, "{s:?}");
+    // No true contact: no outgoing speed.
+    let j = judge_strike(&trace, &[], &[1.0, 2.4], 1.0, 0.0335, 20.0, 0.0, &aim).unwrap();
+    let s = j.strike.unwrap();
+    assert!(s.ball_speed_mps.is_nan() && !s.speed_ok, "{s:?}");
 }
