@@ -101,7 +101,35 @@ fn start(
     (session, server)
 }
 
+/// A full session at `period_ms`; a session whose commanding the
+/// controller aborted because the connection's quality fell (a starved
+/// machine's replies late or missing for a while, as a real cabinet
+/// judges them) is closed and run again, at most three in all. Every other
+/// property holds of the session that ran through.
 fn full_session(period_ms: u32) {
+    for attempt in 1..=3 {
+        match session_once(period_ms) {
+            Ok(()) => return,
+            Err(why) if attempt < 3 => {
+                eprintln!(
+                    "{period_ms} ms: session {attempt} aborted on a starved machine ({why}); again"
+                );
+            }
+            Err(why) => panic!("{period_ms} ms: three sessions aborted: {why}"),
+        }
+    }
+}
+
+/// Whether the controller aborted commanding for the connection's quality.
+fn starved(report: &rt_core::sim::kuka::SimReport) -> Option<String> {
+    report
+        .abort_reason
+        .as_ref()
+        .filter(|r| report.aborts > 0 && r.contains("quality"))
+        .cloned()
+}
+
+fn session_once(period_ms: u32) -> Result<(), String> {
     let p = FriSimParams {
         fri_period_ms: period_ms,
         ..FriSimParams::default()
@@ -124,6 +152,11 @@ fn full_session(period_ms: u32) {
     let n = u64::from(500 / period_ms);
     let start = Instant::now();
     while sim.commands_applied.load(Relaxed) < n {
+        if let Some(why) = starved(&sim.report()) {
+            let _ = server.close(Duration::from_secs(2));
+            let _ = session.stop();
+            return Err(why);
+        }
         assert!(
             start.elapsed() < Duration::from_secs(15),
             "{n} commands not applied within 15 s: controller {:?}; client {:?}",
@@ -141,6 +174,9 @@ fn full_session(period_ms: u32) {
     let st = cl.snapshot();
     eprintln!("{period_ms} ms: report {report:?}\nclient {st:?}\nA1 moved {moved:.4} rad");
 
+    if let Some(why) = starved(&report) {
+        return Err(why);
+    }
     // The client's commands moved the simulated joint (0.3 rad/s for >= 0.5 s).
     assert!(moved > 0.1, "A1 moved only {moved} rad");
     assert_eq!(report.violations, 0);
@@ -175,6 +211,7 @@ fn full_session(period_ms: u32) {
     );
     assert_eq!(others.len() as u64, st.silences);
     assert!(st.reply_latency.count > 0);
+    Ok(())
 }
 
 #[test]
