@@ -23,7 +23,7 @@ use crate::timing::{MotionPhase, MotionSample, TimedMotion, TimingParams};
 use crate::trajectory::profile::ProfileKind;
 use crate::trajectory::strike::{
     CONTACT_PHASES, STRIKE_RETURN_SIGN, STRIKE_TOOL_MASS_KG, StrikeError, StrikeRefusal, Stroke,
-    plan_strike, strike_direction,
+    SwingClearance, plan_strike, strike_direction,
 };
 use crate::trajectory::{
     Infeasibility, MotionRequest as PathRequest, PlanError, Posture, TaskMode, TrajectoryParams,
@@ -299,9 +299,7 @@ pub struct ArmPlan {
     pub strike: Option<StrikeArm>,
 }
 
-/// The margin between the swing and the tool waiting at a strike's start,
-/// beyond the ball's radius and the tool's contact disc, metres.
-pub const STRIKE_SWING_CLEARANCE_M: f64 = 0.01;
+pub use crate::trajectory::strike::STRIKE_SWING_CLEARANCE_M;
 
 /// A strike trial's stroke as the controller runs it (issue #38,
 /// `trajectory::strike`): one Hopf cycle along a straight line from `S`
@@ -931,21 +929,14 @@ impl Controller {
             // The arm waits at S from arming on: out of the swing's way
             // (the believed arc through the intercept point, in the swing
             // plane), or the ball meets the waiting tool.
-            let l = beliefs.pendulum.length_m;
-            let dy = s.request.start_m.y - intercept.y;
-            let need_m = beliefs.pendulum.ball_radius_m
-                + task.tool_contact_radius_m
-                + STRIKE_SWING_CLEARANCE_M;
-            if dy.abs() < l {
-                let arc_z = intercept.z + l - (l * l - dy * dy).sqrt();
-                let clearance_m = arc_z - s.request.start_m.z;
-                if clearance_m.abs() < need_m {
-                    why = why.or(Some(StrikeRefusal::InTheSwing {
-                        clearance_m,
-                        need_m,
-                    }));
-                    continue;
-                }
+            let swing = SwingClearance::new(
+                beliefs.pendulum.length_m,
+                beliefs.pendulum.ball_radius_m,
+                task.tool_contact_radius_m,
+            );
+            if let Some(refusal) = swing.check(s) {
+                why = why.or(Some(refusal));
+                continue;
             }
             let posture = mp.posture();
             let period_s = f64::from(beliefs.fri_period_ms) * 1e-3;

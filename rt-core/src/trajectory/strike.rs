@@ -128,6 +128,48 @@ pub enum StrikeRefusal {
     },
 }
 
+/// The room the arm's waiting place needs beside the ball's swing, beyond
+/// the ball's radius and the tool's disc, metres.
+pub const STRIKE_SWING_CLEARANCE_M: f64 = 0.01;
+
+/// Where the arm waits armed, the stroke's start `S`, must be out of the
+/// ball's swing: the believed arc through the intercept point in the swing
+/// plane (a pendulum of `length_m`), at least `need_m` away along z.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SwingClearance {
+    /// The believed pendulum length, metres.
+    pub length_m: f64,
+    /// The clearance needed (ball radius, tool disc, [`STRIKE_SWING_CLEARANCE_M`]), metres.
+    pub need_m: f64,
+}
+
+impl SwingClearance {
+    /// The clearance a pendulum of `length_m` needs for a ball of
+    /// `ball_radius_m` and a tool disc of `tool_radius_m`.
+    pub fn new(length_m: f64, ball_radius_m: f64, tool_radius_m: f64) -> Self {
+        Self {
+            length_m,
+            need_m: ball_radius_m + tool_radius_m + STRIKE_SWING_CLEARANCE_M,
+        }
+    }
+
+    /// [`StrikeRefusal::InTheSwing`] when `stroke`'s start lies within the
+    /// needed clearance of the arc, else `None`.
+    pub fn check(&self, stroke: &Stroke) -> Option<StrikeRefusal> {
+        let (p, s, l) = (stroke.contact_m, stroke.request.start_m, self.length_m);
+        let dy = s.y - p.y;
+        if dy.abs() >= l {
+            return None;
+        }
+        let arc_z = p.z + l - (l * l - dy * dy).sqrt();
+        let clearance_m = arc_z - s.z;
+        (clearance_m.abs() < self.need_m).then_some(StrikeRefusal::InTheSwing {
+            clearance_m,
+            need_m: self.need_m,
+        })
+    }
+}
+
 /// One stroke: where it starts, meets the ball and ends, and when.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Stroke {
@@ -423,6 +465,8 @@ pub struct StrikeSearch {
     pub max_speed_mps: f64,
     /// The search's resolution, m/s.
     pub resolution_mps: f64,
+    /// The ball's swing the waiting arm must stay out of (`None`: not checked).
+    pub swing: Option<SwingClearance>,
 }
 
 /// The largest tool speed at contact (to `search.resolution_mps`, at most
@@ -447,6 +491,7 @@ pub fn largest_strike_speed(
         tool_mass_kg,
         max_speed_mps,
         resolution_mps,
+        swing,
     } = *search;
     let mut out = StrikeLimit {
         speed_mps: 0.0,
@@ -458,7 +503,13 @@ pub fn largest_strike_speed(
         |v: f64, f: f64| -> Result<Result<StrikePlan, Option<StrikeRefusal>>, StrikeError> {
             let stroke = Stroke::new(contact_m, direction, v, movement_time_s, f, tool)?;
             let p = plan_strike(stroke, params, tool_mass_kg)?;
-            Ok(if p.feasible { Ok(p) } else { Err(p.reason) })
+            if !p.feasible {
+                return Ok(Err(p.reason));
+            }
+            Ok(match swing.and_then(|c| c.check(&p.stroke)) {
+                Some(why) => Err(Some(why)),
+                None => Ok(p),
+            })
         };
     for f in CONTACT_PHASES {
         let (mut lo, mut hi) = (0.0, max_speed_mps);
@@ -590,6 +641,7 @@ mod tests {
             tool_mass_kg: 0.2,
             max_speed_mps: 3.0,
             resolution_mps: 0.05,
+            swing: None,
         };
         let limit = largest_strike_speed(p, u, &search, &params).unwrap();
         assert!(limit.speed_mps > 0.0, "{:?}", limit.binding);

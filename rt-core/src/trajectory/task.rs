@@ -87,7 +87,7 @@ impl Default for TaskParams {
             movement_time_s: 1.5,
             mode: TaskMode::Stop,
             strike_speed_mps: 0.5,
-            strike_direction_deg: 0.0,
+            strike_direction_deg: 20.0,
         }
     }
 }

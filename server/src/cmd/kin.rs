@@ -64,7 +64,7 @@ pub struct StrikeMapArgs {
     #[arg(long, value_delimiter = ',', default_value = "0.5,0.75,1.0,1.5,2.0")]
     pub movement_times_s: Vec<f64>,
     /// The strike direction's elevation above the horizontal in the swing plane, degrees.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 20.0)]
     pub strike_direction_deg: f64,
     /// The tool's mass, kg (at the flange).
     #[arg(long, default_value_t = DEFAULT_TOOL_MASS_KG)]
@@ -120,7 +120,7 @@ pub struct PlanArgs {
     pub strike_speed_mps: Option<f64>,
     /// With `--strike`: the strike direction's elevation above the horizontal
     /// in the swing plane, degrees.
-    #[arg(long, default_value_t = 0.0, requires = "strike")]
+    #[arg(long, default_value_t = 20.0, requires = "strike")]
     pub strike_direction_deg: f64,
     /// With `--strike`: the tool's mass, kg (at the flange).
     #[arg(long, default_value_t = DEFAULT_TOOL_MASS_KG, requires = "strike")]
@@ -436,6 +436,13 @@ fn strike_search(scenario: &Scenario, movement_time_s: f64, tool_mass_kg: f64) -
         tool_mass_kg,
         max_speed_mps: STRIKE_MAX_MPS,
         resolution_mps: STRIKE_RESOLUTION_MPS,
+        // The controller's check: where the arm waits must be out of the
+        // believed swing.
+        swing: Some(rt_core::trajectory::strike::SwingClearance::new(
+            scenario.pendulum.length_m,
+            scenario.pendulum.ball_radius_m,
+            scenario.task.tool_contact_radius_m,
+        )),
     }
 }
 
@@ -647,8 +654,9 @@ fn run_strike_map(args: &StrikeMapArgs) -> anyhow::Result<()> {
     let mut md = String::from("# Strike mode: the largest feasible strike speed\n\n");
     md += &format!(
         "Tool speed at contact (m/s) of the fastest feasible stroke through the intercept \
-         point (height {:.2} m) along the swing plane's horizontal ({:+.0} deg elevation), \
-         contact after the movement time, over the contact phases {:?} of the Hopf cycle; \
+         point (height {:.2} m) along the swing plane ({:+.0} deg above the horizontal), \
+         contact after the movement time, over the contact phases {:?} of the Hopf cycle, \
+         where the arm waits armed out of the ball's swing (the controller's check); \
          kinematic limits of `[trajectory]` (speed {:.0}%, acceleration {:.0}%, position \
          margin {:.0} deg) and joint torques within {:.0}% of the iiwa 7's limits (recursive \
          Newton-Euler, CAD inertials, a {:.2} kg tool at the flange). Resolution {:.2} m/s, \
