@@ -53,6 +53,15 @@ impl Step {
         }
     }
 
+    /// The names of the prerequisites `file` does not hold yet.
+    pub fn missing_in(self, file: &CalibrationFile) -> Vec<&'static str> {
+        self.prerequisites()
+            .iter()
+            .filter(|p| !p.done_in(file))
+            .map(|p| p.name())
+            .collect()
+    }
+
     /// Whether the calibration file holds this step's result.
     pub fn done_in(self, file: &CalibrationFile) -> bool {
         match self {
@@ -478,12 +487,7 @@ impl CalibrationDesk {
                 name: s.name().into(),
                 title: s.title().into(),
                 prerequisites: s.prerequisites().iter().map(|p| p.name().into()).collect(),
-                missing: s
-                    .prerequisites()
-                    .iter()
-                    .filter(|p| !p.done_in(&file))
-                    .map(|p| p.name().into())
-                    .collect(),
+                missing: s.missing_in(&file).into_iter().map(Into::into).collect(),
                 done: s.done_in(&file),
                 record: s.record_in(&file),
             })
@@ -507,12 +511,7 @@ impl CalibrationDesk {
     pub fn claim(&self, step: Step) -> Result<u64, StartRefused> {
         let file = CalibrationFile::load_or_empty(&self.path)
             .map_err(|e| StartRefused::NotAvailable(format!("the calibration file: {e}")))?;
-        let missing: Vec<&str> = step
-            .prerequisites()
-            .iter()
-            .filter(|p| !p.done_in(&file))
-            .map(|p| p.name())
-            .collect();
+        let missing = step.missing_in(&file);
         if !missing.is_empty() {
             return Err(StartRefused::Prerequisites {
                 step: step.name().into(),

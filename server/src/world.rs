@@ -496,10 +496,13 @@ impl LabWorld {
         let held_board: HeldBoard = Arc::default();
         let lateness = Arc::new(Mutex::new(Lateness::default()));
         {
-            let (clients, lateness) = (Arc::clone(&clients), Arc::clone(&lateness));
+            let (clients, lateness, taps) =
+                (Arc::clone(&clients), Arc::clone(&lateness), taps.clone());
             std::thread::Builder::new()
                 .name("isochron-world-http".into())
-                .spawn(move || serve_stream(&listener, &clients, &lateness, led_latency_ms))?;
+                .spawn(move || {
+                    serve_stream(&listener, &clients, &lateness, &taps, led_latency_ms);
+                })?;
         }
         {
             let taps = taps.clone();
@@ -982,25 +985,29 @@ fn publish(clients: &Mutex<Vec<SyncSender<Arc<Vec<u8>>>>>, jpeg: &Arc<Vec<u8>>) 
 
 /// Accepts stream clients: `GET /video.mjpg` gets the MJPEG stream
 /// (`multipart/x-mixed-replace`), `GET /truth` the camera's truth (JSON:
-/// [`Lateness::json`]), anything else 404.
+/// [`Lateness::json`], with `in_process_dropped_frames`: the frames a full
+/// in-process queue did not take, [`FrameTaps::dropped`]), anything else 404.
 fn serve_stream(
     listener: &TcpListener,
     clients: &Clients,
     lateness: &Arc<Mutex<Lateness>>,
+    taps: &FrameTaps,
     led_latency_ms: f64,
 ) {
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
         let (tx, rx) = std::sync::mpsc::sync_channel(CLIENT_QUEUE);
-        let (clients, lateness) = (Arc::clone(clients), Arc::clone(lateness));
+        let (clients, lateness, taps) = (Arc::clone(clients), Arc::clone(lateness), taps.clone());
         let _ = std::thread::Builder::new()
             .name("isochron-world-client".into())
             .spawn(move || {
                 let truth = || {
-                    lateness
+                    let mut t = lateness
                         .lock()
                         .unwrap_or_else(std::sync::PoisonError::into_inner)
-                        .json(led_latency_ms)
+                        .json(led_latency_ms);
+                    t["in_process_dropped_frames"] = taps.dropped().into();
+                    t
                 };
                 let _ = stream_client(stream, &clients, tx, &rx, truth);
             });

@@ -125,13 +125,7 @@ pub fn run(args: &CalibrateArgs) -> anyhow::Result<String> {
     }
     // Read the file first: a broken calibration file is an error before anything runs.
     let mut file = CalibrationFile::load_or_empty(&args.out)?;
-    let missing: Vec<&str> = args
-        .step
-        .prerequisites()
-        .iter()
-        .filter(|p| !p.done_in(&file))
-        .map(|p| p.name())
-        .collect();
+    let missing = args.step.missing_in(&file);
     if !missing.is_empty() {
         bail!(
             "calibrate {}: needs the {} step{} first (run `isochron calibrate {} --out {}`); nothing written",
