@@ -704,7 +704,7 @@ pub async fn start_calibration(
     use crate::calibration::{StartRefused, Step};
     let step = Step::from_name(&name).ok_or_else(|| {
         AppError::NotFound(format!(
-            "no calibration step {name:?}; the steps: camera, latency, pendulum, camera-robot, robot"
+            "no calibration step {name:?}; the steps: camera, latency, pendulum, camera-robot, robot, contact"
         ))
     })?;
     let req: CalibrationRequest = if bytes.is_empty() {
@@ -774,6 +774,7 @@ pub async fn start_calibration(
             Step::Camera => crate::calibration::run_real_camera(&lab, &desk, id, &scenario).await,
             Step::Latency => crate::calibration::run_real_latency(&lab, &desk, id, &scenario).await,
             Step::Robot => crate::calibration::run_real_robot(&lab, &desk, id, &scenario).await,
+            Step::Contact => crate::calibration::run_real_contact(&lab, &desk, id, &scenario).await,
             Step::CameraRobot => {
                 crate::calibration::run_real_camera_robot(&lab, &desk, id, &scenario).await
             }

@@ -23,16 +23,20 @@ pub enum Step {
     CameraRobot,
     /// Robot command-to-motion latency and servo lag (a small excitation through FRI).
     Robot,
+    /// How late the external torques show a contact and how long its pulse
+    /// lasts (a knock on the hanging ball; issue #35).
+    Contact,
 }
 
 impl Step {
     /// Every step, in the order a lab runs them.
-    pub const ALL: [Self; 5] = [
+    pub const ALL: [Self; 6] = [
         Self::Camera,
         Self::Latency,
         Self::Pendulum,
         Self::CameraRobot,
         Self::Robot,
+        Self::Contact,
     ];
 
     /// The step by its name (`camera-robot`).
@@ -48,7 +52,10 @@ impl Step {
     /// LED's brightness in its region).
     pub fn prerequisites(self) -> &'static [Self] {
         match self {
-            Self::Camera | Self::Robot | Self::Latency | Self::Pendulum => &[],
+            // The contact step takes the lab's beliefs as they stand (it
+            // says which: the pendulum's frequency and the camera's scale
+            // are best calibrated first).
+            Self::Camera | Self::Robot | Self::Latency | Self::Pendulum | Self::Contact => &[],
             Self::CameraRobot => &[Self::Camera, Self::Pendulum],
         }
     }
@@ -70,6 +77,7 @@ impl Step {
             Self::Pendulum => file.pendulum.is_some(),
             Self::CameraRobot => step_done_camera_robot(file),
             Self::Robot => file.robot.is_some(),
+            Self::Contact => file.contact.is_some(),
         }
     }
 
@@ -81,6 +89,7 @@ impl Step {
             Self::Pendulum => serde_json::to_value(&file.pendulum),
             Self::CameraRobot => record_camera_robot(file),
             Self::Robot => serde_json::to_value(&file.robot),
+            Self::Contact => serde_json::to_value(&file.contact),
         };
         v.unwrap_or(serde_json::Value::Null)
     }
@@ -93,6 +102,9 @@ impl Step {
             Self::Pendulum => "Pendulum: rest point, length and damping (free swing)",
             Self::CameraRobot => "Camera to robot: camera pose and intercept point (tool marker)",
             Self::Robot => "Robot latency and servo lag (excitation through FRI)",
+            Self::Contact => {
+                "Contact: how late the external torques show a contact (a knock on the hanging ball)"
+            }
         }
     }
 
@@ -104,6 +116,7 @@ impl Step {
             Self::Pendulum => "pendulum",
             Self::CameraRobot => "camera-robot",
             Self::Robot => "robot",
+            Self::Contact => "contact",
         }
     }
 }
@@ -122,6 +135,10 @@ pub const TARGET_CAMERA_ROTATION_DEG: f64 = 0.3;
 pub const TARGET_CAMERA_POSITION_MM: f64 = 5.0;
 /// The issue's target for the intercept point, mm.
 pub const TARGET_INTERCEPT_MM: f64 = 3.0;
+/// The target for the contact step's onset offset, ms (#35 names none:
+/// one knock's spread on a truthful world is about 1 ms, the reality
+/// world's offsets spread over 2.75 ms).
+pub const TARGET_CONTACT_OFFSET_MS: f64 = 3.0;
 
 /// Where a step's result was measured, when, by which software.
 pub type Stamp = (String, String, String);
@@ -1885,4 +1902,492 @@ async fn real_camera_robot(
             file.camera_robot = Some(step_record(stamp, result));
         }),
     })
+}
+
+/// The contact step's knock starts this far before the tool touches the
+/// hanging ball, along the swing, m.
+pub const KNOCK_BEFORE_M: f64 = 0.15;
+/// ... and ends (the tool stops) this far past the touch, m.
+pub const KNOCK_PAST_M: f64 = 0.02;
+/// The ball hangs still enough for a knock when its swing, fitted over
+/// [`KNOCK_WATCH_S`], is at most this, m (a swing of `a0` moves the learned
+/// offset by up to `2 a0 / v`: 3 ms at 0.3 m/s).
+pub const KNOCK_STILL_M: f64 = 0.0005;
+/// How long the step watches the ball before the knock, s.
+pub const KNOCK_WATCH_S: f64 = 2.0;
+/// How long the step waits for the ball to hang still, s.
+pub const KNOCK_STILL_WAIT_S: f64 = 30.0;
+/// The still ball must hang this near its believed rest point along the
+/// swing, m (a ball held on the magnet hangs tens of cm aside).
+pub const KNOCK_REST_M: f64 = 0.05;
+/// What the contact step asks of the person beside the pendulum while the
+/// ball swings (the simulated lab's hands read it: `world::asked_steady`).
+pub const STEADY_PROMPT: &str = "steady it by hand";
+/// Robot messages of the arm at rest before the knock (the torques' baseline).
+const KNOCK_BASELINE: usize = 100;
+/// Knocks per step, averaged (each on the ball hanging still again).
+pub const KNOCKS: usize = 3;
+
+/// The contact step on the lab, through its own robot and camera (job
+/// `id`, claimed; `rt_core::calibration::contact` says what it measures):
+/// a magnet holding the ball lets go; the arm takes the tool beside the
+/// hanging ball, [`KNOCK_BEFORE_M`] before it along the swing, in the
+/// posture the trajectory planner gives the line through the ball's rest
+/// point (its believed intercept point where the pendulum hangs:
+/// `PendulumView::rest_distance_m`); the camera must see the ball hang
+/// still at its rest point ([`KNOCK_STILL_M`], [`KNOCK_REST_M`]; the job
+/// asks for it to be stopped by hand meanwhile, [`STEADY_PROMPT`]); the arm
+/// knocks it (`Command::Knock`, a minimum-jerk joint move at
+/// `control::KNOCK_LIMIT_SHARE` of the joints' limits, stopping
+/// [`KNOCK_PAST_M`] past the touch) and holds while the ball swings out and
+/// back onto the tool; the measured tool point, the external torques and
+/// the camera's detections are fitted (`fit_knock`); [`KNOCKS`] times from
+/// beside the ball, averaged (`contact::combine`); then the arm goes back
+/// beside the ball and to where it started. Refused, nothing written, when
+/// the robot does not command or sends no external torques, the camera
+/// does not deliver, the arm cannot knock there, the ball does not hang
+/// still in [`KNOCK_STILL_WAIT_S`], or a contact is not seen.
+pub async fn run_real_contact(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+) -> Option<Scenario> {
+    let start = lab.latest().map(|(s, _)| s.robot.q_cmd_rad);
+    let mut beside = None;
+    let outcome = real_contact(lab, desk, id, scenario, &mut beside).await;
+    let _ = lab.take_tap();
+    // Away from the ball along the knock's line, then where it started;
+    // never after a stop or an abort.
+    for q in [beside, start].into_iter().flatten() {
+        let Some((s, _)) = lab.latest() else {
+            break;
+        };
+        if s.trial_state != rt_core::bridge::TrialState::Idle {
+            break;
+        }
+        if s.robot.q_cmd_rad != q && move_to_pose(lab, &q).await.is_err() {
+            break;
+        }
+    }
+    desk.conclude(id, Step::Contact, scenario, outcome, desk.source())
+}
+
+/// The joints that knock along base `y` (`sigma`) through `rest`: beside
+/// it and past the touch, both 5 degrees inside the limits.
+fn knock_joints(
+    scenario: &Scenario,
+    rest: &nalgebra::Vector3<f64>,
+    sigma: f64,
+) -> Option<([f64; 7], [f64; 7])> {
+    use rt_core::trajectory::profile::ProfileKind;
+    use rt_core::trajectory::{MotionRequest, TrajectoryParams, plan};
+    let task = &scenario.task;
+    // The ball first touches the tool disc's rim (the tool points down).
+    let reach = scenario.pendulum.ball_radius_m + task.tool_contact_radius_m;
+    let y = nalgebra::Vector3::y();
+    let req = MotionRequest {
+        start_m: rest - y * sigma * (reach + KNOCK_BEFORE_M),
+        end_m: rest - y * sigma * (reach - KNOCK_PAST_M),
+        movement_time_s: 1.0,
+        profile: ProfileKind::MinJerk,
+        tool: rt_core::kinematics::Tool::along_z(task.tool_length_m),
+    };
+    let traj = TrajectoryParams {
+        position_margin_deg: 6.0,
+        ..TrajectoryParams::default()
+    };
+    let mp = plan(&req, &traj).ok()?;
+    let qa = mp.home_q;
+    let mut qb = qa;
+    mp.joints_at(1.0, &qa, &mut qb).ok()?;
+    let inside = |q: &rt_core::kinematics::Joints| {
+        q.iter()
+            .zip(rt_core::kinematics::iiwa7::POSITION_LIMIT_RAD)
+            .all(|(v, l)| v.abs() <= l - rt_core::control::MOVE_TO_MARGIN_RAD)
+    };
+    (inside(&qa) && inside(&qb)).then(|| {
+        (
+            std::array::from_fn(|j| qa[j]),
+            std::array::from_fn(|j| qb[j]),
+        )
+    })
+}
+
+async fn real_contact(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    scenario: &Scenario,
+    beside: &mut Option<[f64; 7]>,
+) -> anyhow::Result<StepOutcome> {
+    use rt_core::calibration::{StepView, ViewKind};
+    let progress = |p: f64, message: String, points: Vec<[f64; 2]>| {
+        desk.progress(
+            id,
+            StepView {
+                progress: p,
+                message,
+                kind: ViewKind::Series,
+                points,
+                fit: Vec::new(),
+            },
+        );
+    };
+    if let Some(p) = lab
+        .device_problems()
+        .into_iter()
+        .find(|p| p.device != "magnet")
+    {
+        anyhow::bail!("calibrate contact: {}", p.message);
+    }
+    if !lab
+        .latest()
+        .is_some_and(|(s, _)| s.robot.tau_ext_nm.iter().all(|v| v.is_finite()))
+    {
+        anyhow::bail!(
+            "calibrate contact: the robot sends no external joint torques (its monitoring \
+             messages carry none): a contact cannot be seen"
+        );
+    }
+    // Where the pendulum hangs (the stand's place, or the lab's fixed one).
+    let distance = lab
+        .latest()
+        .map(|(s, _)| s.pendulum.rest_distance_m)
+        .filter(|d| d.is_finite())
+        .or(lab.options().fixed_distance_m)
+        .unwrap_or_else(|| scenario.task.distance_m.lerp(0.5));
+    let rest = scenario.task.intercept_m(distance);
+    let (sigma, (qa, qb)) = [1.0, -1.0]
+        .into_iter()
+        .find_map(|s| knock_joints(scenario, &rest, s).map(|q| (s, q)))
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "calibrate contact: the arm cannot knock along the swing through the ball's rest \
+                 point ({:.3}, {:.3}, {:.3}) m in reach and 5 degrees inside its limits",
+                rest.x,
+                rest.y,
+                rest.z
+            )
+        })?;
+    // The ball must hang free: a magnet holding it lets go.
+    if lab
+        .latest()
+        .is_some_and(|(s, _)| s.magnet == rt_core::bridge::MagnetState::On)
+    {
+        progress(
+            0.01,
+            "magnet off: the ball must hang free at its rest point".into(),
+            Vec::new(),
+        );
+        lab.command(rt_core::bridge::Command::Magnet { on: false })
+            .await
+            .map_err(|e| anyhow::anyhow!("calibrate contact: the magnet: {e}"))?;
+    }
+    let mut knocks = Vec::with_capacity(KNOCKS);
+    let mut points = Vec::new();
+    for k in 0..KNOCKS {
+        // 1. Beside the ball (again after a knock: the tool off it).
+        progress(
+            0.02 + 0.9 * k as f64 / KNOCKS as f64,
+            format!(
+                "knock {} of {KNOCKS}: moving the tool beside the hanging ball, {:.0} cm before \
+                 it along the swing",
+                k + 1,
+                KNOCK_BEFORE_M * 100.0
+            ),
+            Vec::new(),
+        );
+        move_to_pose(lab, &qa)
+            .await
+            .map_err(|e| anyhow::anyhow!("calibrate contact: moving beside the ball: {e}"))?;
+        *beside = Some(qa);
+        let (one, seen) = knock_once(lab, desk, id, &qb, sigma, scenario, k).await?;
+        knocks.push(one);
+        points = seen;
+    }
+    let result =
+        rt_core::calibration::contact::combine(&knocks).context("calibrate contact: no knock")?;
+    progress(
+        0.98,
+        format!(
+            "{KNOCKS} knocks at {:.2} m/s, the ball back after {:.3} s: the torques show a \
+             contact {:.1} ± {:.1} ms late at the pulse's centre (lag {:.1} ms = {:.2} periods, \
+             pulse {:.1} ms), the pendulum's frequency as {}",
+            result.knock_speed_mps,
+            result.return_s,
+            result.onset_offset_ms,
+            result.onset_offset_std_ms,
+            result.torque_lag_ms,
+            result.torque_lag_periods,
+            result.pulse_ms,
+            if lab_has_step(desk, Step::Pendulum) {
+                "calibrated"
+            } else {
+                "believed (the pendulum step not run: 0.1% off moves the offset by 1.3 ms)"
+            }
+        ),
+        points,
+    );
+    Ok(StepOutcome {
+        result: serde_json::to_value(&result)?,
+        truth: serde_json::Value::Null,
+        error: serde_json::Value::Null,
+        figure: (
+            "contact_onset_offset_ms",
+            result.onset_offset_ms,
+            f64::NAN,
+            TARGET_CONTACT_OFFSET_MS,
+        ),
+        write: Box::new(move |file, stamp| {
+            file.contact = Some(step_record(stamp, result));
+        }),
+    })
+}
+
+/// One knock from beside the ball (the tool there, the arm at rest): waits
+/// for the ball to hang still (asking the hands to stop it), records the
+/// torques' baseline, knocks (`Command::Knock` to `qb`), records until the
+/// ball has come back onto the tool, and fits it. Returns the fit and the
+/// view's points (the torques' departure from their rest, norm, N m, over
+/// time from the knock).
+async fn knock_once(
+    lab: &crate::Lab,
+    desk: &CalibrationDesk,
+    id: u64,
+    qb: &[f64; 7],
+    sigma: f64,
+    scenario: &Scenario,
+    k: usize,
+) -> anyhow::Result<(rt_core::calibration::ContactCalibration, Vec<[f64; 2]>)> {
+    use rt_core::bridge::{Command, TrialState};
+    use rt_core::calibration::contact::{KnockRecording, fit_knock};
+    use rt_core::calibration::{StepView, ViewKind};
+    use rt_core::control::measured::Sighting;
+    use std::time::{Duration, Instant};
+    let progress = |p: f64, message: String| {
+        desk.progress(
+            id,
+            StepView {
+                progress: (k as f64 + p) / KNOCKS as f64 * 0.9 + 0.05,
+                message: format!("knock {} of {KNOCKS}: {message}", k + 1),
+                kind: ViewKind::Series,
+                points: Vec::new(),
+                fit: Vec::new(),
+            },
+        );
+    };
+    let p = &scenario.pendulum;
+    let omega = (p.gravity_mps2 / p.length_m.max(1e-3)).sqrt();
+    let qa = lab
+        .latest()
+        .map(|(s, _)| s.robot.q_cmd_rad)
+        .context("calibrate contact: the lab published no state")?;
+    // The camera's detections from now on.
+    let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
+    let mut next = move || -> Option<Sighting> {
+        let (s, _) = lab.latest()?;
+        if s.camera.frame == last_frame {
+            return None;
+        }
+        last_frame = s.camera.frame;
+        let m = s.pendulum.measured;
+        (s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(Sighting {
+            t_s: m.t_s,
+            x_m: m.x_m,
+        })
+    };
+    // 2. The ball hangs still: its swing over the last KNOCK_WATCH_S.
+    let mut sightings: Vec<Sighting> = Vec::with_capacity(4096);
+    let watch_from = Instant::now();
+    let mut shown = 0.0;
+    let mut tapped = false;
+    // The swing over the last KNOCK_WATCH_S: its amplitude at the pendulum's
+    // frequency and where it centres (the ball's lateral from the believed
+    // rest point), m.
+    let swing_of = |seen: &[Sighting]| -> Option<(f64, f64)> {
+        let last = seen.last()?.t_s;
+        let recent: Vec<&Sighting> = seen
+            .iter()
+            .filter(|s| s.t_s > last - KNOCK_WATCH_S)
+            .collect();
+        if recent.len() < 20 || last - recent[0].t_s < 0.9 * KNOCK_WATCH_S {
+            return None;
+        }
+        let mut ata = nalgebra::Matrix3::<f64>::zeros();
+        let mut atb = nalgebra::Vector3::<f64>::zeros();
+        for s in &recent {
+            let ph = omega * s.t_s;
+            let a = nalgebra::Vector3::new(1.0, ph.sin(), ph.cos());
+            ata += a * a.transpose();
+            atb += a * s.x_m;
+        }
+        let c = ata.lu().solve(&atb)?;
+        Some((c[1].hypot(c[2]), c[0]))
+    };
+    // Still, and where it hangs at rest (not held on the magnet).
+    let at_rest = |w: (f64, f64)| w.0 <= KNOCK_STILL_M && w.1.abs() <= KNOCK_REST_M;
+    let why = |w: Option<(f64, f64)>| match w {
+        Some((_, x)) if x.abs() > KNOCK_REST_M => format!(
+            "the ball hangs {:.0} mm aside of its rest point (held?)",
+            x.abs() * 1e3
+        ),
+        Some((a, _)) => format!("the ball swings by {:.1} mm", a * 1e3),
+        None => "the camera does not see the ball steadily".into(),
+    };
+    loop {
+        if let Some(s) = next() {
+            sightings.push(s);
+        }
+        let waited = watch_from.elapsed().as_secs_f64();
+        let swing = swing_of(&sightings);
+        if swing.is_some_and(at_rest) {
+            if !tapped {
+                // The torques' baseline while the ball is watched; the
+                // prompt goes (the hands keep off from now on); the
+                // detections before the still window go.
+                progress(0.15, "the ball hangs still: the torques at rest".into());
+                let last = sightings.last().map_or(f64::NEG_INFINITY, |s| s.t_s);
+                sightings.retain(|s| s.t_s > last - KNOCK_WATCH_S);
+                lab.tap_joint(0);
+                tapped = true;
+            }
+            if lab.tap_len() >= KNOCK_BASELINE {
+                break;
+            }
+        }
+        if waited > KNOCK_STILL_WAIT_S {
+            anyhow::bail!(
+                "calibrate contact: {}: nothing written; stop it by hand at its rest point (it \
+                 must hang still within {:.1} mm) and run the step again",
+                match swing {
+                    None => format!(
+                        "the camera saw the ball {} times in {KNOCK_STILL_WAIT_S:.0} s",
+                        sightings.len()
+                    ),
+                    w => why(w),
+                },
+                KNOCK_STILL_M * 1e3
+            );
+        }
+        if waited - shown >= 1.0 && !tapped {
+            shown = waited;
+            progress(
+                0.1,
+                match swing {
+                    Some(w) if !at_rest(w) => {
+                        format!(
+                            "waiting for the ball to hang still: {} ({STEADY_PROMPT})",
+                            why(swing)
+                        )
+                    }
+                    _ => "watching the hanging ball".into(),
+                },
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(4)).await;
+    }
+    // 3. The knock, and the ball's return (said first: the hands keep off).
+    progress(0.2, "knocking the ball".into());
+    let knock_start_s = lab.latest().map_or(f64::NAN, |(s, _)| s.t_s);
+    let lost = lab.latest().map_or(0, |(s, _)| s.fri.commanding_lost);
+    lab.command(Command::Knock(*qb)).await.map_err(|e| {
+        anyhow::anyhow!("calibrate contact: the control loop refused the knock: {e}")
+    })?;
+    let knock_s = rt_core::control::step::move_duration_s(
+        &rt_core::kinematics::Joints::from(qa),
+        &rt_core::kinematics::Joints::from(*qb),
+        rt_core::control::KNOCK_LIMIT_SHARE,
+        rt_core::control::KNOCK_MIN_S,
+    );
+    let until_s = knock_start_s + knock_s + std::f64::consts::PI / omega + 0.8;
+    let record_from = Instant::now();
+    let mut shown = 0.0;
+    loop {
+        if let Some(s) = next() {
+            sightings.push(s);
+        }
+        let Some((s, _)) = lab.latest() else {
+            anyhow::bail!("calibrate contact: the lab published no state");
+        };
+        if s.fri.commanding_lost > lost {
+            anyhow::bail!(
+                "calibrate contact: the robot left commanding during the knock: nothing written; \
+                 run the step again once it commands (the ball must hang still again)"
+            );
+        }
+        if s.trial_state != TrialState::Idle {
+            anyhow::bail!(
+                "calibrate contact: the knock was interrupted ({}: a stop, or no operator's \
+                 heartbeat while the lab's dead-man is on)",
+                s.trial_state.as_str()
+            );
+        }
+        if s.t_s >= until_s {
+            break;
+        }
+        let waited = record_from.elapsed().as_secs_f64();
+        if waited > until_s - knock_start_s + 30.0 {
+            anyhow::bail!(
+                "calibrate contact: the lab's clock did not reach the knock's end in {waited:.0} s"
+            );
+        }
+        if waited - shown >= 0.5 {
+            shown = waited;
+            progress(
+                0.2 + 0.7 * ((s.t_s - knock_start_s) / (until_s - knock_start_s)).clamp(0.0, 1.0),
+                "knocked: the ball swings out and back onto the tool".into(),
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(4)).await;
+    }
+    let tap = lab
+        .take_tap()
+        .context("calibrate contact: the recording of the knock went missing")?;
+    if tap.cut_s.is_some() {
+        anyhow::bail!(
+            "calibrate contact: the robot left commanding during the knock: nothing written; run \
+             the step again once it commands (the ball must hang still again)"
+        );
+    }
+    let t_s: Vec<f64> = tap.measured.iter().map(|m| m.t_s).collect();
+    let tool_y_m: Vec<f64> = tap.tool_m.iter().map(|p| p[1]).collect();
+    let result = fit_knock(&KnockRecording {
+        t_s: &t_s,
+        tool_y_m: &tool_y_m,
+        torques_nm: &tap.tau_ext_nm,
+        sightings: &sightings,
+        knock_start_s,
+        omega_radps: omega,
+        length_m: p.length_m,
+        damping_per_s: p.damping_per_s,
+        sigma,
+    })
+    .context("calibrate contact")?;
+    // The view: the torques' departure from their rest (norm), over time.
+    let base: [f64; 7] = {
+        let n = t_s.partition_point(|&t| t < knock_start_s).max(1);
+        std::array::from_fn(|j| tap.tau_ext_nm[..n].iter().map(|v| v[j]).sum::<f64>() / n as f64)
+    };
+    let points = rt_core::calibration::view::thin(
+        &t_s.iter()
+            .zip(&tap.tau_ext_nm)
+            .map(|(t, v)| {
+                let d = v
+                    .iter()
+                    .zip(&base)
+                    .map(|(a, b)| (a - b).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                [t - knock_start_s, d]
+            })
+            .collect::<Vec<_>>(),
+        800,
+    );
+    Ok((result, points))
+}
+
+/// Whether the desk's calibration file holds `step`'s result.
+fn lab_has_step(desk: &CalibrationDesk, step: Step) -> bool {
+    CalibrationFile::load_or_empty(desk.path()).is_ok_and(|f| step.done_in(&f))
 }

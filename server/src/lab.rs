@@ -209,7 +209,8 @@ pub struct Lab {
     joint_tap: Mutex<Option<JointTap>>,
 }
 
-/// One joint's commanded and measured positions, in the control clock, from
+/// One joint's commanded and measured positions (and the measured tool
+/// point and external torques), in the control clock, from
 /// every state the control loop published (the telemetry ring: the states
 /// it lost when full are missing here too: `telemetry_overflows`).
 #[derive(Debug, Clone, Default)]
@@ -220,6 +221,10 @@ pub struct JointTap {
     pub commands: Vec<rt_core::calibration::robot::JointSample>,
     /// What the robot measured, received at each step.
     pub measured: Vec<rt_core::calibration::robot::JointSample>,
+    /// The measured tool point (base frame, m) at each step, as `measured`.
+    pub tool_m: Vec<[f64; 3]>,
+    /// FRI's external joint torques (N m) at each step, as `measured`.
+    pub tau_ext_nm: Vec<[f64; rt_core::kinematics::iiwa7::JOINTS]>,
     /// The steps' trial states were all `idle` (no trial ran meanwhile).
     pub idle: bool,
     /// The control clock's time of the first state after the robot left
@@ -449,6 +454,8 @@ impl Lab {
                 joint,
                 commands: Vec::with_capacity(16_384),
                 measured: Vec::with_capacity(16_384),
+                tool_m: Vec::with_capacity(16_384),
+                tau_ext_nm: Vec::with_capacity(16_384),
                 idle: true,
                 cut_s: None,
                 lost_before: None,
@@ -714,6 +721,8 @@ impl Pump {
                     t_s: s.t_s,
                     q_rad: m,
                 });
+                t.tool_m.push(s.robot.tool_m);
+                t.tau_ext_nm.push(s.robot.tau_ext_nm);
             }
             let Some(records) = &self.records else {
                 continue;

@@ -78,7 +78,7 @@ enum Command {
         #[arg(long)]
         demo_interval_s: Option<f64>,
     },
-    /// One calibration step (camera, latency, pendulum, camera-robot, robot); writes the calibration file.
+    /// One calibration step (camera, latency, pendulum, camera-robot, robot, contact); writes the calibration file.
     Calibrate(cmd::calibrate::CalibrateArgs),
     /// Estimate the EKF's noise parameters from a recorded trial (writes an [ekf] file and Fig. 4).
     Tune(cmd::tune::TuneArgs),

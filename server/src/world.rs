@@ -398,6 +398,7 @@ impl LabWorld {
             .unwrap_or_else(|| Arc::new(rt_core::lab::Stand::at(distance_m)));
         let hands = Arc::clone(&stand);
         let mut stand_seen = (distance_m, None);
+        let mut steadied_seen = 0;
         let hook: rt_core::sim::kuka::server::TickHook = Box::new(move |sim, t_ns| {
             let t = t_ns as f64 * 1e-9;
             // The stand first: a hang asked for comes after it.
@@ -405,6 +406,11 @@ impl LabWorld {
             if asked != stand_seen {
                 stand_seen = asked;
                 world.place_stand(t, asked.0, asked.1);
+            }
+            let steadied = stand.steadied();
+            if steadied != steadied_seen {
+                steadied_seen = steadied;
+                world.steady(t);
             }
             while let Ok((on, at)) = coil_rx.pop() {
                 world.coil(on, at);
@@ -641,8 +647,9 @@ impl LabWorld {
     /// camera step asks for the chessboard at pose K of N, holds it there in
     /// front of the webcam (its own plan of N holds over the true camera's
     /// image), otherwise the board is lowered; fits the marker disc for the
-    /// camera-robot step; and hangs the ball at the angle the pendulum step
-    /// asks ([`asked_hang_deg`]).
+    /// camera-robot step; hangs the ball at the angle the pendulum step
+    /// asks ([`asked_hang_deg`]); and stops the ball by hand when the
+    /// contact step asks it to hang still ([`asked_steady`]).
     ///
     /// # Errors
     ///
@@ -688,6 +695,9 @@ impl LabWorld {
                     marker.store(job.as_ref().is_some_and(asked_marker), Relaxed);
                     if let Some(d) = job.as_ref().and_then(asked_hang_deg) {
                         hands.place(f64::NAN, d);
+                    }
+                    if job.as_ref().is_some_and(asked_steady) {
+                        hands.steady();
                     }
                 }
             })?;
@@ -826,6 +836,17 @@ pub fn asked_hang_deg(calibration: &serde_json::Value) -> Option<f64> {
     let rest = &m[m.find(head)? + head.len()..];
     let d: f64 = rest.split_whitespace().next()?.parse().ok()?;
     (d.is_finite() && d > 0.0 && d <= 60.0).then_some(d)
+}
+
+/// Whether the service's running contact step asks for the ball to be
+/// stopped by hand (its message says [`crate::calibration::STEADY_PROMPT`]).
+pub fn asked_steady(calibration: &serde_json::Value) -> bool {
+    let job = &calibration["job"];
+    job["state"] == "running"
+        && job["step"] == "contact"
+        && job["message"]
+            .as_str()
+            .is_some_and(|m| m.contains(crate::calibration::STEADY_PROMPT))
 }
 
 /// Whether the service's running job is the camera-robot step, which asks
@@ -1121,6 +1142,25 @@ impl Drop for Board {
 mod tests {
     use super::asked_pose;
     use serde_json::json;
+
+    #[test]
+    fn the_operator_stops_the_ball_only_when_a_running_contact_step_asks() {
+        use super::asked_steady;
+        let job = |step: &str, state: &str, message: &str| json!({"job": {"step": step, "state": state, "message": message}});
+        let asking = format!(
+            "waiting for the ball to hang still: it swings by 3.2 mm ({})",
+            crate::calibration::STEADY_PROMPT
+        );
+        assert!(asked_steady(&job("contact", "running", &asking)));
+        assert!(!asked_steady(&job("contact", "failed", &asking)));
+        assert!(!asked_steady(&job("pendulum", "running", &asking)));
+        assert!(!asked_steady(&job(
+            "contact",
+            "running",
+            "knocking the ball"
+        )));
+        assert!(!asked_steady(&json!({})));
+    }
 
     #[test]
     fn the_operator_hangs_the_ball_where_a_running_pendulum_step_asks() {

@@ -540,8 +540,9 @@ try {
   });
   // The Calibration panel walks through every step on the simulated lab (its
   // world's webcam, cabinet and board; the world's operator holds the board,
-  // fits the marker and hangs the ball where the prompts say).
-  const STEPS = ["camera", "latency", "pendulum", "camera-robot", "robot"];
+  // fits the marker, hangs the ball where the prompts say and stops it by
+  // hand when the contact step asks).
+  const STEPS = ["camera", "latency", "pendulum", "camera-robot", "robot", "contact"];
   const calState = (step) => page.locator(`#calibration li[data-step="${step}"] .cal-state`).textContent();
   const calFile = async () => (await api("GET", "/api/calibration")).json;
   await check("operator: the Calibration panel lists the steps in order and refuses a step whose prerequisites are missing", async () => {

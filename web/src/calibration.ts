@@ -37,6 +37,8 @@ export function headline(name: string, result: Record<string, unknown> | null | 
       return `reprojection ${f(num("reprojection_rms_px"), 3, "px")}, ${f(num("poses"), 0, "poses")}`;
     case "robot":
       return `latency ${f(num("latency_ms"), 2, "ms")}, servo lag ${f(num("servo_time_constant_ms"), 2, "ms")} (${f(num("bandwidth_hz"), 1, "Hz")})`;
+    case "contact":
+      return `contact shown ${f(num("onset_offset_ms"), 1, "ms")} ± ${f(num("onset_offset_std_ms"), 1, "ms")} late (lag ${f(num("torque_lag_periods"), 2, "periods")}, pulse ${f(num("pulse_ms"), 1, "ms")})`;
     default:
       return "";
   }
@@ -60,7 +62,7 @@ export function drawView(canvas: HTMLCanvasElement, view: StepView | null, runni
       running ? "The step is measuring: its points appear here." : "No step has run yet.",
       "Run a step: this view then shows what it measures,",
       "the chessboard corners or tool marker in the camera image,",
-      "the LED's switch times, or the swing and the fitted model.",
+      "the LED's switch times, the swing and the fitted model, or the knock's torques.",
     ];
     lines.forEach((l, i) => ctx.fillText(l, w / 2, h / 2 - 30 + 22 * i));
     ctx.textAlign = "left";

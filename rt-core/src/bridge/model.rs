@@ -47,6 +47,12 @@ pub struct HorizonPoint {
 pub struct PendulumView {
     /// Last measurement.
     pub measured: MeasurementView,
+    /// Where the pendulum hangs now: the robot base axis to the ball at
+    /// rest, horizontal, metres (the simulated lab's stand, or a real lab's
+    /// fixed distance; null: each trial's own, not known between trials).
+    #[ts(type = "number | null")]
+    #[schema(nullable)]
+    pub rest_distance_m: f64,
     /// Estimated angle from the vertical, radians (positive towards +y).
     pub phi_rad: f64,
     /// Estimated angular velocity, rad/s.
@@ -138,6 +144,7 @@ impl Default for PendulumView {
     fn default() -> Self {
         Self {
             measured: MeasurementView::default(),
+            rest_distance_m: f64::NAN,
             phi_rad: 0.0,
             dphi_radps: 0.0,
             sigma_phi_rad: f64::NAN,
@@ -234,6 +241,11 @@ pub struct RobotView {
     #[ts(type = "number | null")]
     #[schema(nullable)]
     pub actuation_latency_ms: f64,
+    /// FRI's external joint torques of the latest message, N m (null: the
+    /// robot sends none).
+    #[ts(type = "(number | null)[]")]
+    #[schema(value_type = Vec<Option<f64>>)]
+    pub tau_ext_nm: [f64; JOINTS],
 }
 
 impl Default for RobotView {
@@ -244,6 +256,7 @@ impl Default for RobotView {
             q_limit_rad: crate::kinematics::iiwa7::POSITION_LIMIT_RAD,
             tool_m: [f64::NAN; 3],
             actuation_latency_ms: f64::NAN,
+            tau_ext_nm: [f64::NAN; JOINTS],
         }
     }
 }
@@ -823,6 +836,10 @@ pub enum Command {
     /// accepted at rest, between trials, while the robot commands; a target
     /// within 5 degrees of a joint limit, or not finite, is refused.
     MoveTo([f64; JOINTS]),
+    /// Move the arm to these joint angles as [`Self::MoveTo`] does, at
+    /// [`crate::control::KNOCK_LIMIT_SHARE`] of the joints' limits instead
+    /// (the contact step's knock on the hanging ball).
+    Knock([f64; JOINTS]),
 }
 
 /// What one trial may set for itself (`POST /api/trials`): each `None`
@@ -850,6 +867,7 @@ impl Command {
             Self::SetParams(_) => "set_params",
             Self::Excite(_) => "excite",
             Self::MoveTo(_) => "move_to",
+            Self::Knock(_) => "knock",
         }
     }
 }

@@ -6,7 +6,10 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::{CameraCalibration, CameraRobotCalibration, LedLatency, RobotLatency, SwingFit};
+use super::{
+    CameraCalibration, CameraRobotCalibration, ContactCalibration, LedLatency, RobotLatency,
+    SwingFit,
+};
 use crate::params::{ParamError, Scenario};
 
 /// When, by which software and on what one step was measured.
@@ -52,6 +55,8 @@ pub struct CalibrationFile {
     pub robot: Option<StepRecord<RobotLatency>>,
     /// `isochron calibrate camera-robot`.
     pub camera_robot: Option<StepRecord<CameraRobotCalibration>>,
+    /// `isochron calibrate contact`.
+    pub contact: Option<StepRecord<ContactCalibration>>,
 }
 
 impl CalibrationFile {
@@ -128,8 +133,10 @@ impl CalibrationFile {
     /// lens (`camera.intrinsics`: the detector undistorts with them), pendulum
     /// length and damping, camera latency, the robot latency prior of the online
     /// estimator (delay plus servo lag, which is what the estimator measures),
-    /// the camera's pose (`camera.pose`) and the intercept point's offset
-    /// (`task.intercept_offset_m`). The result is validated; intrinsics measured
+    /// the camera's pose (`camera.pose`), the intercept point's offset
+    /// (`task.intercept_offset_m`) and the measured judge's contact beliefs
+    /// (`success.torque_lag_periods` and `success.contact_pulse_ms`, their
+    /// sum the knock's onset offset). The result is validated; intrinsics measured
     /// at another image size than the scenario's camera are refused.
     ///
     /// # Errors
@@ -178,6 +185,11 @@ impl CalibrationFile {
         if let Some(c) = &self.camera_robot {
             s.camera.pose = Some(c.result.camera_pose);
             s.task.intercept_offset_m = c.result.intercept_offset_m;
+        }
+        if let Some(c) = &self.contact {
+            let (lag_periods, pulse_ms) = c.result.beliefs(f64::from(s.robot.fri_period_ms));
+            s.success.torque_lag_periods = lag_periods;
+            s.success.contact_pulse_ms = pulse_ms;
         }
         s.validate()?;
         Ok(s)

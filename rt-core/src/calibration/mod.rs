@@ -1,5 +1,6 @@
 #![doc = include_str!("README.md")]
 
+pub mod contact;
 pub mod extrinsics;
 pub mod file;
 pub mod intrinsics;
@@ -26,6 +27,7 @@ pub mod view;
 #[cfg(test)]
 mod tests;
 
+pub use contact::{ContactCalibration, KnockRecording, fit_knock};
 pub use extrinsics::CameraRobotCalibration;
 pub use file::{CalibrationFile, StepRecord};
 pub use intrinsics::{BoardView, CameraCalibration, Chessboard};
@@ -140,6 +142,16 @@ pub enum CalibrationError {
         inner_cols: u32,
         /// The board's inner corners along a column.
         inner_rows: u32,
+    },
+    /// The knock's two contacts (the tool meeting the hanging ball, the
+    /// ball swinging back to the stopped tool) were not both seen.
+    #[error(
+        "contact (knock): {seen} of the 2 contacts seen in the external joint torques (did the tool \
+         meet the hanging ball, and did the ball swing back to it?)"
+    )]
+    ContactNotSeen {
+        /// Contacts seen.
+        seen: usize,
     },
     /// The excitation did not move the joint enough to fit.
     #[error(

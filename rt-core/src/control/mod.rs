@@ -21,6 +21,7 @@ pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
 pub use step::{
     ArmPlan, Commit, ControlCounters, ControlError, ControlParams, Controller, Excitation,
-    MOVE_TO_LIMIT_SHARE, MOVE_TO_MARGIN_RAD, Sighting, StepInput, StepOutput, StrikeArm,
+    KNOCK_LIMIT_SHARE, KNOCK_MIN_S, MOVE_TO_LIMIT_SHARE, MOVE_TO_MARGIN_RAD, Sighting, StepInput,
+    StepOutput, StrikeArm,
 };
 pub use success::SuccessParams;

@@ -654,17 +654,30 @@ pub const MOVE_TO_MARGIN_RAD: f64 = 0.0873;
 /// [`Controller::move_to`] move may use (a slow, calibration-tour move).
 pub const MOVE_TO_LIMIT_SHARE: f64 = 0.2;
 
+/// The share of each joint's speed and acceleration limits a
+/// [`Controller::knock_to`] move may use (the contact step's knock: a few
+/// tenths of a metre per second at the tool).
+pub const KNOCK_LIMIT_SHARE: f64 = 0.5;
+/// The shortest [`Controller::knock_to`] move, s.
+pub const KNOCK_MIN_S: f64 = 0.3;
+
 /// How long a [`Controller::move_to`] move from `q0` to `q1` (radians)
 /// takes, s: the minimum-jerk profile's peak speed (1.875 d / T) and peak
 /// acceleration (5.77 d / T^2, taken as 5.78) within [`MOVE_TO_LIMIT_SHARE`] of every
 /// joint's limits, at least 1 s.
 pub fn move_to_duration_s(q0: &Joints, q1: &Joints) -> f64 {
-    let mut dur: f64 = 1.0;
+    move_duration_s(q0, q1, MOVE_TO_LIMIT_SHARE, 1.0)
+}
+
+/// How long a minimum-jerk joint move from `q0` to `q1` within `share` of
+/// every joint's speed and acceleration limits takes, at least `min_s`, s.
+pub fn move_duration_s(q0: &Joints, q1: &Joints, share: f64, min_s: f64) -> f64 {
+    let mut dur: f64 = min_s;
     for j in 0..JOINTS {
         let d = (q1[j] - q0[j]).abs();
         dur = dur
-            .max(1.875 * d / (MOVE_TO_LIMIT_SHARE * VELOCITY_LIMIT_RADPS[j]))
-            .max((5.78 * d / (MOVE_TO_LIMIT_SHARE * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
+            .max(1.875 * d / (share * VELOCITY_LIMIT_RADPS[j]))
+            .max((5.78 * d / (share * ACCELERATION_LIMIT_RADPS2[j])).sqrt());
     }
     dur
 }
@@ -1404,6 +1417,27 @@ impl Controller {
     /// near its limit; [`ControlError::State`] when not `Idle`, before the
     /// robot's first message, while the arm moves or an excitation runs.
     pub fn move_to(&mut self, t_s: f64, target: &[f64; JOINTS]) -> Result<f64, ControlError> {
+        self.joint_move(t_s, target, MOVE_TO_LIMIT_SHARE, 1.0)
+    }
+
+    /// A [`Self::move_to`] move at [`KNOCK_LIMIT_SHARE`] of the joints'
+    /// limits (at least [`KNOCK_MIN_S`]): the contact step's knock on the
+    /// hanging ball. The same rules and errors.
+    ///
+    /// # Errors
+    ///
+    /// As [`Self::move_to`].
+    pub fn knock_to(&mut self, t_s: f64, target: &[f64; JOINTS]) -> Result<f64, ControlError> {
+        self.joint_move(t_s, target, KNOCK_LIMIT_SHARE, KNOCK_MIN_S)
+    }
+
+    fn joint_move(
+        &mut self,
+        t_s: f64,
+        target: &[f64; JOINTS],
+        share: f64,
+        min_s: f64,
+    ) -> Result<f64, ControlError> {
         for (j, (&q, lim)) in target.iter().zip(POSITION_LIMIT_RAD).enumerate() {
             if !(q.is_finite() && q.abs() <= lim - MOVE_TO_MARGIN_RAD) {
                 return Err(ControlError::Target(j, q));
@@ -1432,7 +1466,7 @@ impl Controller {
             self.q_meas
         };
         let q1 = Joints::from_column_slice(target);
-        let dur = move_to_duration_s(&q0, &q1);
+        let dur = move_duration_s(&q0, &q1, share, min_s);
         self.jmove = Some(JointMove {
             q0,
             q1,

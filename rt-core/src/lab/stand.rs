@@ -20,6 +20,8 @@ pub struct Stand {
     distance_m: AtomicU64,
     /// The signed release angle, degrees (`f64` bits; NaN: none asked).
     hang_deg: AtomicU64,
+    /// How often the hands were asked to stop the ball (it hangs still).
+    steadied: AtomicU64,
 }
 
 impl Stand {
@@ -28,6 +30,7 @@ impl Stand {
         Self {
             distance_m: AtomicU64::new(distance_m.to_bits()),
             hang_deg: AtomicU64::new(f64::NAN.to_bits()),
+            steadied: AtomicU64::new(0),
         }
     }
 
@@ -40,6 +43,16 @@ impl Stand {
         if release_deg.is_finite() {
             self.hang_deg.store(release_deg.to_bits(), Relaxed);
         }
+    }
+
+    /// Asks the hands to stop the ball: it hangs still (the contact step).
+    pub fn steady(&self) {
+        self.steadied.fetch_add(1, Relaxed);
+    }
+
+    /// How often the hands were asked to stop the ball.
+    pub fn steadied(&self) -> u64 {
+        self.steadied.load(Relaxed)
     }
 
     /// The distance asked, m, and the release angle asked, degrees (`None`:

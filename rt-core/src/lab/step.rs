@@ -381,6 +381,8 @@ pub struct LabStep {
     measured: MeasuredTrace,
     /// The simulated robot's true joints at this message (virtual lab).
     q_true: Option<Joints>,
+    /// FRI's external joint torques of the latest message (NaN: none sent).
+    tau_ext: Joints,
     outcome: Option<TrialOutcome>,
     snap: Snapshot,
     horizon: Vec<Prediction>,
@@ -469,6 +471,7 @@ impl LabStep {
             passes: Vec::with_capacity(MAX_PASSES),
             measured: MeasuredTrace::with_capacity(sightings_len, trace_len),
             q_true: None,
+            tau_ext: [f64::NAN; crate::kinematics::iiwa7::JOINTS],
             outcome: None,
             snap,
             horizon: vec![Prediction::default(); bridge::HORIZON_POINTS],
@@ -1001,27 +1004,16 @@ impl LabStep {
                     Err(_) => (Err(Refusal::Invalid), None),
                 }
             }
-            Command::MoveTo(_) if busy || !self.inner.controller().at_rest() => {
+            Command::MoveTo(_) | Command::Knock(_)
+                if busy || !self.inner.controller().at_rest() =>
+            {
                 (Err(Refusal::Busy), None)
             }
-            Command::MoveTo(_) if !self.commanding() => (Err(Refusal::RobotNotCommanding), None),
-            Command::MoveTo(q) => {
-                // Between trials, as an excitation.
-                self.conclude(t);
-                if state != TrialState::Idle {
-                    let _ = self.controller().reset(t);
-                }
-                match self.controller().move_to(t, &q) {
-                    Ok(_) => {
-                        self.operator_since_s = t;
-                        (Ok(()), None)
-                    }
-                    Err(crate::control::ControlError::Target(..)) => {
-                        (Err(Refusal::Infeasible), None)
-                    }
-                    Err(_) => (Err(Refusal::Busy), None),
-                }
+            Command::MoveTo(_) | Command::Knock(_) if !self.commanding() => {
+                (Err(Refusal::RobotNotCommanding), None)
             }
+            Command::MoveTo(q) => (self.joint_move(t, state, &q, false), None),
+            Command::Knock(q) => (self.joint_move(t, state, &q, true), None),
             Command::SetParams(p) if busy => (Err(Refusal::Busy), Some(p)),
             Command::SetParams(p) => {
                 match self.p.io_requests.push(IoRequest::Params {
@@ -1301,6 +1293,34 @@ impl LabStep {
 
     /// Ends the trial: judges it on ground truth (when the lab knows the
     /// truth), keeps its [`TrialOutcome`] and, when it finished, reports it.
+    /// A move to joints `q` between trials ([`Command::MoveTo`], or
+    /// [`Command::Knock`] when `knock`), as an excitation.
+    fn joint_move(
+        &mut self,
+        t: f64,
+        state: TrialState,
+        q: &[f64; crate::kinematics::iiwa7::JOINTS],
+        knock: bool,
+    ) -> Result<(), Refusal> {
+        self.conclude(t);
+        if state != TrialState::Idle {
+            let _ = self.controller().reset(t);
+        }
+        let moved = if knock {
+            self.controller().knock_to(t, q)
+        } else {
+            self.controller().move_to(t, q)
+        };
+        match moved {
+            Ok(_) => {
+                self.operator_since_s = t;
+                Ok(())
+            }
+            Err(crate::control::ControlError::Target(..)) => Err(Refusal::Infeasible),
+            Err(_) => Err(Refusal::Busy),
+        }
+    }
+
     fn conclude(&mut self, t: f64) {
         if self.trial.is_none() {
             return;
@@ -1562,7 +1582,14 @@ impl LabStep {
         s.t_s = t;
         s.seq += 1;
         s.trial_state = c.state();
-        // Pendulum: estimate and predicted horizon.
+        // Pendulum: where it hangs, its estimate and predicted horizon.
+        s.pendulum.rest_distance_m = self
+            .p
+            .stand
+            .as_ref()
+            .map(|st| st.asked().0)
+            .or(self.p.fixed_distance_m)
+            .unwrap_or(f64::NAN);
         let l = self.p.scenario.pendulum.length_m;
         if let Some((ekf, (t_post, x, p))) = c.ekf().and_then(|e| e.posterior().map(|p| (e, p))) {
             s.pendulum.phi_rad = x[0];
@@ -1658,6 +1685,7 @@ impl LabStep {
         s.robot.q_cmd_rad = self.inner.step.out.q_command_rad;
         s.robot.tool_m = [tool.x, tool.y, tool.z];
         s.robot.actuation_latency_ms = c.latency().latency_s() * 1e3;
+        s.robot.tau_ext_nm = self.tau_ext;
         s.fri.session = map_session(self.session);
         s.fri.quality = map_quality(self.quality);
         s.fri.period_ms = self.period_s * 1e3;
@@ -1728,10 +1756,11 @@ impl ControlStep for LabStep {
         if let Some(q) = m.measured_joint_position_rad {
             self.q = q;
         }
-        if self.trial.is_some()
-            && let Some(tau) = m.external_torque_nm
-        {
-            self.measured.torques(t, tau);
+        if let Some(tau) = m.external_torque_nm {
+            self.tau_ext = tau;
+            if self.trial.is_some() {
+                self.measured.torques(t, tau);
+            }
         }
         if let Some(q) = self.p.truth.as_ref().and_then(|t| t.observer.true_joints()) {
             self.q_true = q.iter().all(|v| v.is_finite()).then_some(q);

@@ -255,6 +255,11 @@ fn headline(step: Step, error: &Value) -> (&'static str, f64, f64) {
             f("robot_delay_ms"),
             TARGET_ROBOT_LATENCY_MS,
         ),
+        Step::Contact => (
+            "onset_offset_ms",
+            f("onset_offset_ms"),
+            server::calibration::TARGET_CONTACT_OFFSET_MS,
+        ),
     }
 }
 
@@ -308,6 +313,18 @@ fn against_truth(step: Step, done: &WorldStep, scenario: &Scenario) -> (Value, V
                 json!({"robot_delay_ms": w.robot_delay_ms, "robot_latency_ms": w.robot_latency_ms,
                        "servo_lag_ms": w.robot_servo_lag_ms}),
                 json!({"robot_delay_ms": est - w.robot_delay_ms}),
+            )
+        }
+        Step::Contact => {
+            // The measured judge subtracts the lag and half the pulse from
+            // the pulse's centre: their sum is what the knock learns (both
+            // streams are the robot's messages: their transit cancels).
+            let truth = w.torque_lag_ms + 0.5 * w.contact_pulse_ms;
+            (
+                json!({"onset_offset_ms": truth, "torque_lag_ms": w.torque_lag_ms,
+                       "contact_pulse_ms": w.contact_pulse_ms}),
+                json!({"onset_offset_ms": f(&r["onset_offset_ms"]) - truth,
+                       "pulse_ms": f(&r["pulse_ms"]) - w.contact_pulse_ms}),
             )
         }
         Step::CameraRobot => {
@@ -388,6 +405,10 @@ fn take_step(
         Step::Robot => {
             into.robot = named(from.robot.as_ref(), source);
             into.robot.is_some()
+        }
+        Step::Contact => {
+            into.contact = named(from.contact.as_ref(), source);
+            into.contact.is_some()
         }
     };
     if !taken {

@@ -153,3 +153,102 @@ fn bad_input_writes_nothing() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The contact step on a world whose robot shows a contact 3 FRI periods
+/// (15 ms) late with an 8 ms force pulse, while the lab believes 1 period
+/// and 4 ms (the measured judge would subtract 7 ms from the pulse's centre
+/// where 19 ms are due): the knocks on the hanging ball learn the sum within
+/// 5 ms of the world's, without the camera's clock; the
+/// file holds it, stamped with its world, and `trials --calibration` loads
+/// it. On a starved machine the robot may leave commanding mid-knock: then
+/// the step refuses, saying so, and writes nothing.
+#[test]
+fn the_contact_step_learns_how_late_the_torques_show_a_contact() {
+    assert_firmware_built();
+    let dir = temp_dir("contact");
+    let scenario = dir.join("contact.toml");
+    let paper = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenarios/paper.toml"
+    ))
+    .unwrap()
+    .replace("name = \"paper\"", "name = \"contact\"");
+    assert!(paper.contains("name = \"contact\""));
+    std::fs::write(
+        &scenario,
+        format!(
+            "{paper}\n[world.robot]\ntorque_lag_periods = 3.0\n\n[world.pendulum]\n\
+             contact_pulse_ms = 8.0\n"
+        ),
+    )
+    .unwrap();
+    let file = dir.join("calibration.toml");
+    let f = file.to_str().unwrap();
+    let s = scenario.to_str().unwrap();
+    let (ok, v, err) = calibrate(&[
+        "contact",
+        "--scenario",
+        s,
+        "--seed",
+        "1",
+        "--out",
+        f,
+        "--json",
+    ]);
+    if !ok {
+        assert!(
+            err.contains("left commanding") || err.contains("was interrupted"),
+            "{err}"
+        );
+        assert!(!file.exists(), "a refused step wrote the file");
+        println!("the contact step refused on a starved machine: {err}");
+        let _ = std::fs::remove_dir_all(&dir);
+        return;
+    }
+    assert_eq!(v["truth"]["onset_offset_ms"].as_f64(), Some(19.0), "{v}");
+    // Within 5 ms of the world's 19 (the beliefs are 12 ms off; the step's
+    // target is 3 ms, its three knocks' spread on a busy machine about 2).
+    let e = v["error"]["onset_offset_ms"].as_f64().unwrap();
+    assert!(e.abs() < 5.0, "onset offset error {e} ms: {v}");
+    let speed = v["result"]["knock_speed_mps"].as_f64().unwrap();
+    assert!(speed > 0.1 && speed < 1.0, "knock speed {speed} m/s: {v}");
+    let cal = rt_core::calibration::CalibrationFile::from_file(&file).unwrap();
+    let contact = cal.contact.clone().expect("the contact step is written");
+    assert!(
+        contact.source.contains("scenario contact"),
+        "{}",
+        contact.source
+    );
+    // Laid over the beliefs: lag and half the pulse add up to what it learned.
+    let beliefs = cal
+        .apply(
+            &rt_core::params::Scenario::from_toml_str(&std::fs::read_to_string(&scenario).unwrap())
+                .unwrap(),
+        )
+        .unwrap();
+    let sum = beliefs.success.torque_lag_periods * f64::from(beliefs.robot.fri_period_ms)
+        + 0.5 * beliefs.success.contact_pulse_ms;
+    assert!(
+        (sum - contact.result.onset_offset_ms).abs() < 1e-6,
+        "{sum} vs {contact:?}"
+    );
+    let out = isochron()
+        .args([
+            "trials",
+            "--scenario",
+            s,
+            "--n",
+            "1",
+            "--json",
+            "--calibration",
+            f,
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -138,8 +138,8 @@ impl Machine {
             }
             Command::Excite(_) if st.busy() => (Err(Refusal::Busy), None),
             Command::Excite(_) => (Ok(()), None),
-            Command::MoveTo(_) if st.busy() => (Err(Refusal::Busy), None),
-            Command::MoveTo(_) => (Ok(()), None),
+            Command::MoveTo(_) | Command::Knock(_) if st.busy() => (Err(Refusal::Busy), None),
+            Command::MoveTo(_) | Command::Knock(_) => (Ok(()), None),
         };
         self.control.ack(id, outcome, returned);
     }

@@ -38,6 +38,12 @@ export type PendulumView = {
  */
 measured: MeasurementView, 
 /**
+ * Where the pendulum hangs now: the robot base axis to the ball at
+ * rest, horizontal, metres (the simulated lab's stand, or a real lab's
+ * fixed distance; null: each trial's own, not known between trials).
+ */
+rest_distance_m: number | null, 
+/**
  * Estimated angle from the vertical, radians (positive towards +y).
  */
 phi_rad: number, 
@@ -166,7 +172,12 @@ tool_m: (number | null)[],
 /**
  * Estimated command-to-motion latency of the robot, milliseconds.
  */
-actuation_latency_ms: number | null, };
+actuation_latency_ms: number | null, 
+/**
+ * FRI's external joint torques of the latest message, N m (null: the
+ * robot sends none).
+ */
+tau_ext_nm: (number | null)[], };
 
 export type FriSessionState = "disconnected" | "monitoring_wait" | "monitoring_ready" | "commanding_wait" | "commanding_active" | "idle";
 

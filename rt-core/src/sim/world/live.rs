@@ -236,6 +236,38 @@ impl LiveWorld {
         self.on_tool = BallOnTool::new(ball);
     }
 
+    /// The operator stops the ball by hand at `t_s` (the contact step asks
+    /// it to hang still): it hangs at rest where the stand stands (the
+    /// release in progress ends, as when the ball is hung again). A ball
+    /// held on the magnet stays there.
+    pub fn steady(&mut self, t_s: f64) {
+        if self.on_tool.ball.is_held() && self.on_tool.drop_at.is_none() {
+            return;
+        }
+        // Hanging still already (hands that stop a still ball change nothing).
+        let p = &self.world.pendulum;
+        let bottom = p.pivot_m - Vector3::z() * p.length_m;
+        let b = &self.on_tool.ball;
+        if b.ball_velocity_mps().norm() < 1e-6 && (b.ball_position_m() - bottom).norm() < 1e-6 {
+            return;
+        }
+        self.conclude();
+        // Where the stand stands now (it may have moved while the ball swung).
+        if let Some(w) = World::in_session(
+            &self.scenario,
+            self.seed,
+            0,
+            self.next_index.saturating_sub(1),
+            &self.believed_intercept_m,
+        ) {
+            self.world = w;
+        }
+        let mut ball =
+            TruePendulum::held_at(self.world.pendulum, 0.0, 0.0, t_s, self.world.trial.seed);
+        ball.release(t_s);
+        self.on_tool = BallOnTool::new(ball);
+    }
+
     /// The coil switched on (`true`) or off at `t_s`.
     pub fn coil(&mut self, on: bool, t_s: f64) {
         let held = self.on_tool.ball.is_held();
@@ -728,5 +760,32 @@ mod tests {
         let pivot = w.world().pendulum.pivot_m;
         assert!(((first - pivot).norm() - l).abs() < 1e-9);
         assert!(((held - pivot).norm() - l).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_hands_stop_a_swinging_ball_where_it_hangs_and_leave_a_held_one() {
+        let (s, intercept) = lab();
+        let mut w = LiveWorld::new(&s, 3, intercept, 0.0);
+        let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+        let rest = w.ball().ball_position_m();
+        // Held on the magnet: steadying changes nothing.
+        w.coil(true, 0.0);
+        let held = w.ball().ball_position_m();
+        w.steady(0.1);
+        assert!(w.ball().is_held());
+        assert_eq!(w.ball().ball_position_m(), held);
+        // Swinging: it hangs still at its rest point, the release recorded.
+        w.coil(false, 0.2);
+        for k in 1..300 {
+            w.step(0.2 + f64::from(k) * 0.005, &home);
+        }
+        assert!(w.ball().ball_velocity_mps().norm() > 0.05);
+        w.steady(1.8);
+        assert_eq!(w.take_truth().len(), 1);
+        for k in 1..200 {
+            w.step(1.8 + f64::from(k) * 0.005, &home);
+        }
+        assert!(w.ball().ball_velocity_mps().norm() < 1e-9);
+        assert!((w.ball().ball_position_m() - rest).norm() < 1e-9);
     }
 }
