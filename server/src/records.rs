@@ -802,6 +802,7 @@ mod tests {
             robot_gap_ms: None,
             camera_clock_error_ms: None,
             camera_clock_error_std_ms: None,
+            strike: None,
         };
         // The measured judge's verdict is read from `judged_by`, not from
         // a missing position error: a finite one does not hide it.
