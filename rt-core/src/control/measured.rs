@@ -740,8 +740,10 @@ pub const REBOUND_FROM_S: f64 = 0.05;
 /// ... until this long after it (a quarter of the swing's period is about
 /// 0.7 s; drag and damping bend the swing little within this), s.
 pub const REBOUND_UNTIL_S: f64 = 0.4;
-/// Fewest detections of the rebound fitted.
-pub const REBOUND_MIN_USED: usize = 4;
+/// Fewest detections of the rebound fitted (about 10 at 30 fps; a camera
+/// that lost more than a third of them, as a starved machine's did, leaves
+/// the strike not judged: a served trial with 4 read its speed 20% low).
+pub const REBOUND_MIN_USED: usize = 6;
 /// The camera's clock error against the robot's (a contact's) moves where
 /// the rebound is read when it is smaller than this, s (a larger one is
 /// not believed: the camera's offset is learned to within tens of ms).
@@ -784,16 +786,26 @@ fn tool_crossing(m: &MeasuredInputs<'_>, sign: f64, lo: f64, hi: f64) -> Option<
     })
 }
 
-/// The measured tool point's speed at `t_s`: the chord over the samples
-/// either side of it. `None` outside the samples.
+/// Half the span of the chord the tool's speed at contact is read over, s:
+/// a few FRI periods, so that one message's receive jitter on a busy
+/// machine does not move it.
+pub const TOOL_SPEED_HALF_SPAN_S: f64 = 0.01;
+
+/// The measured tool point's speed at `t_s`: the chord between the last
+/// sample at or before `t_s - TOOL_SPEED_HALF_SPAN_S` and the first at or
+/// after `t_s + TOOL_SPEED_HALF_SPAN_S`. `None` outside the samples.
 fn tool_speed_at(m: &MeasuredInputs<'_>, t_s: f64) -> Option<f64> {
     let n = m.tool_t_s.len().min(m.tool_m.len());
-    let k = m.tool_t_s[..n].partition_point(|&t| t < t_s);
-    if k == 0 || k >= n {
+    let t = &m.tool_t_s[..n];
+    let i = t
+        .partition_point(|&u| u <= t_s - TOOL_SPEED_HALF_SPAN_S)
+        .checked_sub(1)?;
+    let k = t.partition_point(|&u| u < t_s + TOOL_SPEED_HALF_SPAN_S);
+    if k >= n || k <= i {
         return None;
     }
-    let (a, b) = (m.tool_m[k - 1], m.tool_m[k]);
-    let dt = m.tool_t_s[k] - m.tool_t_s[k - 1];
+    let (a, b) = (m.tool_m[i], m.tool_m[k]);
+    let dt = t[k] - t[i];
     let d = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) + (b[2] - a[2]).powi(2)).sqrt();
     (dt > 0.0).then(|| d / dt)
 }

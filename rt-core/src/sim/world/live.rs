@@ -19,7 +19,14 @@
 //!   the arrival is the first time after the release at which the true tool,
 //!   having moved, holds still (within [`judge::SETTLE_M`] for
 //!   [`HOLD_S`]); t* is the true pass nearest it; contact and success as
-//!   `judge::judge_physical`. A release ends [`RECORD_S`] after the arm
+//!   `judge::judge_physical`. In strike mode (the scenario's
+//!   `task.mode = "strike"`, issue #38) a release is judged as a strike
+//!   (`judge::judge_strike`): the arrival is the true tool's crossing of the
+//!   true intercept point's `y` along the return, t* the true pass nearest
+//!   the first contact (without one, nearest that crossing), and the ball's
+//!   outgoing speed after the contact against the scenario's target
+//!   (`task.strike_speed_mps` along the swing's horizontal), in
+//!   [`ReleaseTruth::strike`]. A release ends [`RECORD_S`] after the arm
 //!   began to move (or the drop, if later), [`MAX_RECORD_S`] after the drop
 //!   at the latest, or when the coil switches on again.
 //!
@@ -34,10 +41,12 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use super::contact::{BallOnTool, Contact};
-use super::judge::{self, SETTLE_M, WorldSample};
+use super::judge::{self, SETTLE_M, StrikeAim, WorldSample};
 use super::{TruePendulum, World, WorldParams};
+use crate::control::report::StrikeJudgement;
 use crate::fri::codec::Joints;
-use crate::params::Scenario;
+use crate::params::{Scenario, TaskMode};
+use crate::trajectory::strike::STRIKE_RETURN_SIGN;
 
 /// A release's truth is concluded this long after the arm began to move
 /// (or the ball dropped, if later), s; an arm that has not moved is waited
@@ -55,6 +64,8 @@ pub const MOVED_M: f64 = 0.05;
 const TRACE_CAP: usize = 32_768;
 /// Most true passes kept per release.
 const PASS_CAP: usize = 64;
+/// Most contacts kept per release.
+const HIT_CAP: usize = 64;
 
 const ANGLE_STREAM: u64 = 0x6c69_7665_616e_676c;
 
@@ -84,6 +95,10 @@ pub struct ReleaseTruth {
     /// Why the release was not judged (the arm never moved or never settled,
     /// the ball never passed), else `None`.
     pub not_judged: Option<String>,
+    /// A strike's figures (strike mode): then `arrival_s` is the true
+    /// tool's crossing of the intercept point and `success` needs the
+    /// outgoing speed too.
+    pub strike: Option<StrikeJudgement>,
 }
 
 struct Release {
@@ -95,6 +110,8 @@ struct Release {
     moved_s: Option<f64>,
     passes: Vec<f64>,
     trace: Vec<WorldSample>,
+    /// The contacts: their times and the true ball's velocity after each.
+    hits: Vec<(f64, Vector3<f64>)>,
 }
 
 /// The world of a lab's hardware (module docs).
@@ -275,6 +292,7 @@ impl LiveWorld {
                 moved_s: None,
                 passes: Vec::with_capacity(PASS_CAP),
                 trace: Vec::with_capacity(TRACE_CAP),
+                hits: Vec::with_capacity(HIT_CAP),
             });
         } else if held
             && self.on_tool.drop_at.is_none()
@@ -324,6 +342,11 @@ impl LiveWorld {
         if let Some(r) = self.release.as_mut()
             && r.drop_s.is_finite()
         {
+            if let Some(c) = contact.as_ref()
+                && r.hits.len() < HIT_CAP
+            {
+                r.hits.push((c.t_s, self.on_tool.ball.ball_velocity_mps()));
+            }
             if r.trace.len() < TRACE_CAP {
                 r.trace.push(WorldSample {
                     t_s,
@@ -397,7 +420,13 @@ impl LiveWorld {
             contact_s: None,
             success: false,
             not_judged: None,
+            strike: None,
         };
+        if self.scenario.task.mode == TaskMode::Strike {
+            self.judge_strike(&r, &mut truth);
+            self.done.push(truth);
+            return;
+        }
         match settled_at(&r.trace) {
             Err(why) => truth.not_judged = Some(why.into()),
             Ok((arrival_guess, end)) => {
@@ -433,6 +462,58 @@ impl LiveWorld {
             }
         }
         self.done.push(truth);
+    }
+}
+
+impl LiveWorld {
+    /// A strike release's truth (module docs): `judge::judge_strike` with
+    /// the scenario's aim, the pass nearest the first contact after the
+    /// drop (or the true tool's crossing of the intercept point).
+    fn judge_strike(&self, r: &Release, truth: &mut ReleaseTruth) {
+        let task = &self.scenario.task;
+        let aim = StrikeAim {
+            planned_tool_speed_mps: task.strike_speed_mps,
+            target_ball_speed_mps: task.strike_speed_mps
+                * task.strike_direction_deg.to_radians().cos(),
+            return_sign: STRIKE_RETURN_SIGN,
+        };
+        let y = self.world.intercept_m.y;
+        let crossing = r.trace.windows(2).find_map(|w| {
+            let ahead = |s: &WorldSample| (s.disc.centre_m.y - y) * STRIKE_RETURN_SIGN;
+            (ahead(&w[0]) < 0.0 && ahead(&w[1]) >= 0.0).then_some(w[1].t_s)
+        });
+        let Some(near_s) = r
+            .hits
+            .iter()
+            .find(|h| h.0 >= r.drop_s)
+            .map(|h| h.0)
+            .or(crossing)
+        else {
+            truth.not_judged =
+                Some("the tool neither met the ball nor crossed the intercept point".into());
+            return;
+        };
+        match judge::judge_strike(
+            &r.trace,
+            &r.hits,
+            &r.passes,
+            near_s,
+            self.world.pendulum.ball_radius_m,
+            self.scenario.success.timing_tolerance_ms,
+            y,
+            &aim,
+        ) {
+            Ok(p) => {
+                truth.t_star_s = Some(p.t_star_s);
+                truth.arrival_s = Some(p.arrival_s).filter(|a| a.is_finite());
+                truth.timing_error_ms = Some(p.timing_error_ms).filter(|e| e.is_finite());
+                truth.contact = p.contact_s.is_some();
+                truth.contact_s = p.contact_s;
+                truth.success = p.hit_in_time && p.strike.is_some_and(|k| k.speed_ok);
+                truth.strike = p.strike;
+            }
+            Err(e) => truth.not_judged = Some(e.to_string()),
+        }
     }
 }
 
