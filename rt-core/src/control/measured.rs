@@ -786,22 +786,23 @@ fn tool_crossing(m: &MeasuredInputs<'_>, sign: f64, lo: f64, hi: f64) -> Option<
     })
 }
 
-/// Half the span of the chord the tool's speed at contact is read over, s:
-/// a few FRI periods, so that one message's receive jitter on a busy
-/// machine does not move it.
-pub const TOOL_SPEED_HALF_SPAN_S: f64 = 0.01;
+/// The span of the chord the tool's speed at contact is read over, before
+/// the onset, s: a few FRI periods, so that one message's receive jitter on
+/// a busy machine does not move it, and none after the contact (the ball's
+/// impulse pushes the arm back).
+pub const TOOL_SPEED_SPAN_S: f64 = 0.02;
 
 /// The measured tool point's speed at `t_s`: the chord between the last
-/// sample at or before `t_s - TOOL_SPEED_HALF_SPAN_S` and the first at or
-/// after `t_s + TOOL_SPEED_HALF_SPAN_S`. `None` outside the samples.
+/// sample at or before `t_s - TOOL_SPEED_SPAN_S` and the last one at or
+/// before `t_s`. `None` outside the samples.
 fn tool_speed_at(m: &MeasuredInputs<'_>, t_s: f64) -> Option<f64> {
     let n = m.tool_t_s.len().min(m.tool_m.len());
     let t = &m.tool_t_s[..n];
     let i = t
-        .partition_point(|&u| u <= t_s - TOOL_SPEED_HALF_SPAN_S)
+        .partition_point(|&u| u <= t_s - TOOL_SPEED_SPAN_S)
         .checked_sub(1)?;
-    let k = t.partition_point(|&u| u < t_s + TOOL_SPEED_HALF_SPAN_S);
-    if k >= n || k <= i {
+    let k = t.partition_point(|&u| u <= t_s).checked_sub(1)?;
+    if k <= i {
         return None;
     }
     let (a, b) = (m.tool_m[i], m.tool_m[k]);
