@@ -784,6 +784,87 @@ mod tests {
     }
 
     #[test]
+    fn a_strike_release_is_judged_at_the_tools_crossing_with_the_balls_outgoing_speed() {
+        // Strike mode: the tool sweeps along -y through the intercept point
+        // at 0.5 m/s (the base joint turning), crossing it `late_s` after a
+        // pass towards +y; the truth is the strike's: the crossing against
+        // t*, the ball sent back.
+        for (late_s, in_time) in [(0.005, true), (0.06, false)] {
+            let (mut s, intercept) = lab();
+            s.task.mode = TaskMode::Strike;
+            s.task.strike_speed_mps = 0.5;
+            s.task.strike_direction_deg = 0.0;
+            let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+            // The free ball's first pass towards +y (no arm in the way).
+            let mut probe = LiveWorld::new(&s, 2, intercept, 0.0);
+            probe.coil(true, 0.0);
+            probe.coil(false, 0.5);
+            let (mut t, mut pass) = (0.0, None);
+            let mut last_y = probe.ball().ball_position_m().y - intercept.y;
+            while t < 8.0 && pass.is_none() {
+                t += 0.001;
+                probe.step(t, &home);
+                let y = probe.ball().ball_position_m().y - intercept.y;
+                if !probe.ball().is_held() && last_y < 0.0 && y >= 0.0 {
+                    pass = Some(t);
+                }
+                last_y = y;
+            }
+            let pass = pass.expect("a pass towards +y");
+            let mut w = LiveWorld::new(&s, 2, intercept, 0.0);
+            let arm = w.world().arm;
+            let at = joints_reaching(&arm, &intercept);
+            // The base angle at which the disc's centre is at the intercept's y.
+            let y_at = |a: f64| {
+                let mut q = at;
+                q[0] = a;
+                arm.disc(&q).centre_m.y - intercept.y
+            };
+            let (mut lo, mut hi) = (at[0] - 0.3, at[0] + 0.3);
+            for _ in 0..60 {
+                let mid = 0.5 * (lo + hi);
+                if y_at(mid) < 0.0 {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let radius = arm.tool_point(&at).xy().norm();
+            let omega = 0.5 / radius;
+            let cross = pass + late_s;
+            let q_at = |t: f64| {
+                let mut q = at;
+                q[0] = hi - (omega * (t - cross)).clamp(-0.25, 0.25);
+                q
+            };
+            w.coil(true, 0.0);
+            w.coil(false, 0.5);
+            let mut t = 0.0;
+            while t < cross + RECORD_S + 0.5 {
+                t += 0.001;
+                w.step(t, &if t < cross - 1.0 { home } else { q_at(t) });
+            }
+            let truth = w.take_truth();
+            assert_eq!(truth.len(), 1, "{truth:?}");
+            let r = &truth[0];
+            assert!(r.not_judged.is_none() && r.contact, "{r:?}");
+            let k = r.strike.expect("judged as a strike");
+            let t_star = r.t_star_s.unwrap_or(f64::NAN);
+            assert!((t_star - pass).abs() < 0.002, "{t_star} vs {pass}");
+            let err = r.timing_error_ms.unwrap_or(f64::NAN);
+            assert!((err - late_s * 1e3).abs() < 2.0, "{err}: {r:?}");
+            assert!((k.tool_speed_mps - 0.5).abs() < 0.05, "{k:?}");
+            // Sent back along -y (restitution 0: with the tool's speed
+            // along the contact's normal).
+            assert!(
+                k.ball_speed_mps > 0.1 && k.direction_error_deg < 90.0,
+                "{k:?}"
+            );
+            assert_eq!(r.success, in_time && k.speed_ok, "{r:?}");
+        }
+    }
+
+    #[test]
     fn the_coil_switching_on_again_concludes_the_release_and_hangs_a_new_one() {
         let (s, intercept) = lab();
         let mut w = LiveWorld::new(&s, 3, intercept, 0.0);
