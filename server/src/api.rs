@@ -385,12 +385,6 @@ pub async fn put_params(
         message: e.to_string(),
         field: e.field().map(str::to_owned),
     })?;
-    if new.task.mode == rt_core::params::TaskMode::Strike {
-        return Err(AppError::BadRequest {
-            message: crate::serve::STRIKE_IN_SERVE.into(),
-            field: Some("task.mode".into()),
-        });
-    }
     if new.world.is_some() && current.world.is_none() {
         return Err(AppError::BadRequest {
             message: crate::serve::WORLD_IN_SERVE.into(),

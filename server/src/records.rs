@@ -368,6 +368,10 @@ fn done_reason(r: &TrialResult) -> String {
         None if measured.is_some_and(|m| !m.contact) => {
             "judged (measured): a miss (no contact seen in the external joint torques)".to_owned()
         }
+        // A strike in time whose ball left too slow, too fast or not back.
+        None if measured.and_then(|m| m.strike).is_some_and(|k| k.in_time) => {
+            strike_miss(measured.and_then(|m| m.strike))
+        }
         None if measured.is_some() => format!(
             "judged (measured): a miss (timing error {:+.1} ms outside the tolerance)",
             measured.and_then(|m| m.timing_error_ms).unwrap_or(f64::NAN)
@@ -375,6 +379,25 @@ fn done_reason(r: &TrialResult) -> String {
         None if r.success => "judged: a hit within the tolerances".to_owned(),
         None if r.limit_violations > 0 => "judged: a miss (joint limit violated)".to_owned(),
         None => "judged: a miss (outside the tolerances)".to_owned(),
+    }
+}
+
+/// Why a measured strike in time missed: its ball's outgoing speed.
+fn strike_miss(k: Option<rt_core::control::measured::MeasuredStrike>) -> String {
+    match k.map(|k| {
+        (
+            k.ball_speed_mps,
+            k.speed_error,
+            k.returned,
+            k.target_ball_speed_mps,
+        )
+    }) {
+        Some((Some(v), Some(e), true, target)) => format!(
+            "judged (measured): a miss (strike: ball out at {v:.2} m/s, {:+.0}% of the \
+             {target:.2} m/s target)",
+            e * 100.0
+        ),
+        _ => "judged (measured): a miss (strike: the ball did not return)".to_owned(),
     }
 }
 
@@ -802,6 +825,7 @@ mod tests {
             robot_gap_ms: None,
             camera_clock_error_ms: None,
             camera_clock_error_std_ms: None,
+            strike: None,
         };
         // The measured judge's verdict is read from `judged_by`, not from
         // a missing position error: a finite one does not hide it.
@@ -841,6 +865,36 @@ mod tests {
         let rec = r.get(id).unwrap().unwrap();
         assert_eq!((rec.success, rec.judged_by), (None, None));
         assert_eq!(rec.reason.as_deref(), Some("not judged: because"));
+        // A strike in time whose ball left too slow: the record keeps its
+        // speeds at contact and says why it missed.
+        let strike = rt_core::control::measured::MeasuredStrike {
+            planned_tool_speed_mps: 0.5,
+            tool_speed_mps: Some(0.49),
+            target_ball_speed_mps: 0.47,
+            ball_speed_mps: Some(0.30),
+            ball_speed_std_mps: Some(0.006),
+            speed_error: Some(-0.36),
+            returned: true,
+            rebound_used: 10,
+            in_time: true,
+            speed_ok: false,
+        };
+        let slow = MeasuredJudgement {
+            timing_error_ms: Some(3.0),
+            strike: Some(strike),
+            ..m
+        };
+        let id = r.create_trial(&TrialOrigin::default()).unwrap();
+        let end = TrialEnd::Done(result(Some(JudgedBy::Measured), Some(slow)));
+        assert!(r.finish_trial(id, end, 3).unwrap());
+        let rec = r.get(id).unwrap().unwrap();
+        assert_eq!(
+            rec.reason.as_deref(),
+            Some(
+                "judged (measured): a miss (strike: ball out at 0.30 m/s, -36% of the 0.47 m/s target)"
+            )
+        );
+        assert_eq!(rec.measured.and_then(|m| m.strike), Some(strike));
     }
 
     #[test]

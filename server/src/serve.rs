@@ -91,12 +91,6 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         }
         (None, LabMode::Real) => None,
     };
-    if world
-        .as_ref()
-        .is_some_and(|(s, _)| s.task.mode == rt_core::params::TaskMode::Strike)
-    {
-        anyhow::bail!("{STRIKE_IN_SERVE}");
-    }
     // Everything the arguments can get wrong is said before a world starts.
     let bind = args.bind.unwrap_or(file_cfg.server.bind);
     let token = args
@@ -165,9 +159,6 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
     }
     if scenario.world.is_some() {
         anyhow::bail!("{WORLD_IN_SERVE}");
-    }
-    if scenario.task.mode == rt_core::params::TaskMode::Strike {
-        anyhow::bail!("{STRIKE_IN_SERVE}");
     }
     // `--calibration` must exist; the configured file may not yet (the lab is
     // served to be calibrated).
@@ -470,13 +461,6 @@ fn serve_world(
         thread: Some(thread),
     })
 }
-
-/// Why a served lab refuses `task.mode = "strike"` (issue #38, so far):
-/// its measured judge times a resting tool, so a strike would be judged
-/// by the wrong rule.
-pub const STRIKE_IN_SERVE: &str = "task.mode = \"strike\" is not served yet: a served lab's \
-    measured judge times a tool at rest at the intercept point, so a strike would be judged by the \
-    wrong rule; strike trials run on the virtual clock (`isochron trials --scenario scenarios/strike.toml`)";
 
 /// Why `serve` refuses a scenario with `[world]`: its labs never simulate
 /// one (the real lab has the real world; the simulated lab in real time is a

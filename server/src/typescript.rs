@@ -13,7 +13,7 @@ use rt_core::bridge::{
     TrialState,
 };
 use rt_core::calibration::{StepView, ViewKind};
-use rt_core::control::measured::MeasuredJudgement;
+use rt_core::control::measured::{MeasuredJudgement, MeasuredStrike};
 use ts_rs::TS;
 
 use crate::{
@@ -50,6 +50,7 @@ pub fn declarations() -> String {
         Refusal::decl(),
         Readiness::decl(),
         Snapshot::decl(),
+        MeasuredStrike::decl(),
         MeasuredJudgement::decl(),
         JudgedBy::decl(),
         TrialResult::decl(),

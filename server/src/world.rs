@@ -132,6 +132,9 @@ struct TruthLine<'a> {
     contact_unix_s: Option<f64>,
     success: bool,
     not_judged: Option<&'a str>,
+    /// A strike's figures (strike mode, issue #38).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    strike: Option<rt_core::control::report::StrikeJudgement>,
 }
 
 /// How late the webcam delivered its frames: its drawn latency is what the
@@ -944,6 +947,7 @@ fn write_truth(
         contact_unix_s: r.contact_s.map(unix),
         success: r.success,
         not_judged: r.not_judged.as_deref(),
+        strike: r.strike,
     };
     writeln!(out, "{}", serde_json::to_string(&line)?)?;
     out.flush()?;

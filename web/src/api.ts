@@ -84,6 +84,27 @@ export function judgeCells(t: Pick<TrialRecord, "judged_by" | "measured">): {
   return { judge: t.judged_by ?? "–", measuredTiming, contact };
 }
 
+/** What a trial row shows of a strike (issue #38) as the measured judge saw
+ * it, m/s: the tool's speed at contact, planned and measured, and the ball's
+ * outgoing speed with its error against the target (`not returned` when the
+ * ball went on); `–` for a stop or an unmeasured figure. */
+export function strikeCell(t: Pick<TrialRecord, "measured">): string {
+  const k = t.measured?.strike;
+  if (!k) return "–";
+  const v = (x: number | null | undefined): string => (typeof x === "number" && Number.isFinite(x) ? x.toFixed(2) : "–");
+  const tool = `tool ${v(k.planned_tool_speed_mps)} → ${v(k.tool_speed_mps)}`;
+  const e = k.speed_error;
+  const ball =
+    typeof k.ball_speed_mps !== "number" || !Number.isFinite(k.ball_speed_mps)
+      ? "ball –"
+      : !k.returned
+        ? `ball ${v(k.ball_speed_mps)} not returned`
+        : typeof e === "number" && Number.isFinite(e)
+          ? `ball ${v(k.ball_speed_mps)} (${signed(e * 100, 0)}%)`
+          : `ball ${v(k.ball_speed_mps)}`;
+  return `${tool}, ${ball}`;
+}
+
 /** `GET /api/trials` answers a list, or an object holding one. */
 export function trialList(v: unknown): TrialRecord[] {
   if (Array.isArray(v)) return v as TrialRecord[];

@@ -1,5 +1,5 @@
 import uPlot from "uplot";
-import { call, judgeCells, trialList, verdict, type TrialRecord } from "./api";
+import { call, judgeCells, strikeCell, trialList, verdict, type TrialRecord } from "./api";
 import { COLORS } from "./plots";
 import { fmt, pct, wilson } from "./stats";
 
@@ -66,6 +66,7 @@ export class TrialsView {
         ["timing", fmt(t.timing_error_ms, 1)],
         ["measured-timing", j.measuredTiming],
         ["contact", j.contact],
+        ["strike", strikeCell(t)],
         ["position", fmt(t.position_error_m != null ? t.position_error_m * 1000 : null, 1)],
         ["movement", fmt(t.movement_time_s, 3)],
         ["reason", t.abort_reason ?? ""],

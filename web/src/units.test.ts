@@ -111,7 +111,7 @@ describe("trial verdicts", () => {
   });
 });
 
-import { judgeCells, signed } from "./api";
+import { judgeCells, signed, strikeCell } from "./api";
 describe("trial judges", () => {
   const m = {
     pass_t_s: 10,
@@ -135,6 +135,25 @@ describe("trial judges", () => {
     expect(judgeCells({ judged_by: null, measured: { ...m, contact: false, torque_signal: false } }).contact).toBe("no torques");
     expect(judgeCells({ judged_by: null, measured: { ...m, timing_error_ms: null, timing_std_ms: null } }).measuredTiming).toBe("–");
     expect(judgeCells({ judged_by: null, measured: null })).toEqual({ judge: "–", measuredTiming: "–", contact: "–" });
+  });
+  it("shows a strike's speeds at contact and none for a stop", () => {
+    const strike = {
+      planned_tool_speed_mps: 0.5,
+      tool_speed_mps: 0.493,
+      target_ball_speed_mps: 0.47,
+      ball_speed_mps: 0.511,
+      ball_speed_std_mps: 0.006,
+      speed_error: 0.0876,
+      returned: true,
+      rebound_used: 10,
+      in_time: true,
+      speed_ok: true,
+    };
+    expect(strikeCell({ measured: { ...m, strike } })).toBe("tool 0.50 → 0.49, ball 0.51 (+9%)");
+    expect(strikeCell({ measured: { ...m, strike: { ...strike, returned: false } } })).toBe("tool 0.50 → 0.49, ball 0.51 not returned");
+    expect(strikeCell({ measured: { ...m, strike: { ...strike, tool_speed_mps: null, ball_speed_mps: null, speed_error: null } } })).toBe("tool 0.50 → –, ball –");
+    expect(strikeCell({ measured: m })).toBe("–");
+    expect(strikeCell({ measured: null })).toBe("–");
   });
   it("never writes -0", () => {
     expect(signed(-0.04, 1)).toBe("0.0");

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::judge::Judgement;
-use super::measured::MeasuredJudgement;
+use super::measured::{MeasuredJudgement, MeasuredStrike};
 use super::stats::{Moments, Percentiles, wilson_ci95};
 use super::success::SuccessParams;
 
@@ -118,6 +118,11 @@ impl TrialRecord {
                             "measured timing_error {e:+.1} ms beyond {} ms",
                             tol.timing_tolerance_ms
                         )
+                    })
+                    .or_else(|| {
+                        m.strike
+                            .filter(|k| !k.speed_ok)
+                            .map(measured_strike_failure)
                     })
             } else {
                 Some("measured: no contact seen in the external torques".to_owned())
@@ -320,6 +325,86 @@ pub struct MeasuredSummary {
     pub misses: usize,
     /// Of those, the ones with a contact claimed anyway.
     pub contact_in_misses: usize,
+    /// Strike trials (issue #38): the measured outgoing speed against the
+    /// true one; absent without strikes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub strike: Option<MeasuredStrikeSummary>,
+}
+
+/// The measured judge's outgoing speeds of strikes against the physical
+/// judge's (the true ball's), over the trials with both.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct MeasuredStrikeSummary {
+    /// Strike trials with both judges' strike figures.
+    pub trials: usize,
+    /// Of those, the ones with both outgoing speeds.
+    pub speeds: usize,
+    /// Trials whose measured `speed_ok` equals the true one.
+    pub speed_ok_agree: usize,
+    /// `(measured - true ball speed) / target`: its mean (the measured
+    /// speed's bias) ...
+    pub speed_difference_mean: f64,
+    /// ... and its absolute value's `p50`/`p95`.
+    pub speed_difference: P50P95,
+    /// |measured speed error| (against the target), as the true one in
+    /// [`StrikeSummary::speed_error`].
+    pub measured_speed_error: P50P95,
+}
+
+/// Why a measured strike's outgoing speed does not count.
+fn measured_strike_failure(k: MeasuredStrike) -> String {
+    match (k.ball_speed_mps, k.speed_error) {
+        (Some(v), Some(e)) if k.returned => format!(
+            "measured strike: ball out at {v:.3} m/s, target {:.3} m/s ({:+.0}%)",
+            k.target_ball_speed_mps,
+            e * 100.0
+        ),
+        (Some(v), _) => format!("measured strike: the ball went on at {v:.3} m/s, not returned"),
+        _ => "measured strike: the rebound was not seen".to_owned(),
+    }
+}
+
+impl MeasuredStrikeSummary {
+    fn of(both: &[(&TrialRecord, &MeasuredJudgement, &PhysicalJudgement)]) -> Option<Self> {
+        let strikes: Vec<(MeasuredStrike, StrikeJudgement)> = both
+            .iter()
+            .filter_map(|(_, m, p)| Some((m.strike?, p.strike?)))
+            .collect();
+        if strikes.is_empty() {
+            return None;
+        }
+        let diffs: Vec<f64> = strikes
+            .iter()
+            .filter_map(|(m, p)| {
+                let d = (m.ball_speed_mps? - p.ball_speed_mps) / p.target_ball_speed_mps;
+                d.is_finite().then_some(d)
+            })
+            .collect();
+        let abs = Percentiles::of(&diffs.iter().map(|d| d.abs()).collect::<Vec<_>>());
+        let errors = Percentiles::of(
+            &strikes
+                .iter()
+                .filter_map(|(m, _)| m.speed_error.map(f64::abs))
+                .collect::<Vec<_>>(),
+        );
+        Some(Self {
+            trials: strikes.len(),
+            speeds: diffs.len(),
+            speed_ok_agree: strikes
+                .iter()
+                .filter(|(m, p)| m.speed_ok == p.speed_ok)
+                .count(),
+            speed_difference_mean: diffs.iter().sum::<f64>() / diffs.len().max(1) as f64,
+            speed_difference: P50P95 {
+                p50: abs.p50,
+                p95: abs.p95,
+            },
+            measured_speed_error: P50P95 {
+                p50: errors.p50,
+                p95: errors.p95,
+            },
+        })
+    }
 }
 
 impl MeasuredSummary {
@@ -357,6 +442,7 @@ impl MeasuredSummary {
             contact_in_hits: hits.filter(|(_, m, _)| m.contact).count(),
             misses: misses.clone().count(),
             contact_in_misses: misses.filter(|(_, m, _)| m.contact).count(),
+            strike: MeasuredStrikeSummary::of(&both),
         })
     }
 }
@@ -616,6 +702,18 @@ pub struct PhysicalJudgement {
     /// the catch's), and `timing_error_ms` that minus `t*`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub strike: Option<StrikeJudgement>,
+}
+
+/// What a strike trial is judged against (issue #38), by the physical judge
+/// and the measured one alike: from the controller's plan, never the world.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StrikeAim {
+    /// The planned tool speed at contact, m/s.
+    pub planned_tool_speed_mps: f64,
+    /// The target outgoing ball speed, m/s ([`StrikeJudgement`]).
+    pub target_ball_speed_mps: f64,
+    /// The sign of `y` the ball should return along.
+    pub return_sign: f64,
 }
 
 /// How far a struck ball's outgoing speed may miss its target, as a share of

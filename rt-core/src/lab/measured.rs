@@ -6,6 +6,7 @@
 //! `TRIAL_TIMEOUT_S` long; the buffers hold that much).
 
 use crate::control::measured::{MeasuredInputs, MeasuredJudgement, Sighting, judge_measured};
+use crate::control::report::StrikeAim;
 
 /// The measured judge's recording of one trial.
 #[derive(Debug)]
@@ -50,6 +51,8 @@ pub(crate) struct MeasuredBeliefs {
     pub contact_delay_s: f64,
     /// How long a contact's force pulse lasts, s (`success.contact_pulse_ms`: a belief).
     pub contact_pulse_s: f64,
+    /// Strike mode's aim (the controller's plan; `None`: a stop).
+    pub strike: Option<StrikeAim>,
 }
 
 impl MeasuredTrace {
@@ -146,6 +149,7 @@ impl MeasuredTrace {
             contact_period_s: b.period_s,
             intercept_y_m: b.intercept_y_m,
             contact_reach_m: b.contact_reach_m,
+            strike: b.strike,
         });
         for s in &mut self.sightings {
             s.t_s += b.camera_offset_s;

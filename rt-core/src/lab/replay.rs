@@ -75,8 +75,9 @@ pub(crate) enum Exchange {
     Event(String),
     /// The answer to an operator's command, as the driver reads it.
     Ack(String),
-    /// A trial's outcome as the driver takes it ([`Verdict`]).
-    Outcome(Option<Verdict>),
+    /// A trial's outcome as the driver takes it ([`Verdict`]; boxed: the
+    /// largest variant by far).
+    Outcome(Option<Box<Verdict>>),
     /// The replay only: an input its ring refused (full: the control side
     /// did not take what the recorded one took).
     Refused(&'static str),
@@ -365,7 +366,10 @@ mod replayer {
                     ));
                 }
                 Exchange::Outcome(_) => {
-                    let v = s.step.take_outcome().map(|o| Verdict::of(&o, &s.client));
+                    let v = s
+                        .step
+                        .take_outcome()
+                        .map(|o| Box::new(Verdict::of(&o, &s.client)));
                     self.out.push(Exchange::Outcome(v));
                 }
                 Exchange::Reply(_) | Exchange::Commit(_) | Exchange::Refused(_) => {}

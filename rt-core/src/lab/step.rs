@@ -1363,6 +1363,15 @@ impl LabStep {
         };
         if let Some(commit) = c.commit().copied() {
             let pendulum = &self.p.scenario.pendulum;
+            // A strike's aim, for both judges.
+            let aim = trial.plan.strike.map(|k| StrikeAim {
+                planned_tool_speed_mps: k.speed_mps,
+                // Restitution 0 (the controller's belief): the ball
+                // leaves with the tool's speed along the contact
+                // normal, the swing's horizontal at the pass.
+                target_ball_speed_mps: k.speed_mps * k.direction.y.hypot(k.direction.x),
+                return_sign: k.direction.y.signum(),
+            });
             o.measured = self.measured.judge(&MeasuredBeliefs {
                 predicted_pass_s: commit.predicted_pass_s,
                 camera_offset_s: commit.camera_offset_s,
@@ -1374,6 +1383,7 @@ impl LabStep {
                 period_s: self.period_s,
                 contact_delay_s: self.p.scenario.success.torque_lag_periods * self.period_s,
                 contact_pulse_s: self.p.scenario.success.contact_pulse_ms * 1e-3,
+                strike: aim,
                 intercept_y_m: trial.plan.intercept_m.y,
                 // The ball first touches the disc's rim (the ball's radius
                 // and the disc's extent along the swing at the measured
@@ -1433,21 +1443,14 @@ impl LabStep {
                 }
             }
             if trial.truth {
-                let aim = trial.plan.strike.map(|k| StrikeAim {
-                    planned_tool_speed_mps: k.speed_mps,
-                    // Restitution 0 (the controller's belief): the ball
-                    // leaves with the tool's speed along the contact
-                    // normal, the swing's horizontal at the pass.
-                    target_ball_speed_mps: k.speed_mps * k.direction.y.hypot(k.direction.x),
-                    return_sign: k.direction.y.signum(),
-                });
                 self.judge_world(commit.predicted_pass_s, aim.as_ref(), &mut o);
             }
         }
         // A contact shows what the camera offset missed (whatever the
         // magnet's release delay): the controller learns from it. Not from
-        // a strike: the measured judge reads a contact against a resting
-        // tool, and a striking tool meets the ball earlier.
+        // a strike yet: the measured judge times one (its own pass and
+        // arrival), but learning from its contacts was neither built nor
+        // tested for strokes.
         let measured = o.measured.filter(|_| trial.plan.strike.is_none());
         if let (Some(m), Some(used_ms)) = (measured, o.camera_offset_estimate_ms)
             && let (Some(e_ms), Some(sd_ms)) =

@@ -52,17 +52,8 @@ pub enum PhysicalJudgeError {
     NoPass,
 }
 
-/// What a strike trial is judged against (issue #38): from the controller's
-/// plan, never the world.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StrikeAim {
-    /// The planned tool speed at contact, m/s.
-    pub planned_tool_speed_mps: f64,
-    /// The target outgoing ball speed, m/s (`control::report::StrikeJudgement`).
-    pub target_ball_speed_mps: f64,
-    /// The sign of `y` the ball should return along.
-    pub return_sign: f64,
-}
+/// What a strike trial is judged against (defined beside the judges' figures).
+pub use crate::control::report::StrikeAim;
 
 /// The physical judge's verdict on a trial with the tool-ball distance at
 /// its `t*` (the reported position error).

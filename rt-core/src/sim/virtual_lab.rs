@@ -614,7 +614,10 @@ impl VirtualLab {
     /// decided (never the judges' truth).
     fn log_outcome(&mut self, o: &TrialOutcome) {
         if let Some(log) = self.replay_log.as_mut() {
-            log.push(Exchange::Outcome(Some(Verdict::of(o, &self.client))));
+            log.push(Exchange::Outcome(Some(Box::new(Verdict::of(
+                o,
+                &self.client,
+            )))));
         }
     }
 
@@ -1400,7 +1403,7 @@ mod tests {
         let verdicts: Vec<&Verdict> = log
             .iter()
             .filter_map(|e| match e {
-                Exchange::Outcome(Some(v)) => Some(v),
+                Exchange::Outcome(Some(v)) => Some(&**v),
                 _ => None,
             })
             .collect();
@@ -1622,6 +1625,23 @@ mod tests {
             );
             assert!((k.target_ball_speed_mps - 0.5 * 20f64.to_radians().cos()).abs() < 1e-9);
             assert!(r.success, "{r:?}");
+            // The measured judge (no truth: the torques' onset, the
+            // measured tool, the camera's rebound) decides as the physical
+            // one, its timing within half the tolerance of the physical
+            // one's (the believed intercept point against the true one)
+            // and its outgoing speed within a tenth of the target of the
+            // true ball's.
+            let m = r
+                .measured
+                .unwrap_or_else(|| panic!("no measured verdict: {r:?}"));
+            assert!(m.judged() && r.measured_success(&m) == r.success, "{m:?}");
+            let e = m.timing_error_ms.unwrap_or(f64::NAN);
+            assert!((e - p.timing_error_ms).abs() <= 10.0, "{m:?} vs {p:?}");
+            let v = m.strike.and_then(|k| k.ball_speed_mps).unwrap_or(f64::NAN);
+            assert!(
+                (v - k.ball_speed_mps).abs() <= 0.1 * k.target_ball_speed_mps,
+                "{m:?} vs {k:?}"
+            );
         }
     }
 

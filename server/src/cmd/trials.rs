@@ -306,7 +306,32 @@ fn human(s: &Summary) -> String {
         s.wall_s,
         s.vision.as_deref().unwrap_or("?"),
     );
-    summary + &strike
+    let measured = s.measured.map_or_else(String::new, |m| {
+        let speed = m.strike.map_or_else(String::new, |k| {
+            format!(
+                ", strike speed ok agrees {}/{}, outgoing speed - true mean {:+.1}% of the target \
+                 (|.| p50 {:.1}%, p95 {:.1}%)",
+                k.speed_ok_agree,
+                k.trials,
+                100.0 * k.speed_difference_mean,
+                100.0 * k.speed_difference.p50,
+                100.0 * k.speed_difference.p95,
+            )
+        });
+        format!(
+            "\nmeasured judge agrees with the physical one {}/{}, |timing difference| p50 {:.2} ms, \
+             p95 {:.2} ms, contact seen in {}/{} hits, claimed in {}/{} misses{speed}",
+            m.agree,
+            m.trials,
+            m.timing_difference_ms.p50,
+            m.timing_difference_ms.p95,
+            m.contact_in_hits,
+            m.hits,
+            m.contact_in_misses,
+            m.misses,
+        )
+    });
+    summary + &strike + &measured
 }
 
 #[cfg(test)]

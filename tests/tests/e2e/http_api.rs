@@ -144,15 +144,6 @@ async fn bad_input_to_every_mutating_endpoint_is_a_4xx_naming_the_field_and_chan
             400,
             Some("task.strike_speed_mps"),
         ),
-        // A valid strike: not served yet (the measured judge times a
-        // resting tool); nothing changes.
-        (
-            "PUT",
-            "/api/params",
-            br#"{"task": {"mode": "strike"}}"#.to_vec(),
-            400,
-            Some("task.mode"),
-        ),
         (
             "PUT",
             "/api/params",

@@ -882,6 +882,106 @@ async fn serve_with_a_world_scenario_is_a_real_lab_on_that_world() {
     );
 }
 
+/// A served lab strikes (issue #38): `serve --scenario scenarios/strike.toml`
+/// runs the reality world in strike mode behind the real interfaces (its
+/// contact with the tool's velocity and the world's restitution), and the
+/// trial is judged by what the lab measures, as a strike: the measured
+/// judge's strike figures (the ball's outgoing speed from the camera's view
+/// of the rebound) in the record, the contact as the world's truth line
+/// (judged as a strike too) saw it. A starved machine may abort the trial
+/// or leave it not judged: each says why.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_served_strike_is_judged_by_measurement_as_the_world_judges_it() {
+    let _one = ONE_LAB.lock().await;
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--allow-uncalibrated")])
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/strike.toml");
+    let (_p, line) = start(
+        "isochron serve --scenario strike",
+        Process::new(&bin)
+            .arg("serve")
+            .args(["--bind", "127.0.0.1:0", "--scenario"])
+            .arg(&scenario)
+            .arg("--data-dir")
+            .arg(dir.path())
+            .arg("--allow-uncalibrated"),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr = listening_addr(&line);
+    assert_eq!(get(addr, "/api/params").await["task"]["mode"], "strike");
+    wait_ready(addr, Duration::from_secs(60)).await;
+    let id = post_trial(addr).await;
+    let rec = wait_record(addr, id, Duration::from_secs(90)).await;
+    if rec["status"] == "aborted" {
+        assert!(
+            rec["reason"].as_str().is_some_and(|r| !r.is_empty()),
+            "{rec}"
+        );
+        eprintln!("served strike: the trial was aborted: {}", rec["reason"]);
+        return;
+    }
+    assert_eq!(rec["status"], "done", "{rec}");
+    if rec["judged_by"].is_null() {
+        // Not judged on a starved machine (the robot's messages paused, the
+        // camera lost the rebound): it says so.
+        assert!(
+            rec["reason"]
+                .as_str()
+                .is_some_and(|r| r.starts_with("not judged (measured)")),
+            "{rec}"
+        );
+        return;
+    }
+    assert_eq!(rec["judged_by"], "measured", "{rec}");
+    // The measured judge timed a strike.
+    let strike = &rec["measured"]["strike"];
+    assert_eq!(strike["planned_tool_speed_mps"], 0.5, "{rec}");
+    let target = strike["target_ball_speed_mps"].as_f64().unwrap_or(f64::NAN);
+    assert!(
+        (target - 0.5 * 20f64.to_radians().cos()).abs() < 1e-9,
+        "{rec}"
+    );
+    if rec["measured"]["contact"] == true {
+        // A judged contact has its rebound measured.
+        assert!(
+            strike["ball_speed_mps"].as_f64().is_some_and(|v| v > 0.0),
+            "{rec}"
+        );
+    }
+    let truth = dir.path().join("world-truth.jsonl");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while truth_lines(&truth).is_empty() {
+        assert!(
+            Instant::now() < deadline,
+            "no truth line in {}",
+            truth.display()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let t = &truth_lines(&truth)[0];
+    assert!(t["strike"].is_object(), "the world judged no strike: {t}");
+    assert_eq!(
+        rec["measured"]["contact"], t["contact"],
+        "record {rec} truth {t}"
+    );
+    eprintln!(
+        "served strike: measured timing {} ms, speed {} m/s, success {}; truth {} ms, {} m/s, {}",
+        rec["measured"]["timing_error_ms"],
+        strike["ball_speed_mps"],
+        rec["success"],
+        t["timing_error_ms"],
+        t["strike"]["ball_speed_mps"],
+        t["success"]
+    );
+}
+
 /// `isochron serve` without a config (`make run`'s lab, the dashboard's):
 /// a truthful world in the service's process behind a real lab's
 /// interfaces, judged by what the lab measures, its calibration records

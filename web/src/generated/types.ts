@@ -451,6 +451,51 @@ abort: AbortView,
  */
 ready: Readiness, };
 
+export type MeasuredStrike = { 
+/**
+ * The planned tool speed at contact (`task.strike_speed_mps`), m/s.
+ */
+planned_tool_speed_mps: number, 
+/**
+ * The measured tool point's speed at the contact's onset, m/s (absent
+ * without a contact).
+ */
+tool_speed_mps: number | null, 
+/**
+ * The target outgoing ball speed, m/s (as the physical judge's).
+ */
+target_ball_speed_mps: number, 
+/**
+ * The ball's measured outgoing speed at the contact's onset (the
+ * rebound's fitted swing), m/s; absent without a contact or with too
+ * few detections after it.
+ */
+ball_speed_mps: number | null, 
+/**
+ * Its standard deviation (the detections' noise), m/s.
+ */
+ball_speed_std_mps: number | null, 
+/**
+ * `(ball_speed - target) / target`.
+ */
+speed_error: number | null, 
+/**
+ * Whether the ball left along the return (against its pass).
+ */
+returned: boolean, 
+/**
+ * Detections the rebound was fitted to.
+ */
+rebound_used: number, 
+/**
+ * Contact seen and `|timing error|` within the tolerance.
+ */
+in_time: boolean, 
+/**
+ * The ball returned and `|speed_error| <=` [`STRIKE_SPEED_TOLERANCE`].
+ */
+speed_ok: boolean, };
+
 export type MeasuredJudgement = { 
 /**
  * The ball's measured pass through the intercept point (the filter's
@@ -508,7 +553,15 @@ camera_clock_error_ms?: number,
 /**
  * Its standard deviation (both passes'), ms.
  */
-camera_clock_error_std_ms?: number, };
+camera_clock_error_std_ms?: number, 
+/**
+ * A strike's figures (`task.mode = "strike"`, issue #38); then
+ * `arrival_t_s` is the measured tool point's crossing of the intercept
+ * lateral along the stroke, `pass_t_s` the ball's pass from the
+ * contact's onset, and `success` needs the outgoing speed too. Absent
+ * for a stop.
+ */
+strike?: MeasuredStrike, };
 
 export type JudgedBy = "truth" | "physical" | "measured";
 

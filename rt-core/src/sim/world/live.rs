@@ -19,7 +19,14 @@
 //!   the arrival is the first time after the release at which the true tool,
 //!   having moved, holds still (within [`judge::SETTLE_M`] for
 //!   [`HOLD_S`]); t* is the true pass nearest it; contact and success as
-//!   `judge::judge_physical`. A release ends [`RECORD_S`] after the arm
+//!   `judge::judge_physical`. In strike mode (the scenario's
+//!   `task.mode = "strike"`, issue #38) a release is judged as a strike
+//!   (`judge::judge_strike`): the arrival is the true tool's crossing of the
+//!   true intercept point's `y` along the return, t* the true pass nearest
+//!   the first contact (without one, nearest that crossing), and the ball's
+//!   outgoing speed after the contact against the scenario's target
+//!   (`task.strike_speed_mps` along the swing's horizontal), in
+//!   [`ReleaseTruth::strike`]. A release ends [`RECORD_S`] after the arm
 //!   began to move (or the drop, if later), [`MAX_RECORD_S`] after the drop
 //!   at the latest, or when the coil switches on again.
 //!
@@ -34,10 +41,12 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use super::contact::{BallOnTool, Contact};
-use super::judge::{self, SETTLE_M, WorldSample};
+use super::judge::{self, SETTLE_M, StrikeAim, WorldSample};
 use super::{TruePendulum, World, WorldParams};
+use crate::control::report::StrikeJudgement;
 use crate::fri::codec::Joints;
-use crate::params::Scenario;
+use crate::params::{Scenario, TaskMode};
+use crate::trajectory::strike::STRIKE_RETURN_SIGN;
 
 /// A release's truth is concluded this long after the arm began to move
 /// (or the ball dropped, if later), s; an arm that has not moved is waited
@@ -55,6 +64,8 @@ pub const MOVED_M: f64 = 0.05;
 const TRACE_CAP: usize = 32_768;
 /// Most true passes kept per release.
 const PASS_CAP: usize = 64;
+/// Most contacts kept per release.
+const HIT_CAP: usize = 64;
 
 const ANGLE_STREAM: u64 = 0x6c69_7665_616e_676c;
 
@@ -84,6 +95,10 @@ pub struct ReleaseTruth {
     /// Why the release was not judged (the arm never moved or never settled,
     /// the ball never passed), else `None`.
     pub not_judged: Option<String>,
+    /// A strike's figures (strike mode): then `arrival_s` is the true
+    /// tool's crossing of the intercept point and `success` needs the
+    /// outgoing speed too.
+    pub strike: Option<StrikeJudgement>,
 }
 
 struct Release {
@@ -95,6 +110,8 @@ struct Release {
     moved_s: Option<f64>,
     passes: Vec<f64>,
     trace: Vec<WorldSample>,
+    /// The contacts: their times and the true ball's velocity after each.
+    hits: Vec<(f64, Vector3<f64>)>,
 }
 
 /// The world of a lab's hardware (module docs).
@@ -307,6 +324,7 @@ impl LiveWorld {
                 moved_s: None,
                 passes: Vec::with_capacity(PASS_CAP),
                 trace: Vec::with_capacity(TRACE_CAP),
+                hits: Vec::with_capacity(HIT_CAP),
             });
         } else if held
             && self.on_tool.drop_at.is_none()
@@ -356,6 +374,11 @@ impl LiveWorld {
         if let Some(r) = self.release.as_mut()
             && r.drop_s.is_finite()
         {
+            if let Some(c) = contact.as_ref()
+                && r.hits.len() < HIT_CAP
+            {
+                r.hits.push((c.t_s, self.on_tool.ball.ball_velocity_mps()));
+            }
             if r.trace.len() < TRACE_CAP {
                 r.trace.push(WorldSample {
                     t_s,
@@ -429,7 +452,13 @@ impl LiveWorld {
             contact_s: None,
             success: false,
             not_judged: None,
+            strike: None,
         };
+        if self.scenario.task.mode == TaskMode::Strike {
+            self.judge_strike(&r, &mut truth);
+            self.done.push(truth);
+            return;
+        }
         match settled_at(&r.trace) {
             Err(why) => truth.not_judged = Some(why.into()),
             Ok((arrival_guess, end)) => {
@@ -465,6 +494,58 @@ impl LiveWorld {
             }
         }
         self.done.push(truth);
+    }
+}
+
+impl LiveWorld {
+    /// A strike release's truth (module docs): `judge::judge_strike` with
+    /// the scenario's aim, the pass nearest the first contact after the
+    /// drop (or the true tool's crossing of the intercept point).
+    fn judge_strike(&self, r: &Release, truth: &mut ReleaseTruth) {
+        let task = &self.scenario.task;
+        let aim = StrikeAim {
+            planned_tool_speed_mps: task.strike_speed_mps,
+            target_ball_speed_mps: task.strike_speed_mps
+                * task.strike_direction_deg.to_radians().cos(),
+            return_sign: STRIKE_RETURN_SIGN,
+        };
+        let y = self.world.intercept_m.y;
+        let crossing = r.trace.windows(2).find_map(|w| {
+            let ahead = |s: &WorldSample| (s.disc.centre_m.y - y) * STRIKE_RETURN_SIGN;
+            (ahead(&w[0]) < 0.0 && ahead(&w[1]) >= 0.0).then_some(w[1].t_s)
+        });
+        let Some(near_s) = r
+            .hits
+            .iter()
+            .find(|h| h.0 >= r.drop_s)
+            .map(|h| h.0)
+            .or(crossing)
+        else {
+            truth.not_judged =
+                Some("the tool neither met the ball nor crossed the intercept point".into());
+            return;
+        };
+        match judge::judge_strike(
+            &r.trace,
+            &r.hits,
+            &r.passes,
+            near_s,
+            self.world.pendulum.ball_radius_m,
+            self.scenario.success.timing_tolerance_ms,
+            y,
+            &aim,
+        ) {
+            Ok(p) => {
+                truth.t_star_s = Some(p.t_star_s);
+                truth.arrival_s = Some(p.arrival_s).filter(|a| a.is_finite());
+                truth.timing_error_ms = Some(p.timing_error_ms).filter(|e| e.is_finite());
+                truth.contact = p.contact_s.is_some();
+                truth.contact_s = p.contact_s;
+                truth.success = p.hit_in_time && p.strike.is_some_and(|k| k.speed_ok);
+                truth.strike = p.strike;
+            }
+            Err(e) => truth.not_judged = Some(e.to_string()),
+        }
     }
 }
 
@@ -732,6 +813,87 @@ mod tests {
         let err = r.timing_error_ms.unwrap();
         assert!((err + early_s * 1e3).abs() < 3.0, "{err}");
         assert_eq!(r.success, success, "{r:?}");
+    }
+
+    #[test]
+    fn a_strike_release_is_judged_at_the_tools_crossing_with_the_balls_outgoing_speed() {
+        // Strike mode: the tool sweeps along -y through the intercept point
+        // at 0.5 m/s (the base joint turning), crossing it `late_s` after a
+        // pass towards +y; the truth is the strike's: the crossing against
+        // t*, the ball sent back.
+        for (late_s, in_time) in [(0.005, true), (0.06, false)] {
+            let (mut s, intercept) = lab();
+            s.task.mode = TaskMode::Strike;
+            s.task.strike_speed_mps = 0.5;
+            s.task.strike_direction_deg = 0.0;
+            let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
+            // The free ball's first pass towards +y (no arm in the way).
+            let mut probe = LiveWorld::new(&s, 2, intercept, 0.0);
+            probe.coil(true, 0.0);
+            probe.coil(false, 0.5);
+            let (mut t, mut pass) = (0.0, None);
+            let mut last_y = probe.ball().ball_position_m().y - intercept.y;
+            while t < 8.0 && pass.is_none() {
+                t += 0.001;
+                probe.step(t, &home);
+                let y = probe.ball().ball_position_m().y - intercept.y;
+                if !probe.ball().is_held() && last_y < 0.0 && y >= 0.0 {
+                    pass = Some(t);
+                }
+                last_y = y;
+            }
+            let pass = pass.expect("a pass towards +y");
+            let mut w = LiveWorld::new(&s, 2, intercept, 0.0);
+            let arm = w.world().arm;
+            let at = joints_reaching(&arm, &intercept);
+            // The base angle at which the disc's centre is at the intercept's y.
+            let y_at = |a: f64| {
+                let mut q = at;
+                q[0] = a;
+                arm.disc(&q).centre_m.y - intercept.y
+            };
+            let (mut lo, mut hi) = (at[0] - 0.3, at[0] + 0.3);
+            for _ in 0..60 {
+                let mid = 0.5 * (lo + hi);
+                if y_at(mid) < 0.0 {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let radius = arm.tool_point(&at).xy().norm();
+            let omega = 0.5 / radius;
+            let cross = pass + late_s;
+            let q_at = |t: f64| {
+                let mut q = at;
+                q[0] = hi - (omega * (t - cross)).clamp(-0.25, 0.25);
+                q
+            };
+            w.coil(true, 0.0);
+            w.coil(false, 0.5);
+            let mut t = 0.0;
+            while t < cross + RECORD_S + 0.5 {
+                t += 0.001;
+                w.step(t, &if t < cross - 1.0 { home } else { q_at(t) });
+            }
+            let truth = w.take_truth();
+            assert_eq!(truth.len(), 1, "{truth:?}");
+            let r = &truth[0];
+            assert!(r.not_judged.is_none() && r.contact, "{r:?}");
+            let k = r.strike.expect("judged as a strike");
+            let t_star = r.t_star_s.unwrap_or(f64::NAN);
+            assert!((t_star - pass).abs() < 0.002, "{t_star} vs {pass}");
+            let err = r.timing_error_ms.unwrap_or(f64::NAN);
+            assert!((err - late_s * 1e3).abs() < 2.0, "{err}: {r:?}");
+            assert!((k.tool_speed_mps - 0.5).abs() < 0.05, "{k:?}");
+            // Sent back along -y (restitution 0: with the tool's speed
+            // along the contact's normal).
+            assert!(
+                k.ball_speed_mps > 0.1 && k.direction_error_deg < 90.0,
+                "{k:?}"
+            );
+            assert_eq!(r.success, in_time && k.speed_ok, "{r:?}");
+        }
     }
 
     #[test]
