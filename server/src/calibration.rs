@@ -46,16 +46,17 @@ impl Step {
 
     /// The steps whose results this one builds on: the camera-robot step's
     /// marker is found through the calibrated lens, and its intercept point
-    /// is the rest point the pendulum step found. The pendulum and latency
+    /// is the rest point the pendulum step found; the contact step's knock
+    /// is timed by the calibrated pendulum's swing. The pendulum and latency
     /// steps need no camera step: the configuration's focal length and
     /// principal point stand in for it (the swing in the believed plane, the
     /// LED's brightness in its region).
     pub fn prerequisites(self) -> &'static [Self] {
         match self {
-            // The contact step takes the lab's beliefs as they stand (it
-            // says which: the pendulum's frequency and the camera's scale
-            // are best calibrated first).
-            Self::Camera | Self::Robot | Self::Latency | Self::Pendulum | Self::Contact => &[],
+            Self::Camera | Self::Robot | Self::Latency | Self::Pendulum => &[],
+            // The knock's geometry takes the pendulum's frequency (0.1% of
+            // it is 1.3 ms of the result).
+            Self::Contact => &[Self::Pendulum],
             Self::CameraRobot => &[Self::Camera, Self::Pendulum],
         }
     }
@@ -758,22 +759,7 @@ pub async fn run_real_pendulum(
         lab.command(Command::Disarm)
             .await
             .map_err(|e| anyhow::anyhow!("calibrate pendulum: disarm: {e}"))?;
-        // New camera frames: `None` while no new frame came, `Some(None)` for
-        // a frame without the ball, `Some(Some(sample))` for one with it.
-        let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
-        let mut next = move || -> Option<Option<TrackedSwingSample>> {
-            let (s, _) = lab.latest()?;
-            if s.camera.frame == last_frame {
-                return None;
-            }
-            last_frame = s.camera.frame;
-            let m = s.pendulum.measured;
-            Some((s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(TrackedSwingSample {
-                t_s: m.t_s,
-                lateral_m: m.x_m,
-                px: [s.camera.x_px, s.camera.y_px],
-            }))
-        };
+        let mut next = camera_detections(lab);
         // The camera must deliver before the ball is hung: a swing recorded
         // while it does not is a swing never seen.
         let wait_from = Instant::now();
@@ -911,6 +897,31 @@ pub async fn run_real_pendulum(
     }
     .await;
     desk.conclude(id, Step::Pendulum, scenario, outcome, desk.source())
+}
+
+/// The lab's camera frames from now on, one call each: `None` while no new
+/// frame came, `Some(None)` for a frame without the ball, `Some(Some(d))`
+/// for one with it (its capture time, lateral position and pixel).
+fn camera_detections(
+    lab: &crate::Lab,
+) -> impl FnMut() -> Option<Option<rt_core::calibration::swing::TrackedSwingSample>> + '_ {
+    use rt_core::calibration::swing::TrackedSwingSample;
+    let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
+    move || {
+        let (s, _) = lab.latest()?;
+        if s.camera.frame == last_frame {
+            return None;
+        }
+        last_frame = s.camera.frame;
+        let m = s.pendulum.measured;
+        Some(
+            (s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(TrackedSwingSample {
+                t_s: m.t_s,
+                lateral_m: m.x_m,
+                px: [s.camera.x_px, s.camera.y_px],
+            }),
+        )
+    }
 }
 
 /// What the pendulum step asks of the person who hangs the ball when the
@@ -2113,7 +2124,7 @@ async fn real_contact(
         format!(
             "{KNOCKS} knocks at {:.2} m/s, the ball back after {:.3} s: the torques show a \
              contact {:.1} ± {:.1} ms late at the pulse's centre (lag {:.1} ms = {:.2} periods, \
-             pulse {:.1} ms), the pendulum's frequency as {}",
+             pulse {:.1} ms)",
             result.knock_speed_mps,
             result.return_s,
             result.onset_offset_ms,
@@ -2121,11 +2132,6 @@ async fn real_contact(
             result.torque_lag_ms,
             result.torque_lag_periods,
             result.pulse_ms,
-            if lab_has_step(desk, Step::Pendulum) {
-                "calibrated"
-            } else {
-                "believed (the pendulum step not run: 0.1% off moves the offset by 1.3 ms)"
-            }
         ),
         points,
     );
@@ -2183,18 +2189,12 @@ async fn knock_once(
         .latest()
         .map(|(s, _)| s.robot.q_cmd_rad)
         .context("calibrate contact: the lab published no state")?;
-    // The camera's detections from now on.
-    let mut last_frame = lab.latest().map_or(0, |(s, _)| s.camera.frame);
+    // The camera's detections from now on (frames without the ball skipped).
+    let mut frames = camera_detections(lab);
     let mut next = move || -> Option<Sighting> {
-        let (s, _) = lab.latest()?;
-        if s.camera.frame == last_frame {
-            return None;
-        }
-        last_frame = s.camera.frame;
-        let m = s.pendulum.measured;
-        (s.camera.found && m.valid && m.t_s == s.camera.t_s).then_some(Sighting {
-            t_s: m.t_s,
-            x_m: m.x_m,
+        frames().flatten().map(|d| Sighting {
+            t_s: d.t_s,
+            x_m: d.lateral_m,
         })
     };
     // 2. The ball hangs still: its swing over the last KNOCK_WATCH_S.
@@ -2363,7 +2363,33 @@ async fn knock_once(
         damping_per_s: p.damping_per_s,
         sigma,
     })
-    .context("calibrate contact")?;
+    .map_err(|e| {
+        // Where the tool went and where the camera saw the ball: what a
+        // person checks when no contact was seen.
+        let (lo, hi) = tool_y_m
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &y| {
+                (a.min(y), b.max(y))
+            });
+        let at = tap.tool_m.last().copied().unwrap_or([f64::NAN; 3]);
+        let rest = sightings
+            .iter()
+            .filter(|s| s.t_s < knock_start_s)
+            .map(|s| s.x_m)
+            .sum::<f64>()
+            / sightings
+                .iter()
+                .filter(|s| s.t_s < knock_start_s)
+                .count()
+                .max(1) as f64;
+        anyhow::anyhow!(
+            "calibrate contact: {e} (the tool along y from {lo:.3} to {hi:.3} m at x {:.3}, z \
+             {:.3} m; the ball seen at rest {:.1} mm aside of its believed rest point)",
+            at[0],
+            at[2],
+            rest * 1e3
+        )
+    })?;
     // The view: the torques' departure from their rest (norm), over time.
     let base: [f64; 7] = {
         let n = t_s.partition_point(|&t| t < knock_start_s).max(1);
@@ -2385,9 +2411,4 @@ async fn knock_once(
         800,
     );
     Ok((result, points))
-}
-
-/// Whether the desk's calibration file holds `step`'s result.
-fn lab_has_step(desk: &CalibrationDesk, step: Step) -> bool {
-    CalibrationFile::load_or_empty(desk.path()).is_ok_and(|f| step.done_in(&f))
 }

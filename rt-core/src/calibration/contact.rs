@@ -370,19 +370,40 @@ pub fn fit_knock(r: &KnockRecording<'_>) -> Result<ContactCalibration, Calibrati
     };
     let (c1_std, c2_std) = (onset_std(&pulses[0], c1), onset_std(&pulses[1], c2));
     let return_s = c2 - c1;
-    // The tool had stopped when the ball came back: where it stood.
-    let k_stop = t.partition_point(|&s| s < c2).min(n - 1).max(1);
-    let stop_speed = (y[k_stop] - y[k_stop - 1]).abs() / (t[k_stop] - t[k_stop - 1]).max(1e-6);
+    // The tool had stopped before the ball came back: where it stood (its
+    // track from 0.3 to 0.2 s before the second onset, before the touch
+    // whatever the lag up to 0.2 s; a compliant arm gives way at the touch).
+    let (a, b) = (
+        t.partition_point(|&s| s < c2 - 0.3),
+        t.partition_point(|&s| s < c2 - 0.2),
+    );
+    if b < a + 2 {
+        return Err(CalibrationError::FitFailed {
+            what: WHAT,
+            reason: "no tool track before the ball came back".into(),
+        });
+    }
+    let m = (b - a) as f64;
+    let (tm, ym) = (
+        t[a..b].iter().sum::<f64>() / m,
+        y[a..b].iter().sum::<f64>() / m,
+    );
+    let (mut stt, mut sty) = (0.0, 0.0);
+    for (ti, yi) in t[a..b].iter().zip(&y[a..b]) {
+        stt += (ti - tm).powi(2);
+        sty += (ti - tm) * (yi - ym);
+    }
+    let stop_speed = if stt > 0.0 { (sty / stt).abs() } else { 0.0 };
     if stop_speed > MAX_STOP_SPEED_MPS {
         return Err(CalibrationError::FitFailed {
             what: WHAT,
             reason: format!(
-                "the tool still moved at {stop_speed:.3} m/s when the ball came back (it must \
+                "the tool still moved at {stop_speed:.3} m/s before the ball came back (it must \
                  stand still)"
             ),
         });
     }
-    let y_stop = y[k_stop];
+    let y_stop = ym;
     // The ball at rest before the knock, as the camera sees it.
     let resting: Vec<f64> = r
         .sightings

@@ -157,8 +157,9 @@ fn bad_input_writes_nothing() {
 /// The contact step on a world whose robot shows a contact 3 FRI periods
 /// (15 ms) late with an 8 ms force pulse, while the lab believes 1 period
 /// and 4 ms (the measured judge would subtract 7 ms from the pulse's centre
-/// where 19 ms are due): the knocks on the hanging ball learn the sum within
-/// 5 ms of the world's, without the camera's clock; the
+/// where 19 ms are due): after the pendulum step (refused before it), the
+/// knocks on the hanging ball learn the sum within 5 ms of the world's,
+/// without the camera's clock; the
 /// file holds it, stamped with its world, and `trials --calibration` loads
 /// it. On a starved machine the robot may leave commanding mid-knock: then
 /// the step refuses, saying so, and writes nothing.
@@ -185,6 +186,13 @@ fn the_contact_step_learns_how_late_the_torques_show_a_contact() {
     let file = dir.join("calibration.toml");
     let f = file.to_str().unwrap();
     let s = scenario.to_str().unwrap();
+    // It needs the pendulum's frequency: refused without, nothing written.
+    let (ok, _, err) = calibrate(&["contact", "--scenario", s, "--out", f]);
+    assert!(!ok && err.contains("pendulum"), "{err}");
+    assert!(!file.exists());
+    let (ok, _, err) = calibrate(&["pendulum", "--scenario", s, "--seed", "1", "--out", f]);
+    assert!(ok, "{err}");
+    let pendulum_only = std::fs::read_to_string(&file).unwrap();
     let (ok, v, err) = calibrate(&[
         "contact",
         "--scenario",
@@ -200,7 +208,11 @@ fn the_contact_step_learns_how_late_the_torques_show_a_contact() {
             err.contains("left commanding") || err.contains("was interrupted"),
             "{err}"
         );
-        assert!(!file.exists(), "a refused step wrote the file");
+        assert_eq!(
+            std::fs::read_to_string(&file).unwrap(),
+            pendulum_only,
+            "a refused step changed the file"
+        );
         println!("the contact step refused on a starved machine: {err}");
         let _ = std::fs::remove_dir_all(&dir);
         return;

@@ -108,7 +108,14 @@ async fn calibration_steps_run_on_the_simulated_lab_refusals_change_nothing() {
         .collect();
     assert_eq!(
         names,
-        ["camera", "latency", "pendulum", "camera-robot", "robot", "contact"]
+        [
+            "camera",
+            "latency",
+            "pendulum",
+            "camera-robot",
+            "robot",
+            "contact"
+        ]
     );
     assert_eq!(
         s["steps"][3]["missing"],
