@@ -169,19 +169,25 @@ impl StepOutcome {
     }
 }
 
-/// The pendulum step's outcome from a free swing recorded on the real lab:
-/// no truth to compare with (`truth` and `error` null).
+/// The pendulum step's outcome from a free swing recorded on the real lab,
+/// its detections on the camera's frame grid (`on_frame_grid`: frames a busy
+/// host delivered late are stamped at their capture slots): no truth to
+/// compare with (`truth` and `error` null).
 ///
 /// # Errors
 ///
-/// When [`pendulum_from_swing`](rt_core::calibration::swing::pendulum_from_swing)
+/// When [`on_frame_grid`](rt_core::calibration::swing::on_frame_grid) (frames
+/// too irregular) or
+/// [`pendulum_from_swing`](rt_core::calibration::swing::pendulum_from_swing)
 /// refuses the track ("calibrate pendulum"), or the result cannot be serialised.
 pub fn real_pendulum_outcome(
     track: &[rt_core::calibration::swing::TrackedSwingSample],
     scenario: &Scenario,
 ) -> anyhow::Result<StepOutcome> {
     let p = &scenario.pendulum;
-    let c = rt_core::calibration::swing::pendulum_from_swing(track, p.gravity_mps2, p.length_m)
+    let track = rt_core::calibration::swing::on_frame_grid(track, 1.0 / scenario.camera.fps)
+        .context("calibrate pendulum")?;
+    let c = rt_core::calibration::swing::pendulum_from_swing(&track, p.gravity_mps2, p.length_m)
         .context("calibrate pendulum")?;
     Ok(StepOutcome {
         result: serde_json::to_value(&c)?,

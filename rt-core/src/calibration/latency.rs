@@ -308,6 +308,7 @@ pub fn estimate_led_latency(
     .sqrt();
     if spread.is_nan() || spread > MAX_SPREAD_PERIODS * period {
         return Err(CalibrationError::IrregularFrames {
+            what: "the LED",
             spread_ms: spread * 1e3,
             period_ms: period * 1e3,
             limit_ms: MAX_SPREAD_PERIODS * period * 1e3,

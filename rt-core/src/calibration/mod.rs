@@ -110,17 +110,35 @@ pub enum CalibrationError {
     /// The camera's frames arrive too irregularly to give them their capture
     /// slots by their delivery times.
     #[error(
-        "the camera's frames arrive too irregularly to time the LED: they come {spread_ms:.1} ms \
+        "the camera's frames arrive too irregularly to time {what}: they come {spread_ms:.1} ms \
          apart from their grid (standard deviation) against a frame period of {period_ms:.1} ms, \
          at most {limit_ms:.1} ms usable (a busy host or network: calibrate when it is quieter)"
     )]
     IrregularFrames {
+        /// What was being timed.
+        what: &'static str,
         /// Standard deviation of the frames' lateness, ms.
         spread_ms: f64,
         /// The measured frame period, ms.
         period_ms: f64,
         /// The largest spread accepted, ms.
         limit_ms: f64,
+    },
+    /// Too few of the camera's frames came on time to stamp them.
+    #[error(
+        "the camera's frames arrive too irregularly to time {what}: {late} of {frames} came over \
+         half a frame period ({period_ms:.1} ms) after their slot (a busy host or network: \
+         calibrate when it is quieter)"
+    )]
+    LateFrames {
+        /// What was being timed.
+        what: &'static str,
+        /// Frames late.
+        late: usize,
+        /// Frames in all.
+        frames: usize,
+        /// The measured frame period, ms.
+        period_ms: f64,
     },
     /// The least-squares fit did not converge or gave a non-physical result.
     #[error("{what}: fit failed: {reason}")]

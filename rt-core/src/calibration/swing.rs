@@ -96,6 +96,66 @@ pub struct TrackedSwingSample {
     pub px: [f64; 2],
 }
 
+/// A track's detections on the camera's frame grid
+/// ([`super::latency::frame_grid`]). Each frame's stamp is its delivery
+/// less the camera's latency, and a busy host or stream delivers frames
+/// late: in bursts after a stall, stamped together (at the swing's 1.8 m/s
+/// a frame stamped 100 ms late is 18 cm off the swing, and the fit refuses
+/// the whole swing as no free swing). Kept: the frames delivered within half
+/// a frame period of their capture slot's on-time delivery, each stamped at
+/// its slot (its lateness taken off: the stream's jitter too); a late
+/// frame's slot is a guess (a frame of its burst may be missing), so it is
+/// dropped. `frame_period_s` is the camera's nominal frame period.
+///
+/// # Errors
+///
+/// [`CalibrationError::NotFinite`] for a non-finite stamp or a bad period;
+/// [`CalibrationError::LateFrames`] when fewer than [`MIN_ON_TIME_SHARE`]
+/// of the frames came on time (calibrate when the host is quieter).
+pub fn on_frame_grid(
+    track: &[TrackedSwingSample],
+    frame_period_s: f64,
+) -> Result<Vec<TrackedSwingSample>, CalibrationError> {
+    const WHAT: &str = "pendulum swing (frame stamps)";
+    if !(frame_period_s.is_finite() && frame_period_s > 0.0) {
+        return Err(CalibrationError::NotFinite {
+            what: WHAT,
+            index: 0,
+        });
+    }
+    if let Some(index) = track.iter().position(|s| !s.t_s.is_finite()) {
+        return Err(CalibrationError::NotFinite { what: WHAT, index });
+    }
+    if track.len() < 3 {
+        return Ok(track.to_vec());
+    }
+    let mut sorted = track.to_vec();
+    sorted.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+    let stamps: Vec<f64> = sorted.iter().map(|s| s.t_s).collect();
+    let g = super::latency::frame_grid(&stamps, frame_period_s);
+    let on_time: Vec<TrackedSwingSample> = sorted
+        .iter()
+        .zip(&g.lateness_s)
+        .filter(|(_, late)| **late < 0.5 * g.period_s)
+        .map(|(s, late)| TrackedSwingSample {
+            t_s: s.t_s - late,
+            ..*s
+        })
+        .collect();
+    if (on_time.len() as f64) < MIN_ON_TIME_SHARE * sorted.len() as f64 {
+        return Err(CalibrationError::LateFrames {
+            what: "the pendulum's swing",
+            late: sorted.len() - on_time.len(),
+            frames: sorted.len(),
+            period_ms: g.period_s * 1e3,
+        });
+    }
+    Ok(on_time)
+}
+
+/// The least share of a swing's frames [`on_frame_grid`] needs on time.
+pub const MIN_ON_TIME_SHARE: f64 = 0.5;
+
 /// Fewest passes through the fitted rest point the pendulum step needs.
 pub const MIN_REST_PASSES: usize = 5;
 

@@ -40,6 +40,90 @@ fn swing(length_m: f64, alpha: f64, release_deg: f64, secs: f64, noise_m: f64) -
 }
 
 #[test]
+fn frames_a_busy_host_delivered_late_are_stamped_at_their_slots_and_the_swing_fits() {
+    // A 30 fps camera whose frames a starved host took in bursts: every
+    // 0.7 s a stall of 100-300 ms, the frames captured in it stamped at
+    // its end (delivery less the latency), plus 1 ms of stream jitter.
+    let (l, rest) = (1.93, 0.004);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let clean: Vec<swing::TrackedSwingSample> = swing(l, 0.03, 25.0, 20.0, 0.0005)
+        .into_iter()
+        .map(|s| swing::TrackedSwingSample {
+            t_s: s.t_s,
+            lateral_m: s.lateral_m,
+            px: [640.0 + 600.0 * (s.lateral_m - rest), 360.0],
+        })
+        .collect();
+    let mut stalled = clean.clone();
+    let mut stall_end = 0.0;
+    for s in &mut stalled {
+        let t = s.t_s;
+        if t > stall_end && (t % 0.7) < 1.0 / 30.0 {
+            stall_end = t + rng.random_range(0.1..0.3);
+        }
+        s.t_s = if t < stall_end { stall_end } else { t } + 1e-3 * gauss(&mut rng).abs();
+    }
+    let late = stalled
+        .iter()
+        .zip(&clean)
+        .filter(|(a, b)| a.t_s - b.t_s > 0.05)
+        .count();
+    assert!(late > 60, "{late} frames late");
+    // Taken at their delivery stamps, the swing is no free swing (or a wrong one).
+    match swing::pendulum_from_swing(&stalled, 9.81, 1.9) {
+        Err(CalibrationError::PoorFit { .. }) => {}
+        Ok(c) => assert!((c.swing.length_m - l).abs() > 3e-3, "{}", c.swing.length_m),
+        Err(e) => panic!("{e}"),
+    }
+    // On the frame grid: the length within 1 mm, as from the clean stamps.
+    let regridded = swing::on_frame_grid(&stalled, 1.0 / 30.0).expect("the grid");
+    assert!(
+        regridded.len() + late <= stalled.len() + 5,
+        "{} kept",
+        regridded.len()
+    );
+    let c = swing::pendulum_from_swing(&regridded, 9.81, 1.9).expect("the step");
+    assert!((c.swing.length_m - l).abs() < 1e-3, "{}", c.swing.length_m);
+    // A clean track keeps its fit (its stamps move by the jitter only).
+    let c = swing::pendulum_from_swing(
+        &swing::on_frame_grid(&clean, 1.0 / 30.0).unwrap(),
+        9.81,
+        1.9,
+    )
+    .expect("the clean step");
+    assert!((c.swing.length_m - l).abs() < 1e-3, "{}", c.swing.length_m);
+    // A host stalled most of the time (300 ms of every 400): most frames
+    // come in bursts, too few on time to trust the grid: refused.
+    let mut busy = clean.clone();
+    let mut stall_end = 0.0;
+    for s in &mut busy {
+        let t = s.t_s;
+        if t > stall_end && (t % 0.4) < 1.0 / 30.0 {
+            stall_end = t + rng.random_range(0.28..0.32);
+        }
+        s.t_s = if t < stall_end { stall_end } else { t };
+    }
+    let e = swing::on_frame_grid(&busy, 1.0 / 30.0).map(|v| v.len());
+    assert!(
+        matches!(&e, Err(CalibrationError::LateFrames { .. }))
+            && e.as_ref().is_err_and(|e| {
+                e.to_string()
+                    .contains("arrive too irregularly to time the pendulum's swing")
+            }),
+        "{e:?}"
+    );
+    // Bad input: a NaN stamp, a bad period.
+    let mut nan = clean.clone();
+    nan[4].t_s = f64::NAN;
+    assert!(matches!(
+        swing::on_frame_grid(&nan, 1.0 / 30.0),
+        Err(CalibrationError::NotFinite { index: 4, .. })
+    ));
+    assert!(swing::on_frame_grid(&clean, f64::NAN).is_err());
+    assert!(swing::on_frame_grid(&clean, 0.0).is_err());
+}
+
+#[test]
 fn a_recorded_swing_alone_gives_the_pendulum_step_rest_pixel_and_axis() {
     // A camera 1.5 m before the plane, 900 px focal length, its image x along
     // the swing, tilted 3 deg: the ball's image from its lateral and height.
