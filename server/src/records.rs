@@ -878,6 +878,7 @@ mod tests {
             rebound_used: 10,
             in_time: true,
             speed_ok: false,
+            predicted: rt_core::control::PredictedRebound::new(0.0, 0.47, 0.9, 9.81 / 1.93, 0.03),
         };
         let slow = MeasuredJudgement {
             timing_error_ms: Some(3.0),

@@ -563,6 +563,8 @@ mod tests {
             speed_error: (ball_mps - 0.5) / 0.5,
             direction_error_deg: 2.0,
             speed_ok: ((ball_mps - 0.5) / 0.5).abs() <= STRIKE_SPEED_TOLERANCE,
+            aim_known: true,
+            predicted_ball_speed_mps: Some(0.5),
         };
         let struck = |ball_mps: f64| {
             let mut r = record(3.0, 0.004);
@@ -714,6 +716,9 @@ pub struct StrikeAim {
     pub target_ball_speed_mps: f64,
     /// The sign of `y` the ball should return along.
     pub return_sign: f64,
+    /// The controller's predicted rebound at its commit (`None`: none made,
+    /// or a judge that does not know it, as the world's).
+    pub predicted: Option<super::rebound::PredictedRebound>,
 }
 
 /// How far a struck ball's outgoing speed may miss its target, as a share of
@@ -746,6 +751,21 @@ pub struct StrikeJudgement {
     /// degrees (NaN: no contact).
     pub direction_error_deg: f64,
     /// Contact, the ball returned (against its pass) and
-    /// `|speed_error| <= STRIKE_SPEED_TOLERANCE`.
+    /// `|speed_error| <= STRIKE_SPEED_TOLERANCE`; false, and not judged,
+    /// when the aim is not known (`aim_known`).
     pub speed_ok: bool,
+    /// Whether the judge knew the aim (planned speed and target): the
+    /// world process judging a lab switched to strike over `PUT
+    /// /api/params` does not (then the planned and target speeds, the
+    /// speed error and `speed_ok` say nothing, and a strike in time counts).
+    #[serde(default = "yes")]
+    pub aim_known: bool,
+    /// The controller's predicted outgoing ball speed
+    /// ([`super::rebound::PredictedRebound`]), m/s, when it made one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predicted_ball_speed_mps: Option<f64>,
+}
+
+fn yes() -> bool {
+    true
 }
