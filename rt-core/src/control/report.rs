@@ -237,6 +237,11 @@ pub struct StrikeSummary {
     /// failure `infeasible strike at ...`: the drawn distance out of the
     /// stroke's reach, speed, acceleration or torque); counted in `trials`.
     pub refused: usize,
+    /// |true - predicted outgoing speed| over the struck trials with the
+    /// controller's predicted rebound, as a share of the predicted (absent
+    /// without predictions).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub predicted_error: Option<P50P95>,
 }
 
 impl StrikeSummary {
@@ -299,6 +304,22 @@ impl StrikeSummary {
             },
             aborted: records.iter().filter(|r| r.abort_reason.is_some()).count(),
             refused,
+            predicted_error: {
+                let d: Vec<f64> = struck
+                    .iter()
+                    .filter_map(|s| {
+                        let p = s.predicted_ball_speed_mps.filter(|p| *p > 0.0)?;
+                        Some(((s.ball_speed_mps - p) / p).abs())
+                    })
+                    .collect();
+                (!d.is_empty()).then(|| {
+                    let q = Percentiles::of(&d);
+                    P50P95 {
+                        p50: q.p50,
+                        p95: q.p95,
+                    }
+                })
+            },
         })
     }
 }
@@ -602,6 +623,10 @@ mod tests {
             (3, 2, 1)
         );
         assert_eq!((k.refused, k.aborted), (1, 0));
+        // The true outgoing speeds against the predicted 0.5 m/s: 10% and 40%.
+        let p = k.predicted_error.expect("predictions");
+        let within = |v: f64| (0.1 - 1e-9..=0.4 + 1e-9).contains(&v);
+        assert!(within(p.p50) && within(p.p95) && p.p95 > 0.3, "{p:?}");
         assert!(StrikeSummary::of(&[record(3.0, 0.004)]).is_none());
     }
 
