@@ -19,11 +19,11 @@
 //!   the arrival is the first time after the release at which the true tool,
 //!   having moved, holds still (within [`judge::SETTLE_M`] for
 //!   [`HOLD_S`]); t* is the true pass nearest it; contact and success as
-//!   `judge::judge_physical`. A struck release (issue #38: the scenario's
-//!   `task.mode = "strike"`, or, whatever the scenario's mode, the true tool
-//!   meeting the ball moving along the swing against it at
-//!   [`STRIKE_TOOL_SPEED_MPS`] or faster, as a served lab switched to strike
-//!   over `PUT /api/params` does) is judged as a strike
+//!   `judge::judge_physical`. A struck release (issue #38: whatever the
+//!   scenario's mode, the true tool meeting the ball moving along the swing
+//!   against it at [`STRIKE_TOOL_SPEED_MPS`] or faster, as a served lab
+//!   switched to strike over `PUT /api/params` does; a tool at rest is a
+//!   stop even in a strike scenario) is judged as a strike
 //!   (`judge::judge_strike`): the arrival is the true tool's crossing of the
 //!   true intercept point's `y` along the return, t* the true pass nearest
 //!   the first contact (without one, nearest that crossing), and the ball's
@@ -502,17 +502,19 @@ impl LiveWorld {
 }
 
 impl LiveWorld {
-    /// Whether a release is judged as a strike, and against what: the
-    /// scenario's aim when its file says `task.mode = "strike"`; else what
-    /// physically happened ([`struck_along`]: the true tool moving along the
-    /// swing, against the ball, at [`STRIKE_TOOL_SPEED_MPS`] or faster at
-    /// the first contact, or crossing the intercept point so without one),
-    /// with an aim the world cannot know (a served lab switched to strike
-    /// over `PUT /api/params`: its planned speed and target are the
-    /// service's): NaN, so the truth says `aim_known: false` and its
-    /// success is the contact in time alone. `None`: a stop.
+    /// Whether a release is judged as a strike, and against what. What
+    /// physically happened decides ([`struck_along`]: the true tool moving
+    /// along the swing, against the ball, at [`STRIKE_TOOL_SPEED_MPS`] or
+    /// faster at the first contact, or crossing the intercept point so
+    /// without one), whatever the scenario's mode (the service may switch
+    /// it over `PUT /api/params` either way); a struck release is judged
+    /// against the scenario's aim when its file says `task.mode =
+    /// "strike"`, else with an aim the world cannot know (the planned speed
+    /// and target are the service's): NaN, so the truth says `aim_known:
+    /// false` and its success is the contact in time alone. `None`: a stop.
     fn strike_aim(&self, r: &Release) -> Option<StrikeAim> {
         let task = &self.scenario.task;
+        let return_sign = struck_along(r, self.world.intercept_m.y)?;
         if task.mode == TaskMode::Strike {
             return Some(StrikeAim {
                 planned_tool_speed_mps: task.strike_speed_mps,
@@ -522,7 +524,6 @@ impl LiveWorld {
                 predicted: None,
             });
         }
-        let return_sign = struck_along(r, self.world.intercept_m.y)?;
         Some(StrikeAim {
             planned_tool_speed_mps: f64::NAN,
             target_ball_speed_mps: f64::NAN,
@@ -822,13 +823,18 @@ mod tests {
     #[test]
     fn a_tool_at_the_intercept_point_is_hit_felt_and_judged_on_the_true_pass() {
         // Early by 300 ms: contact, not in time; by 5 ms: a success.
-        for (early_s, success) in [(0.3, false), (0.005, true)] {
-            hit_and_judge(early_s, success);
+        // A scenario that says strike (a lab switched to stop over REST)
+        // still has its resting tool judged as a stop.
+        for mode in [TaskMode::Stop, TaskMode::Strike] {
+            for (early_s, success) in [(0.3, false), (0.005, true)] {
+                hit_and_judge(early_s, success, mode);
+            }
         }
     }
 
-    fn hit_and_judge(early_s: f64, success: bool) {
-        let (s, intercept) = lab();
+    fn hit_and_judge(early_s: f64, success: bool, mode: TaskMode) {
+        let (mut s, intercept) = lab();
+        s.task.mode = mode;
         let mut w = LiveWorld::new(&s, 2, intercept, 0.0);
         let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
         let arm = w.world().arm;
