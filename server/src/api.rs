@@ -1290,7 +1290,13 @@ pub async fn recording_mcap(
             rec.id
         )));
     }
-    let bytes = blocking(move || crate::records::csv_to_mcap(&path)).await?;
+    // A strike's figures from the record (a recording without the live MCAP).
+    let measured = rec.measured.filter(|m| m.strike.is_some());
+    let id = rec.id;
+    let bytes = blocking(move || {
+        crate::records::csv_to_mcap_with(&path, measured.as_ref().map(|m| (id, m)))
+    })
+    .await?;
     Ok(download(
         bytes,
         "application/octet-stream",

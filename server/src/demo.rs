@@ -503,6 +503,14 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
                 continue;
             }
         };
+        // Strike mode (issue #38): the visitors' page says the stroke.
+        let stroke = state
+            .lab
+            .as_ref()
+            .map(|lab| lab.params().task)
+            .filter(|k| k.mode == rt_core::params::TaskMode::Strike)
+            .map(|k| format!(", striking at {:.2} m/s", k.strike_speed_mps))
+            .unwrap_or_default();
         match crate::api::start_one(&state, setup).await {
             // Answered late: it runs as any other, or its record goes (then
             // the demo goes on to the next).
@@ -519,7 +527,7 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
                     s.state = "running";
                     s.reason = None;
                     s.detail = None;
-                    s.message = format!("trial {id}: {d:.2} m in {t:.1} s");
+                    s.message = format!("trial {id}: {d:.2} m in {t:.1} s{stroke}");
                     s.trial_id = Some(id);
                     s.next_in_s = None;
                 });

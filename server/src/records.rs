@@ -626,6 +626,22 @@ impl Recorder {
 /// When the CSV cannot be opened or read, has no data columns, or the MCAP cannot
 /// be written.
 pub fn csv_to_mcap(csv_path: &Path) -> anyhow::Result<Vec<u8>> {
+    csv_to_mcap_with(csv_path, None)
+}
+
+/// [`csv_to_mcap`], and for a strike trial (`trial`: its id and the measured
+/// judge's verdict, as its record keeps it) one message on
+/// [`crate::viz::STRIKE_TOPIC`] after the rows (log time the last row's):
+/// the tool's speed at contact planned and executed, the outgoing ball
+/// speed predicted (with the rebound's curve) and seen.
+///
+/// # Errors
+///
+/// As [`csv_to_mcap`].
+pub fn csv_to_mcap_with(
+    csv_path: &Path,
+    trial: Option<(u64, &MeasuredJudgement)>,
+) -> anyhow::Result<Vec<u8>> {
     let mut reader = csv::ReaderBuilder::new()
         .flexible(true)
         .from_path(csv_path)
@@ -705,6 +721,31 @@ pub fn csv_to_mcap(csv_path: &Path) -> anyhow::Result<Vec<u8>> {
             &data,
         )?;
         seq = seq.wrapping_add(1);
+    }
+    let strike = trial.and_then(|(id, m)| {
+        crate::viz::StrikeMessage::of(id, m, m.contact_t_s.unwrap_or(f64::NAN))
+    });
+    if let Some(k) = strike {
+        let schema = w.add_schema(
+            crate::viz::STRIKE_SCHEMA_NAME,
+            "jsonschema",
+            crate::viz::STRIKE_SCHEMA.as_bytes(),
+        )?;
+        let channel = w.add_channel(
+            schema,
+            crate::viz::STRIKE_TOPIC,
+            "json",
+            &std::collections::BTreeMap::new(),
+        )?;
+        w.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id: channel,
+                sequence: 0,
+                log_time: last_t_ns,
+                publish_time: last_t_ns,
+            },
+            &serde_json::to_vec(&k)?,
+        )?;
     }
     w.finish()?;
     Ok(w.into_inner().into_inner())
@@ -878,6 +919,7 @@ mod tests {
             rebound_used: 10,
             in_time: true,
             speed_ok: false,
+            predicted: rt_core::control::PredictedRebound::new(0.0, 0.47, 0.9, 9.81 / 1.93, 0.03),
         };
         let slow = MeasuredJudgement {
             timing_error_ms: Some(3.0),
@@ -924,5 +966,98 @@ mod tests {
         let j: serde_json::Value = serde_json::from_slice(&msgs[4].data).unwrap();
         assert!((j["q4_rad"].as_f64().unwrap() - 0.4).abs() < 1e-12);
         assert!(j["tool_x_m"].is_null());
+    }
+
+    /// A strike trial's MCAP (converted from its CSV with its record's
+    /// measured verdict) carries the strike on `/trial/strike`: the tool's
+    /// speed at contact planned and executed, the ball's outgoing speed
+    /// predicted and seen, and the predicted rebound's curve (its first
+    /// swing: out to the amplitude at the turn and back); a stop's has none.
+    #[test]
+    fn a_strike_recordings_mcap_carries_the_predicted_and_seen_rebound() {
+        let dir = tmp("mcap-strike");
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("2.csv");
+        let mut rec = Recorder::default();
+        for i in 0..5u64 {
+            let s = Snapshot {
+                seq: i,
+                t_s: 10.0 + i as f64 * 0.005,
+                ..Snapshot::default()
+            };
+            rec.append(&path, 2, &s).unwrap();
+        }
+        rec.finish();
+        let predicted =
+            rt_core::control::PredictedRebound::new(0.2, 0.47, 1.8, 9.81 / 1.93, 0.03).unwrap();
+        let strike = rt_core::control::measured::MeasuredStrike {
+            planned_tool_speed_mps: 0.5,
+            tool_speed_mps: Some(0.49),
+            target_ball_speed_mps: 0.47,
+            ball_speed_mps: Some(0.88),
+            ball_speed_std_mps: Some(0.01),
+            speed_error: Some(0.87),
+            returned: true,
+            rebound_used: 10,
+            in_time: true,
+            speed_ok: false,
+            predicted: Some(predicted),
+        };
+        let m = MeasuredJudgement {
+            pass_t_s: Some(10.0),
+            arrival_t_s: Some(10.003),
+            timing_error_ms: Some(3.0),
+            timing_std_ms: Some(0.8),
+            contact: true,
+            contact_t_s: Some(10.01),
+            success: false,
+            torque_signal: true,
+            robot_gap_ms: None,
+            camera_clock_error_ms: None,
+            camera_clock_error_std_ms: None,
+            strike: Some(strike),
+        };
+        let read = |bytes: &[u8]| -> Vec<(String, serde_json::Value)> {
+            mcap::MessageStream::new(bytes)
+                .unwrap()
+                .map(|m| {
+                    let m = m.unwrap();
+                    (
+                        m.channel.topic.clone(),
+                        serde_json::from_slice(&m.data).unwrap(),
+                    )
+                })
+                .collect()
+        };
+        let msgs = read(&csv_to_mcap_with(&path, Some((2, &m))).unwrap());
+        assert_eq!(msgs.len(), 6);
+        let k: Vec<_> = msgs
+            .iter()
+            .filter(|(t, _)| t == crate::viz::STRIKE_TOPIC)
+            .map(|(_, j)| j)
+            .collect();
+        assert_eq!(k.len(), 1, "{msgs:?}");
+        let k = k[0];
+        assert_eq!(k["trial_id"], 2);
+        assert_eq!(k["planned_tool_speed_mps"], 0.5);
+        assert_eq!(k["executed_tool_speed_mps"], 0.49);
+        assert_eq!(k["seen_ball_speed_mps"], 0.88);
+        let v = k["predicted_ball_speed_mps"].as_f64().unwrap();
+        assert!((v - (1.2 * 0.47 + 0.2 * 1.8)).abs() < 1e-9, "{k}");
+        assert_eq!(k["predicted"]["restitution"], 0.2);
+        let curve = k["predicted_curve"].as_array().unwrap();
+        let lat = |p: &serde_json::Value| p["lateral_m"].as_f64().unwrap();
+        let peak = curve.iter().map(lat).fold(f64::NEG_INFINITY, f64::max);
+        // Sampled: at most the amplitude, within a percent of it.
+        assert!(
+            peak <= predicted.amplitude_m + 1e-12 && peak > 0.99 * predicted.amplitude_m,
+            "{peak} vs {predicted:?}"
+        );
+        assert!(lat(&curve[0]).abs() < 1e-12 && lat(&curve[curve.len() - 1]).abs() < 1e-3);
+        assert!((curve[0]["t_s"].as_f64().unwrap() - 10.01).abs() < 1e-12);
+        // A stop's record: no strike message.
+        let stop = MeasuredJudgement { strike: None, ..m };
+        let msgs = read(&csv_to_mcap_with(&path, Some((2, &stop))).unwrap());
+        assert!(msgs.iter().all(|(t, _)| t == "/isochron/state"), "{msgs:?}");
     }
 }

@@ -13,6 +13,7 @@ use rt_core::bridge::{
     TrialState,
 };
 use rt_core::calibration::{StepView, ViewKind};
+use rt_core::control::PredictedRebound;
 use rt_core::control::measured::{MeasuredJudgement, MeasuredStrike};
 use ts_rs::TS;
 
@@ -50,6 +51,7 @@ pub fn declarations() -> String {
         Refusal::decl(),
         Readiness::decl(),
         Snapshot::decl(),
+        PredictedRebound::decl(),
         MeasuredStrike::decl(),
         MeasuredJudgement::decl(),
         JudgedBy::decl(),

@@ -16,6 +16,7 @@
 //! | `/camera/image` | `foxglove.CompressedImage` (JPEG) | camera stream rate |
 //! | `/camera/annotations` | `foxglove.ImageAnnotations`: detection circle, predicted positions, intercept point | camera stream rate |
 //! | `/robot_description` | JSON `std_msgs/String` with the URDF | when a recording opens, then 1 Hz |
+//! | `/trial/strike` ([`STRIKE_TOPIC`]) | JSON `isochron.Strike`: a strike's tool speed at contact (planned, executed), its outgoing ball speed (predicted with the rebound's curve, seen) | once, at a strike trial's end (before its judgement) |
 //! | `/trial/judgement` ([`JUDGEMENT_TOPIC`]) | JSON `isochron.TrialJudgement`: how the trial ended, which judge decided, the true figures (simulated lab) and the measured judge's | once, at the trial's end (the recording's last message) |
 //!
 //! Log times are the Unix clock (nanoseconds) when the bridge thread logs the
@@ -68,6 +69,19 @@ pub const JUDGEMENT_TOPIC: &str = "/trial/judgement";
 /// The schema name of [`JUDGEMENT_TOPIC`]'s messages.
 pub const JUDGEMENT_SCHEMA_NAME: &str = "isochron.TrialJudgement";
 
+/// A strike trial's figures (issue #38), logged once when it ends (before
+/// its judgement): the tool's speed at contact planned and executed, the
+/// ball's outgoing speed predicted (the controller's rebound at its commit,
+/// with the curve of its first swing) and seen (the camera's rebound). Not in
+/// [`TOPICS`]: only strike trials log it.
+pub const STRIKE_TOPIC: &str = "/trial/strike";
+
+/// The schema name of [`STRIKE_TOPIC`]'s messages.
+pub const STRIKE_SCHEMA_NAME: &str = "isochron.Strike";
+
+/// Points of the predicted rebound's curve: its first swing out and back.
+const REBOUND_CURVE_POINTS: usize = 41;
+
 /// The robot description is re-sent this often to live clients (they join any time).
 const DESCRIPTION_PERIOD: Duration = Duration::from_secs(1);
 
@@ -98,6 +112,22 @@ const JUDGEMENT_SCHEMA: &str = r#"{"type":"object","title":"isochron.TrialJudgem
 "truth":{"type":["object","null"],"description":"the true judge's figures (simulated lab, judged_by truth or physical)","properties":{"timing_error_ms":{"type":["number","null"],"description":"|arrival - t*|, ms"},"position_error_m":{"type":["number","null"]},"t_star_s":{"type":["number","null"],"description":"control clock, s"},"arrival_t_s":{"type":["number","null"],"description":"control clock, s"},"movement_time_s":{"type":["number","null"]}}},
 "measured":{"type":["object","null"],"description":"the measured judge's verdict (camera, measured joints, external torques)","properties":{"pass_t_s":{"type":["number","null"]},"arrival_t_s":{"type":["number","null"]},"timing_error_ms":{"type":["number","null"],"description":"arrival - pass, signed (negative: early), ms"},"timing_std_ms":{"type":["number","null"]},"contact":{"type":"boolean"},"contact_t_s":{"type":["number","null"]},"success":{"type":"boolean"},"torque_signal":{"type":"boolean","description":"false: the robot reported no external torques, contact cannot be seen"},"robot_gap_ms":{"type":["number","null"],"description":"the robot's messages paused this long around the pass or arrival: not judged"}}}}}"#;
 
+/// [`STRIKE_TOPIC`]'s JSON schema.
+pub const STRIKE_SCHEMA: &str = r#"{"type":"object","title":"isochron.Strike","properties":{
+"timestamp":{"type":"object","properties":{"sec":{"type":"integer"},"nsec":{"type":"integer"}},"description":"the trial's end, Unix time (a recording converted from CSV: the contact on the control clock)"},
+"trial_id":{"type":"integer"},
+"planned_tool_speed_mps":{"type":["number","null"],"description":"the tool's planned speed at contact (task.strike_speed_mps), m/s"},
+"executed_tool_speed_mps":{"type":["number","null"],"description":"the measured tool point's speed at the contact's onset (FRI's joints), m/s"},
+"target_ball_speed_mps":{"type":["number","null"],"description":"the outgoing ball speed aimed at, m/s"},
+"predicted_ball_speed_mps":{"type":["number","null"],"description":"the controller's predicted outgoing speed (its beliefs at the commit), m/s"},
+"seen_ball_speed_mps":{"type":["number","null"],"description":"the camera's rebound: the ball's outgoing speed at the contact's onset, m/s"},
+"seen_ball_speed_std_mps":{"type":["number","null"]},
+"returned":{"type":"boolean","description":"the ball left along the return"},
+"speed_ok":{"type":"boolean","description":"returned, within 20% of the target"},
+"contact_t_s":{"type":["number","null"],"description":"the contact's onset (external torques), control clock, s"},
+"predicted":{"type":["object","null"],"description":"the predicted rebound and what it used (restitution, tool speed along the return, the ball's pass speed, frequency, damping, amplitude, turn)"},
+"predicted_curve":{"type":"array","description":"the predicted rebound's first swing: the ball's lateral offset from the contact point along the return","items":{"type":"object","properties":{"tau_s":{"type":"number","description":"since the contact, s"},"t_s":{"type":["number","null"],"description":"control clock, s"},"lateral_m":{"type":"number"}}}}}}"#;
+
 const STRING_SCHEMA: &str =
     r#"{"type":"object","title":"std_msgs/String","properties":{"data":{"type":"string"}}}"#;
 
@@ -126,6 +156,7 @@ struct Channels {
     annotations: Channel<ImageAnnotations>,
     description: Arc<RawChannel>,
     judgement: Arc<RawChannel>,
+    strike: Arc<RawChannel>,
 }
 
 /// What a recording's metadata says about the trial it records.
@@ -321,6 +352,72 @@ impl TrialJudgement {
     }
 }
 
+/// One point of the predicted rebound's curve.
+#[derive(Serialize)]
+pub struct CurvePoint {
+    /// Since the contact, s.
+    pub tau_s: f64,
+    /// On the control clock (the measured contact plus `tau_s`), s.
+    pub t_s: Option<f64>,
+    /// The ball's lateral offset from the contact point along the return, m.
+    pub lateral_m: f64,
+}
+
+/// A strike trial's message on [`STRIKE_TOPIC`].
+#[derive(Serialize)]
+pub struct StrikeMessage {
+    timestamp: Stamp,
+    trial_id: u64,
+    planned_tool_speed_mps: f64,
+    executed_tool_speed_mps: Option<f64>,
+    target_ball_speed_mps: f64,
+    predicted_ball_speed_mps: Option<f64>,
+    seen_ball_speed_mps: Option<f64>,
+    seen_ball_speed_std_mps: Option<f64>,
+    returned: bool,
+    speed_ok: bool,
+    contact_t_s: Option<f64>,
+    predicted: Option<rt_core::control::PredictedRebound>,
+    predicted_curve: Vec<CurvePoint>,
+}
+
+impl StrikeMessage {
+    /// The message of a trial whose measured judge saw a strike (`None`
+    /// for a stop), stamped `unix_s`.
+    pub fn of(trial_id: u64, m: &MeasuredJudgement, unix_s: f64) -> Option<Self> {
+        let k = m.strike?;
+        let predicted_curve = k.predicted.map_or_else(Vec::new, |p| {
+            // Out to the turn and back to the contact point.
+            let span = p.back_s();
+            (0..REBOUND_CURVE_POINTS)
+                .map(|i| {
+                    let tau_s = span * i as f64 / (REBOUND_CURVE_POINTS - 1) as f64;
+                    CurvePoint {
+                        tau_s,
+                        t_s: m.contact_t_s.map(|c| c + tau_s),
+                        lateral_m: p.lateral_at(tau_s),
+                    }
+                })
+                .collect()
+        });
+        Some(Self {
+            timestamp: js(stamp(unix_s)),
+            trial_id,
+            planned_tool_speed_mps: k.planned_tool_speed_mps,
+            executed_tool_speed_mps: k.tool_speed_mps,
+            target_ball_speed_mps: k.target_ball_speed_mps,
+            predicted_ball_speed_mps: k.predicted.map(|p| p.ball_speed_mps),
+            seen_ball_speed_mps: k.ball_speed_mps,
+            seen_ball_speed_std_mps: k.ball_speed_std_mps,
+            returned: k.returned,
+            speed_ok: k.speed_ok,
+            contact_t_s: m.contact_t_s,
+            predicted: k.predicted,
+            predicted_curve,
+        })
+    }
+}
+
 fn js(t: Option<Timestamp>) -> Stamp {
     t.map_or(Stamp { sec: 0, nsec: 0 }, |t| Stamp {
         sec: t.sec(),
@@ -366,6 +463,7 @@ impl Foxglove {
                 JUDGEMENT_SCHEMA_NAME,
                 JUDGEMENT_SCHEMA,
             ),
+            strike: json_channel(&ctx, STRIKE_TOPIC, STRIKE_SCHEMA_NAME, STRIKE_SCHEMA),
         };
         let mut f = Self {
             ctx,
@@ -729,7 +827,20 @@ impl Foxglove {
         end: Option<&crate::records::TrialEnd>,
     ) -> Option<(u64, PathBuf, u64)> {
         let r = self.recording.take()?;
-        // The judgement goes into the recording before it closes.
+        // A strike's figures, then the judgement, go into the recording
+        // before it closes.
+        if let Some(crate::records::TrialEnd::Done(TrialResult {
+            measured: Some(m), ..
+        })) = end
+            && let Some(k) = StrikeMessage::of(r.trial_id, m, unix_now_s())
+        {
+            match serde_json::to_vec(&k) {
+                Ok(b) => self.ch.strike.log(&b),
+                Err(e) => {
+                    tracing::error!(trial = r.trial_id, error = %e, "cannot encode the strike");
+                }
+            }
+        }
         let judgement = TrialJudgement::of(r.trial_id, end, unix_now_s());
         match serde_json::to_vec(&judgement) {
             Ok(b) => self.ch.judgement.log(&b),
@@ -896,4 +1007,118 @@ pub async fn start_server(
         .await
         .map_err(|e| anyhow::anyhow!("cannot start the Foxglove server on {addr}: {e}"))?;
     Ok(handle)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rt_core::control::measured::MeasuredStrike;
+
+    fn strike_result(strike: Option<MeasuredStrike>) -> TrialResult {
+        TrialResult {
+            success: true,
+            timing_error_ms: 3.0,
+            position_error_m: f64::NAN,
+            movement_time_s: 1.5,
+            distance_m: 0.7,
+            t_star_s: 10.0,
+            arrival_t_s: 10.003,
+            prediction_time_error_ms: 0.5,
+            limit_violations: 0,
+            not_judged: None,
+            measured: Some(MeasuredJudgement {
+                pass_t_s: Some(10.0),
+                arrival_t_s: Some(10.003),
+                timing_error_ms: Some(3.0),
+                timing_std_ms: Some(0.8),
+                contact: true,
+                contact_t_s: Some(9.99),
+                success: true,
+                torque_signal: true,
+                robot_gap_ms: None,
+                camera_clock_error_ms: None,
+                camera_clock_error_std_ms: None,
+                strike,
+            }),
+            judged_by: Some(JudgedBy::Measured),
+        }
+    }
+
+    /// The live recording of a strike trial ends with its strike on
+    /// `/trial/strike` (planned and executed tool speed at contact, the
+    /// predicted rebound with its curve, the seen outgoing speed), then its
+    /// judgement; a stop trial's has no strike message.
+    #[test]
+    fn a_live_strike_recording_carries_the_strike_before_its_judgement() {
+        let dir = tempfile::tempdir().unwrap();
+        let predicted = rt_core::control::PredictedRebound::new(0.0, 0.47, 1.8, 9.81 / 1.93, 0.03);
+        let strike = MeasuredStrike {
+            planned_tool_speed_mps: 0.5,
+            tool_speed_mps: Some(0.497),
+            target_ball_speed_mps: 0.47,
+            ball_speed_mps: Some(0.49),
+            ball_speed_std_mps: Some(0.01),
+            speed_error: Some(0.04),
+            returned: true,
+            rebound_used: 11,
+            in_time: true,
+            speed_ok: true,
+            predicted,
+        };
+        let meta = RecordingContext {
+            scenario: "strike".into(),
+            parameters_toml: String::new(),
+            revision: "test".into(),
+            lab_mode: "simulated",
+        };
+        for (id, k) in [(1u64, Some(strike)), (2, None)] {
+            let mut fox = Foxglove::new(&Scenario::default());
+            let path = dir.path().join(format!("{id}.mcap"));
+            fox.start_recording(id, &path, &meta).unwrap();
+            let end = crate::records::TrialEnd::Done(strike_result(k));
+            fox.finish_recording(Some(&end)).unwrap();
+            let bytes = std::fs::read(&path).unwrap();
+            let topics: Vec<(String, serde_json::Value)> = mcap::MessageStream::new(&bytes)
+                .unwrap()
+                .map(|m| {
+                    let m = m.unwrap();
+                    let j = serde_json::from_slice(&m.data).unwrap_or(serde_json::Value::Null);
+                    (m.channel.topic.clone(), j)
+                })
+                .filter(|(t, _)| t.starts_with("/trial/"))
+                .collect();
+            let names: Vec<&str> = topics.iter().map(|(t, _)| t.as_str()).collect();
+            if k.is_none() {
+                assert_eq!(names, [JUDGEMENT_TOPIC], "a stop");
+                continue;
+            }
+            assert_eq!(names, [STRIKE_TOPIC, JUDGEMENT_TOPIC]);
+            let j = &topics[0].1;
+            assert_eq!(j["trial_id"], 1);
+            assert_eq!(j["planned_tool_speed_mps"], 0.5);
+            assert_eq!(j["executed_tool_speed_mps"], 0.497);
+            assert_eq!(j["seen_ball_speed_mps"], 0.49);
+            assert_eq!(j["predicted_ball_speed_mps"], 0.47);
+            let curve = j["predicted_curve"].as_array().unwrap();
+            assert_eq!(curve.len(), REBOUND_CURVE_POINTS);
+            // On the control clock from the measured contact.
+            assert_eq!(curve[0]["t_s"], 9.99);
+            let peak = curve
+                .iter()
+                .filter_map(|p| p["lateral_m"].as_f64())
+                .fold(f64::NEG_INFINITY, f64::max);
+            let amplitude = predicted.map_or(f64::NAN, |p| p.amplitude_m);
+            // Sampled: at most the amplitude, within a percent of it.
+            assert!(
+                peak <= amplitude + 1e-12 && peak > 0.99 * amplitude,
+                "{peak} vs {amplitude}"
+            );
+            let schema = mcap::MessageStream::new(&bytes)
+                .unwrap()
+                .filter_map(Result::ok)
+                .find(|m| m.channel.topic == STRIKE_TOPIC)
+                .and_then(|m| m.channel.schema.as_ref().map(|s| s.name.clone()));
+            assert_eq!(schema.as_deref(), Some(STRIKE_SCHEMA_NAME));
+        }
+    }
 }

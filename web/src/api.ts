@@ -85,24 +85,37 @@ export function judgeCells(t: Pick<TrialRecord, "judged_by" | "measured">): {
 }
 
 /** What a trial row shows of a strike (issue #38) as the measured judge saw
- * it, m/s: the tool's speed at contact, planned and measured, and the ball's
- * outgoing speed with its error against the target (`not returned` when the
- * ball went on); `–` for a stop or an unmeasured figure. */
+ * it, m/s: the tool's speed at contact, planned → measured, and the ball's
+ * outgoing speed, predicted (the controller's rebound at its commit, from its
+ * beliefs) → seen (the camera's rebound), with the seen one's error against
+ * the target (`not returned` when the ball went on); `–` for a stop or an
+ * unmeasured figure. A record without a prediction shows the seen speed alone. */
 export function strikeCell(t: Pick<TrialRecord, "measured">): string {
   const k = t.measured?.strike;
   if (!k) return "–";
   const v = (x: number | null | undefined): string => (typeof x === "number" && Number.isFinite(x) ? x.toFixed(2) : "–");
   const tool = `tool ${v(k.planned_tool_speed_mps)} → ${v(k.tool_speed_mps)}`;
   const e = k.speed_error;
-  const ball =
-    typeof k.ball_speed_mps !== "number" || !Number.isFinite(k.ball_speed_mps)
-      ? "ball –"
-      : !k.returned
-        ? `ball ${v(k.ball_speed_mps)} not returned`
-        : typeof e === "number" && Number.isFinite(e)
-          ? `ball ${v(k.ball_speed_mps)} (${signed(e * 100, 0)}%)`
-          : `ball ${v(k.ball_speed_mps)}`;
+  const predicted = k.predicted ? `${v(k.predicted.ball_speed_mps)} → ` : "";
+  const seen = typeof k.ball_speed_mps === "number" && Number.isFinite(k.ball_speed_mps);
+  const ball = !seen
+    ? `ball ${predicted}–`
+    : !k.returned
+      ? `ball ${predicted}${v(k.ball_speed_mps)} not returned`
+      : typeof e === "number" && Number.isFinite(e)
+        ? `ball ${predicted}${v(k.ball_speed_mps)} (${signed(e * 100, 0)}%)`
+        : `ball ${predicted}${v(k.ball_speed_mps)}`;
   return `${tool}, ${ball}`;
+}
+
+/** The strike trials of `trials` (newest first, as `GET /api/trials` lists
+ * them), at most `n`, as the demo page lists them for visitors: the trial's
+ * id, whether it hit, and its strike cell. */
+export function strikeLines(trials: TrialRecord[], n: number): { id: number; hit: boolean | null; text: string }[] {
+  return trials
+    .filter((t) => t.status === "done" && t.measured?.strike)
+    .slice(0, n)
+    .map((t) => ({ id: t.id, hit: t.success, text: strikeCell(t) }));
 }
 
 /** `GET /api/trials` answers a list, or an object holding one. */

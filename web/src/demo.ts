@@ -7,7 +7,7 @@ import "./style.css";
 import "./demo.css";
 import uPlot from "uplot";
 import "uplot/dist/uPlot.min.css";
-import { call, trialList, type TrialRecord } from "./api";
+import { call, strikeLines, trialList, type TrialRecord } from "./api";
 import { speedRange } from "./axes";
 import { CameraView } from "./camera";
 import { Link, wsUrl, type LinkStatus } from "./connection";
@@ -109,6 +109,33 @@ function showTrials(trials: TrialRecord[]): void {
   }
   isoPoints = x.length;
   isoPlot.setData([x, ...ys] as uPlot.AlignedData);
+  showStrikes(trials);
+}
+
+/** The lab's task mode (`GET /api/params`' `task.mode`): the strike panel shows in strike mode, or while strike trials are listed. */
+let taskMode = "";
+/** The strike lines shown (what the browser tests read). */
+let strikesShown: { id: number; hit: boolean | null; text: string }[] = [];
+const STRIKES_LISTED = 6;
+
+function showStrikes(trials: TrialRecord[]): void {
+  strikesShown = strikeLines(trials, STRIKES_LISTED);
+  const panel = $("demo-strike");
+  panel.hidden = taskMode !== "strike" && strikesShown.length === 0;
+  const list = $("demo-strike-list");
+  list.replaceChildren(
+    ...strikesShown.map((l) => {
+      const li = document.createElement("li");
+      li.dataset.hit = String(l.hit);
+      li.textContent = `trial ${l.id}${l.hit === true ? " ✓" : l.hit === false ? " ✗" : ""}: ${l.text}`;
+      return li;
+    }),
+  );
+  if (strikesShown.length === 0 && taskMode === "strike") {
+    const li = document.createElement("li");
+    li.textContent = "no strike finished yet";
+    list.append(li);
+  }
 }
 
 let shownTrials = -1;
@@ -199,6 +226,8 @@ async function loadGeometry(): Promise<void> {
   try {
     const p = await call<{ pendulum?: Record<string, number>; task?: Record<string, unknown>; success?: Record<string, number> }>("GET", "/api/params");
     camera.lengthM = p.pendulum?.length_m ?? DEFAULT_GEOMETRY.length_m;
+    taskMode = typeof p.task?.mode === "string" ? p.task.mode : "";
+    if (taskMode === "strike") $("demo-strike").hidden = false;
     toleranceMs = p.success?.timing_tolerance_ms ?? Number.NaN;
     twin.geometry = {
       length_m: p.pendulum?.length_m ?? DEFAULT_GEOMETRY.length_m,
@@ -245,6 +274,7 @@ declare global {
     __demo: {
       status: () => DemoStatus | null;
       shown: () => { state: string; text: string; trials: number; points: number };
+      strikes: () => { id: number; hit: boolean | null; text: string }[];
       fps: () => number;
       twinFrames: () => number;
       cameraFrames: () => number;
@@ -260,6 +290,7 @@ window.__demo = {
     trials: Number($("demo-count").dataset.trials ?? 0),
     points: isoPoints,
   }),
+  strikes: () => strikesShown,
   fps: () => fps,
   twinFrames: () => twin.frames,
   cameraFrames: () => camera.frames,

@@ -111,7 +111,7 @@ describe("trial verdicts", () => {
   });
 });
 
-import { judgeCells, signed, strikeCell } from "./api";
+import { judgeCells, signed, strikeCell, strikeLines, type TrialRecord } from "./api";
 describe("trial judges", () => {
   const m = {
     pass_t_s: 10,
@@ -154,6 +154,41 @@ describe("trial judges", () => {
     expect(strikeCell({ measured: { ...m, strike: { ...strike, tool_speed_mps: null, ball_speed_mps: null, speed_error: null } } })).toBe("tool 0.50 → –, ball –");
     expect(strikeCell({ measured: m })).toBe("–");
     expect(strikeCell({ measured: null })).toBe("–");
+  });
+  it("shows a strike's predicted rebound beside the seen one", () => {
+    const predicted = {
+      restitution: 0,
+      tool_return_speed_mps: 0.47,
+      ball_in_speed_mps: 1.88,
+      ball_speed_mps: 0.47,
+      omega_radps: 2.25,
+      damping_per_s: 0.03,
+      amplitude_m: 0.207,
+      turn_s: 0.69,
+    };
+    const strike = {
+      planned_tool_speed_mps: 0.5,
+      tool_speed_mps: 0.493,
+      target_ball_speed_mps: 0.47,
+      ball_speed_mps: 0.511,
+      ball_speed_std_mps: 0.006,
+      speed_error: 0.0876,
+      returned: true,
+      rebound_used: 10,
+      in_time: true,
+      speed_ok: true,
+      predicted,
+    };
+    expect(strikeCell({ measured: { ...m, strike } })).toBe("tool 0.50 → 0.49, ball 0.47 → 0.51 (+9%)");
+    expect(strikeCell({ measured: { ...m, strike: { ...strike, returned: false } } })).toBe("tool 0.50 → 0.49, ball 0.47 → 0.51 not returned");
+    expect(strikeCell({ measured: { ...m, strike: { ...strike, ball_speed_mps: null, speed_error: null } } })).toBe("tool 0.50 → 0.49, ball 0.47 → –");
+    const rec = (id: number, status: string, s: typeof strike | undefined, success: boolean | null) =>
+      ({ id, status, success, measured: s ? { ...m, strike: s } : m }) as unknown as TrialRecord;
+    const lines = strikeLines([rec(9, "running", strike, null), rec(8, "done", strike, true), rec(7, "done", undefined, true), rec(6, "done", strike, false), rec(5, "done", strike, true)], 2);
+    expect(lines).toEqual([
+      { id: 8, hit: true, text: "tool 0.50 → 0.49, ball 0.47 → 0.51 (+9%)" },
+      { id: 6, hit: false, text: "tool 0.50 → 0.49, ball 0.47 → 0.51 (+9%)" },
+    ]);
   });
   it("never writes -0", () => {
     expect(signed(-0.04, 1)).toBe("0.0");

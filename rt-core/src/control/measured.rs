@@ -523,6 +523,13 @@ pub struct MeasuredStrike {
     pub in_time: bool,
     /// The ball returned and `|speed_error| <=` [`STRIKE_SPEED_TOLERANCE`].
     pub speed_ok: bool,
+    /// The controller's predicted rebound at its commit (from its beliefs:
+    /// the believed restitution, the filter's pass speed and frequency),
+    /// beside the seen one (`ball_speed_mps`); absent when none was made
+    /// (and in records from before it was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[ts(optional)]
+    pub predicted: Option<crate::control::rebound::PredictedRebound>,
 }
 
 fn yes() -> bool {
@@ -875,6 +882,7 @@ fn measured_strike(
         rebound_used: rebound.map_or(0, |r| u32::try_from(r.2).unwrap_or(u32::MAX)),
         in_time,
         speed_ok: returned && speed_error.is_some_and(|e| e.abs() <= STRIKE_SPEED_TOLERANCE),
+        predicted: aim.predicted,
     }
 }
 
@@ -1707,6 +1715,7 @@ mod tests {
                     planned_tool_speed_mps: 0.5,
                     target_ball_speed_mps: 0.47,
                     return_sign: -1.0,
+                    predicted: None,
                 }),
                 ..inputs(
                     &self.sightings,

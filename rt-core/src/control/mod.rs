@@ -5,6 +5,7 @@ pub mod cost;
 pub mod judge;
 pub mod latency;
 pub mod measured;
+pub mod rebound;
 pub mod report;
 pub mod state;
 pub mod stats;
@@ -17,6 +18,7 @@ pub use judge::{
     JudgeScratch, Judgement, PlannedMotion, TrialTrace, judge, judge_into, judge_strike_crossing,
 };
 pub use latency::{LatencyEstimator, LatencyReport};
+pub use rebound::PredictedRebound;
 pub use report::{Summary, TrialRecord};
 pub use state::{AbortReason, TrialMachine, TrialState};
 pub use step::{

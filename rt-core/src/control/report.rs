@@ -237,6 +237,11 @@ pub struct StrikeSummary {
     /// failure `infeasible strike at ...`: the drawn distance out of the
     /// stroke's reach, speed, acceleration or torque); counted in `trials`.
     pub refused: usize,
+    /// |true - predicted outgoing speed| over the struck trials with the
+    /// controller's predicted rebound, as a share of the predicted (absent
+    /// without predictions).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub predicted_error: Option<P50P95>,
 }
 
 impl StrikeSummary {
@@ -299,6 +304,22 @@ impl StrikeSummary {
             },
             aborted: records.iter().filter(|r| r.abort_reason.is_some()).count(),
             refused,
+            predicted_error: {
+                let d: Vec<f64> = struck
+                    .iter()
+                    .filter_map(|s| {
+                        let p = s.predicted_ball_speed_mps.filter(|p| *p > 0.0)?;
+                        Some(((s.ball_speed_mps - p) / p).abs())
+                    })
+                    .collect();
+                (!d.is_empty()).then(|| {
+                    let q = Percentiles::of(&d);
+                    P50P95 {
+                        p50: q.p50,
+                        p95: q.p95,
+                    }
+                })
+            },
         })
     }
 }
@@ -563,6 +584,8 @@ mod tests {
             speed_error: (ball_mps - 0.5) / 0.5,
             direction_error_deg: 2.0,
             speed_ok: ((ball_mps - 0.5) / 0.5).abs() <= STRIKE_SPEED_TOLERANCE,
+            aim_known: true,
+            predicted_ball_speed_mps: Some(0.5),
         };
         let struck = |ball_mps: f64| {
             let mut r = record(3.0, 0.004);
@@ -600,6 +623,10 @@ mod tests {
             (3, 2, 1)
         );
         assert_eq!((k.refused, k.aborted), (1, 0));
+        // The true outgoing speeds against the predicted 0.5 m/s: 10% and 40%.
+        let p = k.predicted_error.expect("predictions");
+        let within = |v: f64| (0.1 - 1e-9..=0.4 + 1e-9).contains(&v);
+        assert!(within(p.p50) && within(p.p95) && p.p95 > 0.3, "{p:?}");
         assert!(StrikeSummary::of(&[record(3.0, 0.004)]).is_none());
     }
 
@@ -714,6 +741,9 @@ pub struct StrikeAim {
     pub target_ball_speed_mps: f64,
     /// The sign of `y` the ball should return along.
     pub return_sign: f64,
+    /// The controller's predicted rebound at its commit (`None`: none made,
+    /// or a judge that does not know it, as the world's).
+    pub predicted: Option<super::rebound::PredictedRebound>,
 }
 
 /// How far a struck ball's outgoing speed may miss its target, as a share of
@@ -746,6 +776,21 @@ pub struct StrikeJudgement {
     /// degrees (NaN: no contact).
     pub direction_error_deg: f64,
     /// Contact, the ball returned (against its pass) and
-    /// `|speed_error| <= STRIKE_SPEED_TOLERANCE`.
+    /// `|speed_error| <= STRIKE_SPEED_TOLERANCE`; false, and not judged,
+    /// when the aim is not known (`aim_known`).
     pub speed_ok: bool,
+    /// Whether the judge knew the aim (planned speed and target): the
+    /// world process judging a lab switched to strike over `PUT
+    /// /api/params` does not (then the planned and target speeds, the
+    /// speed error and `speed_ok` say nothing, and a strike in time counts).
+    #[serde(default = "yes")]
+    pub aim_known: bool,
+    /// The controller's predicted outgoing ball speed
+    /// ([`super::rebound::PredictedRebound`]), m/s, when it made one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predicted_ball_speed_mps: Option<f64>,
+}
+
+fn yes() -> bool {
+    true
 }

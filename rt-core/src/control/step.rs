@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::beliefs::Beliefs;
 use super::latency::LatencyEstimator;
 use super::measured::ARRIVAL_SETTLE_M;
+use super::rebound::PredictedRebound;
 use super::state::{AbortReason, TrialMachine, TrialState};
 use crate::check::{self, ParamError};
 use crate::ekf::{Ekf, EkfCounters, EkfError, EkfParams, MotionRequest, PassDirection, StateVec};
@@ -324,6 +325,9 @@ pub struct StrikeArm {
     pub generator_speed_mps: f64,
     /// The strike direction (unit, in the swing plane).
     pub direction: Vector3<f64>,
+    /// The believed restitution of ball and tool
+    /// (`pendulum.contact_restitution`): the predicted rebound's.
+    pub restitution: f64,
 }
 
 /// A sighting of the ball, as the filter fuses it: its lateral position at
@@ -438,6 +442,9 @@ pub struct Commit {
     pub arrival_offset_s: f64,
     /// Direction of the committed pass (sign of the lateral velocity).
     pub direction_positive: bool,
+    /// A strike's predicted rebound (issue #38; `None`: a stop, or a
+    /// belief it could not be made from).
+    pub rebound: Option<PredictedRebound>,
 }
 
 /// The last interception prediction and the filter state it came from: while
@@ -971,6 +978,7 @@ impl Controller {
                     speed_mps: s.speed_mps,
                     generator_speed_mps,
                     direction: s.direction,
+                    restitution: beliefs.pendulum.contact_restitution,
                 }),
             });
         }
@@ -1917,8 +1925,39 @@ impl Controller {
             camera_offset_s,
             trim_s,
             direction_positive: mp.pass.lateral_velocity_mps > 0.0,
+            rebound: plan
+                .strike
+                .and_then(|k| self.predicted_rebound(&k, mp.pass.lateral_velocity_mps)),
         });
         self.go(t, TrialState::Intercepting);
+    }
+
+    /// A strike's rebound as the controller predicts it at its commit
+    /// (`control::rebound`): the stroke's planned speed along the return,
+    /// the filter's predicted ball speed at the pass, the believed
+    /// restitution, and the filter's frequency and damping (the beliefs'
+    /// when it has none).
+    fn predicted_rebound(&self, k: &StrikeArm, ball_in_mps: f64) -> Option<PredictedRebound> {
+        let believed_k = self.model.gravity_mps2 / self.model.length_m.max(1e-6);
+        let (kk, alpha) = self
+            .ekf
+            .as_ref()
+            .and_then(Ekf::posterior)
+            .map_or((believed_k, self.model.damping_per_s), |(_, x, _)| {
+                (x[crate::ekf::model::K], x[crate::ekf::model::ALPHA])
+            });
+        let finite_pos = |v: f64, or: f64| if v.is_finite() && v > 0.0 { v } else { or };
+        PredictedRebound::new(
+            k.restitution,
+            k.speed_mps * k.direction.y.hypot(k.direction.x),
+            ball_in_mps,
+            finite_pos(kk, believed_k),
+            if alpha.is_finite() && alpha >= 0.0 {
+                alpha
+            } else {
+                self.model.damping_per_s
+            },
+        )
     }
 
     /// Re-times the motion to the filter's latest prediction of the committed pass.
@@ -2422,6 +2461,46 @@ mod tests {
         assert!(v.normalize().dot(&k.direction) > 0.99, "{v}");
         // The cycle ended at rest at B.
         assert!((c.tool_point(&q) - k.end_m).norm() < 0.005);
+    }
+
+    /// A strike's commit carries the rebound the controller predicts from
+    /// its beliefs: the stroke's speed along the return, the filter's pass
+    /// speed (a 25 degree release on 1.93 m passes at most at
+    /// `2 sqrt(g l) sin(12.5 deg)` = 1.88 m/s; the pass towards `+y` is the
+    /// second, about 2.1 s on: `e^(-0.015 * 2.1)` less), the believed restitution
+    /// (`pendulum.contact_restitution`) and frequency; a stop's carries none.
+    #[test]
+    fn a_strikes_commit_predicts_its_rebound_from_the_beliefs() {
+        for e in [0.0, 0.5] {
+            let mut s = strike_beliefs(0.5);
+            s.pendulum.contact_restitution = e;
+            let mut c = Controller::new(&s, 0.005).unwrap();
+            release_and_track_for(&mut c, &s, 0.0, 0.0, 0.0, 1.0);
+            let k = c
+                .commit()
+                .expect("committed")
+                .rebound
+                .expect("a prediction");
+            let u = 0.5 * 20f64.to_radians().cos();
+            assert!((k.tool_return_speed_mps - u).abs() < 1e-9, "{k:?}");
+            let v_in = 1.8836 * (-0.015f64 * 2.1).exp();
+            assert!((k.ball_in_speed_mps - v_in).abs() < 0.02, "{k:?}");
+            assert_eq!(k.restitution, e);
+            let expected = (1.0 + e) * u + e * k.ball_in_speed_mps;
+            assert!((k.ball_speed_mps - expected).abs() < 1e-9, "{k:?}");
+            let w = (9.81f64 / 1.93).sqrt();
+            assert!((k.omega_radps - w).abs() < 0.01 * w, "{k:?}");
+            // A quarter period out, v_out / w high (a little less: damping).
+            assert!(k.amplitude_m < k.ball_speed_mps / k.omega_radps, "{k:?}");
+            assert!(
+                k.amplitude_m > 0.95 * k.ball_speed_mps / k.omega_radps,
+                "{k:?}"
+            );
+        }
+        let s = Beliefs::default();
+        let mut c = Controller::new(&s, 0.005).unwrap();
+        release_and_track(&mut c, &s, 0.0, 0.0);
+        assert_eq!(c.commit().expect("committed").rebound, None);
     }
 
     /// A camera whose frames all come later than the filter may plan on

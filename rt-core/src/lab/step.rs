@@ -1371,6 +1371,8 @@ impl LabStep {
                 // normal, the swing's horizontal at the pass.
                 target_ball_speed_mps: k.speed_mps * k.direction.y.hypot(k.direction.x),
                 return_sign: k.direction.y.signum(),
+                // What the controller predicted at its commit (its beliefs).
+                predicted: commit.rebound,
             });
             o.measured = self.measured.judge(&MeasuredBeliefs {
                 predicted_pass_s: commit.predicted_pass_s,

@@ -226,6 +226,20 @@ fn the_task_mode_is_stop_unless_asked_and_strike_round_trips() {
 }
 
 #[test]
+fn the_believed_restitution_is_zero_unless_asked_and_checked_by_name() {
+    assert_eq!(Scenario::default().pendulum.contact_restitution, 0.0);
+    let s = Scenario::from_toml_str("[pendulum]\ncontact_restitution = 0.4\n").unwrap();
+    assert_eq!(s.pendulum.contact_restitution, 0.4);
+    assert_eq!(s.beliefs().pendulum.contact_restitution, 0.4);
+    for bad in ["1.5", "-0.1", "nan"] {
+        let e = Scenario::from_toml_str(&format!("[pendulum]\ncontact_restitution = {bad}\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("pendulum.contact_restitution"), "{bad}: {e}");
+    }
+}
+
+#[test]
 fn missing_file_is_a_clear_error() {
     let e = Scenario::from_file(Path::new("/nonexistent/x.toml")).unwrap_err();
     assert!(e.to_string().contains("/nonexistent/x.toml"));

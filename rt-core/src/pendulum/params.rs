@@ -18,6 +18,12 @@ pub struct PendulumParams {
     pub ball_radius_m: f64,
     /// Release angle drawn uniformly per trial, degrees from the vertical.
     pub release_angle_deg: RangeParam,
+    /// The believed coefficient of restitution of ball and tool (0..1): a
+    /// strike's predicted rebound leaves the tool with `(1 + e)` times the
+    /// tool's speed along the return plus `e` times the ball's incoming
+    /// speed (0, the default: the ball leaves with the tool's speed, as the
+    /// strike's target assumes). The world's is `world.pendulum.contact_restitution`.
+    pub contact_restitution: f64,
 }
 
 impl Default for PendulumParams {
@@ -28,6 +34,7 @@ impl Default for PendulumParams {
             gravity_mps2: 9.81,
             ball_radius_m: 0.0335,
             release_angle_deg: RangeParam::new(15.0, 35.0),
+            contact_restitution: 0.0,
         }
     }
 }
@@ -44,6 +51,7 @@ impl PendulumParams {
         check::within("pendulum.damping_per_s", self.damping_per_s, 0.0, 5.0)?;
         check::within("pendulum.gravity_mps2", self.gravity_mps2, 0.1, 100.0)?;
         check::within("pendulum.ball_radius_m", self.ball_radius_m, 0.005, 0.2)?;
+        check::probability("pendulum.contact_restitution", self.contact_restitution)?;
         self.release_angle_deg
             .validate_with("pendulum.release_angle_deg", |f, v| {
                 check::within(f, v, 1.0, 60.0)

@@ -1642,6 +1642,17 @@ mod tests {
                 (v - k.ball_speed_mps).abs() <= 0.1 * k.target_ball_speed_mps,
                 "{m:?} vs {k:?}"
             );
+            // The controller's predicted rebound (restitution 0 believed:
+            // the tool's speed along the return, the target) reaches both
+            // judges' figures, beside the true and the seen speeds.
+            let predicted = k.predicted_ball_speed_mps.unwrap_or(f64::NAN);
+            assert!((predicted - k.target_ball_speed_mps).abs() < 1e-9, "{k:?}");
+            let pr = m
+                .strike
+                .and_then(|k| k.predicted)
+                .unwrap_or_else(|| panic!("no predicted rebound: {m:?}"));
+            assert_eq!(pr.ball_speed_mps, predicted);
+            assert!(pr.ball_in_speed_mps > 0.5 && pr.amplitude_m > 0.1, "{pr:?}");
         }
     }
 

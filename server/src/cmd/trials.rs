@@ -274,7 +274,7 @@ fn human(s: &Summary) -> String {
         format!(
             "\nstrike         contact in time {}/{} ({:.1}%), outgoing speed within 20% {}/{} ({:.1}%), \
              |speed error| p50 {:.1}%, p95 {:.1}%, tool speed at contact p50 {:.3} m/s, \
-             refused as infeasible {}",
+             refused as infeasible {}{}",
             k.contact_in_time,
             k.trials,
             100.0 * k.contact_in_time_rate,
@@ -285,6 +285,11 @@ fn human(s: &Summary) -> String {
             100.0 * k.speed_error.p95,
             k.tool_speed_mps.p50,
             k.refused,
+            k.predicted_error.map_or_else(String::new, |p| format!(
+                ", outgoing speed against the predicted rebound |error| p50 {:.1}%, p95 {:.1}%",
+                100.0 * p.p50,
+                100.0 * p.p95
+            )),
         )
     });
     let summary = format!(

@@ -432,3 +432,100 @@ async fn a_real_lab_demo_pauses_for_the_lab_and_runs_only_while_an_operator_hold
     drop(svc);
     drop(robot);
 }
+
+/// Strike mode in the demo (issue #38): the simulated lab switched to strike
+/// over `PUT /api/params` runs its demo trials as strikes with the parameters
+/// in force; the running message names the stroke's speed, and a finished
+/// strike's record carries what the visitors' page lists: the tool's speed at
+/// contact planned and measured, the ball's outgoing speed predicted (the
+/// controller's rebound, restitution 0: the tool's speed along the return)
+/// and seen (or, on a starved machine, a trial not judged that says so).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_demo_in_strike_mode_strikes_and_its_records_carry_the_predicted_and_seen_rebound() {
+    let Some(bin) = bin() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let svc = serve(&bin, &data, &["--demo-interval-s", "1"]);
+    let addr = svc.addr;
+    // Refused while a demo trial moves the arm: posted again until taken.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let (code, r) = request(
+            addr,
+            "PUT",
+            "/api/params",
+            r#"{"task": {"mode": "strike"}}"#,
+        )
+        .await;
+        if code == 200 {
+            break;
+        }
+        assert!(
+            code == 409 && Instant::now() < deadline,
+            "PUT /api/params: {code} {r}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let since = request(addr, "GET", "/api/trials?limit=1", "")
+        .await
+        .1
+        .as_array()
+        .and_then(|a| a.first().and_then(|t| t["id"].as_u64()))
+        .unwrap_or(0);
+    let running = wait_for(
+        addr,
+        "/api/demo",
+        Duration::from_secs(180),
+        "a demo strike running",
+        |d| {
+            d["state"] == "running"
+                && d["message"]
+                    .as_str()
+                    .is_some_and(|m| m.contains("striking at 0.50 m/s"))
+        },
+    )
+    .await;
+    println!("demo running a strike: {running}");
+    // A trial started after the switch that ended: a strike, or one a
+    // starved machine ended (any other end fails below).
+    let ended = move |t: &Value| t["id"].as_u64() > Some(since) && t["status"] != "running";
+    let list = wait_for(
+        addr,
+        "/api/trials?limit=100",
+        Duration::from_secs(240),
+        "a demo strike finished",
+        |l| l.as_array().is_some_and(|a| a.iter().any(ended)),
+    )
+    .await;
+    let t = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .rev()
+        .find(|t| ended(t))
+        .unwrap();
+    println!("demo strike: {t}");
+    if starved(t) || not_judged_starved(t) {
+        eprintln!("demo strike: a starved machine's trial: {}", t["reason"]);
+        return;
+    }
+    let k = &t["measured"]["strike"];
+    assert!(k.is_object(), "the demo trial did not strike: {t}");
+    assert_eq!(k["planned_tool_speed_mps"], 0.5, "{t}");
+    let predicted = k["predicted"]["ball_speed_mps"]
+        .as_f64()
+        .unwrap_or(f64::NAN);
+    assert!(
+        (predicted - 0.5 * 20f64.to_radians().cos()).abs() < 1e-9,
+        "{t}"
+    );
+    if t["measured"]["contact"] == true && t["judged_by"] == "measured" {
+        assert!(
+            k["tool_speed_mps"]
+                .as_f64()
+                .is_some_and(|v| (v - 0.5).abs() < 0.15),
+            "{t}"
+        );
+        assert!(k["ball_speed_mps"].as_f64().is_some_and(|v| v > 0.2), "{t}");
+    }
+}

@@ -982,6 +982,129 @@ async fn a_served_strike_is_judged_by_measurement_as_the_world_judges_it() {
     );
 }
 
+/// The world judges a strike by what physically happened, not by its
+/// scenario file's mode: a served lab whose scenario says stop
+/// (`strike.toml` with `task.mode = "stop"`), switched to strike over `PUT
+/// /api/params`, strikes; the world's truth line is a strike's (the true
+/// tool's speed at contact, the ball's outgoing speed) without the aim it
+/// cannot know (`aim_known: false`), and the record carries the strike's
+/// predicted rebound beside the seen one. A starved machine's trial that was
+/// aborted or not judged says so.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stop_lab_switched_to_strike_over_rest_is_judged_as_a_strike_by_the_world() {
+    let _one = ONE_LAB.lock().await;
+    let Some(_) = firmware() else {
+        return;
+    };
+    let Some(bin) = isochron_tests::isochron_bin(&[(&["serve", "--help"], "--allow-uncalibrated")])
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let strike = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/strike.toml"),
+    )
+    .unwrap();
+    assert!(strike.contains("mode = \"strike\""));
+    let scenario = dir.path().join("stop.toml");
+    std::fs::write(
+        &scenario,
+        strike.replace("mode = \"strike\"", "mode = \"stop\""),
+    )
+    .unwrap();
+    let data = dir.path().join("data");
+    let (_p, line) = start(
+        "isochron serve --scenario stop",
+        Process::new(&bin)
+            .arg("serve")
+            .args(["--bind", "127.0.0.1:0", "--scenario"])
+            .arg(&scenario)
+            .arg("--data-dir")
+            .arg(&data)
+            .arg("--allow-uncalibrated"),
+        "listening on http://",
+        Duration::from_secs(60),
+    );
+    let addr = listening_addr(&line);
+    assert_eq!(get(addr, "/api/params").await["task"]["mode"], "stop");
+    let r = http(
+        addr,
+        "PUT",
+        "/api/params",
+        &[("Content-Type", "application/json")],
+        br#"{"task": {"mode": "strike"}}"#,
+    )
+    .await
+    .unwrap();
+    assert_eq!(r.status, 200, "{}", String::from_utf8_lossy(&r.body));
+    assert_eq!(get(addr, "/api/params").await["task"]["mode"], "strike");
+    wait_ready(addr, Duration::from_secs(60)).await;
+    let id = post_trial(addr).await;
+    let rec = wait_record(addr, id, Duration::from_secs(90)).await;
+    if rec["status"] == "aborted" {
+        assert!(
+            rec["reason"].as_str().is_some_and(|r| !r.is_empty()),
+            "{rec}"
+        );
+        eprintln!("switched strike: the trial was aborted: {}", rec["reason"]);
+        return;
+    }
+    assert_eq!(rec["status"], "done", "{rec}");
+    let strike = &rec["measured"]["strike"];
+    assert!(strike.is_object(), "the lab did not strike: {rec}");
+    // The controller's prediction, from its beliefs (restitution 0: the
+    // tool's speed along the return).
+    let predicted = strike["predicted"]["ball_speed_mps"]
+        .as_f64()
+        .unwrap_or(f64::NAN);
+    assert!(
+        (predicted - 0.5 * 20f64.to_radians().cos()).abs() < 1e-9,
+        "{rec}"
+    );
+    let truth = data.join("world-truth.jsonl");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while truth_lines(&truth).is_empty() {
+        assert!(
+            Instant::now() < deadline,
+            "no truth line in {}",
+            truth.display()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let t = &truth_lines(&truth)[0];
+    if t["not_judged"].is_string() {
+        eprintln!("switched strike: the world did not judge: {t}");
+        return;
+    }
+    let k = &t["strike"];
+    assert!(k.is_object(), "the world judged a stop: {t}");
+    assert_eq!(k["aim_known"], false, "{t}");
+    assert!(k["target_ball_speed_mps"].is_null(), "{t}");
+    if t["contact"] == true {
+        // The true tool met the ball at about the planned speed and sent it back.
+        let tool = k["tool_speed_mps"].as_f64().unwrap_or(f64::NAN);
+        assert!((tool - 0.5).abs() < 0.15, "{t}");
+        assert!(k["ball_speed_mps"].as_f64().is_some_and(|v| v > 0.2), "{t}");
+        assert_eq!(
+            t["success"],
+            t["timing_error_ms"]
+                .as_f64()
+                .is_some_and(|e| e.abs() <= 20.0),
+            "{t}"
+        );
+    }
+    eprintln!(
+        "switched strike: record {} (measured {} ms, ball predicted {predicted:.3} seen {} m/s); truth {} ms, tool {} m/s, ball {} m/s, success {}",
+        rec["success"],
+        rec["measured"]["timing_error_ms"],
+        strike["ball_speed_mps"],
+        t["timing_error_ms"],
+        k["tool_speed_mps"],
+        k["ball_speed_mps"],
+        t["success"]
+    );
+}
+
 /// `isochron serve` without a config (`make run`'s lab, the dashboard's):
 /// a truthful world in the service's process behind a real lab's
 /// interfaces, judged by what the lab measures, its calibration records
@@ -1090,6 +1213,9 @@ async fn serve_without_a_config_is_a_truthful_world_whose_stand_follows_each_tri
             t["contact"], true,
             "the arm at {distance_m} m met no ball: {t}"
         );
+        // A stop: the tool met the ball at rest, and the world judges a stop
+        // (it judges strikes by what happened, whatever the scenario says).
+        assert!(t["strike"].is_null(), "a stop judged as a strike: {t}");
         if rec["judged_by"] == "measured" {
             assert_eq!(rec["measured"]["contact"], true, "{rec}");
         } else {

@@ -451,6 +451,44 @@ abort: AbortView,
  */
 ready: Readiness, };
 
+export type PredictedRebound = { 
+/**
+ * The believed restitution of ball and tool (`pendulum.contact_restitution`).
+ */
+restitution: number, 
+/**
+ * The planned tool speed at contact along the return (the strike
+ * speed times the cosine of its elevation), m/s.
+ */
+tool_return_speed_mps: number, 
+/**
+ * The ball's speed at the committed pass as the filter predicted it
+ * at the commit, m/s.
+ */
+ball_in_speed_mps: number, 
+/**
+ * The predicted outgoing speed along the return, m/s.
+ */
+ball_speed_mps: number, 
+/**
+ * The pendulum's angular frequency used, `sqrt(k)` (the filter's `k`
+ * at the commit, else the believed `g / l`), rad/s.
+ */
+omega_radps: number, 
+/**
+ * The damping `alpha` used (the filter's, else the believed), 1/s.
+ */
+damping_per_s: number, 
+/**
+ * The rebound's first swing away from the contact point: its lateral
+ * amplitude (damped to its turn), m.
+ */
+amplitude_m: number, 
+/**
+ * From the contact to that turn, s.
+ */
+turn_s: number, };
+
 export type MeasuredStrike = { 
 /**
  * The planned tool speed at contact (`task.strike_speed_mps`), m/s.
@@ -494,7 +532,14 @@ in_time: boolean,
 /**
  * The ball returned and `|speed_error| <=` [`STRIKE_SPEED_TOLERANCE`].
  */
-speed_ok: boolean, };
+speed_ok: boolean, 
+/**
+ * The controller's predicted rebound at its commit (from its beliefs:
+ * the believed restitution, the filter's pass speed and frequency),
+ * beside the seen one (`ball_speed_mps`); absent when none was made
+ * (and in records from before it was kept).
+ */
+predicted?: PredictedRebound, };
 
 export type MeasuredJudgement = { 
 /**

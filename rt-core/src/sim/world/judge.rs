@@ -121,6 +121,8 @@ pub fn judge_strike(
         speed_error,
         direction_error_deg,
         speed_ok: out.is_some() && v.y * s > 0.0 && speed_error.abs() <= STRIKE_SPEED_TOLERANCE,
+        aim_known: target.is_finite() && target > 0.0,
+        predicted_ball_speed_mps: aim.predicted.map(|k| k.ball_speed_mps),
     });
     Ok(p)
 }

@@ -19,14 +19,18 @@
 //!   the arrival is the first time after the release at which the true tool,
 //!   having moved, holds still (within [`judge::SETTLE_M`] for
 //!   [`HOLD_S`]); t* is the true pass nearest it; contact and success as
-//!   `judge::judge_physical`. In strike mode (the scenario's
-//!   `task.mode = "strike"`, issue #38) a release is judged as a strike
+//!   `judge::judge_physical`. A struck release (issue #38: whatever the
+//!   scenario's mode, the true tool meeting the ball moving along the swing
+//!   against it at [`STRIKE_TOOL_SPEED_MPS`] or faster, as a served lab
+//!   switched to strike over `PUT /api/params` does; a tool at rest is a
+//!   stop even in a strike scenario) is judged as a strike
 //!   (`judge::judge_strike`): the arrival is the true tool's crossing of the
 //!   true intercept point's `y` along the return, t* the true pass nearest
 //!   the first contact (without one, nearest that crossing), and the ball's
 //!   outgoing speed after the contact against the scenario's target
-//!   (`task.strike_speed_mps` along the swing's horizontal), in
-//!   [`ReleaseTruth::strike`]. A release ends [`RECORD_S`] after the arm
+//!   (`task.strike_speed_mps` along the swing's horizontal) when the
+//!   scenario says strike, else reported without one (`aim_known: false`),
+//!   in [`ReleaseTruth::strike`]. A release ends [`RECORD_S`] after the arm
 //!   began to move (or the drop, if later), [`MAX_RECORD_S`] after the drop
 //!   at the latest, or when the coil switches on again.
 //!
@@ -454,8 +458,8 @@ impl LiveWorld {
             not_judged: None,
             strike: None,
         };
-        if self.scenario.task.mode == TaskMode::Strike {
-            self.judge_strike(&r, &mut truth);
+        if let Some(aim) = self.strike_aim(&r) {
+            self.judge_strike(&r, &aim, &mut truth);
             self.done.push(truth);
             return;
         }
@@ -498,20 +502,44 @@ impl LiveWorld {
 }
 
 impl LiveWorld {
-    /// A strike release's truth (module docs): `judge::judge_strike` with
-    /// the scenario's aim, the pass nearest the first contact after the
-    /// drop (or the true tool's crossing of the intercept point).
-    fn judge_strike(&self, r: &Release, truth: &mut ReleaseTruth) {
+    /// Whether a release is judged as a strike, and against what. What
+    /// physically happened decides ([`struck_along`]: the true tool moving
+    /// along the swing, against the ball, at [`STRIKE_TOOL_SPEED_MPS`] or
+    /// faster at the first contact, or crossing the intercept point so
+    /// without one), whatever the scenario's mode (the service may switch
+    /// it over `PUT /api/params` either way); a struck release is judged
+    /// against the scenario's aim when its file says `task.mode =
+    /// "strike"`, else with an aim the world cannot know (the planned speed
+    /// and target are the service's): NaN, so the truth says `aim_known:
+    /// false` and its success is the contact in time alone. `None`: a stop.
+    fn strike_aim(&self, r: &Release) -> Option<StrikeAim> {
         let task = &self.scenario.task;
-        let aim = StrikeAim {
-            planned_tool_speed_mps: task.strike_speed_mps,
-            target_ball_speed_mps: task.strike_speed_mps
-                * task.strike_direction_deg.to_radians().cos(),
-            return_sign: STRIKE_RETURN_SIGN,
-        };
+        let return_sign = struck_along(r, self.world.intercept_m.y)?;
+        if task.mode == TaskMode::Strike {
+            return Some(StrikeAim {
+                planned_tool_speed_mps: task.strike_speed_mps,
+                target_ball_speed_mps: task.strike_speed_mps
+                    * task.strike_direction_deg.to_radians().cos(),
+                return_sign: STRIKE_RETURN_SIGN,
+                predicted: None,
+            });
+        }
+        Some(StrikeAim {
+            planned_tool_speed_mps: f64::NAN,
+            target_ball_speed_mps: f64::NAN,
+            return_sign,
+            predicted: None,
+        })
+    }
+
+    /// A strike release's truth (module docs): `judge::judge_strike` with
+    /// `aim`, the pass nearest the first contact after the drop (or the
+    /// true tool's crossing of the intercept point).
+    fn judge_strike(&self, r: &Release, aim: &StrikeAim, truth: &mut ReleaseTruth) {
         let y = self.world.intercept_m.y;
+        let sign = aim.return_sign;
         let crossing = r.trace.windows(2).find_map(|w| {
-            let ahead = |s: &WorldSample| (s.disc.centre_m.y - y) * STRIKE_RETURN_SIGN;
+            let ahead = |s: &WorldSample| (s.disc.centre_m.y - y) * sign;
             (ahead(&w[0]) < 0.0 && ahead(&w[1]) >= 0.0).then_some(w[1].t_s)
         });
         let Some(near_s) = r
@@ -533,7 +561,7 @@ impl LiveWorld {
             self.world.pendulum.ball_radius_m,
             self.scenario.success.timing_tolerance_ms,
             y,
-            &aim,
+            aim,
         ) {
             Ok(p) => {
                 truth.t_star_s = Some(p.t_star_s);
@@ -541,12 +569,69 @@ impl LiveWorld {
                 truth.timing_error_ms = Some(p.timing_error_ms).filter(|e| e.is_finite());
                 truth.contact = p.contact_s.is_some();
                 truth.contact_s = p.contact_s;
-                truth.success = p.hit_in_time && p.strike.is_some_and(|k| k.speed_ok);
+                // Without the aim the world judges what it can: the contact
+                // in time (the outgoing speed is reported, not judged).
+                truth.success =
+                    p.hit_in_time && p.strike.is_some_and(|k| k.speed_ok || !k.aim_known);
                 truth.strike = p.strike;
             }
             Err(e) => truth.not_judged = Some(e.to_string()),
         }
     }
+}
+
+/// The true tool's speed along the swing's horizontal (`y`), against the
+/// ball, from which a release whose scenario does not say strike is judged
+/// as one, m/s. A stop's tool meets the ball at rest (a Hopf profile ends
+/// at rest: 20 ms late, the tolerance, it still moves at about 1 mm/s; even
+/// 200 ms late, 0.12 m/s along a path that runs towards the pendulum, `x`,
+/// with a few centimetres of `y` at most: under 0.03 m/s along `y`); a
+/// strike meets it at `strike_speed_mps * cos(elevation)` along the return
+/// (0.47 m/s for the default 0.5 m/s rising 20 deg).
+pub const STRIKE_TOOL_SPEED_MPS: f64 = 0.1;
+
+/// The span the true tool's and ball's velocities are read over before a
+/// contact (the chord ends at the touching sample), s.
+const STRIKE_CHORD_S: f64 = 0.01;
+
+/// Whether the release was struck, from what physically happened: at the
+/// first contact after the drop the true tool moved along the swing's
+/// horizontal against the ball's approach (the ball's velocity before the
+/// touch, its free swing's) at [`STRIKE_TOOL_SPEED_MPS`] or faster; without
+/// a contact, the tool crossed the intercept point's `y` that fast (a
+/// stroke that missed the ball). The return's sign of `y`, or `None`: a
+/// stop (or no motion along the swing).
+fn struck_along(r: &Release, intercept_y_m: f64) -> Option<f64> {
+    let trace = &r.trace;
+    let chord = |k: usize| -> Option<(Vector3<f64>, Vector3<f64>)> {
+        let t = trace.get(k)?.t_s;
+        let i = trace[..k]
+            .iter()
+            .rposition(|s| s.t_s <= t - STRIKE_CHORD_S)?;
+        let dt = (t - trace[i].t_s).max(1e-9);
+        Some((
+            (trace[k].disc.centre_m - trace[i].disc.centre_m) / dt,
+            (trace[k].ball_m - trace[i].ball_m) / dt,
+        ))
+    };
+    if let Some(hit) = r.hits.iter().find(|h| h.0 >= r.drop_s) {
+        let k = trace.iter().rposition(|s| s.t_s <= hit.0)?;
+        let (tool, ball) = chord(k)?;
+        // Against the ball's approach (a ball nearly at rest: along the tool's).
+        let sign = if ball.y.abs() > 1e-3 {
+            -ball.y.signum()
+        } else {
+            tool.y.signum()
+        };
+        return (tool.y * sign >= STRIKE_TOOL_SPEED_MPS).then_some(sign);
+    }
+    let ahead = |s: &WorldSample| s.disc.centre_m.y - intercept_y_m;
+    let k = (1..trace.len()).find(|&k| {
+        let (a, b) = (ahead(&trace[k - 1]), ahead(&trace[k]));
+        (a < 0.0) != (b < 0.0)
+            && chord(k).is_some_and(|(tool, _)| tool.y.abs() >= STRIKE_TOOL_SPEED_MPS)
+    })?;
+    chord(k).map(|(tool, _)| tool.y.signum())
 }
 
 /// Where the tool first holds still after moving: the sample at which it
@@ -738,13 +823,18 @@ mod tests {
     #[test]
     fn a_tool_at_the_intercept_point_is_hit_felt_and_judged_on_the_true_pass() {
         // Early by 300 ms: contact, not in time; by 5 ms: a success.
-        for (early_s, success) in [(0.3, false), (0.005, true)] {
-            hit_and_judge(early_s, success);
+        // A scenario that says strike (a lab switched to stop over REST)
+        // still has its resting tool judged as a stop.
+        for mode in [TaskMode::Stop, TaskMode::Strike] {
+            for (early_s, success) in [(0.3, false), (0.005, true)] {
+                hit_and_judge(early_s, success, mode);
+            }
         }
     }
 
-    fn hit_and_judge(early_s: f64, success: bool) {
-        let (s, intercept) = lab();
+    fn hit_and_judge(early_s: f64, success: bool, mode: TaskMode) {
+        let (mut s, intercept) = lab();
+        s.task.mode = mode;
         let mut w = LiveWorld::new(&s, 2, intercept, 0.0);
         let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
         let arm = w.world().arm;
@@ -813,6 +903,8 @@ mod tests {
         let err = r.timing_error_ms.unwrap();
         assert!((err + early_s * 1e3).abs() < 3.0, "{err}");
         assert_eq!(r.success, success, "{r:?}");
+        // A tool at rest stops the ball: judged as a stop.
+        assert!(r.strike.is_none(), "{r:?}");
     }
 
     #[test]
@@ -820,10 +912,18 @@ mod tests {
         // Strike mode: the tool sweeps along -y through the intercept point
         // at 0.5 m/s (the base joint turning), crossing it `late_s` after a
         // pass towards +y; the truth is the strike's: the crossing against
-        // t*, the ball sent back.
-        for (late_s, in_time) in [(0.005, true), (0.06, false)] {
+        // t*, the ball sent back. A world whose scenario says stop (a served
+        // lab switched to strike over PUT /api/params) judges the same
+        // sweep as a strike by what happened, without the aim it cannot
+        // know: the speeds reported, the contact in time its success.
+        for (late_s, in_time, mode) in [
+            (0.005, true, TaskMode::Strike),
+            (0.06, false, TaskMode::Strike),
+            (0.005, true, TaskMode::Stop),
+            (0.06, false, TaskMode::Stop),
+        ] {
             let (mut s, intercept) = lab();
-            s.task.mode = TaskMode::Strike;
+            s.task.mode = mode;
             s.task.strike_speed_mps = 0.5;
             s.task.strike_direction_deg = 0.0;
             let home = [0.0, 0.3, 0.0, -1.5, 0.0, 0.9, 0.0];
@@ -892,7 +992,16 @@ mod tests {
                 k.ball_speed_mps > 0.1 && k.direction_error_deg < 90.0,
                 "{k:?}"
             );
-            assert_eq!(r.success, in_time && k.speed_ok, "{r:?}");
+            if mode == TaskMode::Strike {
+                assert!(k.aim_known, "{k:?}");
+                assert_eq!(k.target_ball_speed_mps, 0.5, "{k:?}");
+                assert_eq!(r.success, in_time && k.speed_ok, "{r:?}");
+            } else {
+                // The aim is the service's: not known, not judged.
+                assert!(!k.aim_known && !k.speed_ok, "{k:?}");
+                assert!(k.target_ball_speed_mps.is_nan(), "{k:?}");
+                assert_eq!(r.success, in_time, "{r:?}");
+            }
         }
     }
 

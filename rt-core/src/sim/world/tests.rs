@@ -1020,6 +1020,7 @@ fn the_strike_judge_times_the_tools_crossing_and_the_balls_outgoing_speed() {
         planned_tool_speed_mps: 0.5,
         target_ball_speed_mps: 0.5,
         return_sign: -1.0,
+        predicted: None,
     };
     let j = judge_strike(&trace, &hits, &[1.0, 2.4], 1.0, 0.0335, 20.0, 0.0, &aim).unwrap();
     assert_eq!(j.t_star_s, 1.0);
