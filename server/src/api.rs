@@ -836,6 +836,18 @@ pub struct TrialRequest {
     /// `pendulum.release_angle_deg`; the side is drawn).
     #[schema(minimum = 1.0, maximum = 60.0)]
     pub release_deg: Option<f64>,
+    /// This trial's task (else `task.mode`): `stop` (the tool arrives at
+    /// rest) or `strike` (it meets the ball with speed, issue #38); the
+    /// stroke must be feasible at the distance and movement time.
+    pub mode: Option<rt_core::trajectory::TaskMode>,
+    /// A strike's tool speed at contact, m/s (else `task.strike_speed_mps`);
+    /// only for a strike (this trial's `mode` or the lab's).
+    #[schema(minimum = 0.0, maximum = 5.0)]
+    pub strike_speed_mps: Option<f64>,
+    /// A strike's direction above the swing's horizontal, degrees (else
+    /// `task.strike_direction_deg`); only for a strike.
+    #[schema(minimum = -60.0, maximum = 60.0)]
+    pub strike_direction_deg: Option<f64>,
 }
 
 /// The longest movement time a trial may ask for, seconds.
@@ -876,6 +888,39 @@ pub(crate) fn trial_setup(
         "s",
     )?;
     range("release_deg", req.release_deg, 1.0, 60.0, "deg")?;
+    range("strike_speed_mps", req.strike_speed_mps, 0.0, 5.0, "m/s")?;
+    if req.strike_speed_mps == Some(0.0) {
+        return Err(bad(
+            "strike_speed_mps",
+            "strike_speed_mps = 0: a strike meets the ball with speed (mode \"stop\" \
+             arrives at rest)"
+                .to_owned(),
+        ));
+    }
+    range(
+        "strike_direction_deg",
+        req.strike_direction_deg,
+        -60.0,
+        60.0,
+        "deg",
+    )?;
+    let mode = req.mode.unwrap_or(params.task.mode);
+    if mode != rt_core::trajectory::TaskMode::Strike {
+        for (field, given) in [
+            ("strike_speed_mps", req.strike_speed_mps.is_some()),
+            ("strike_direction_deg", req.strike_direction_deg.is_some()),
+        ] {
+            if given {
+                return Err(bad(
+                    field,
+                    format!(
+                        "{field} is a strike's: this trial stops the ball (set \"mode\": \
+                         \"strike\")"
+                    ),
+                ));
+            }
+        }
+    }
     if let (Some(d), Some(f)) = (req.distance_m, fixed_distance_m)
         && (d - f).abs() > FIXED_DISTANCE_TOLERANCE_M
     {
@@ -890,12 +935,28 @@ pub(crate) fn trial_setup(
             ),
         ));
     }
+    let setup = TrialSetup {
+        distance_m: req.distance_m,
+        movement_time_s: req.movement_time_s,
+        release_deg: req.release_deg,
+        mode: req.mode,
+        strike_speed_mps: req.strike_speed_mps,
+        strike_direction_deg: req.strike_direction_deg,
+    };
+    let own_task =
+        req.mode.is_some() || req.strike_speed_mps.is_some() || req.strike_direction_deg.is_some();
     if req.distance_m.is_some() || req.movement_time_s.is_some() {
         let d = req
             .distance_m
             .or(fixed_distance_m)
             .unwrap_or_else(|| params.task.distance_m.lerp(0.5));
-        let mut b = rt_core::lab::step::trial_beliefs(params, req.movement_time_s);
+        // Reach and pace first, as a stop: a stroke refused there is
+        // refused for its distance or movement time, not its speed.
+        let stop_only = TrialSetup {
+            mode: Some(rt_core::trajectory::TaskMode::Stop),
+            ..setup
+        };
+        let mut b = rt_core::lab::step::trial_beliefs(params, &stop_only);
         b.control.allow_shortest_feasible = false;
         if let Err(e) = rt_core::control::Controller::plan(&b, d) {
             let mt = req.movement_time_s.unwrap_or(params.task.movement_time_s);
@@ -920,11 +981,33 @@ pub(crate) fn trial_setup(
             });
         }
     }
-    Ok(TrialSetup {
-        distance_m: req.distance_m,
-        movement_time_s: req.movement_time_s,
-        release_deg: req.release_deg,
-    })
+    if own_task && mode == rt_core::trajectory::TaskMode::Strike {
+        // The stroke itself (reach, speeds, torques, the swing's clearance)
+        // at the trial's distance, or the middle one when it is drawn.
+        let d = req
+            .distance_m
+            .or(fixed_distance_m)
+            .unwrap_or_else(|| params.task.distance_m.lerp(0.5));
+        let mut b = rt_core::lab::step::trial_beliefs(params, &setup);
+        b.control.allow_shortest_feasible = false;
+        if let Err(e) = rt_core::control::Controller::plan(&b, d) {
+            let field = if req.strike_speed_mps.is_some() {
+                "strike_speed_mps"
+            } else if req.strike_direction_deg.is_some() {
+                "strike_direction_deg"
+            } else {
+                "mode"
+            };
+            return Err(bad(
+                field,
+                format!(
+                    "a strike at {:.2} m/s, {:.0} deg is not feasible at {d} m in {} s: {e}",
+                    b.task.strike_speed_mps, b.task.strike_direction_deg, b.task.movement_time_s
+                ),
+            ));
+        }
+    }
+    Ok(setup)
 }
 
 /// Runs one whole trial (arm, release, intercept); its result appears at
@@ -1556,7 +1639,7 @@ mod tests {
             let req = TrialRequest {
                 distance_m: d,
                 movement_time_s: mt,
-                release_deg: None,
+                ..TrialRequest::default()
             };
             trial_setup(&req, &params, Some(0.6))
         };
@@ -1583,8 +1666,7 @@ mod tests {
             trial_setup(
                 &TrialRequest {
                     distance_m: Some(0.4),
-                    movement_time_s: None,
-                    release_deg: None,
+                    ..TrialRequest::default()
                 },
                 &params,
                 None
@@ -1599,8 +1681,7 @@ mod tests {
         // and the arm's reach) survive to the body.
         let far = TrialRequest {
             distance_m: Some(1.1),
-            movement_time_s: None,
-            release_deg: None,
+            ..TrialRequest::default()
         };
         let (status, v) = refused(&far).await;
         assert_eq!(status, StatusCode::BAD_REQUEST);
@@ -1639,7 +1720,7 @@ mod tests {
         let fast = TrialRequest {
             distance_m: Some(0.8),
             movement_time_s: Some(0.9),
-            release_deg: None,
+            ..TrialRequest::default()
         };
         let (_, v) = refused(&fast).await;
         assert_eq!(v["field"], "movement_time_s", "{v}");
@@ -1649,5 +1730,108 @@ mod tests {
                 && e.contains("limit in 0.90 s (allowed 90%); the shortest feasible duration is"),
             "{e}"
         );
+    }
+
+    /// A trial's own task: a strike on a stop lab (its stroke checked at
+    /// the distance), and what is refused, naming the field: a strike's
+    /// speed or direction on a stop, out of range, a stroke the arm cannot
+    /// do, an unknown mode. Nothing is started by a refused one (the caller
+    /// creates no record before `trial_setup` passes).
+    #[tokio::test]
+    async fn a_trial_may_strike_on_a_stop_lab_and_a_bad_stroke_is_refused_naming_its_field() {
+        use rt_core::trajectory::TaskMode;
+        let params = Scenario::default();
+        assert_eq!(params.task.mode, TaskMode::Stop);
+        let strike = TrialRequest {
+            distance_m: Some(0.6),
+            mode: Some(TaskMode::Strike),
+            strike_speed_mps: Some(0.5),
+            ..TrialRequest::default()
+        };
+        let s = trial_setup(&strike, &params, None).expect("a feasible strike");
+        assert_eq!(
+            (s.mode, s.strike_speed_mps, s.strike_direction_deg),
+            (Some(TaskMode::Strike), Some(0.5), None)
+        );
+        // What the lab plans for it: a stroke at that speed.
+        let b = rt_core::lab::step::trial_beliefs(&params, &s);
+        let plan = rt_core::control::Controller::plan(&b, 0.6).expect("the stroke");
+        assert!(plan.strike.is_some(), "planned as a stop");
+        let stop = rt_core::control::Controller::plan(
+            &rt_core::lab::step::trial_beliefs(&params, &TrialSetup::default()),
+            0.6,
+        )
+        .unwrap();
+        assert!(stop.strike.is_none());
+        for (req, field, says) in [
+            (
+                TrialRequest {
+                    strike_speed_mps: Some(0.5),
+                    ..TrialRequest::default()
+                },
+                "strike_speed_mps",
+                "this trial stops the ball",
+            ),
+            (
+                TrialRequest {
+                    mode: Some(TaskMode::Stop),
+                    strike_direction_deg: Some(10.0),
+                    ..TrialRequest::default()
+                },
+                "strike_direction_deg",
+                "this trial stops the ball",
+            ),
+            (
+                TrialRequest {
+                    mode: Some(TaskMode::Strike),
+                    strike_speed_mps: Some(f64::NAN),
+                    ..TrialRequest::default()
+                },
+                "strike_speed_mps",
+                "out of range",
+            ),
+            (
+                TrialRequest {
+                    mode: Some(TaskMode::Strike),
+                    strike_speed_mps: Some(0.0),
+                    ..TrialRequest::default()
+                },
+                "strike_speed_mps",
+                "meets the ball with speed",
+            ),
+            (
+                TrialRequest {
+                    mode: Some(TaskMode::Strike),
+                    strike_direction_deg: Some(75.0),
+                    ..TrialRequest::default()
+                },
+                "strike_direction_deg",
+                "out of range",
+            ),
+            (
+                TrialRequest {
+                    distance_m: Some(0.75),
+                    mode: Some(TaskMode::Strike),
+                    strike_speed_mps: Some(3.0),
+                    ..TrialRequest::default()
+                },
+                "strike_speed_mps",
+                "is not feasible at 0.75 m",
+            ),
+        ] {
+            let (status, v) = refused(&req).await;
+            assert_eq!(status, StatusCode::BAD_REQUEST, "{req:?}: {v}");
+            assert_eq!(v["field"], field, "{req:?}: {v}");
+            assert!(v["error"].as_str().unwrap().contains(says), "{req:?}: {v}");
+        }
+        // An unknown mode: the body's parse names the field.
+        let e = parse_json::<TrialRequest>(br#"{"mode": "punch"}"#).unwrap_err();
+        let resp = e.into_response();
+        assert_eq!(resp.status(), StatusCode::BAD_REQUEST);
+        let body = axum::body::to_bytes(resp.into_body(), 1 << 16)
+            .await
+            .unwrap();
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(v["field"], "mode", "{v}");
     }
 }

@@ -477,7 +477,7 @@ async fn run(state: Arc<AppState>, opts: DemoOptions, mut counts: Counts) {
         let req = crate::api::TrialRequest {
             distance_m: Some(d),
             movement_time_s: Some(t),
-            release_deg: None,
+            ..crate::api::TrialRequest::default()
         };
         let setup = match state.lab.as_ref() {
             Some(lab) => {

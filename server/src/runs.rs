@@ -47,6 +47,16 @@ pub struct RunRequest {
     pub movement_time_s: Option<f64>,
     /// Every trial's release angle magnitude, degrees (else drawn).
     pub release_deg: Option<f64>,
+    /// Every trial's task, `stop` or `strike` (else the lab's `task.mode`).
+    pub mode: Option<rt_core::trajectory::TaskMode>,
+    /// Every strike's tool speed at contact, m/s (else the lab's); only
+    /// for strikes.
+    #[schema(minimum = 0.0, maximum = 5.0)]
+    pub strike_speed_mps: Option<f64>,
+    /// Every strike's direction above the swing's horizontal, degrees (else
+    /// the lab's); only for strikes.
+    #[schema(minimum = -60.0, maximum = 60.0)]
+    pub strike_direction_deg: Option<f64>,
 }
 
 /// One distance, or a list of them.
@@ -211,6 +221,9 @@ pub fn setups(
                 distance_m: d,
                 movement_time_s: req.movement_time_s,
                 release_deg: req.release_deg,
+                mode: req.mode,
+                strike_speed_mps: req.strike_speed_mps,
+                strike_direction_deg: req.strike_direction_deg,
             };
             let s =
                 crate::api::trial_setup(&one, params, fixed_distance_m).map_err(|e| match e {

@@ -15,6 +15,7 @@ use rt_core::bridge::{
 use rt_core::calibration::{StepView, ViewKind};
 use rt_core::control::PredictedRebound;
 use rt_core::control::measured::{MeasuredJudgement, MeasuredStrike};
+use rt_core::trajectory::TaskMode;
 use ts_rs::TS;
 
 use crate::{
@@ -65,6 +66,7 @@ pub fn declarations() -> String {
         Hello::decl(),
         TrialRecord::decl(),
         Distances::decl(),
+        TaskMode::decl(),
         RunRequest::decl(),
         RunStatus::decl(),
         DemoStatus::decl(),

@@ -853,6 +853,13 @@ pub struct TrialSetup {
     pub movement_time_s: Option<f64>,
     /// The release angle's magnitude, degrees (the side is drawn).
     pub release_deg: Option<f64>,
+    /// The trial's task, stop or strike (`task.mode`).
+    pub mode: Option<crate::trajectory::TaskMode>,
+    /// A strike's tool speed at contact, m/s (`task.strike_speed_mps`).
+    pub strike_speed_mps: Option<f64>,
+    /// A strike's direction above the swing's horizontal, degrees
+    /// (`task.strike_direction_deg`).
+    pub strike_direction_deg: Option<f64>,
 }
 
 impl Command {

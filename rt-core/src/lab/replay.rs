@@ -163,10 +163,12 @@ pub(crate) fn describe_request(req: &IoRequest) -> String {
             auto_release,
             index,
             draw,
-            movement_time_s,
+            setup,
         } => format!(
             "Plan {{ ack: {ack}, trial_id: {trial_id}, auto_release: {auto_release}, \
-             index: {index}, draw: {draw:?}, movement_time_s: {movement_time_s:?} }}"
+             index: {index}, draw: {draw:?}, movement_time_s: {:?}, mode: {:?}, \
+             strike_speed_mps: {:?}, strike_direction_deg: {:?} }}",
+            setup.movement_time_s, setup.mode, setup.strike_speed_mps, setup.strike_direction_deg
         ),
         IoRequest::Params { ack, scenario } => {
             format!("Params {{ ack: {ack}, scenario: {scenario:?} }}")

@@ -174,8 +174,8 @@ pub(crate) enum IoRequest {
         auto_release: bool,
         index: usize,
         draw: TrialDraw,
-        /// The trial's own movement time (else the scenario's).
-        movement_time_s: Option<f64>,
+        /// The trial's own movement time and task (else the scenario's).
+        setup: TrialSetup,
     },
     /// Build a controller for new parameters (answered by [`IoReply::Params`]).
     Params { ack: u64, scenario: Box<Scenario> },
@@ -1050,7 +1050,7 @@ impl LabStep {
             auto_release,
             index: self.trial_index,
             draw,
-            movement_time_s: setup.movement_time_s,
+            setup,
         };
         if self.p.io_requests.push(req).is_ok() {
             self.trial_index += 1;
@@ -1921,11 +1921,21 @@ fn nearest_pass(passes: &[(f64, Vector3<f64>)], t_s: f64) -> Option<(f64, Vector
 /// `isochron-lab-io` in real time, in line in virtual time); `None` for the
 /// other requests.
 /// The beliefs a trial plans on: the scenario's, with the trial's own
-/// movement time when it has one.
-pub fn trial_beliefs(scenario: &Scenario, movement_time_s: Option<f64>) -> crate::control::Beliefs {
+/// movement time and task (stop or strike, a strike's speed and direction)
+/// where `setup` has them.
+pub fn trial_beliefs(scenario: &Scenario, setup: &TrialSetup) -> crate::control::Beliefs {
     let mut b = scenario.beliefs();
-    if let Some(mt) = movement_time_s {
+    if let Some(mt) = setup.movement_time_s {
         b.task.movement_time_s = mt;
+    }
+    if let Some(m) = setup.mode {
+        b.task.mode = m;
+    }
+    if let Some(v) = setup.strike_speed_mps {
+        b.task.strike_speed_mps = v;
+    }
+    if let Some(d) = setup.strike_direction_deg {
+        b.task.strike_direction_deg = d;
     }
     b
 }
@@ -1944,7 +1954,7 @@ pub(crate) fn plan_or_params(
             auto_release,
             index,
             draw,
-            movement_time_s,
+            setup,
         } => IoReply::Plan {
             ack,
             trial_id,
@@ -1952,12 +1962,13 @@ pub(crate) fn plan_or_params(
             index,
             draw,
             // The controller plans on the beliefs only (never `[world]`),
-            // with the trial's own movement time when it has one.
-            plan: Controller::plan(&trial_beliefs(scenario, movement_time_s), draw.distance_m)
-                .map_err(|e| {
+            // with the trial's own movement time and task when it has them.
+            plan: Controller::plan(&trial_beliefs(scenario, &setup), draw.distance_m).map_err(
+                |e| {
                     why = Some(e);
                     crate::bridge::Refusal::Infeasible
-                }),
+                },
+            ),
         },
         IoRequest::Params { ack, scenario: new } => {
             let period = f64::from(new.robot.fri_period_ms) * 1e-3;

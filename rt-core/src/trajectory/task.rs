@@ -6,7 +6,9 @@ use serde::{Deserialize, Serialize};
 use crate::check::{self, ParamError, RangeParam};
 
 /// What a trial's motion does to the ball: `task.mode`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, utoipa::ToSchema, ts_rs::TS,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum TaskMode {
     /// The paper's task: the tool arrives at the intercept point at the

@@ -239,6 +239,54 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
         "the parameters in force changed"
     );
 
+    // This trial strikes (its own task, issue #38) on a lab that stops:
+    // the measured judge judges a stroke at the trial's speed, the
+    // parameters in force still stop, and the next trial stops. A stroke
+    // on a stop without its mode is refused naming the field.
+    let (code, v) = json(addr, "POST", "/api/trials", r#"{"strike_speed_mps": 0.45}"#).await;
+    assert_eq!(
+        (code, v["field"].as_str()),
+        (400, Some("strike_speed_mps")),
+        "{v}"
+    );
+    let mut tries = 0;
+    let rec = loop {
+        tries += 1;
+        let (code, v) = json(
+            addr,
+            "POST",
+            "/api/trials",
+            r#"{"distance_m": 0.6, "mode": "strike", "strike_speed_mps": 0.45}"#,
+        )
+        .await;
+        assert_eq!(code, 202, "{v}");
+        let id = v["id"].as_u64().unwrap();
+        let rec = until(
+            addr,
+            &format!("/api/trials/{id}"),
+            Duration::from_secs(60),
+            |r| r["status"] != "running",
+        )
+        .await;
+        if tries < 3 && starved(&rec) {
+            eprintln!("strike {id} ended by a starved machine: {}", rec["reason"]);
+            until(addr, "/api/health", Duration::from_secs(30), |h| {
+                h["ready"] == true
+            })
+            .await;
+            continue;
+        }
+        break rec;
+    };
+    assert_eq!(rec["status"], "done", "{rec}");
+    let k = &rec["measured"]["strike"];
+    assert_eq!(
+        k["planned_tool_speed_mps"], 0.45,
+        "not struck at 0.45 m/s: {rec}"
+    );
+    let (_, p) = json(addr, "GET", "/api/params", "").await;
+    assert_eq!(p["task"]["mode"], "stop", "the parameters in force changed");
+
     // A run: two trials at 0.50 and 0.70 m, progress and summary.
     let (code, v) = json(
         addr,
@@ -309,6 +357,8 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     // Bad runs: 400 naming the field.
     for (body, field) in [
         (r#"{"n": 0}"#, "n"),
+        (r#"{"n": 2, "strike_speed_mps": 0.5}"#, "strike_speed_mps"),
+        (r#"{"n": 2, "mode": "punch"}"#, "mode"),
         (r#"{"n": 2, "distance_m": [0.5, 5.0]}"#, "distance_m"),
         (
             r#"{"n": 2, "distance_range_m": [0.5, 5.0]}"#,

@@ -963,6 +963,8 @@ judged_by: JudgedBy | null, };
 
 export type Distances = number | Array<number>;
 
+export type TaskMode = "stop" | "strike";
+
 export type RunRequest = { 
 /**
  * How many trials (1..=10000).
@@ -985,7 +987,21 @@ movement_time_s: number | null,
 /**
  * Every trial's release angle magnitude, degrees (else drawn).
  */
-release_deg: number | null, };
+release_deg: number | null, 
+/**
+ * Every trial's task, `stop` or `strike` (else the lab's `task.mode`).
+ */
+mode: TaskMode | null, 
+/**
+ * Every strike's tool speed at contact, m/s (else the lab's); only
+ * for strikes.
+ */
+strike_speed_mps: number | null, 
+/**
+ * Every strike's direction above the swing's horizontal, degrees (else
+ * the lab's); only for strikes.
+ */
+strike_direction_deg: number | null, };
 
 export type RunStatus = { 
 /**
