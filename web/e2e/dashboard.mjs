@@ -538,6 +538,42 @@ try {
     // The tool of an iiwa 7 does not reach 3 m/s; a spike from timing jitter did (~100 m/s).
     assert(a.peaks.executed < 3, `executed path speed peaked at ${a.peaks.executed} m/s (planned ${a.peaks.planned})`);
   });
+  await check("script: a strike posted over REST on this stopping lab shows in the trial history's strike column as its record has it", async () => {
+    // The lab comes back ready after the last trial (home, the magnet's
+    // board): a refusal while it does is waited out, not a failure.
+    let id = null;
+    for (const t0 = Date.now(); id === null; ) {
+      const r = await api("POST", "/api/trials", { distance_m: 0.6, mode: "strike", strike_speed_mps: 0.45 });
+      if (r.status === 202) id = r.json.id;
+      else {
+        assert(r.status === 409 && Date.now() - t0 < 90_000, `POST a strike: ${r.status} ${JSON.stringify(r.json)}`);
+        await page.waitForTimeout(500);
+      }
+    }
+    await page.waitForFunction(
+      (want) => {
+        const tr = document.querySelector("#trials tbody tr");
+        const result = tr?.querySelector("td[data-col=result]")?.textContent;
+        return tr?.querySelector("td[data-col=id]")?.textContent === String(want) && ["hit", "miss", "done", "aborted"].includes(result);
+      },
+      id,
+      { timeout: 90_000 },
+    );
+    const rec = (await api("GET", `/api/trials/${id}`, undefined, false)).json;
+    const cellText = await page.textContent('#trials tbody tr td[data-col="strike"]');
+    measured.strike_row = { cell: cellText, reason: rec.reason };
+    const k = rec.measured?.strike;
+    if (rec.status === "aborted" || !k) {
+      // A starved machine's trial: ended or not judged, and it says why.
+      assert(rec.status === "aborted" || /^not judged \(measured\)/.test(rec.reason ?? ""), `a strike without its figures: ${JSON.stringify(rec)}`);
+      return;
+    }
+    assert(k.planned_tool_speed_mps === 0.45, `planned ${k.planned_tool_speed_mps}: ${JSON.stringify(k)}`);
+    const two = (x) => (typeof x === "number" && Number.isFinite(x) ? x.toFixed(2) : "–");
+    assert(cellText.startsWith(`tool 0.45 → ${two(k.tool_speed_mps)}, ball ${k.predicted ? `${two(k.predicted.ball_speed_mps)} → ` : ""}`), `strike cell "${cellText}" for ${JSON.stringify(k)}`);
+    const p = await api("GET", "/api/params");
+    assert(p.json.task.mode === "stop", `the parameters in force changed to ${p.json.task.mode}`);
+  });
   // The Calibration panel walks through every step on the simulated lab (its
   // world's webcam, cabinet and board; the world's operator holds the board,
   // fits the marker, hangs the ball where the prompts say and stops it by
