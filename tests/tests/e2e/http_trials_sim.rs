@@ -138,6 +138,37 @@ async fn json(
     (r.status, r.json().unwrap_or(serde_json::Value::Null))
 }
 
+/// Posts a trial with `body` and waits for its record to end. A trial a
+/// starved machine's devices ended (the simulated lab's magnet board is a
+/// thread of the service: beside `stress-ng` it once stayed silent past its
+/// timeouts while it held the ball) finished with its reason and is posted
+/// again, twice at most.
+async fn post_trial_until_ended(addr: std::net::SocketAddr, body: &str) -> serde_json::Value {
+    let mut tries = 0;
+    loop {
+        tries += 1;
+        let (code, v) = json(addr, "POST", "/api/trials", body).await;
+        assert_eq!(code, 202, "{body}: {v}");
+        let id = v["id"].as_u64().unwrap();
+        let rec = until(
+            addr,
+            &format!("/api/trials/{id}"),
+            Duration::from_secs(60),
+            |r| r["status"] != "running",
+        )
+        .await;
+        if tries < 3 && starved(&rec) {
+            eprintln!("trial {id} ended by a starved machine: {}", rec["reason"]);
+            until(addr, "/api/health", Duration::from_secs(30), |h| {
+                h["ready"] == true
+            })
+            .await;
+            continue;
+        }
+        return rec;
+    }
+}
+
 /// Polls `GET path` until `pred` holds, at most `timeout`.
 async fn until(
     addr: std::net::SocketAddr,
@@ -195,39 +226,8 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
     );
 
     // This trial's own distance and movement time (the parameters in force
-    // unchanged). A trial a starved machine's devices ended (the simulated
-    // lab's magnet board is a thread of the service: beside `stress-ng` it
-    // once stayed silent past its timeouts while it held the ball) finished
-    // with its reason and is run again, twice at most.
-    let mut tries = 0;
-    let rec = loop {
-        tries += 1;
-        let (code, v) = json(
-            addr,
-            "POST",
-            "/api/trials",
-            r#"{"distance_m": 0.7, "movement_time_s": 2.0}"#,
-        )
-        .await;
-        assert_eq!(code, 202, "{v}");
-        let id = v["id"].as_u64().unwrap();
-        let rec = until(
-            addr,
-            &format!("/api/trials/{id}"),
-            Duration::from_secs(60),
-            |r| r["status"] != "running",
-        )
-        .await;
-        if tries < 3 && starved(&rec) {
-            eprintln!("trial {id} ended by a starved machine: {}", rec["reason"]);
-            until(addr, "/api/health", Duration::from_secs(30), |h| {
-                h["ready"] == true
-            })
-            .await;
-            continue;
-        }
-        break rec;
-    };
+    // unchanged).
+    let rec = post_trial_until_ended(addr, r#"{"distance_m": 0.7, "movement_time_s": 2.0}"#).await;
     assert_eq!(rec["status"], "done", "{rec}");
     let d = rec["distance_m"].as_f64().unwrap();
     let mt = rec["movement_time_s"].as_f64().unwrap();
@@ -249,35 +249,11 @@ async fn a_script_sets_a_trials_distance_and_timing_and_runs_batches() {
         (400, Some("strike_speed_mps")),
         "{v}"
     );
-    let mut tries = 0;
-    let rec = loop {
-        tries += 1;
-        let (code, v) = json(
-            addr,
-            "POST",
-            "/api/trials",
-            r#"{"distance_m": 0.6, "mode": "strike", "strike_speed_mps": 0.45}"#,
-        )
-        .await;
-        assert_eq!(code, 202, "{v}");
-        let id = v["id"].as_u64().unwrap();
-        let rec = until(
-            addr,
-            &format!("/api/trials/{id}"),
-            Duration::from_secs(60),
-            |r| r["status"] != "running",
-        )
-        .await;
-        if tries < 3 && starved(&rec) {
-            eprintln!("strike {id} ended by a starved machine: {}", rec["reason"]);
-            until(addr, "/api/health", Duration::from_secs(30), |h| {
-                h["ready"] == true
-            })
-            .await;
-            continue;
-        }
-        break rec;
-    };
+    let rec = post_trial_until_ended(
+        addr,
+        r#"{"distance_m": 0.6, "mode": "strike", "strike_speed_mps": 0.45}"#,
+    )
+    .await;
     assert_eq!(rec["status"], "done", "{rec}");
     let k = &rec["measured"]["strike"];
     assert_eq!(
